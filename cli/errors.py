@@ -1,0 +1,44 @@
+"""One table from error type to exit code; every error reaches the user as one line."""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from collections.abc import Callable
+
+from illm_tools.errors import IllmError
+
+# error type -> (exit code, prefix). The message itself says what to do next.
+EXIT_CODES: dict[type[BaseException], tuple[int, str]] = {
+    IllmError: (1, "error"),
+    FileNotFoundError: (1, "error: file not found"),
+    PermissionError: (1, "error: permission denied"),
+    KeyboardInterrupt: (130, "interrupted"),
+}
+
+
+def report(exc: BaseException) -> int:
+    """Print one line for a known error and return its exit code; re-raise unknown ones."""
+    for kind, (code, prefix) in EXIT_CODES.items():
+        if isinstance(exc, kind):
+            msg = str(exc).strip().splitlines()[0] if str(exc).strip() else kind.__name__
+            print(f"{prefix}: {msg}", file=sys.stderr)
+            if os.environ.get("ILLM_TRACEBACK"):
+                raise exc
+            return code
+    raise exc
+
+
+def friendly(fn: Callable) -> Callable:
+    """Decorator for a command: known errors become one line and a non-zero exit code
+    (set ILLM_TRACEBACK=1 for the traceback)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except tuple(EXIT_CODES) as exc:  # noqa: B030
+            raise SystemExit(report(exc)) from None
+
+    return wrapper

@@ -1,0 +1,53 @@
+"""The `illm` command line: one Typer app, one module per command group; the commands only
+parse options, build a config and call the library."""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import typer
+
+from illm_tools import __version__
+
+app = typer.Typer(
+    name="illm",
+    help="Offline LLM annotation and distillation for exploration in RL (iLLM).\n\n"
+    "Stages: collect -> annotate -> train -> eval. Each reads what the stage before it wrote.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"illm {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details."),
+) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+
+
+def _register() -> None:
+    from cli import collect, data
+
+    collect.register(app)
+    app.add_typer(data.app, name="data")
+
+
+_register()
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

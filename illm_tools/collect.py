@@ -1,0 +1,148 @@
+"""The collect stage: step a pool of text environments with a policy and log every step to a
+trajectory dataset (schema `trajectory` v1)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from illm_tools.data.trajectories import TrajectoryWriter
+from illm_tools.errors import UsageError
+
+
+@dataclass
+class CollectConfig:
+    """Everything that determines a collection run."""
+
+    env_id: str
+    """Gymnasium id of the environment, e.g. BabyAI-GoToLocal-v0."""
+    out: Path
+    """Folder of the trajectory dataset to write."""
+    steps: int = 20_000
+    """Total environment steps to log, summed over the parallel envs."""
+    num_envs: int = 8
+    """Environments stepped side by side in one process."""
+    seed: int = 0
+    """Base seed: episode seeds and the random policy derive from it."""
+    policy: str = "random"
+    """'random', or a training run folder whose policy picks the actions."""
+    action_space: str = "augmented"
+    """BabyAI action vocabulary: original (3), augmented (6) or irrelevant (9); paper Table 5."""
+    num_dists: int | None = None
+    """Number of distractors for levels that take it (paper Table 1); None keeps the level's own."""
+    save_raw: bool = True
+    """Store the raw observation array beside its text (needed by the Hopfield path)."""
+    mode: str = "new"
+    """new: refuse a folder that holds data; append: add to it; overwrite: replace it once done."""
+    shard_rows: int = 50_000
+    """Rows per Arrow shard."""
+    env_options: dict = field(default_factory=dict)
+    """Extra keyword options for the environment constructor."""
+
+    def __post_init__(self) -> None:
+        self.out = Path(self.out)
+        if self.steps <= 0:
+            raise UsageError(f"--steps must be positive, got {self.steps}")
+        if self.num_envs <= 0:
+            raise UsageError(f"--num-envs must be positive, got {self.num_envs}")
+        if self.mode not in ("new", "append", "overwrite"):
+            raise UsageError(f"unknown mode {self.mode!r}")
+
+
+class Policy(Protocol):
+    """Chooses one action index per environment from the pool's current observations."""
+
+    name: str
+
+    def act(self, obs) -> np.ndarray: ...
+
+
+class RandomPolicy:
+    """Uniform over the action vocabulary, seeded."""
+
+    name = "random"
+
+    def __init__(self, num_actions: int, seed: int):
+        self.num_actions = num_actions
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, obs) -> np.ndarray:
+        return self.rng.integers(0, self.num_actions, size=len(obs.missions))
+
+
+def make_policy(config: CollectConfig, pool) -> Policy:
+    if config.policy == "random":
+        return RandomPolicy(len(pool.action_names), config.seed)
+    from illm_tools.rl.checkpoint import load_policy  # a trained run's policy
+
+    return load_policy(config.policy, pool)
+
+
+def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | None = None) -> dict:
+    """Run the collection; returns a summary (rows, episodes, successes, output folder)."""
+    from illm_tools.envs import renderer_of
+    from illm_tools.envs.pool import EnvPool
+
+    pool = EnvPool(config.env_id, config.num_envs, config.seed, action_space=config.action_space,
+                   num_dists=config.num_dists, **config.env_options)
+    policy = make_policy(config, pool)
+    renderer = renderer_of(config.env_id)
+    names = list(pool.action_names)
+    n = pool.num_envs
+    writer = TrajectoryWriter(config.out, mode=config.mode, shard_rows=config.shard_rows)
+    next_episode = writer.first_episode_id
+    episode_ids = np.arange(next_episode, next_episode + n)
+    next_episode += n
+    finished = successes = 0
+    returns: list[float] = []
+    with writer:
+        obs = pool.reset()
+        done_steps = 0
+        while done_steps < config.steps:
+            take = min(n, config.steps - done_steps)  # the last batch may log fewer envs
+            actions = np.asarray(policy.act(obs), dtype=np.int64)
+            result = pool.step(actions)
+            shape = list(obs.images.shape[1:])
+            dtype = str(obs.images.dtype)
+            writer.add({
+                "episode_id": episode_ids[:take].tolist(),
+                "step": obs.steps[:take].tolist(),
+                "env_id": [config.env_id] * take,
+                "mission": obs.missions[:take],
+                "obs_text": obs.texts[:take],
+                "renderer": [renderer] * take,
+                "obs_raw": [obs.images[i].tobytes() for i in range(take)] if config.save_raw else [None] * take,
+                "obs_shape": [shape] * take if config.save_raw else [None] * take,
+                "obs_dtype": [dtype] * take if config.save_raw else [None] * take,
+                "action": actions[:take].tolist(),
+                "action_text": [names[a] for a in actions[:take]],
+                "valid_actions": [names] * take,
+                "reward": result.rewards[:take].tolist(),
+                "terminated": result.terminated[:take].tolist(),
+                "truncated": result.truncated[:take].tolist(),
+                "seed": obs.seeds[:take].tolist(),
+                "policy": [policy.name] * take,
+            })
+            done_steps += take
+            for i, ret, _length, success in result.episodes:
+                finished += 1
+                successes += int(success)
+                returns.append(float(ret))
+                episode_ids[i] = next_episode
+                next_episode += 1
+            obs = result.obs
+            if on_progress is not None:
+                on_progress(take, {"episodes": finished, "success_rate": successes / max(finished, 1)})
+    return {
+        "out": str(config.out),
+        "rows": writer.rows_written,
+        "episodes_finished": finished,
+        "success_rate": successes / max(finished, 1),
+        "mean_return": float(np.mean(returns)) if returns else 0.0,
+        "env_id": config.env_id,
+        "policy": policy.name,
+    }

@@ -1,0 +1,230 @@
+"""Trajectory datasets on disk: the sharded writer, the checked reader, and `data info`.
+
+Layout is the one `datasets.Dataset.save_to_disk` writes, so `datasets.load_from_disk(DIR)` and
+plain pyarrow read it with no illm code:
+
+    DIR/data-00000.arrow ...   Arrow IPC stream shards (schema version in their metadata)
+    DIR/dataset_info.json      Hugging Face features
+    DIR/state.json             the list of shards; rewritten atomically, last
+
+A dataset becomes visible whole: a new or overwritten dataset is written to a staging folder and
+renamed into place at the end; appended shards are listed in state.json only once complete. A
+crash leaves the old dataset as it was.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+import uuid
+from collections.abc import Iterable
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.compute as pc
+
+import schemas
+from illm_tools.data import schema as schema_check
+from illm_tools.errors import OutputExistsError, UsageError
+
+KIND = "trajectory"
+STATE = "state.json"
+INFO = "dataset_info.json"
+
+
+def _fsync_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _shard_files(root: Path) -> list[str]:
+    state = json.loads((root / STATE).read_text())
+    return [f["filename"] for f in state["_data_files"]]
+
+
+def _is_dataset(root: Path) -> bool:
+    return (root / STATE).is_file()
+
+
+class TrajectoryWriter:
+    """Append steps column-wise; shards of `shard_rows` rows are written as they fill.
+
+    mode: "new" refuses a folder that holds anything; "append" adds shards to an existing
+    trajectory dataset; "overwrite" replaces it, but only once the new one is complete.
+    """
+
+    def __init__(self, out: str | Path, *, mode: str = "new", shard_rows: int = 50_000):
+        if mode not in ("new", "append", "overwrite"):
+            raise UsageError(f"unknown write mode {mode!r}: use new, append or overwrite")
+        self.out = Path(out)
+        self.mode = mode
+        self.shard_rows = shard_rows
+        self.definition = schemas.load(KIND)
+        self.arrow_schema = self._with_hf_features(self.definition.arrow)
+        self._buffer: dict[str, list] = {name: [] for name in self.definition.names}
+        self._new_files: list[str] = []
+        self.rows_written = 0
+        self.first_episode_id = 0
+
+        exists = self.out.exists() and any(self.out.iterdir())
+        if exists and mode == "new":
+            raise OutputExistsError(
+                f"{self.out} already holds data: pass --append to add to it or --overwrite to replace it"
+            )
+        if mode == "append" and exists:
+            if not _is_dataset(self.out):
+                raise OutputExistsError(f"{self.out} holds files but no illm trajectory dataset: choose another --out")
+            open_table(self.out, columns=["episode_id"])  # refuses another kind or version
+            self._old_files = _shard_files(self.out)
+            self.first_episode_id = self._next_episode_id()
+            self.workdir = self.out
+        else:
+            if mode == "overwrite" and exists and not _is_dataset(self.out):
+                raise OutputExistsError(
+                    f"{self.out} holds files that are not an illm trajectory dataset: refusing to overwrite them"
+                )
+            self._old_files = []
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            self.workdir = self.out.parent / f".{self.out.name}.staging-{uuid.uuid4().hex[:8]}"
+            self.workdir.mkdir()
+
+    @staticmethod
+    def _with_hf_features(arrow_schema: pa.Schema) -> pa.Schema:
+        import datasets  # lazily: heavy import
+
+        features = datasets.Features.from_arrow_schema(arrow_schema)
+        meta = dict(arrow_schema.metadata)
+        meta[b"huggingface"] = json.dumps({"info": {"features": features.to_dict()}}).encode()
+        return arrow_schema.with_metadata(meta)
+
+    def _next_episode_id(self) -> int:
+        table = open_table(self.out, columns=["episode_id"])
+        if table.num_rows == 0:
+            return 0
+        return int(pc.max(table["episode_id"]).as_py()) + 1
+
+    def add(self, columns: dict[str, Iterable]) -> None:
+        """Add rows given as a dict of equal-length column sequences (all schema columns)."""
+        missing = set(self._buffer) - set(columns)
+        if missing:
+            raise ValueError(f"rows lack columns {sorted(missing)}")
+        for name, values in columns.items():
+            self._buffer[name].extend(values)
+        while len(self._buffer["episode_id"]) >= self.shard_rows:
+            self._flush(self.shard_rows)
+
+    def _flush(self, limit: int | None = None) -> None:
+        n = min(len(self._buffer["episode_id"]), limit or self.shard_rows)
+        if n == 0:
+            return
+        head = {k: v[:n] for k, v in self._buffer.items()}
+        batch = pa.RecordBatch.from_pydict(head, schema=self.arrow_schema)
+        index = len(self._old_files) + len(self._new_files)
+        name = f"data-{index:05d}-{uuid.uuid4().hex[:6]}.arrow"
+        tmp = self.workdir / f".{name}.tmp"
+        with pa.OSFile(str(tmp), "wb") as sink, pa.ipc.new_stream(sink, self.arrow_schema) as writer:
+            writer.write_batch(batch)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, self.workdir / name)
+        self._new_files.append(name)
+        self.rows_written += n
+        self._buffer = {k: v[n:] for k, v in self._buffer.items()}
+
+    def close(self) -> Path:
+        """Write the last shards and the state; make the dataset visible. Returns its folder."""
+        while self._buffer["episode_id"]:
+            self._flush()
+        import datasets
+
+        features = datasets.Features.from_arrow_schema(self.arrow_schema)
+        files = self._old_files + self._new_files
+        state = {
+            "_data_files": [{"filename": f} for f in files],
+            "_fingerprint": uuid.uuid4().hex[:16],
+            "_format_columns": None,
+            "_format_kwargs": {},
+            "_format_type": None,
+            "_output_all_columns": False,
+            "_split": None,
+        }
+        info = {"citation": "", "description": f"illm {KIND} v{self.definition.version}",
+                "features": features.to_dict(), "homepage": "", "license": ""}
+        _fsync_write(self.workdir / INFO, json.dumps(info, indent=2))
+        _fsync_write(self.workdir / STATE, json.dumps(state, indent=2))  # last: the commit point
+        if self.workdir != self.out:
+            self._swap_into_place()
+        return self.out
+
+    def _swap_into_place(self) -> None:
+        old = None
+        if self.out.exists():
+            old = self.out.parent / f".{self.out.name}.old-{int(time.time())}-{uuid.uuid4().hex[:6]}"
+            os.replace(self.out, old)
+        os.replace(self.workdir, self.out)
+        if old is not None:
+            shutil.rmtree(old)
+
+    def abort(self) -> None:
+        """Drop what this writer staged; the dataset on disk stays as it was."""
+        if self.workdir != self.out:
+            shutil.rmtree(self.workdir, ignore_errors=True)
+        else:
+            for name in self._new_files:
+                (self.out / name).unlink(missing_ok=True)
+
+    def __enter__(self) -> "TrajectoryWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def open_table(path: str | Path, columns: list[str] | None = None) -> pa.Table:
+    """Read a trajectory dataset as one pyarrow Table, refusing another kind or version."""
+    root = Path(path)
+    if not _is_dataset(root):
+        raise UsageError(f"no trajectory dataset at {root}: run `illm collect --out {root}` first")
+    tables = []
+    for name in _shard_files(root):
+        with pa.memory_map(str(root / name)) as source:
+            table = pa.ipc.open_stream(source).read_all()
+        schema_check.check(table.schema, KIND, root / name)
+        tables.append(table.select(columns) if columns else table)
+    if not tables:
+        return schemas.load(KIND).arrow.empty_table()
+    return pa.concat_tables(tables)
+
+
+def info(path: str | Path) -> dict:
+    """Rows, episodes, env ids, schema version and size of a trajectory dataset."""
+    root = Path(path)
+    table = open_table(root, columns=["episode_id", "env_id", "policy", "terminated", "reward"])
+    files = _shard_files(root)
+    kind, version = KIND, None
+    if files:
+        with pa.memory_map(str(root / files[0])) as source:
+            _, version = schema_check.kind_and_version(pa.ipc.open_stream(source).schema)
+    ends = table.filter(table["terminated"]) if table.num_rows else table
+    successes = int(pc.sum(pc.greater(ends["reward"], 0)).as_py() or 0) if ends.num_rows else 0
+    return {
+        "path": str(root),
+        "kind": kind,
+        "schema_version": version if version is not None else schemas.load(KIND).version,
+        "rows": table.num_rows,
+        "episodes": len(pc.unique(table["episode_id"])) if table.num_rows else 0,
+        "successful_episodes": successes,
+        "env_ids": sorted(pc.unique(table["env_id"]).to_pylist()),
+        "policies": sorted(pc.unique(table["policy"]).to_pylist()),
+        "shards": len(files),
+        "bytes": sum((root / f).stat().st_size for f in files),
+    }
