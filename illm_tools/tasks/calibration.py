@@ -1,0 +1,36 @@
+"""Turning stored candidate log-probs into the LLM's distribution over actions.
+
+The cache keeps raw scores (summed log-prob, token count, log-prob after a neutral prompt), so
+the calibration is chosen at training time without re-running the LLM:
+- `sum`: the summed log-prob of the candidate's tokens (the paper's ranking);
+- `mean`: the mean per token (removes the length penalty of multi-token actions);
+- `pmi`: summed log-prob minus the log-prob after a neutral prompt (removes the model's prior
+  preference for an action whatever the state; small models' raw rankings collapse onto one
+  action, see DESIGN.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+CALIBRATIONS = ("sum", "mean", "pmi")
+
+
+def action_scores(logprob_sum, token_count, neutral_sum, calibration: str) -> np.ndarray:
+    """Scores per candidate under a calibration; arrays of shape [..., A]."""
+    s = np.asarray(logprob_sum, dtype=np.float64)
+    if calibration == "sum":
+        return s
+    if calibration == "mean":
+        return s / np.maximum(np.asarray(token_count, dtype=np.float64), 1.0)
+    if calibration == "pmi":
+        return s - np.asarray(neutral_sum, dtype=np.float64)
+    raise ValueError(f"unknown calibration {calibration!r}: use one of {', '.join(CALIBRATIONS)}")
+
+
+def action_distribution(logprob_sum, token_count, neutral_sum, calibration: str) -> np.ndarray:
+    """Softmax of the calibrated scores over the last axis (float32)."""
+    z = action_scores(logprob_sum, token_count, neutral_sum, calibration)
+    z = z - z.max(axis=-1, keepdims=True)
+    p = np.exp(z)
+    return (p / p.sum(axis=-1, keepdims=True)).astype(np.float32)

@@ -1,0 +1,143 @@
+"""Language tasks: versioned prompt templates (paper Appendix B.2), the history format (B.1), and
+the named inputs that make a cache key. `illm annotate` and `illm train` both build prompts and
+keys here, so a state seen by the trainer finds the row the annotator wrote.
+
+Two template layouts:
+- `paper`: the paper's prompts as printed (the action prompt lists the valid actions before the
+  history, so the two tasks share only their first line);
+- `shared` (default): the same wording with the history first in both prompts, so the prefix
+  "You are an expert player playing ... Recent player's history: ..." is computed once for both
+  tasks (see illm_tools.annotate).
+Changing a template's text must bump its version (tests pin each version's text hash).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+from illm_tools.cache.keys import make_key
+from illm_tools.errors import UsageError
+from illm_tools.tasks.state import StateRecord
+
+TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
+TASKS = ("action", "summary")
+LAYOUTS = ("shared", "paper")
+# (task, layout) -> (template file, version). Bump the version when the file's text changes.
+# Both layouts use the same summary prompt, so their summary keys (and cache rows) coincide.
+TEMPLATES = {
+    ("action", "paper"): ("action.paper", 1),
+    ("action", "shared"): ("action.shared", 1),
+    ("summary", "paper"): ("summary", 1),
+    ("summary", "shared"): ("summary", 1),
+}
+NEUTRAL_VERSION = 1
+SUMMARY_TOKENS = 64
+
+
+@lru_cache(maxsize=None)
+def template_text(name: str) -> str:
+    return (TEMPLATE_DIR / f"{name}.txt").read_text().rstrip("\n")
+
+
+def template_sha(name: str) -> str:
+    return hashlib.sha256(template_text(name).encode()).hexdigest()[:16]
+
+
+def game_of(env_id: str) -> str:
+    """The game named in the prompt's "You are an expert player playing {task}"."""
+    family = env_id.split("-", 1)[0]
+    return {"BabyAI": "BabyAI", "MiniGrid": "MiniGrid", "MiniHack": "MiniHack"}.get(family, family)
+
+
+def format_history(record: StateRecord) -> str:
+    """Paper B.1: numbered observation/action pairs, oldest first, then the current observation."""
+    lines = []
+    for i, (obs, act) in enumerate(record.history):
+        lines.append(f"Observation {i}: {_one_line(obs)}")
+        lines.append(f"Action {i}: {act}")
+    lines.append(f"Observation {len(record.history)}: {_one_line(record.observation)}")
+    return "\n" + "\n".join(lines)
+
+
+def _one_line(text: str) -> str:
+    return ", ".join(part.strip() for part in text.splitlines() if part.strip()) or "nothing"
+
+
+@dataclass(frozen=True)
+class Prompt:
+    """A rendered prompt and the parts it was made of."""
+
+    task: str
+    text: str
+    goal: str
+    history: str
+    observation: str
+    candidates: tuple[str, ...] | None
+
+
+@dataclass(frozen=True)
+class PromptBuilder:
+    """Renders one env's states into the prompts of the language tasks, and keys them.
+
+    `model_fingerprint` is the hash of the model's named fingerprint inputs; `renderer` the
+    env's text renderer (name@version). Decoding parameters are part of every key.
+    """
+
+    env_id: str
+    renderer: str
+    model_fingerprint: str
+    model: str
+    history_len: int = 3
+    layout: str = "shared"
+
+    def __post_init__(self) -> None:
+        if self.layout not in LAYOUTS:
+            raise UsageError(f"unknown template layout {self.layout!r}: use one of {', '.join(LAYOUTS)}")
+        if self.history_len < 0:
+            raise UsageError(f"--history must be 0 or more, got {self.history_len}")
+
+    def template(self, task: str) -> tuple[str, int]:
+        """(template file name, version) of a task in this layout."""
+        return TEMPLATES[(task, self.layout)]
+
+    def decoding(self, task: str) -> dict:
+        if task == "action":
+            return {"method": "candidate-logprob", "neutral": f"neutral@{NEUTRAL_VERSION}"}
+        return {"method": "greedy", "max_new_tokens": SUMMARY_TOKENS}
+
+    def task_line(self, record: StateRecord) -> str:
+        return f"{game_of(self.env_id)}. The goal is: {record.mission}."
+
+    def render(self, task: str, record: StateRecord) -> Prompt:
+        if task not in TASKS:
+            raise UsageError(f"unknown language task {task!r}: use one of {', '.join(TASKS)}")
+        history = format_history(record)
+        fields = {"task": self.task_line(record), "history": history, "actions": ", ".join(record.valid_actions)}
+        text = template_text(self.template(task)[0]).format(**fields)
+        candidates = tuple(" " + a for a in record.valid_actions) if task == "action" else None
+        return Prompt(task, text, record.mission, history, record.observation, candidates)
+
+    def key(self, prompt: Prompt) -> str:
+        """The cache key: every named input that determines the LLM's answer."""
+        return make_key(
+            task=prompt.task,
+            template=self.template(prompt.task)[0],
+            template_version=self.template(prompt.task)[1],
+            renderer=self.renderer,
+            model_fingerprint=self.model_fingerprint,
+            decoding=self.decoding(prompt.task),
+            prompt=prompt.text,
+            candidates=list(prompt.candidates) if prompt.candidates is not None else None,
+        )
+
+    def keys(self, task: str, records: list[StateRecord]) -> tuple[list[str], list[Prompt]]:
+        prompts = [self.render(task, r) for r in records]
+        return [self.key(p) for p in prompts], prompts
+
+
+def neutral_prompt() -> str:
+    """The context for PMI calibration: each candidate's log-prob after it is subtracted later."""
+    return template_text("neutral")

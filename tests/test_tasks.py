@@ -1,0 +1,121 @@
+"""Language tasks: template versions are pinned, history follows paper B.1, keys are stable and
+sensitive, records from a table equal records from live tracking, calibrations behave."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from illm_tools.errors import UsageError
+from illm_tools.tasks.calibration import action_distribution
+from illm_tools.tasks.prompts import TEMPLATES, PromptBuilder, format_history, template_sha
+from illm_tools.tasks.state import HistoryTracker, StateRecord, records_from_table
+
+# Changing a template's text must bump its version in VERSIONS and the hash here.
+PINNED = {
+    ("action.paper", 1): "6bb4e298db731814",
+    ("action.shared", 1): "e26ba63753ebba15",
+    ("summary", 1): "176b9227a05ae00e",
+}
+
+ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
+
+
+def builder(**kw) -> PromptBuilder:
+    args = dict(env_id="BabyAI-GoToLocal-v0", renderer="babyai-text@1", model_fingerprint="f" * 16,
+                model="smollm2-135m")
+    args.update(kw)
+    return PromptBuilder(**args)
+
+
+def record(obs="You see a red ball 1 step forward", history=()):
+    return StateRecord("go to the red ball", tuple(history), obs, ACTIONS)
+
+
+@pytest.mark.parametrize("name,version", sorted(set(TEMPLATES.values())))
+def test_template_text_is_pinned_to_its_version(name, version):
+    assert template_sha(name) == PINNED[(name, version)]
+
+
+def test_history_follows_paper_b1():
+    rec = record(history=[("You see a wall 2 steps forward", "turn left"), ("You see nothing", "go forward")])
+    assert format_history(rec) == (
+        "\nObservation 0: You see a wall 2 steps forward\nAction 0: turn left\n"
+        "Observation 1: You see nothing\nAction 1: go forward\n"
+        "Observation 2: You see a red ball 1 step forward"
+    )
+
+
+def test_prompts_carry_the_paper_text_and_candidates():
+    b = builder(layout="paper")
+    p = b.render("action", record())
+    assert p.text.startswith("You are an expert player playing BabyAI. The goal is: go to the red ball.\n")
+    assert "Valid actions: turn left, turn right, go forward, pick up, drop, toggle\nYou see: \n" in p.text
+    assert p.candidates == tuple(" " + a for a in ACTIONS)
+    s = b.render("summary", record())
+    assert "Summarize the main points of the player's history into a short text:" in s.text
+    assert s.candidates is None
+
+
+def test_shared_layout_puts_the_history_in_a_common_prefix():
+    b = builder(layout="shared")
+    a, s = b.render("action", record()), b.render("summary", record())
+    head = "Recent player's history: " + a.history + "\n"
+    assert head in a.text and head in s.text
+    assert a.text.index(head) == s.text.index(head)
+
+
+def test_keys_are_stable_and_sensitive():
+    b = builder()
+    p = b.render("action", record())
+    assert b.key(p) == builder().key(builder().render("action", record()))
+    changed = [
+        builder(model_fingerprint="e" * 16).key(p),
+        builder(renderer="babyai-text@2").key(p),
+        builder(layout="paper").key(builder(layout="paper").render("action", record())),
+        b.key(b.render("action", record(obs="You see a wall 1 step forward"))),
+        b.key(b.render("summary", record())),
+        builder(history_len=2).key(builder(history_len=2).render("action", record(history=[("a", "drop")]))),
+    ]
+    assert len({b.key(p), *changed}) == len(changed) + 1
+
+
+def test_bad_layout_is_refused():
+    with pytest.raises(UsageError, match="layout"):
+        builder(layout="fancy")
+
+
+def test_records_from_a_table_equal_live_tracking():
+    # Two envs, interleaved rows, episode boundary in env 0 after step 2.
+    steps = [  # (episode, step, text, action index, done)
+        (0, 0, "a0", 0, False), (1, 0, "b0", 1, False), (0, 1, "a1", 2, False), (1, 1, "b1", 3, False),
+        (0, 2, "a2", 4, True), (1, 2, "b2", 5, False), (2, 0, "c0", 0, False), (1, 3, "b3", 1, False),
+    ]
+    table = pa.table({
+        "episode_id": [s[0] for s in steps], "step": [s[1] for s in steps],
+        "env_id": ["BabyAI-GoToLocal-v0"] * len(steps), "mission": ["go"] * len(steps),
+        "obs_text": [s[2] for s in steps], "action_text": [ACTIONS[s[3]] for s in steps],
+        "valid_actions": [list(ACTIONS)] * len(steps),
+    })
+    from_table, _ = records_from_table(table, history_len=2)
+    tracker = HistoryTracker(2, 2, ACTIONS)
+    live = []
+    for t in range(0, len(steps), 2):
+        pair = steps[t:t + 2]
+        live += tracker.records(["go", "go"], [s[2] for s in pair])
+        tracker.push([s[2] for s in pair], [s[3] for s in pair], [s[4] for s in pair])
+    assert from_table == live
+    assert from_table[5].history == (("b0", "turn right"), ("b1", "pick up"))
+    assert from_table[6].history == ()
+
+
+def test_calibrations():
+    sums = np.array([[-2.0, -4.0, -9.0]])
+    counts = np.array([[1, 2, 3]])
+    neutral = np.array([[-1.0, -5.0, -9.5]])
+    assert action_distribution(sums, counts, neutral, "sum").argmax() == 0
+    assert np.allclose(action_distribution(sums, counts, neutral, "mean"),
+                       np.exp([-2, -2, -3]) / np.exp([-2, -2, -3]).sum())
+    assert action_distribution(sums, counts, neutral, "pmi").argmax() == 1
+    assert np.allclose(action_distribution(sums, counts, neutral, "sum").sum(), 1.0)
