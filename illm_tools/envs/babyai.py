@@ -1,0 +1,196 @@
+"""BabyAI-Text: the text renderer for MiniGrid/BabyAI observations, the action vocabularies of
+paper Table 5, and the gymnasium wrapper that puts the rendered text into `info`.
+
+The renderer follows paper Appendix C.1 and the BabyAI-Text code of GLAM
+(flowersteam/Grounding_LLMs_with_online_RL, `babyai-text/gym-minigrid/gym_minigrid/minigrid.py`,
+`MiniGridEnv.gen_graph`). Sentences, in this order, joined with ", " as GLAM's prompts do:
+
+1. "You carry a <colour> <object>" when the agent's own cell (bottom middle of the view) holds an
+   object: MiniGrid draws the carried object there.
+2. Walls, GLAM's rule: cast a ray from the agent straight forward, then to its left, then to its
+   right (along the agent's own row); skip unseen and empty cells; if the first other cell is a
+   wall, say "You see a wall N steps forward|left|right". Other walls are not described.
+3. Every other visible non-empty, non-wall cell, column by column from the agent's left, far to
+   near within a column (GLAM's loop order): "You see a <colour> <object> <location>", doors as
+   "You see a closed|locked <colour> door ..." / "You see an open <colour> door ..." (GLAM's code
+   writes "a open" through a comparison bug; the paper's template says "a(n)", so we write "an").
+   <location> is "N steps left|right", "N steps forward" or "N steps left|right and M steps
+   forward", with "1 step" singular.
+
+CHANGING THE RENDERED TEXT IN ANY WAY MUST BUMP `RENDERER_VERSION`: "babyai-text@<version>" goes
+into every annotation cache key, so a changed renderer with an unchanged version would silently
+serve annotations of other texts.
+"""
+from __future__ import annotations
+
+import contextlib
+import inspect
+import io
+import logging
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.envs.registration import load_env_creator
+from minigrid.core.actions import Actions
+from minigrid.core.constants import IDX_TO_COLOR, IDX_TO_OBJECT, OBJECT_TO_IDX, STATE_TO_IDX
+
+from illm_tools.errors import UsageError
+
+RENDERER_NAME = "babyai-text"
+RENDERER_VERSION = 1
+
+log = logging.getLogger(__name__)
+
+_UNSEEN, _EMPTY, _WALL = OBJECT_TO_IDX["unseen"], OBJECT_TO_IDX["empty"], OBJECT_TO_IDX["wall"]
+_DOOR = OBJECT_TO_IDX["door"]
+_CARRIABLE = tuple(OBJECT_TO_IDX[name] for name in ("key", "ball", "box"))
+_IDX_TO_STATE = {idx: name for name, idx in STATE_TO_IDX.items()}
+
+# Action vocabularies of paper Table 5 (Appendix D.6), each name mapped to a MiniGrid action.
+# The three irrelevant actions map to MiniGrid's `done`, which changes nothing in the world and
+# still counts one step toward the time limit (see `_check_done_is_noop`).
+_MINIGRID_ACTION = {
+    "turn left": Actions.left, "turn right": Actions.right, "go forward": Actions.forward,
+    "pick up": Actions.pickup, "drop": Actions.drop, "toggle": Actions.toggle,
+    "sleep": Actions.done, "do nothing": Actions.done, "think": Actions.done,
+}
+ACTION_SPACES: dict[str, tuple[str, ...]] = {
+    "original": ("turn left", "turn right", "go forward"),
+    "augmented": ("turn left", "turn right", "go forward", "pick up", "drop", "toggle"),
+    "irrelevant": ("turn left", "turn right", "go forward", "pick up", "drop", "toggle",
+                   "sleep", "do nothing", "think"),
+}
+DEFAULT_ACTION_SPACE = "augmented"
+
+
+def _steps(n: int, direction: str) -> str:
+    return f"{n} step {direction}" if n == 1 else f"{n} steps {direction}"
+
+
+def _location(dx: int, forward: int) -> str:
+    """Where a cell lies: dx columns right (negative: left) and `forward` rows ahead."""
+    side = _steps(dx, "right") if dx > 0 else _steps(-dx, "left")
+    if dx == 0:
+        return _steps(forward, "forward")
+    if forward == 0:
+        return side
+    return f"{side} and {_steps(forward, 'forward')}"
+
+
+def _object_phrase(obj: int, colour: int, state: int) -> str:
+    name = f"{IDX_TO_COLOR[colour]} {IDX_TO_OBJECT[obj]}"
+    if obj != _DOOR:
+        return f"a {name}"
+    door_state = _IDX_TO_STATE[state]
+    return f"{'an' if door_state == 'open' else 'a'} {door_state} {name}"
+
+
+def _first_wall(types: np.ndarray) -> int:
+    """Distance (1-based) to the wall ending a ray of cell types, 0 when the ray meets no wall first."""
+    hits = np.flatnonzero(types > _EMPTY)  # skip unseen (0) and empty (1) cells
+    return int(hits[0]) + 1 if hits.size and types[hits[0]] == _WALL else 0
+
+
+def describe(image: np.ndarray) -> list[str]:
+    """The BabyAI-Text sentences for one egocentric view (MiniGrid's `image`, indexed [x, y, channel]
+    with channels (object, colour, state); the agent sits at the bottom middle facing up)."""
+    width, height = image.shape[0], image.shape[1]
+    ax, ay = width // 2, height - 1
+    types = image[:, :, 0]
+    sentences = []
+    if types[ax, ay] in _CARRIABLE:
+        sentences.append(f"You carry a {IDX_TO_COLOR[int(image[ax, ay, 1])]} {IDX_TO_OBJECT[int(types[ax, ay])]}")
+    # MiniGrid views are odd-sized and at least 3x3, so ax and ay are >= 1 and the rays are well formed
+    for ray, direction in ((types[ax, ay - 1::-1], "forward"), (types[ax - 1::-1, ay], "left"),
+                           (types[ax + 1:, ay], "right")):
+        distance = _first_wall(ray)
+        if distance:
+            sentences.append(f"You see a wall {_steps(distance, direction)}")
+    mask = types > _WALL
+    mask[ax, ay] = False
+    for x, y in zip(*np.nonzero(mask)):  # row-major over [x, y]: GLAM's column-by-column order
+        obj, colour, state = image[x, y].tolist()
+        sentences.append(f"You see {_object_phrase(obj, colour, state)} {_location(int(x) - ax, ay - int(y))}")
+    return sentences
+
+
+def render_text(image: np.ndarray) -> str:
+    """The BabyAI-Text description of one view: `describe`'s sentences joined with ", "."""
+    return ", ".join(describe(image))
+
+
+def _check_done_is_noop(action_space: str) -> None:
+    # With BABYAI_DONE_ACTIONS set, BabyAI's verifier ends the episode on `done`; the irrelevant
+    # actions would then no longer be irrelevant. minigrid reads the flag once, at import.
+    from minigrid.envs.babyai.core import verifier
+
+    if action_space == "irrelevant" and verifier.use_done_actions:
+        raise UsageError("the 'irrelevant' action space maps sleep/do nothing/think to MiniGrid's "
+                         "done action, which BABYAI_DONE_ACTIONS makes end the episode: unset it")
+
+
+class BabyAITextEnv(gym.Wrapper):
+    """A MiniGrid/BabyAI env with a text action vocabulary; `info` carries `text` (the rendered
+    observation, "" when render_text=False), `mission` and `valid_actions` after reset and step.
+    Observations are MiniGrid's own dict (image, direction, mission)."""
+
+    def __init__(self, env: gym.Env, action_space: str = DEFAULT_ACTION_SPACE, render_text: bool = True):
+        if action_space not in ACTION_SPACES:
+            raise UsageError(f"unknown action space {action_space!r}; choose one of {', '.join(ACTION_SPACES)}")
+        _check_done_is_noop(action_space)
+        super().__init__(env)
+        self.action_names: tuple[str, ...] = ACTION_SPACES[action_space]
+        self.action_space = gym.spaces.Discrete(len(self.action_names))
+        self.render_text = render_text
+        self._to_minigrid = [int(_MINIGRID_ACTION[name]) for name in self.action_names]
+
+    def _info(self, obs: dict, info: dict) -> dict:
+        info["text"] = render_text(obs["image"]) if self.render_text else ""
+        info["mission"] = obs["mission"]
+        info["valid_actions"] = list(self.action_names)
+        return info
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        # BabyAI's level generator print()s every rejected sample; keep that out of our output.
+        with contextlib.redirect_stdout(io.StringIO()) as chatter:
+            obs, info = self.env.reset(seed=seed, options=options)
+        if chatter.getvalue():
+            log.debug("level generation: %s", chatter.getvalue().strip())
+        return obs, self._info(obs, info)
+
+    def step(self, action: Any):
+        try:
+            minigrid_action = self._to_minigrid[int(action)]
+        except (IndexError, TypeError, ValueError):
+            raise UsageError(f"action {action!r} is not in 0..{len(self.action_names) - 1} "
+                             f"({', '.join(self.action_names)})") from None
+        obs, reward, terminated, truncated, info = self.env.step(minigrid_action)
+        return obs, reward, terminated, truncated, self._info(obs, info)
+
+
+def make_babyai_text(env_id: str, *, action_space: str = DEFAULT_ACTION_SPACE, num_dists: int | None = None,
+                     render_text: bool = True, **kwargs: Any) -> BabyAITextEnv:
+    """gym.make(env_id) wrapped as BabyAITextEnv; `num_dists` only for levels whose class takes it."""
+    if num_dists is not None:
+        if not accepts_num_dists(env_id):
+            raise UsageError(f"{env_id} has no distractor setting (num_dists); drop --num-dists or use a "
+                             "level that has one, e.g. BabyAI-GoToLocal-v0")
+        if int(num_dists) < 0:
+            raise UsageError(f"num_dists must be >= 0, got {num_dists}")
+        kwargs["num_dists"] = int(num_dists)
+    return BabyAITextEnv(gym.make(env_id, **kwargs), action_space=action_space, render_text=render_text)
+
+
+def accepts_num_dists(env_id: str) -> bool:
+    """Whether the level's class takes a `num_dists` argument (GoTo*, Synth*, ...; paper Table 1)."""
+    creator = load_env_creator(gym.spec(env_id).entry_point)
+    return "num_dists" in inspect.signature(creator).parameters
+
+
+def env_ids() -> list[str]:
+    """The BabyAI-* and MiniGrid-* ids that minigrid registers (importing minigrid registers them)."""
+    import minigrid  # noqa: F401  (registers the ids)
+
+    return sorted(k for k in gym.registry if k.startswith(("BabyAI-", "MiniGrid-")))
+

@@ -1,0 +1,105 @@
+"""EnvPool: determinism, episode seeds, same-step autoreset and episode statistics."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from illm_tools.envs import make_env
+from illm_tools.envs.pool import EnvPool
+from illm_tools.errors import UsageError
+
+ENV = "BabyAI-GoToLocal-v0"
+
+
+def _run(pool: EnvPool, steps: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    history = [pool.reset()]
+    results = []
+    for _ in range(steps):
+        results.append(pool.step(rng.integers(0, len(pool.action_names), pool.num_envs)))
+        history.append(results[-1].obs)
+    return history, results
+
+
+def test_reset_shapes_and_dtypes():
+    pool = EnvPool(ENV, 3, seed=10)
+    obs = pool.reset()
+    assert obs.images.shape == (3, 7, 7, 3) and obs.images.dtype == np.uint8
+    assert obs.directions.dtype == np.int64 and obs.directions.shape == (3,)
+    assert obs.seeds.tolist() == [10, 11, 12] and obs.steps.tolist() == [0, 0, 0]
+    assert all(t.startswith("You see") for t in obs.texts) and all(obs.missions)
+    assert pool.action_names == ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
+
+
+def test_same_seed_same_episodes():
+    a, _ = _run(EnvPool(ENV, 4, seed=7), 40)
+    b, _ = _run(EnvPool(ENV, 4, seed=7), 40)
+    assert [o.texts for o in a] == [o.texts for o in b]
+    assert all(np.array_equal(x.images, y.images) for x, y in zip(a, b))
+    c, _ = _run(EnvPool(ENV, 4, seed=8), 1)
+    assert c[0].texts != a[0].texts
+
+
+def test_env_matches_a_single_env_with_the_same_seed():
+    pool = EnvPool(ENV, 2, seed=3)
+    obs = pool.reset()
+    env = make_env(ENV)
+    _, info = env.reset(seed=4)
+    assert obs.texts[1] == info["text"] and obs.missions[1] == info["mission"]
+
+
+def test_same_step_autoreset_and_episode_stats():
+    pool = EnvPool(ENV, 4, seed=0, action_space="irrelevant")
+    pool.reset()
+    limit = pool.envs[0].unwrapped.max_steps
+    assert limit > 0
+    seeds_seen = set(range(4))
+    finished = []
+    for t in range(1, 2 * limit + 1):
+        result = pool.step(np.full(4, 7))  # "do nothing": every episode runs into the time limit
+        if t % limit:
+            assert not result.episodes and result.obs.steps.tolist() == [t % limit] * 4
+            continue
+        assert result.truncated.all() and not result.terminated.any()
+        assert result.obs.steps.tolist() == [0, 0, 0, 0]  # already the new episodes' first states
+        k = t // limit
+        assert result.obs.seeds.tolist() == [k * 4 + i for i in range(4)]
+        assert not seeds_seen & set(result.obs.seeds.tolist())
+        seeds_seen |= set(result.obs.seeds.tolist())
+        finished += result.episodes
+        for i in range(4):
+            fresh = make_env(ENV)
+            _, info = fresh.reset(seed=int(result.obs.seeds[i]))
+            assert result.obs.texts[i] == info["text"]
+    assert [(e.env_index, e.episode_return, e.length, e.success) for e in finished] == \
+        [(i, 0.0, limit, False) for i in range(4)] * 2
+
+
+def test_success_counts_terminated_with_reward():
+    _, results = _run(EnvPool(ENV, 8, seed=0, num_dists=1), 300)
+    episodes = [e for r in results for e in r.episodes]
+    assert any(e.success for e in episodes)  # random walks find the goal with one distractor
+    for r in results:
+        for i, ret, length, success in r.episodes:
+            assert r.terminated[i] or r.truncated[i]
+            assert success == bool(r.terminated[i] and r.rewards[i] > 0)
+            assert length >= 1 and (ret > 0) == (r.rewards[i] > 0)
+
+
+def test_render_false_skips_text_only():
+    with_text, _ = _run(EnvPool(ENV, 3, seed=5), 20)
+    without, _ = _run(EnvPool(ENV, 3, seed=5, render=False), 20)
+    assert all(t == "" for o in without for t in o.texts)
+    assert all(np.array_equal(x.images, y.images) and x.missions == y.missions
+               for x, y in zip(with_text, without))
+
+
+def test_usage_errors():
+    pool = EnvPool(ENV, 2, seed=0)
+    with pytest.raises(UsageError, match="before reset"):
+        pool.step(np.zeros(2, dtype=np.int64))
+    pool.reset()
+    with pytest.raises(UsageError, match="expected 2 actions"):
+        pool.step(np.zeros(3, dtype=np.int64))
+    with pytest.raises(UsageError):
+        EnvPool(ENV, 0, seed=0)
