@@ -1,0 +1,83 @@
+"""The command line: --help for every command, the collect -> data info path, and one-line errors
+with non-zero exit codes that leave what is on disk untouched."""
+
+from __future__ import annotations
+
+import json
+
+import datasets
+import pytest
+from typer.testing import CliRunner
+
+from cli.main import app
+
+runner = CliRunner()
+
+
+def commands(group=app, prefix=()):
+    import typer.main
+
+    click_group = typer.main.get_command(group)
+    out = []
+
+    def walk(cmd, path):
+        out.append(path)
+        for name, sub in getattr(cmd, "commands", {}).items():
+            walk(sub, path + (name,))
+
+    walk(click_group, prefix)
+    return out
+
+
+@pytest.mark.parametrize("path", commands(), ids=lambda p: " ".join(p) or "illm")
+def test_every_command_has_help_with_an_example(path):
+    result = runner.invoke(app, [*path, "--help"])
+    assert result.exit_code == 0, result.output
+    if path and path[-1] not in ("data", "cache"):
+        assert "Example: illm" in result.output
+
+
+def test_version():
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.output.startswith("illm ")
+
+
+def test_collect_then_info(tmp_path):
+    out = tmp_path / "traj"
+    result = runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", "300", "--num-envs", "4",
+                                 "--out", str(out), "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    assert "collected 300 steps" in result.output
+    ds = datasets.load_from_disk(str(out))
+    assert len(ds) == 300 and ds[0]["renderer"] == "babyai-text@1"
+    assert ds[0]["obs_text"].startswith("You see") or ds[0]["obs_text"].startswith("You carry")
+    info = runner.invoke(app, ["data", "info", str(out), "--json"])
+    stats = json.loads(info.output)
+    assert stats["rows"] == 300 and stats["env_ids"] == ["BabyAI-GoToLocal-v0"] and stats["schema_version"] == 1
+
+
+def test_collect_refuses_existing_output_and_keeps_it(tmp_path):
+    out = tmp_path / "traj"
+    args = ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", "40", "--num-envs", "2", "--out", str(out)]
+    assert runner.invoke(app, args).exit_code == 0
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    result = runner.invoke(app, args)
+    assert result.exit_code == 1
+    assert "already holds data: pass --append" in result.output
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+    assert runner.invoke(app, [*args, "--append"]).exit_code == 0
+    assert json.loads(runner.invoke(app, ["data", "info", str(out), "--json"]).output)["rows"] == 80
+    assert runner.invoke(app, [*args, "--append", "--overwrite"]).exit_code != 0
+
+
+def test_unknown_env_is_one_line_with_close_matches(tmp_path):
+    result = runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocl-v0", "--steps", "10", "--out", str(tmp_path / "x")])
+    assert result.exit_code == 1
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "did you mean BabyAI-GoToLocal-v0" in lines[0]
+    assert not (tmp_path / "x").exists()
+
+
+def test_data_info_on_a_missing_folder(tmp_path):
+    result = runner.invoke(app, ["data", "info", str(tmp_path / "none")])
+    assert result.exit_code == 1 and "illm collect" in result.output
