@@ -1,0 +1,297 @@
+"""AnnotationCache: reads and append-only writes of one annotation-cache directory.
+
+Readers see exactly the shards listed in the manifest. Each shard is checked (sha256, size, schema,
+row count) the first time this object reads it and its ``key`` column goes into a vectorised
+in-memory index; ``refresh()`` picks up shards other writers have added since. Writers hold the
+directory's flock for the whole write, so concurrent writers never lose each other's shards and
+never store a key twice. The file format itself lives in ``layout``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import os
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from illm_tools.cache import layout
+from illm_tools.cache.index import InvalidKeyError, KeyIndex, parse_keys
+from illm_tools.errors import CacheError, SchemaError
+
+_OPEN_SHARDS = 64  # shards kept memory-mapped per cache object
+
+
+@dataclass
+class AdoptReport:
+    """What ``adopt_orphans`` did with the unlisted shards it found."""
+
+    adopted: list[str] = field(default_factory=list)  # listed as they are
+    rewritten: list[str] = field(default_factory=list)  # partly known: new rows went to a new shard
+    removed: list[str] = field(default_factory=list)  # every key already present: deleted
+    rejected: list[str] = field(default_factory=list)  # unreadable or wrong schema: left in place
+    temp_removed: list[str] = field(default_factory=list)  # leftovers of crashed writes
+
+
+class AnnotationCache:
+    """One cache directory. ``root`` may not exist yet; it is created by the first write."""
+
+    def __init__(self, root: str | os.PathLike) -> None:
+        self.root = Path(root)
+        layout.check_root(self.root)
+        self.schema = layout.arrow_schema()
+        self._reset()
+        self.refresh()
+
+    def _reset(self) -> None:
+        self._index = KeyIndex()
+        self._shards: list[dict] = []  # manifest entries, in index order
+        self._starts: list[int] = []  # global row id of each shard's first row
+        self._checked: set[tuple] = set()  # (name, inode, size, mtime_ns) of shards seen valid
+        self._open: OrderedDict[int, tuple[tuple, pa.Table]] = OrderedDict()  # LRU
+
+    # ---- reading -------------------------------------------------------------------------
+
+    def refresh(self) -> int:
+        """Index shards the manifest gained since the last call; return how many."""
+        listed = layout.read_manifest(self.root)["shards"]
+        known = [s["name"] for s in self._shards]
+        if [s["name"] for s in listed[: len(known)]] != known:
+            self._reset()  # the manifest was rewritten (e.g. replaced by a copy): start over
+        entries = listed[len(self._shards) :]
+        keys = [self._read(entry).column("key") for entry in entries]  # all checked, or raise
+        if keys:
+            lengths = np.array([len(k) for k in keys])
+            try:
+                self._index.add(pa.chunked_array([c for k in keys for c in k.chunks], pa.string()))
+            except InvalidKeyError as e:
+                i = bisect.bisect_right(np.cumsum(lengths), e.position)
+                row = e.position - int(lengths[:i].sum())
+                raise CacheError(
+                    f"shard {entries[i]['name']}: row {row} holds a malformed key; "
+                    f"{layout.verify_hint(self.root)}"
+                ) from e
+            self._starts += (self._index.n_rows - lengths.sum() + np.cumsum(lengths) - lengths).tolist()
+            self._shards += entries
+        return len(entries)
+
+    def _read(self, entry: dict) -> pa.Table:
+        """Read a listed shard, refusing it unless it matches its manifest entry. The check
+        (sha256 of the file) runs once per (name, inode, size, mtime) seen by this object."""
+        name, path = entry["name"], self.root / entry["name"]
+        stamp = self._stamp(path, name)
+        if stamp not in self._checked:
+            if stamp[2] != entry["bytes"] or layout.sha256_file(path) != entry["sha256"]:
+                raise CacheError(
+                    f"shard {name} is damaged (size or checksum differs from the manifest); "
+                    f"{layout.verify_hint(self.root)}"
+                )
+        table = layout.read_shard(path)
+        if stamp not in self._checked:
+            layout.check_shard_schema(table.schema, f"shard {name}")
+            if table.num_rows != entry["rows"]:
+                raise CacheError(f"shard {name} has {table.num_rows} rows, manifest says {entry['rows']}")
+            self._checked.add(stamp)
+        return table
+
+    def _stamp(self, path: Path, name: str) -> tuple:
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            raise CacheError(f"shard {name} is listed but missing; {layout.verify_hint(self.root)}") from None
+        return (name, st.st_ino, st.st_size, st.st_mtime_ns)
+
+    def _table(self, shard: int) -> pa.Table:
+        """A listed shard, memory-mapped; re-checked if the file changed since it was opened."""
+        entry = self._shards[shard]
+        opened = self._open.pop(shard, None)
+        stamp = self._stamp(self.root / entry["name"], entry["name"])
+        if opened is None or opened[0] != stamp:
+            opened = (stamp, self._read(entry))
+        self._open[shard] = opened
+        if len(self._open) > _OPEN_SHARDS:
+            self._open.popitem(last=False)
+        return opened[1]
+
+    def _gather(self, rows: np.ndarray, columns: Sequence[str]) -> pa.Table:
+        """The given global rows (all >= 0), in that order, with the given columns."""
+        starts = np.asarray(self._starts, np.int64)
+        shard = np.searchsorted(starts, rows, "right") - 1
+        order = np.argsort(shard, kind="stable")
+        parts = []
+        for s in np.unique(shard):
+            local = rows[shard == s] - starts[s]
+            parts.append(self._table(int(s)).select(list(columns)).take(pa.array(local)))
+        if not parts:
+            return self.schema.empty_table().select(list(columns))
+        grouped = pa.concat_tables(parts)
+        return grouped.take(pa.array(np.argsort(order, kind="stable")))
+
+    def _found(self, keys, task: str | None) -> tuple[np.ndarray, np.ndarray]:
+        rows = self._index.locate(keys)
+        if task is not None:
+            if task not in layout.TASKS:
+                raise ValueError(f"task must be one of {layout.TASKS}, got {task!r}")
+            hit = np.flatnonzero(rows >= 0)
+            tasks = self._gather(rows[hit], ["task"]).column("task").to_numpy(zero_copy_only=False)
+            rows[hit[tasks != task]] = -1
+        return rows, rows >= 0
+
+    def contains(self, keys: Sequence[str]) -> np.ndarray:
+        """Boolean mask: which keys the cache holds."""
+        return self._index.locate(keys) >= 0
+
+    def lookup(self, keys: Sequence[str], task: str | None = None) -> dict[str, dict]:
+        """Full rows (plain Python values) of the keys found, optionally only of one task."""
+        rows, found = self._found(keys, task)
+        table = self._gather(rows[found], self.schema.names)
+        return {row["key"]: row for row in table.to_pylist()}
+
+    def get_columns(
+        self, keys: Sequence[str], columns: Sequence[str], task: str | None = None
+    ) -> dict[str, Any]:
+        """Columns for the trainer, aligned with ``keys``; ``found`` is the bool mask of hits.
+
+        ``embedding`` comes as np.float32 [n, d] (NaN rows where absent or null); every other
+        column as a list with None where the key is absent.
+        """
+        unknown = sorted(set(columns) - set(self.schema.names))
+        if unknown:
+            raise CacheError(f"no columns {unknown} in the annotation schema")
+        rows, found = self._found(keys, task)
+        table = self._gather(rows[found], columns)
+        out: dict[str, Any] = {"found": found}
+        hit = np.flatnonzero(found)
+        for name in columns:
+            if name == "embedding":
+                out[name] = _embeddings(table.column(name), hit, len(found))
+                continue
+            values: list = [None] * len(found)
+            for i, v in zip(hit, table.column(name).to_pylist()):
+                values[i] = v
+            out[name] = values
+        return out
+
+    def __len__(self) -> int:
+        return len(self._index)
+
+    def shard_rows(self, name: str) -> int:
+        """Rows of a listed shard (as of the last refresh)."""
+        return next(s["rows"] for s in self._shards if s["name"] == name)
+
+    def _distinct(self, columns: list[str]) -> pa.Table:
+        """The given columns of every distinct key's row."""
+        return self._gather(np.flatnonzero(self._index.first_rows()), columns)
+
+    def tasks(self) -> dict[str, int]:
+        """Number of entries per task."""
+        counts = self._distinct(["task"]).column("task").value_counts()
+        return {c["values"].as_py(): c["counts"].as_py() for c in counts}
+
+    def info(self) -> dict:
+        """Summary for ``illm cache info``: entries per task and model, embedding dims, sizes."""
+        t = self._distinct(["task", "model", "embedding_dim"])
+        by = t.group_by(["task", "model"]).aggregate([("task", "count")])
+        dims = pc.unique(t.column("embedding_dim").drop_null()).to_pylist()
+        return {
+            "root": str(self.root),
+            "schema": f"{layout.KIND} v{self.schema.metadata[b'illm.version'].decode()}",
+            "entries": len(self),
+            "tasks": self.tasks(),
+            "models": {f"{r['task']}/{r['model']}": r["task_count"] for r in by.to_pylist()},
+            "embedding_dims": sorted(dims),
+            "shards": len(self._shards),
+            "bytes": sum(s["bytes"] for s in self._shards),
+        }
+
+    # ---- writing -------------------------------------------------------------------------
+
+    def _checkpoint(self, stage: str) -> None:
+        """Hook called at each stage of a write; tests replace it to simulate crashes."""
+
+    def write(self, rows: list[dict] | pa.Table) -> str | None:
+        """Append the rows whose keys are new as one shard; return its name (None if none new)."""
+        table = layout.to_table(rows, self.schema)
+        self.root.mkdir(parents=True, exist_ok=True)
+        with layout.locked(self.root):
+            return self._append(table)
+
+    def _append(self, table: pa.Table) -> str | None:
+        """Write under the lock: de-duplicate against the current manifest, then publish."""
+        layout.check_root(self.root)
+        self.refresh()
+        new = np.zeros(table.num_rows, bool)
+        full, _, _ = parse_keys(table.column("key"))
+        new[np.unique(full, return_index=True)[1]] = True
+        new &= ~self.contains(table.column("key"))
+        if not new.any():
+            return None
+        table = table.filter(pa.array(new))
+        entry = layout.write_shard(self.root, table, self._checkpoint)
+        self._publish(entry)
+        return entry["name"]
+
+    def _publish(self, entry: dict) -> None:
+        manifest = layout.read_manifest(self.root)
+        manifest["shards"].append(entry)
+        layout.write_manifest(self.root, manifest, self._checkpoint)
+        self.refresh()
+
+    def adopt_orphans(self) -> AdoptReport:
+        """Repair after a crash: list valid unlisted shards, drop redundant ones and temp files."""
+        report = AdoptReport()
+        if not self.root.is_dir():
+            return report
+        with layout.locked(self.root):  # every writer holds it, so no write is in progress
+            for name in layout.temp_files(self.root):
+                (self.root / name).unlink()
+                report.temp_removed.append(name)
+            self.refresh()
+            listed = {s["name"] for s in self._shards}
+            for name in layout.shard_files(self.root):
+                if name not in listed:
+                    self._adopt(name, report)
+        return report
+
+    def _adopt(self, name: str, report: AdoptReport) -> None:
+        path = self.root / name
+        try:
+            table = layout.read_shard(path)
+            layout.check_shard_schema(table.schema, f"shard {name}")
+            layout.to_table(table, self.schema)
+        except (CacheError, SchemaError):
+            report.rejected.append(name)
+            return
+        known = self.contains(table.column("key"))
+        if known.all():
+            path.unlink()
+            report.removed.append(name)
+        elif known.any() or len(set(table.column("key").to_pylist())) < table.num_rows:
+            self._append(table)
+            path.unlink()
+            report.rewritten.append(name)
+        else:
+            size = path.stat().st_size
+            self._publish(layout.manifest_entry(name, table.num_rows, layout.sha256_file(path), size))
+            report.adopted.append(name)
+
+
+def _embeddings(column: pa.ChunkedArray, hit: np.ndarray, n: int) -> np.ndarray:
+    """Stack list<float32> values into float32 [n, d], NaN where absent; one d for all rows."""
+    lengths = pc.unique(pc.list_value_length(column).drop_null()).to_pylist()
+    if len(lengths) > 1:
+        raise CacheError(f"embeddings of different sizes {sorted(lengths)}; select one model's keys")
+    d = lengths[0] if lengths else 0
+    out = np.full((n, d), np.nan, np.float32)
+    arr = column.combine_chunks()
+    present = ~arr.is_null().to_numpy(zero_copy_only=False)
+    if d and present.any():
+        values = pc.list_flatten(arr.filter(pa.array(present))).to_numpy().astype(np.float32)
+        out[hit[present]] = values.reshape(-1, d)
+    return out

@@ -1,0 +1,148 @@
+"""Whole-cache checks and merges: ``verify`` (behind `illm cache verify`) and ``merge``.
+
+``verify`` reads every file and reports every problem it finds instead of stopping at the first;
+``merge`` copies what a target lacks from verified sources through the target's ordinary atomic
+write path, so a merge interrupted at any point leaves the target valid.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pyarrow as pa
+
+from illm_tools.cache import layout
+from illm_tools.cache.index import InvalidKeyError, KeyIndex
+from illm_tools.cache.store import AnnotationCache
+from illm_tools.errors import CacheError, SchemaError, UsageError
+
+
+@dataclass
+class VerifyReport:
+    """Outcome of ``verify``. ``ok`` is about the visible cache: orphans and temp files are
+    leftovers of interrupted writes, reported but harmless (``adopt_orphans`` repairs them)."""
+
+    root: str
+    schema: str = ""
+    shards: int = 0
+    rows: int = 0
+    keys: int = 0
+    problems: list[str] = field(default_factory=list)
+    orphans: list[str] = field(default_factory=list)
+    temp_files: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+@dataclass
+class MergeReport:
+    """Outcome of ``merge``: per source, shards written into the target and rows copied/skipped."""
+
+    into: str
+    shards_written: list[str] = field(default_factory=list)
+    rows_copied: int = 0
+    rows_skipped: int = 0
+    sources: dict[str, dict] = field(default_factory=dict)
+
+
+def verify(root: str | os.PathLike) -> VerifyReport:
+    """Check the manifest and every listed shard: checksum, size, schema, rows, duplicate keys."""
+    root = Path(root)
+    report = VerifyReport(root=str(root))
+    if not (root / layout.MANIFEST).is_file():
+        report.problems.append(f"{root} has no {layout.MANIFEST}: not an annotation cache")
+        return report
+    try:
+        manifest = layout.read_manifest(root)
+    except (CacheError, SchemaError) as e:
+        report.problems.append(str(e))
+        return report
+    report.schema = f"{manifest['kind']} v{manifest['version']}"
+    report.shards = len(manifest["shards"])
+    index = KeyIndex()
+    listed = set()
+    for entry in manifest["shards"]:
+        listed.add(entry.get("name"))
+        problem = _check_shard(root, entry, index)
+        if problem:
+            report.problems.append(problem)
+        else:
+            report.rows += entry["rows"]
+    if len(listed) < len(manifest["shards"]):
+        report.problems.append("the manifest lists a shard more than once")
+    report.keys = len(index)
+    report.orphans = [n for n in layout.shard_files(root) if n not in listed]
+    report.temp_files = layout.temp_files(root)
+    return report
+
+
+def _check_shard(root: Path, entry: dict, index: KeyIndex) -> str | None:
+    """One listed shard's problem, or None; its keys go into ``index`` to find duplicates."""
+    try:
+        name = entry["name"]
+        path = root / name
+        if not path.is_file():
+            return f"shard {name}: listed in the manifest but missing"
+        size = path.stat().st_size
+        if size != entry["bytes"]:
+            return f"shard {name}: {size} bytes, manifest says {entry['bytes']} (truncated or altered)"
+        if layout.sha256_file(path) != entry["sha256"]:
+            return f"shard {name}: sha256 differs from the manifest (damaged)"
+        table = layout.read_shard(path)
+        layout.check_shard_schema(table.schema, f"shard {name}")
+        if table.num_rows != entry["rows"]:
+            return f"shard {name}: {table.num_rows} rows, manifest says {entry['rows']}"
+        try:
+            new = index.add(table.column("key"))
+        except InvalidKeyError as e:
+            return f"shard {name}: {e}"
+    except (KeyError, TypeError) as e:
+        return f"manifest entry {entry!r} is malformed ({e})"
+    except (CacheError, SchemaError) as e:
+        return str(e)
+    if not new.all():
+        return f"shard {name}: {int((~new).sum())} keys duplicate keys of earlier rows"
+    return None
+
+
+def merge(sources: list[str | os.PathLike], into: str | os.PathLike) -> MergeReport:
+    """Copy into ``into`` every row of ``sources`` whose key it lacks. Sources are only read;
+    a damaged source is refused before anything is written."""
+    into = Path(into)
+    resolved = {Path(s).resolve() for s in sources}
+    if into.exists() and into.resolve() in resolved:
+        raise UsageError(f"cannot merge {into} into itself")
+    for src in map(Path, sources):
+        report = verify(src)
+        if not report.ok:
+            raise CacheError(
+                f"source {src} failed verification ({report.problems[0]}); "
+                f"run `illm cache verify {src}`; nothing was merged"
+            )
+    target = AnnotationCache(into)  # refuses a folder that is not a cache
+    out = MergeReport(into=str(into))
+    for src in map(Path, sources):
+        copied = skipped = 0
+        for entry in layout.read_manifest(src)["shards"]:
+            table = _read_verified(src, entry)
+            name = target.write(table)
+            added = target.shard_rows(name) if name else 0
+            copied, skipped = copied + added, skipped + table.num_rows - added
+            if name:
+                out.shards_written.append(name)
+        out.sources[str(src)] = {"rows_copied": copied, "rows_skipped": skipped}
+        out.rows_copied += copied
+        out.rows_skipped += skipped
+    return out
+
+
+def _read_verified(root: Path, entry: dict) -> pa.Table:
+    """Re-check a source shard as it is read (it may have changed since ``verify``)."""
+    path = root / entry["name"]
+    if layout.sha256_file(path) != entry["sha256"]:
+        raise CacheError(f"source shard {path} changed during the merge; run `illm cache verify {root}`")
+    return layout.read_shard(path)

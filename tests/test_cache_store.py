@@ -1,0 +1,331 @@
+"""Annotation cache: round trip, de-duplication, crash safety, concurrent writers, damage
+detection, merge, schema checks, and reading the shards without illm."""
+
+from __future__ import annotations
+
+import json
+import os
+import multiprocessing as mp
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from illm_tools.cache import AnnotationCache, make_key, merge, verify
+from illm_tools.cache import layout
+from illm_tools.cache.index import KeyIndex
+from illm_tools.errors import CacheError, SchemaError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def make_rows(start: int, stop: int, tag: str = "t") -> list[dict]:
+    """Valid rows: even i are action rows, odd i summary rows (embedding dim 4)."""
+    rows = []
+    for i in range(start, stop):
+        action = i % 2 == 0
+        rows.append({
+            "key": make_key(tag=tag, i=i), "task": "action" if action else "summary",
+            "template_version": 1, "renderer": "babyai-text@1", "model": "smollm2-135m",
+            "model_fingerprint": "f" * 64, "decoding": '{"temperature":0}', "history_len": 3,
+            "goal": "go to the red ball", "history": "turn left", "observation": f"obs {i}",
+            "prompt": f"prompt {i}",
+            "candidates": ["turn left", "go forward"] if action else None,
+            "cand_token_logprobs": [[-0.5, -0.25], [-1.5]] if action else None,
+            "cand_logprob_sum": [-0.75, -1.5] if action else None,
+            "cand_token_count": [2, 1] if action else None,
+            "neutral_logprob_sum": [-1.0, -2.0] if action else None,
+            "chosen_index": 0 if action else None,
+            "text": None if action else f"summary {i}",
+            "embedding": None if action else [float(i), 0.5, -0.25, 1.0],
+            "embedding_dim": None if action else 4,
+            "created_unix": 1700000000.5,
+        })
+    return rows
+
+
+def keys_of(rows: list[dict]) -> list[str]:
+    return [r["key"] for r in rows]
+
+
+def test_round_trip_lookup_and_columns(tmp_path):
+    cache = AnnotationCache(tmp_path / "ann")
+    rows = make_rows(0, 10)
+    assert cache.write(rows).startswith("shard-")
+    assert len(cache) == 10 and cache.tasks() == {"action": 5, "summary": 5}
+    found = cache.lookup(keys_of(rows))
+    assert [found[r["key"]] for r in rows] == rows
+    assert set(cache.lookup(keys_of(rows), task="summary")) == set(keys_of(rows[1::2]))
+
+    query = [rows[3]["key"], "0" * 64, rows[0]["key"], "not a key", rows[5]["key"]]
+    assert cache.contains(query).tolist() == [True, False, True, False, True]
+    cols = cache.get_columns(query, ["embedding", "cand_logprob_sum", "task"])
+    assert cols["found"].tolist() == [True, False, True, False, True]
+    emb = cols["embedding"]
+    assert emb.dtype == np.float32 and emb.shape == (5, 4)
+    assert emb[0].tolist() == [3.0, 0.5, -0.25, 1.0] and emb[4, 0] == 5.0
+    assert np.isnan(emb[[1, 2, 3]]).all()  # absent, action row (null), absent
+    assert cols["cand_logprob_sum"] == [None, None, [-0.75, -1.5], None, None]
+    assert cols["task"] == ["summary", None, "action", None, "summary"]
+
+    info = AnnotationCache(tmp_path / "ann").info()
+    assert info["entries"] == 10 and info["shards"] == 1 and info["embedding_dims"] == [4]
+    assert info["models"] == {"action/smollm2-135m": 5, "summary/smollm2-135m": 5}
+
+
+def test_lookup_spans_many_shards_in_query_order(tmp_path):
+    cache = AnnotationCache(tmp_path)
+    for s in range(5):
+        cache.write(make_rows(10 * s, 10 * s + 10))
+    rows = make_rows(0, 50)
+    order = np.random.default_rng(0).permutation(50)
+    got = cache.get_columns([rows[i]["key"] for i in order], ["prompt"])["prompt"]
+    assert got == [rows[i]["prompt"] for i in order]
+
+
+def test_duplicate_keys_are_dropped(tmp_path):
+    cache = AnnotationCache(tmp_path)
+    rows = make_rows(0, 6)
+    assert cache.write(rows + rows[:2]) is not None  # duplicates inside one batch
+    assert len(cache) == 6 and verify(tmp_path).rows == 6
+    assert cache.write(rows) is None  # nothing new: no shard
+    name = cache.write(make_rows(4, 9))
+    assert cache.shard_rows(name) == 3 and len(cache) == 9
+    assert verify(tmp_path).ok and verify(tmp_path).shards == 2
+
+
+def test_a_shard_is_visible_only_once_listed(tmp_path):
+    cache = AnnotationCache(tmp_path)
+    cache.write(make_rows(0, 3))
+    table = pa.Table.from_pylist(make_rows(3, 6), schema=layout.arrow_schema())
+    orphan = layout.write_shard(tmp_path, table)["name"]  # complete file, never listed
+    fresh = AnnotationCache(tmp_path)
+    assert len(fresh) == 3 and not fresh.contains(keys_of(make_rows(3, 6))).any()
+    report = verify(tmp_path)
+    assert report.ok and report.orphans == [orphan]
+    assert fresh.adopt_orphans().adopted == [orphan]
+    assert len(fresh) == 6 and verify(tmp_path).orphans == []
+
+    partly_known = pa.Table.from_pylist(make_rows(4, 8), schema=layout.arrow_schema())
+    orphan = layout.write_shard(tmp_path, partly_known)["name"]
+    (tmp_path / "shard-truncated.arrow").write_bytes(layout.shard_bytes(partly_known)[:100])
+    report = fresh.adopt_orphans()
+    assert report.rewritten == [orphan] and report.rejected == ["shard-truncated.arrow"]
+    assert len(fresh) == 8 and verify(tmp_path).ok and verify(tmp_path).rows == 8
+
+
+def test_another_writers_shards_appear_after_refresh(tmp_path):
+    reader, writer = AnnotationCache(tmp_path), AnnotationCache(tmp_path)
+    writer.write(make_rows(0, 4))
+    assert len(reader) == 0 and reader.refresh() == 1 and len(reader) == 4
+
+
+CRASHING_WRITER = """
+import os, sys
+sys.path.insert(0, sys.argv[3])
+from test_cache_store import make_rows
+from illm_tools.cache import AnnotationCache
+def crash(self, stage):
+    if stage == sys.argv[2]:
+        os._exit(9)
+AnnotationCache._checkpoint = crash
+AnnotationCache(sys.argv[1]).write(make_rows(0, 10))
+"""
+
+
+@pytest.mark.parametrize("stage", ["shard-temp-written", "shard-renamed", "manifest-temp-written"])
+def test_a_crash_leaves_a_valid_cache_and_a_rerun_writes_only_what_is_missing(tmp_path, stage):
+    AnnotationCache(tmp_path).write(make_rows(0, 5))
+    proc = subprocess.run(
+        [sys.executable, "-c", CRASHING_WRITER, str(tmp_path), stage, str(Path(__file__).parent)],
+        cwd=REPO, capture_output=True, text=True,
+    )
+    assert proc.returncode == 9, proc.stderr
+    report = verify(tmp_path)
+    assert report.ok and report.rows == 5
+    assert len(report.orphans) == (0 if stage == "shard-temp-written" else 1)
+    assert len(report.temp_files) == (0 if stage == "shard-renamed" else 1)
+
+    cache = AnnotationCache(tmp_path)
+    assert len(cache) == 5
+    name = cache.write(make_rows(0, 10))  # the rerun
+    assert cache.shard_rows(name) == 5 and len(cache) == 10
+    repaired = cache.adopt_orphans()  # the crashed shard is now redundant
+    assert repaired.removed == report.orphans and repaired.temp_removed == report.temp_files
+    final = verify(tmp_path)
+    assert final.ok and final.rows == 10 and not final.orphans and not final.temp_files
+
+
+def test_a_crashed_shard_can_be_adopted_instead_of_rewritten(tmp_path):
+    subprocess.run(
+        [sys.executable, "-c", CRASHING_WRITER, str(tmp_path), "shard-renamed", str(Path(__file__).parent)],
+        cwd=REPO, check=False,
+    )
+    cache = AnnotationCache(tmp_path)  # the very first write crashed: no manifest yet
+    assert len(cache) == 0
+    assert len(cache.adopt_orphans().adopted) == 1 and len(cache) == 10 and verify(tmp_path).ok
+
+
+def _writer(root: str, worker: int, start: mp.Barrier) -> None:
+    cache = AnnotationCache(root)
+    start.wait()
+    for s in range(20):
+        cache.write(make_rows(0, 5, tag=f"w{worker}-s{s}"))
+
+
+def test_two_processes_writing_concurrently_lose_nothing(tmp_path):
+    ctx = mp.get_context("spawn")
+    barrier = ctx.Barrier(2)
+    procs = [ctx.Process(target=_writer, args=(str(tmp_path), w, barrier)) for w in range(2)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(60)
+    assert [p.exitcode for p in procs] == [0, 0]
+    report = verify(tmp_path)
+    assert report.ok and report.shards == 40 and report.rows == 200 and not report.orphans
+    expected = [r["key"] for w in range(2) for s in range(20) for r in make_rows(0, 5, tag=f"w{w}-s{s}")]
+    assert AnnotationCache(tmp_path).contains(expected).all()
+
+
+def _flip_bytes(path: Path) -> None:
+    """Damage a file in place, keeping its size. The mtime is moved on explicitly: a cache
+    re-checks a file it already checked when (inode, size, mtime) change, and a write within
+    the same clock tick as the original could keep the mtime."""
+    st = path.stat()
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+
+
+def test_a_damaged_shard_is_caught_by_verify_and_refused_by_lookup(tmp_path):
+    cache = AnnotationCache(tmp_path)
+    cache.write(make_rows(0, 5))
+    name = cache.write(make_rows(5, 10))
+    opened = AnnotationCache(tmp_path)
+    _flip_bytes(tmp_path / name)
+    report = verify(tmp_path)
+    assert not report.ok and name in report.problems[0] and "sha256" in report.problems[0]
+    with pytest.raises(CacheError, match=f"{name}.*illm cache verify"):
+        AnnotationCache(tmp_path)
+    with pytest.raises(CacheError, match=name):
+        opened.lookup(keys_of(make_rows(5, 10)))  # already indexed: re-checked on read
+
+
+def test_a_listed_shard_with_malformed_keys_is_refused(tmp_path):
+    cache = AnnotationCache(tmp_path)
+    layout.write_manifest(tmp_path, {**layout.empty_manifest(), "shards": [
+        layout.write_shard(tmp_path, pa.Table.from_pylist(make_rows(0, 2), schema=layout.arrow_schema()))
+    ]})
+    bad = make_rows(2, 5)
+    bad[1]["key"] = "Z" * 64
+    entry = layout.write_shard(tmp_path, pa.Table.from_pylist(bad, schema=layout.arrow_schema()))
+    manifest = layout.read_manifest(tmp_path)
+    manifest["shards"].append(entry)
+    layout.write_manifest(tmp_path, manifest)
+    with pytest.raises(CacheError, match=f"shard {entry['name']}: row 1 "):
+        cache.refresh()
+    assert len(cache) == 0  # a refresh indexes all new shards or none
+    assert entry["name"] in verify(tmp_path).problems[0]
+
+
+def test_merge_of_overlapping_caches(tmp_path):
+    a, b, into = tmp_path / "a", tmp_path / "b", tmp_path / "merged"
+    AnnotationCache(a).write(make_rows(0, 10))
+    AnnotationCache(b).write(make_rows(5, 12))
+    AnnotationCache(b).write(make_rows(12, 15))
+    before = {p.name: p.read_bytes() for src in (a, b) for p in src.iterdir()}
+    report = merge([a, b], into)
+    assert report.rows_copied == 15 and report.rows_skipped == 5 and len(report.shards_written) == 3
+    assert {p.name: p.read_bytes() for src in (a, b) for p in src.iterdir()} == before
+    check = verify(into)
+    assert check.ok and check.keys == 15
+    assert merge([b], into).rows_copied == 0  # idempotent
+    assert merge([b], a).rows_copied == 5 and len(AnnotationCache(a)) == 15
+
+
+def test_merge_refuses_damaged_sources_and_foreign_folders(tmp_path):
+    a, into = tmp_path / "a", tmp_path / "into"
+    name = AnnotationCache(a).write(make_rows(0, 4))
+    _flip_bytes(a / name)
+    with pytest.raises(CacheError, match="failed verification"):
+        merge([a], into)
+    assert not into.exists()
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    with pytest.raises(CacheError, match="not an annotation cache"):
+        AnnotationCache(foreign)
+    ok = tmp_path / "ok"
+    AnnotationCache(ok).write(make_rows(0, 2))
+    with pytest.raises(CacheError, match="not an annotation cache"):
+        merge([ok], foreign)
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
+
+
+def test_shards_are_readable_by_plain_pyarrow_and_datasets(tmp_path):
+    import datasets
+
+    rows = make_rows(0, 6)
+    name = AnnotationCache(tmp_path / "ann").write(rows)
+    path = tmp_path / "ann" / name
+    with pa.OSFile(str(path)) as f:
+        table = pa.ipc.open_stream(f).read_all()
+    assert table.to_pylist() == rows
+    assert table.schema.metadata == {b"illm.kind": b"annotation", b"illm.version": b"1"}
+    ds = datasets.Dataset.from_file(str(path))
+    assert ds.num_rows == 6 and ds[1]["embedding"] == [1.0, 0.5, -0.25, 1.0]
+    manifest = json.loads((tmp_path / "ann" / "manifest.json").read_text())
+    assert [s["name"] for s in manifest["shards"]] == [name]
+
+
+def test_schema_kind_and_version_mismatches_name_found_and_supported(tmp_path):
+    cache = AnnotationCache(tmp_path / "v")
+    name = cache.write(make_rows(0, 2))
+    path = tmp_path / "v" / name
+    table = layout.read_shard(path)
+    future = table.replace_schema_metadata({b"illm.kind": b"annotation", b"illm.version": b"2"})
+    path.write_bytes(layout.shard_bytes(future))
+    manifest = json.loads((tmp_path / "v" / "manifest.json").read_text())
+    manifest["shards"][0].update(sha256=layout.sha256_file(path), bytes=path.stat().st_size)
+    (tmp_path / "v" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(SchemaError, match=r"'annotation' version '2'.*version\(s\) \[1\]"):
+        AnnotationCache(tmp_path / "v")
+
+    manifest.update(kind="trajectory", version=1)
+    (tmp_path / "v" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(SchemaError, match=r"'trajectory' version 1.*'annotation' version\(s\) \[1\]"):
+        AnnotationCache(tmp_path / "v")
+    assert "trajectory" in verify(tmp_path / "v").problems[0]
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda r: r.pop("prompt"), r"missing columns \['prompt'\], unexpected columns \[\]"),
+        (lambda r: r.update(extra=1), r"missing columns \[\], unexpected columns \['extra'\]"),
+        (lambda r: r.update(goal=None), r"required columns \['goal'\]"),
+        (lambda r: r.update(key="ABC"), "not a 64-character"),
+        (lambda r: r.update(task="plan"), "task must be one of"),
+        (lambda r: r.update(embedding_dim=3), "embedding_dim differs"),
+        (lambda r: r.update(history_len="three"), "do not fit schema"),
+    ],
+)
+def test_rows_that_do_not_match_the_schema_are_refused(tmp_path, change, message):
+    rows = make_rows(0, 2)
+    change(rows[1])
+    with pytest.raises(CacheError, match=message):
+        AnnotationCache(tmp_path).write(rows)
+    assert not (tmp_path / "manifest.json").exists()
+
+
+def test_index_survives_prefix_collisions():
+    index = KeyIndex()
+    a, b, c = "0" * 16 + "a" * 48, "0" * 16 + "b" * 48, "0" * 16 + "c" * 48
+    assert index.add([a, b, a]).tolist() == [True, True, False]
+    assert index.locate([b, a, c, "short"]).tolist() == [1, 0, -1, -1]
+    assert index.add([c, b]).tolist() == [True, False] and len(index) == 3
