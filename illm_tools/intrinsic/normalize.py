@@ -1,0 +1,80 @@
+"""Reward normalisation shared by the intrinsic bonuses, as in RND (Burda et al. 2018).
+
+An intrinsic reward is divided by a running estimate of the standard deviation of its
+*discounted intrinsic return*: a per-env forward filter keeps R_t = r_t + gamma * R_{t-1}
+(never reset at episode ends: RND's intrinsic stream is non-episodic), and a RunningMeanStd
+(Chan et al. parallel update, float64) tracks the mean/variance of those R_t. Only the scale is
+changed; the mean is not subtracted, so a reward of zero stays zero.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+class RunningMeanStd:
+    """Running mean and variance of a stream of scalars, merged batch by batch."""
+
+    def __init__(self, epsilon: float = 1e-4):
+        self.mean = 0.0
+        self.var = 1.0
+        self.count = epsilon
+
+    def update(self, x: np.ndarray) -> None:
+        x = np.asarray(x, dtype=np.float64).reshape(-1)
+        if x.size == 0:
+            return
+        self.update_from_moments(float(x.mean()), float(x.var()), x.size)
+
+    def update_from_moments(self, batch_mean: float, batch_var: float, batch_count: int) -> None:
+        delta = batch_mean - self.mean
+        total = self.count + batch_count
+        self.mean = self.mean + delta * batch_count / total
+        m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total
+        self.var = m2 / total
+        self.count = total
+
+    @property
+    def std(self) -> float:
+        return float(np.sqrt(self.var))
+
+    def state_dict(self) -> dict:
+        return {"mean": self.mean, "var": self.var, "count": self.count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.mean, self.var, self.count = float(state["mean"]), float(state["var"]), float(state["count"])
+
+
+class DiscountedReturnNormalizer:
+    """Divides [T, N] intrinsic rewards by the running std of their discounted return.
+
+    `mask` [T, N] marks the steps that carry a reward: unmasked steps add nothing to the return
+    (their reward is zero) and are left out of the std estimate, so the scale reflects the bonus
+    actually paid.
+    """
+
+    def __init__(self, num_envs: int, gamma: float, epsilon: float = 1e-8):
+        self.gamma = gamma
+        self.epsilon = epsilon
+        self.returns = np.zeros(num_envs, dtype=np.float64)
+        self.rms = RunningMeanStd()
+
+    def __call__(self, rewards: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        r = rewards.detach().cpu().double().numpy()
+        m = np.ones_like(r, dtype=bool) if mask is None else mask.cpu().numpy().astype(bool)
+        r = np.where(m, r, 0.0)
+        disc = np.empty_like(r)
+        for t in range(r.shape[0]):
+            self.returns = self.returns * self.gamma + r[t]
+            disc[t] = self.returns
+        self.rms.update(disc[m])
+        scale = np.sqrt(self.rms.var) + self.epsilon
+        return (torch.as_tensor(r / scale, dtype=rewards.dtype)).to(rewards.device)
+
+    def state_dict(self) -> dict:
+        return {"returns": self.returns.tolist(), "rms": self.rms.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.returns = np.asarray(state["returns"], dtype=np.float64)
+        self.rms.load_state_dict(state["rms"])

@@ -1,0 +1,172 @@
+"""TrainConfig: every setting of a PPO / iLLM training run, one documented field each.
+
+The CLI builds this dataclass from options (field docstrings become `--help`); the library
+validates it in `__post_init__` and derives the rest as properties, never by patching fields.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from illm_tools.errors import UsageError
+
+MODES = ("illm", "illm-noreward", "ppo")
+
+
+@dataclass
+class TrainConfig:
+    """One training run: environment, PPO, iLLM bonus, and bookkeeping."""
+
+    # --- run -------------------------------------------------------------------------------
+    env_id: str = "BabyAI-GoToLocal-v0"
+    """Gymnasium id of the environment."""
+    run_dir: Path = Path("data/runs/default")
+    """Folder for config.json, metrics.jsonl, TensorBoard events and checkpoint.pt."""
+    mode: str = "illm"
+    """illm: heads + bonus; illm-noreward: heads only, no bonus (paper Table 3); ppo: neither."""
+    seed: int = 0
+    """Seed of the network initialisation, action sampling, minibatch order and env pool."""
+    total_steps: int = 1_000_000
+    """Environment steps to train for, summed over the parallel envs."""
+    num_envs: int = 16
+    """Environments stepped side by side."""
+    num_steps: int = 128
+    """Steps per env in one rollout; a rollout holds num_envs * num_steps transitions."""
+    action_space: str = "augmented"
+    """BabyAI action vocabulary given to the env pool: original, augmented or irrelevant."""
+    num_dists: int | None = None
+    """Distractor count for levels that take it; None keeps the level's default."""
+
+    # --- PPO -------------------------------------------------------------------------------
+    learning_rate: float = 1e-3
+    """AdamW learning rate (rl-starter-files' BabyAI value; weight decay stays at AdamW's default)."""
+    anneal_lr: bool = True
+    """Linearly anneal the learning rate to zero over the run."""
+    gamma: float = 0.99
+    """Discount of the extrinsic return."""
+    gae_lambda: float = 0.95
+    """GAE lambda, for both value streams."""
+    num_minibatches: int = 4
+    """Minibatches per epoch."""
+    update_epochs: int = 4
+    """Passes over each rollout."""
+    norm_adv: bool = True
+    """Normalise advantages per minibatch."""
+    clip_coef: float = 0.2
+    """PPO surrogate clipping range."""
+    clip_vloss: bool = True
+    """Clip the value loss around the rollout's value estimates."""
+    ent_coef: float = 0.01
+    """Entropy bonus coefficient."""
+    vf_coef: float = 0.5
+    """Value loss coefficient (applies to both value heads)."""
+    max_grad_norm: float = 0.5
+    """Gradient norm clip (paper: 0.5)."""
+    target_kl: float | None = None
+    """Stop the epoch loop early when the approximate KL exceeds this; None never stops."""
+
+    # --- network ---------------------------------------------------------------------------
+    mission_max_len: int = 32
+    """Mission words kept (longer missions are truncated)."""
+    head_hidden: int = 1024
+    """Hidden units of the f^a and f^hc heads (paper: 1024)."""
+
+    # --- iLLM ------------------------------------------------------------------------------
+    history_len: int = 3
+    """(observation, action) pairs before the current observation handed to the LLM (paper: 3)."""
+    embedding_dim: int = 576
+    """Dimension of the LLM summary embedding f^hc predicts (576 for SmolLM2-135M)."""
+    lambda_a: float = 0.8
+    """Weight lambda of the action-generation bonus r^a (paper: 0.8)."""
+    beta_hc: float = 0.5
+    """Weight beta of the history-compression bonus r^hc (paper: 0.5)."""
+    distill_coef: float = 1.0
+    """Weight of the head distillation losses in the total loss."""
+    summary_loss: str = "cosine"
+    """Distillation loss of f^hc: cosine (1 - cos) or mse."""
+    action_similarity: str = "tv"
+    """Similarity behind r^a = 1 - sim: tv (1 - total variation) or bhattacharyya."""
+    int_gamma: float = 0.99
+    """Discount of the intrinsic return and of its normaliser (RND uses 0.99)."""
+    int_episodic: bool = False
+    """Cut the intrinsic return at episode ends; False is RND's non-episodic stream."""
+    ext_coef: float = 1.0
+    """Weight of the extrinsic advantage in the summed advantage."""
+    int_coef: float = 1.0
+    """Weight of the intrinsic advantage; 1 with ext_coef 1 matches r* = r + lambda r^a + beta r^hc."""
+
+    # --- bookkeeping -----------------------------------------------------------------------
+    checkpoint_every: int = 10
+    """Save a checkpoint every this many updates (and after the last one); 0 only at the end."""
+    resume: bool = False
+    """Continue from run_dir/checkpoint.pt instead of starting fresh."""
+    tensorboard: bool = True
+    """Also write TensorBoard events beside metrics.jsonl."""
+    env_options: dict = field(default_factory=dict)
+    """Extra keyword options for the environment pool."""
+
+    def __post_init__(self) -> None:
+        self.run_dir = Path(self.run_dir)
+        if self.mode not in MODES:
+            raise UsageError(f"unknown mode {self.mode!r}; choose one of {', '.join(MODES)}")
+        for name in ("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",
+                     "mission_max_len", "head_hidden", "embedding_dim"):
+            if getattr(self, name) <= 0:
+                raise UsageError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.history_len < 0:
+            raise UsageError(f"history_len must be >= 0, got {self.history_len}")
+        if self.batch_size % self.num_minibatches:
+            raise UsageError(f"num_envs * num_steps = {self.batch_size} is not divisible by "
+                             f"num_minibatches = {self.num_minibatches}")
+        for name in ("gamma", "gae_lambda", "int_gamma"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise UsageError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
+        if self.summary_loss not in ("cosine", "mse"):
+            raise UsageError(f"summary_loss must be cosine or mse, got {self.summary_loss!r}")
+        if self.action_similarity not in ("tv", "bhattacharyya"):
+            raise UsageError("action_similarity must be tv or bhattacharyya, "
+                             f"got {self.action_similarity!r}")
+        if self.checkpoint_every < 0:
+            raise UsageError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
+
+    # --- derived values ----------------------------------------------------------------------
+    @property
+    def batch_size(self) -> int:
+        """Transitions per rollout."""
+        return self.num_envs * self.num_steps
+
+    @property
+    def minibatch_size(self) -> int:
+        """Transitions per minibatch."""
+        return self.batch_size // self.num_minibatches
+
+    @property
+    def num_updates(self) -> int:
+        """Rollout + update iterations in the run (at least one)."""
+        return max(1, self.total_steps // self.batch_size)
+
+    @property
+    def uses_heads(self) -> bool:
+        """Whether the network carries f^a / f^hc and the loss distils the LLM."""
+        return self.mode != "ppo"
+
+    @property
+    def pays_bonus(self) -> bool:
+        """Whether the intrinsic rewards reach the advantages."""
+        return self.mode == "illm"
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (paths as strings)."""
+        out = asdict(self)
+        out["run_dir"] = str(self.run_dir)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TrainConfig":
+        """Inverse of `to_dict`; unknown keys are refused."""
+        known = set(cls.__dataclass_fields__)
+        unknown = set(data) - known
+        if unknown:
+            raise UsageError(f"unknown training settings {sorted(unknown)}")
+        return cls(**data)

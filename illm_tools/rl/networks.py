@@ -1,0 +1,141 @@
+"""The agent's network: symbolic-grid CNN + mission encoder torso, actor, two critics, iLLM heads.
+
+Owns `MissionVocab` (fixed word-level vocabulary of BabyAI/MiniGrid mission grammar, no external
+tokenizer), `GridMissionNet` (features -> actor logits, extrinsic and intrinsic values) and the
+heads f^a / f^hc (two fully connected layers of `head_hidden` units on the torso's features:
+Linear(F, 1024) - ReLU - Linear(1024, out)). Layout follows rl-starter-files' ACModel, with the
+grid's object/colour/state indices one-hot encoded instead of fed as raw numbers.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+# Words of BabyAI's instruction grammar (minigrid.envs.babyai.core.verifier) and the fixed
+# missions of the MiniGrid levels. Order fixes the ids: append only, never reorder.
+MISSION_WORDS = (
+    "go to the a an pick up put next open then after you and it "
+    "red green blue purple yellow grey "
+    "ball box key door object wall goal square lava "
+    "on your left right in front of behind "
+    "get use unlock avoid traverse rooms fetch reach match colour color same as "
+    "locked closed opened room corridor"
+).split()
+PAD, UNK = 0, 1
+# Sizes of minigrid's OBJECT_TO_IDX, COLOR_TO_IDX and STATE_TO_IDX.
+GRID_CHANNEL_SIZES = (11, 6, 3)
+
+
+class MissionVocab:
+    """Maps missions to padded word-id arrays: 0 pads, 1 is any word outside the grammar."""
+
+    def __init__(self, max_len: int = 32, words: Sequence[str] = MISSION_WORDS):
+        self.max_len = max_len
+        self.ids = {w: i + 2 for i, w in enumerate(dict.fromkeys(words))}
+        self._memo: dict[str, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.ids) + 2
+
+    def encode_one(self, mission: str) -> np.ndarray:
+        row = self._memo.get(mission)
+        if row is None:
+            words = re.findall(r"[a-z]+", mission.lower())[: self.max_len]
+            row = np.zeros(self.max_len, dtype=np.int64)
+            row[: len(words)] = [self.ids.get(w, UNK) for w in words]
+            self._memo[mission] = row
+        return row
+
+    def encode(self, missions: Sequence[str]) -> np.ndarray:
+        """[B, max_len] int64 word ids."""
+        return np.stack([self.encode_one(m) for m in missions])
+
+
+def layer_init(layer: nn.Linear, std: float = float(np.sqrt(2)), bias: float = 0.0) -> nn.Linear:
+    nn.init.orthogonal_(layer.weight, std)
+    nn.init.constant_(layer.bias, bias)
+    return layer
+
+
+def mlp_head(inp: int, hidden: int, out: int, *, std: float, act: type[nn.Module] = nn.Tanh) -> nn.Sequential:
+    return nn.Sequential(layer_init(nn.Linear(inp, hidden)), act(), layer_init(nn.Linear(hidden, out), std))
+
+
+class PolicyOutput(NamedTuple):
+    logits: torch.Tensor     # [B, A]
+    value_ext: torch.Tensor  # [B]
+    value_int: torch.Tensor  # [B]
+    features: torch.Tensor   # [B, F]
+
+
+class GridMissionNet(nn.Module):
+    """Actor-critic over (symbolic grid, mission) with optional iLLM heads.
+
+    images: uint8/int [B, H, W, 3] MiniGrid encoding; missions: int64 [B, L] from `MissionVocab`.
+    `embedding_dim=None` builds no heads (plain PPO).
+    """
+
+    def __init__(self, num_actions: int, *, vocab_size: int, embedding_dim: int | None = None,
+                 head_hidden: int = 1024, image_shape: tuple[int, int] = (7, 7),
+                 word_embed: int = 32, text_hidden: int = 128, hidden: int = 64):
+        super().__init__()
+        self.register_buffer("cell_sizes", torch.tensor(GRID_CHANNEL_SIZES), persistent=False)
+        self.register_buffer("cell_offsets", torch.tensor(np.cumsum((0, *GRID_CHANNEL_SIZES[:-1]))),
+                             persistent=False)
+        channels = sum(GRID_CHANNEL_SIZES)
+        self.image_conv = nn.Sequential(
+            nn.Conv2d(channels, 16, (2, 2)), nn.ReLU(), nn.MaxPool2d((2, 2)),
+            nn.Conv2d(16, 32, (2, 2)), nn.ReLU(),
+            nn.Conv2d(32, 64, (2, 2)), nn.ReLU(), nn.Flatten(),
+        )
+        with torch.no_grad():
+            image_dim = self.image_conv(torch.zeros(1, channels, *image_shape)).shape[1]
+        self.word_embedding = nn.Embedding(vocab_size, word_embed, padding_idx=PAD)
+        self.text_rnn = nn.GRU(word_embed, text_hidden, batch_first=True)
+        self.feature_dim = image_dim + text_hidden
+        self.actor = mlp_head(self.feature_dim, hidden, num_actions, std=0.01)
+        self.critic_ext = mlp_head(self.feature_dim, hidden, 1, std=1.0)
+        self.critic_int = mlp_head(self.feature_dim, hidden, 1, std=1.0)
+        self.f_a = self.f_hc = None
+        if embedding_dim is not None:
+            self.f_a = mlp_head(self.feature_dim, head_hidden, num_actions, std=0.01, act=nn.ReLU)
+            self.f_hc = mlp_head(self.feature_dim, head_hidden, embedding_dim, std=1.0, act=nn.ReLU)
+
+    @property
+    def has_heads(self) -> bool:
+        return self.f_a is not None
+
+    def encode_mission(self, missions: torch.Tensor) -> torch.Tensor:
+        """GRU state after the last word. A batch repeats few missions, so only the distinct ones
+        go through the GRU (same result, several times faster forward and backward)."""
+        unique, inverse = torch.unique(missions, dim=0, return_inverse=True)
+        lengths = (unique != PAD).sum(1).clamp_min(1)
+        tokens = unique[:, : int(lengths.max())]  # drop all-padding columns
+        out, _ = self.text_rnn(self.word_embedding(tokens))
+        return out[torch.arange(len(out)), lengths - 1][inverse]
+
+    def features(self, images: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
+        # one-hot of object, colour and state (a learned embedding followed by the first conv
+        # would be the same linear map); out-of-range indices are clamped
+        idx = torch.minimum(images.long(), self.cell_sizes - 1) + self.cell_offsets  # [B, H, W, 3]
+        b, h, w, _ = idx.shape
+        x = torch.zeros(b, h, w, int(sum(GRID_CHANNEL_SIZES)), device=idx.device)
+        x.scatter_(-1, idx, 1.0)
+        return torch.cat([self.image_conv(x.permute(0, 3, 1, 2)), self.encode_mission(missions)], dim=1)
+
+    def forward(self, images: torch.Tensor, missions: torch.Tensor) -> PolicyOutput:
+        f = self.features(images, missions)
+        return PolicyOutput(self.actor(f), self.critic_ext(f).squeeze(-1),
+                            self.critic_int(f).squeeze(-1), f)
+
+    def heads(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(f^a logits [B, A], f^hc embedding [B, D])."""
+        if self.f_a is None:
+            raise RuntimeError("this network was built without iLLM heads (mode ppo)")
+        return self.f_a(features), self.f_hc(features)

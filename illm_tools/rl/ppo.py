@@ -1,0 +1,310 @@
+"""PPO with the iLLM heads and bonus: rollout, LLM targets, intrinsic rewards, GAE, clipped update.
+
+Reads top to bottom like CleanRL's ppo.py, but as an importable `Trainer` over an env pool
+(`illm_tools.envs.pool.EnvPool` interface) and an optional `TargetProvider`. Per update:
+  1. rollout: T steps of N envs, actions sampled from the policy, per-step `StateRecord`s kept;
+  2. targets: the provider answers for every step of the rollout at once (cache + live fallback);
+  3. bonus: f^a / f^hc (current weights) vs the targets -> r^a, r^hc, normalised, weighted;
+  4. advantages: extrinsic GAE + intrinsic GAE on the bonus (two value heads, RND-style);
+  5. update: epochs x minibatches of clipped PPO loss + value losses + distillation loss.
+The trainer never prints: metrics go to run_dir/metrics.jsonl, TensorBoard, and `on_metrics`.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+from illm_tools.errors import OutputExistsError, UsageError
+from illm_tools.intrinsic.base import BonusRewards, TargetProvider
+from illm_tools.intrinsic.illm import ILLMBonus
+from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint,
+                                      save_checkpoint)
+from illm_tools.rl.config import TrainConfig
+from illm_tools.rl.networks import GridMissionNet, MissionVocab
+from illm_tools.rl.storage import Advantages, Rollout, two_stream_advantages
+from illm_tools.tasks.state import HistoryTracker, StateRecord
+
+
+def make_pool(cfg: TrainConfig):
+    """The env pool a run trains on. Text is rendered only when the LLM targets need it. A resumed
+    run starts its episodes past every seed the run can have used so far (the pool's episode k of
+    env i has seed `seed + i + k * num_envs`, so `seed + global_step + num_envs` is unused)."""
+    from illm_tools.envs.pool import EnvPool
+
+    seed = cfg.seed
+    if cfg.resume:
+        seed += int(load_checkpoint(cfg.run_dir)["global_step"]) + cfg.num_envs
+    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.uses_heads, action_space=cfg.action_space,
+                   num_dists=cfg.num_dists, **cfg.env_options)
+
+
+class Trainer:
+    """One training run. `train()` runs to `cfg.total_steps`; the steps are public for tests."""
+
+    def __init__(self, cfg: TrainConfig, pool, provider: TargetProvider | None = None,
+                 on_metrics: Callable[[dict], None] | None = None):
+        if cfg.uses_heads and provider is None:
+            raise UsageError(f"mode {cfg.mode} needs LLM targets (an annotation cache); "
+                             "pass one or train with mode ppo")
+        if pool.num_envs != cfg.num_envs:
+            raise UsageError(f"the pool has {pool.num_envs} envs, the config asks for {cfg.num_envs}")
+        self.cfg, self.pool, self.on_metrics = cfg, pool, on_metrics
+        self.provider = provider if cfg.uses_heads else None
+        self.action_names = list(pool.action_names)
+        self.vocab = MissionVocab(cfg.mission_max_len)
+
+        # --- seeding: everything random in the run derives from cfg.seed (episode seeds too:
+        # make_pool gives the pool cfg.seed); no global RNG is read or changed ------------------
+        with torch.random.fork_rng(devices=[]):  # network init without touching global RNG state
+            torch.manual_seed(cfg.seed)
+            self.obs = pool.reset()
+            self.image_shape = tuple(self.obs.images.shape[1:])
+            self.net = GridMissionNet(len(self.action_names), vocab_size=len(self.vocab),
+                                      embedding_dim=cfg.embedding_dim if cfg.uses_heads else None,
+                                      head_hidden=cfg.head_hidden, image_shape=self.image_shape[:2])
+        self.generator = torch.Generator().manual_seed(cfg.seed + 1)  # action sampling
+        self.np_rng = np.random.default_rng(cfg.seed + 2)             # minibatch order
+
+        self.optimizer = torch.optim.AdamW(self.net.parameters(), lr=cfg.learning_rate, eps=1e-5)
+        self.bonus = ILLMBonus(cfg.num_envs, lambda_a=cfg.lambda_a, beta_hc=cfg.beta_hc,
+                               gamma=cfg.int_gamma, pays_reward=cfg.pays_bonus,
+                               summary_loss=cfg.summary_loss, action_similarity=cfg.action_similarity)
+        self.history = HistoryTracker(cfg.num_envs, cfg.history_len, self.action_names)
+        self.global_step, self.update_idx = 0, 0
+        self._open_run_dir()
+
+    # --- run directory ----------------------------------------------------------------------
+    def _open_run_dir(self) -> None:
+        cfg, run_dir = self.cfg, self.cfg.run_dir
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if cfg.resume:
+            self._restore(load_checkpoint(run_dir))
+        elif (run_dir / CHECKPOINT_NAME).exists():
+            raise OutputExistsError(f"{run_dir} already holds a run; pass --resume to continue it "
+                                    "or choose another run dir")
+        (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        self.log = MetricsLog(run_dir, tensorboard=cfg.tensorboard,
+                              keep_until_update=self.update_idx if cfg.resume else 0)
+
+    def state_dict(self) -> dict:
+        return {
+            "config": self.cfg.to_dict(), "global_step": self.global_step, "update": self.update_idx,
+            "action_names": self.action_names, "image_shape": list(self.image_shape),
+            "model": self.net.state_dict(), "optimizer": self.optimizer.state_dict(),
+            "bonus": self.bonus.state_dict(),
+            "rng": {"torch": self.generator.get_state(), "numpy": self.np_rng.bit_generator.state},
+        }
+
+    def save(self) -> None:
+        save_checkpoint(self.cfg.run_dir, self.state_dict())
+
+    def _restore(self, state: dict) -> None:
+        check_resumable(state, self.cfg, self.action_names)
+        self.net.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.bonus.load_state_dict(state["bonus"])
+        self.generator.set_state(state["rng"]["torch"])
+        self.np_rng.bit_generator.state = state["rng"]["numpy"]
+        self.global_step, self.update_idx = int(state["global_step"]), int(state["update"])
+        # environments restart: episodes in flight at the checkpoint are not restored
+
+    # --- 1. rollout -------------------------------------------------------------------------
+    def _policy_inputs(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
+        return torch.as_tensor(obs.images), torch.as_tensor(self.vocab.encode(obs.missions))
+
+    @torch.no_grad()
+    def collect_rollout(self) -> tuple[Rollout, list[StateRecord], dict, tuple[torch.Tensor, torch.Tensor]]:
+        """T steps of every env. Returns (rollout, records t-major, episode stats, next values)."""
+        cfg = self.cfg
+        ro = Rollout.empty(cfg.num_steps, cfg.num_envs, self.image_shape, cfg.mission_max_len,
+                           len(self.action_names), cfg.embedding_dim if cfg.uses_heads else 0)
+        records: list[StateRecord] = []
+        returns, lengths, successes = [], [], []
+        obs = self.obs
+        for t in range(cfg.num_steps):
+            images, missions = self._policy_inputs(obs)
+            out = self.net(images, missions)
+            logp_all = out.logits.log_softmax(-1)
+            action = torch.multinomial(logp_all.exp(), 1, generator=self.generator).squeeze(-1)
+            if self.provider is not None:
+                records.extend(self.history.records(obs.missions, obs.texts))
+            step = self.pool.step(action.numpy())
+            ends = np.logical_or(step.terminated, step.truncated)
+            if self.provider is not None:
+                self.history.push(obs.texts, action.tolist(), ends.tolist())
+            ro.images[t], ro.missions[t], ro.actions[t] = images, missions, action
+            ro.logprobs[t] = logp_all.gather(1, action[:, None]).squeeze(1)
+            ro.values_ext[t], ro.values_int[t] = out.value_ext, out.value_int
+            ro.rewards[t] = torch.as_tensor(step.rewards, dtype=torch.float32)
+            ro.ends[t] = torch.as_tensor(ends, dtype=torch.float32)
+            for _i, ret, length, success in step.episodes:
+                returns.append(float(ret))
+                lengths.append(int(length))
+                successes.append(float(success))
+            obs = step.obs
+        self.obs = obs
+        self.global_step += cfg.batch_size
+        last = self.net(*self._policy_inputs(obs))
+        episodes = {"returns": returns, "lengths": lengths, "successes": successes}
+        return ro, records, episodes, (last.value_ext, last.value_int)
+
+    # --- 2. targets -------------------------------------------------------------------------
+    def attach_targets(self, ro: Rollout, records: list[StateRecord]) -> dict:
+        """Ask the provider for every step's LLM targets and store them in the rollout."""
+        if self.provider is None:
+            return {"cache_hit_rate": 0.0, "target_coverage": 0.0, "live_annotations": 0.0}
+        probs, emb, mask = self.provider.targets(records)
+        t, n, a = ro.target_probs.shape
+        d = ro.target_emb.shape[2]
+        if np.shape(probs) != (t * n, a) or np.shape(emb) != (t * n, d) or np.shape(mask) != (t * n,):
+            raise UsageError(f"target provider answered shapes {np.shape(probs)}, {np.shape(emb)}, "
+                             f"{np.shape(mask)}; expected ({t * n}, {a}), ({t * n}, {d}), ({t * n},): "
+                             "check the cache's action space and embedding dimension")
+        ro.target_probs[:] = torch.as_tensor(np.asarray(probs, dtype=np.float32)).view(t, n, a)
+        ro.target_emb[:] = torch.as_tensor(np.asarray(emb, dtype=np.float32)).view(t, n, d)
+        ro.target_mask[:] = torch.as_tensor(np.asarray(mask, dtype=bool)).view(t, n)
+        stats = dict(self.provider.stats())
+        return {"cache_hit_rate": float(stats.get("cache_hit_rate", 0.0)),
+                "target_coverage": float(ro.target_mask.float().mean()),
+                "live_annotations": float(stats.get("live_annotations", 0.0))}
+
+    # --- 3. intrinsic rewards ---------------------------------------------------------------
+    def _head_batch(self, features: torch.Tensor, ro: Rollout, idx: torch.Tensor | None = None) -> dict:
+        """The bonus's inputs for flat rows `idx` (all when None) of the rollout."""
+        action_logits, summary = self.net.heads(features)
+        batch = {"action_logits": action_logits, "summary": summary}
+        for name in ("target_probs", "target_emb", "target_mask"):
+            batch[name] = ro.flat(name) if idx is None else ro.flat(name)[idx]
+        return batch
+
+    @torch.no_grad()
+    def intrinsic_rewards(self, ro: Rollout) -> BonusRewards:
+        """The bonus for every step, from the heads' current outputs vs the stored targets."""
+        t, n = ro.actions.shape
+        if not self.cfg.uses_heads:
+            return BonusRewards(torch.zeros(t, n), {"intrinsic_reward_a": 0.0, "intrinsic_reward_hc": 0.0})
+        features = self.net.features(ro.flat("images"), ro.flat("missions"))
+        batch = {k: v.reshape(t, n, *v.shape[1:]) for k, v in self._head_batch(features, ro).items()}
+        return self.bonus.compute_rewards(batch)
+
+    # --- 4. advantages ----------------------------------------------------------------------
+    def advantages(self, ro: Rollout, int_rewards: torch.Tensor | None,
+                   next_values: tuple[torch.Tensor, torch.Tensor]) -> Advantages:
+        cfg = self.cfg
+        return two_stream_advantages(ro, int_rewards, *next_values, gamma=cfg.gamma,
+                                     int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
+                                     int_coef=cfg.int_coef, int_episodic=cfg.int_episodic)
+
+    # --- 5. update --------------------------------------------------------------------------
+    def _value_loss(self, new: torch.Tensor, old: torch.Tensor, ret: torch.Tensor) -> torch.Tensor:
+        if not self.cfg.clip_vloss:
+            return 0.5 * (new - ret).pow(2).mean()
+        clipped = old + (new - old).clamp(-self.cfg.clip_coef, self.cfg.clip_coef)
+        return 0.5 * torch.max((new - ret).pow(2), (clipped - ret).pow(2)).mean()
+
+    def update(self, ro: Rollout, adv: Advantages) -> dict:
+        cfg = self.cfg
+        b_adv, b_ret_ext, b_ret_int = (x.reshape(-1) for x in (adv.advantages, adv.returns_ext, adv.returns_int))
+        b_images, b_missions = ro.flat("images"), ro.flat("missions")
+        b_actions, b_logprobs = ro.flat("actions"), ro.flat("logprobs")
+        b_v_ext, b_v_int = ro.flat("values_ext"), ro.flat("values_int")
+        sums: dict[str, float] = {}
+        count, clipfracs = 0, []
+        inds = np.arange(cfg.batch_size)
+        for _epoch in range(cfg.update_epochs):
+            self.np_rng.shuffle(inds)
+            for start in range(0, cfg.batch_size, cfg.minibatch_size):
+                mb = torch.as_tensor(inds[start:start + cfg.minibatch_size])
+                out = self.net(b_images[mb], b_missions[mb])
+                logp_all = out.logits.log_softmax(-1)
+                newlogprob = logp_all.gather(1, b_actions[mb, None]).squeeze(1)
+                entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
+                logratio = newlogprob - b_logprobs[mb]
+                ratio = logratio.exp()
+                with torch.no_grad():
+                    approx_kl = ((ratio - 1) - logratio).mean()
+                    clipfracs.append(float(((ratio - 1.0).abs() > cfg.clip_coef).float().mean()))
+                mb_adv = b_adv[mb]
+                if cfg.norm_adv:
+                    mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
+                pg_loss = torch.max(-mb_adv * ratio,
+                                    -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)).mean()
+                v_loss = self._value_loss(out.value_ext, b_v_ext[mb], b_ret_ext[mb])
+                v_loss_int = (self._value_loss(out.value_int, b_v_int[mb], b_ret_int[mb])
+                              if cfg.pays_bonus else torch.zeros(()))
+                loss = pg_loss - cfg.ent_coef * entropy + cfg.vf_coef * (v_loss + v_loss_int)
+                logs = {"policy_loss": pg_loss.item(), "value_loss": v_loss.item(),
+                        "value_loss_int": v_loss_int.item(), "entropy": entropy.item(),
+                        "approx_kl": approx_kl.item()}
+                if cfg.uses_heads:
+                    distill, distill_logs = self.bonus.aux_loss(self._head_batch(out.features, ro, mb))
+                    loss = loss + cfg.distill_coef * distill
+                    logs.update(distill_logs)
+                self.optimizer.zero_grad()
+                loss.backward()
+                nn.utils.clip_grad_norm_(self.net.parameters(), cfg.max_grad_norm)
+                self.optimizer.step()
+                for k, v in logs.items():
+                    sums[k] = sums.get(k, 0.0) + v
+                count += 1
+            if cfg.target_kl is not None and float(approx_kl) > cfg.target_kl:
+                break
+        out = {f"losses/{k}": v / count for k, v in sums.items()}
+        y_pred, y_true = b_v_ext.numpy(), b_ret_ext.numpy()
+        var_y = np.var(y_true)
+        out["losses/clipfrac"] = float(np.mean(clipfracs))
+        if var_y > 0:  # undefined for a constant return (e.g. no reward yet); left out then
+            out["losses/explained_variance"] = float(1 - np.var(y_true - y_pred) / var_y)
+        return out
+
+    # --- the loop ---------------------------------------------------------------------------
+    def train_one_update(self) -> dict:
+        cfg = self.cfg
+        self.update_idx += 1
+        if cfg.anneal_lr:
+            frac = 1.0 - (self.update_idx - 1.0) / cfg.num_updates
+            self.optimizer.param_groups[0]["lr"] = max(frac, 0.0) * cfg.learning_rate
+        t0 = time.perf_counter()
+        ro, records, episodes, next_values = self.collect_rollout()
+        t1 = time.perf_counter()
+        target_logs = self.attach_targets(ro, records)
+        t2 = time.perf_counter()
+        bonus = self.intrinsic_rewards(ro)
+        adv = self.advantages(ro, bonus.reward if cfg.pays_bonus else None, next_values)
+        loss_logs = self.update(ro, adv)
+        t3 = time.perf_counter()
+        metrics = {"global_step": self.global_step, "update": self.update_idx,
+                   "charts/learning_rate": self.optimizer.param_groups[0]["lr"],
+                   "charts/episodes": len(episodes["returns"]),
+                   "time/rollout_s": t1 - t0, "time/targets_s": t2 - t1, "time/update_s": t3 - t2}
+        if episodes["returns"]:
+            metrics["charts/episodic_return"] = float(np.mean(episodes["returns"]))
+            metrics["charts/episodic_length"] = float(np.mean(episodes["lengths"]))
+            metrics["charts/success_rate"] = float(np.mean(episodes["successes"]))
+        metrics.update({f"charts/{k}": v for k, v in {**target_logs, **bonus.logs}.items()})
+        metrics.update(loss_logs)
+        return metrics
+
+    def train(self) -> dict:
+        """Run the remaining updates; returns the last update's metrics."""
+        cfg, metrics = self.cfg, {}
+        start_step, start_time = self.global_step, time.perf_counter()
+        try:
+            while self.update_idx < cfg.num_updates:
+                metrics = self.train_one_update()
+                metrics["charts/sps"] = (self.global_step - start_step) / (time.perf_counter() - start_time)
+                self.log.write(metrics)
+                if self.on_metrics is not None:
+                    self.on_metrics(metrics)
+                last = self.update_idx == cfg.num_updates
+                if last or (cfg.checkpoint_every and self.update_idx % cfg.checkpoint_every == 0):
+                    self.save()
+        finally:
+            self.log.close()
+        return metrics

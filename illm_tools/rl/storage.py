@@ -1,0 +1,97 @@
+"""Rollout storage and advantage estimation for PPO.
+
+Owns `Rollout` (preallocated [T, N, ...] tensors of one rollout, LLM targets included),
+`gae` (generalised advantage estimation) and `two_stream_advantages` (RND-style extrinsic +
+intrinsic streams, each with its own value head and GAE, summed with coefficients).
+
+Convention: `ends[t]` is True when the transition taken at step t ended its episode
+(terminated or truncated; truncation is treated like termination, as in CleanRL, because the
+pool autoresets in the same step and does not return the final observation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class Rollout:
+    """One rollout of T steps from N envs. Targets are filled after the rollout."""
+
+    images: torch.Tensor       # uint8 [T, N, H, W, 3]
+    missions: torch.Tensor     # int64 [T, N, L]
+    actions: torch.Tensor      # int64 [T, N]
+    logprobs: torch.Tensor     # float [T, N]
+    rewards: torch.Tensor      # float [T, N] extrinsic
+    ends: torch.Tensor         # float [T, N] 1.0 where the episode ended at this step
+    values_ext: torch.Tensor   # float [T, N]
+    values_int: torch.Tensor   # float [T, N]
+    target_probs: torch.Tensor  # float [T, N, A] LLM distribution over valid actions
+    target_emb: torch.Tensor    # float [T, N, D] LLM summary embedding
+    target_mask: torch.Tensor   # bool [T, N]
+
+    @classmethod
+    def empty(cls, num_steps: int, num_envs: int, image_shape: tuple[int, ...], mission_len: int,
+              num_actions: int, embedding_dim: int) -> "Rollout":
+        t, n = num_steps, num_envs
+        z = lambda *shape, dtype=torch.float32: torch.zeros((t, n, *shape), dtype=dtype)  # noqa: E731
+        return cls(
+            images=z(*image_shape, dtype=torch.uint8), missions=z(mission_len, dtype=torch.int64),
+            actions=z(dtype=torch.int64), logprobs=z(), rewards=z(), ends=z(),
+            values_ext=z(), values_int=z(), target_probs=z(num_actions),
+            target_emb=z(embedding_dim), target_mask=z(dtype=torch.bool),
+        )
+
+    @property
+    def num_steps(self) -> int:
+        return self.actions.shape[0]
+
+    def flat(self, name: str) -> torch.Tensor:
+        """Field `name` with the T and N axes merged: [T * N, ...]."""
+        x = getattr(self, name)
+        return x.reshape(-1, *x.shape[2:])
+
+
+def gae(rewards: torch.Tensor, values: torch.Tensor, next_value: torch.Tensor, ends: torch.Tensor,
+        gamma: float, lam: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """GAE(gamma, lambda) over [T, N] tensors; returns (advantages, returns = advantages + values).
+
+    `next_value` [N] is the value of the observation after the last step; `ends` cuts the
+    bootstrap (pass zeros for a non-episodic stream).
+    """
+    advantages = torch.zeros_like(rewards)
+    last = torch.zeros_like(next_value)
+    for t in reversed(range(rewards.shape[0])):
+        nonterminal = 1.0 - ends[t]
+        following = next_value if t == rewards.shape[0] - 1 else values[t + 1]
+        delta = rewards[t] + gamma * following * nonterminal - values[t]
+        last = delta + gamma * lam * nonterminal * last
+        advantages[t] = last
+    return advantages, advantages + values
+
+
+@dataclass
+class Advantages:
+    """What the PPO loss consumes: the summed advantage and a return target per value head."""
+
+    advantages: torch.Tensor   # [T, N] ext_coef * A_ext + int_coef * A_int
+    returns_ext: torch.Tensor  # [T, N]
+    returns_int: torch.Tensor  # [T, N]
+
+
+def two_stream_advantages(ro: Rollout, int_rewards: torch.Tensor | None, next_value_ext: torch.Tensor,
+                          next_value_int: torch.Tensor, *, gamma: float, int_gamma: float, lam: float,
+                          ext_coef: float, int_coef: float, int_episodic: bool) -> Advantages:
+    """Extrinsic GAE on the env reward plus, when `int_rewards` is given, intrinsic GAE on it.
+
+    The bonus enters here, after it is computed and before the loss reads the advantages
+    (the order rllte got wrong). Without a bonus the intrinsic stream is absent (zeros).
+    """
+    adv_ext, ret_ext = gae(ro.rewards, ro.values_ext, next_value_ext, ro.ends, gamma, lam)
+    if int_rewards is None:
+        return Advantages(ext_coef * adv_ext, ret_ext, torch.zeros_like(ret_ext))
+    int_ends = ro.ends if int_episodic else torch.zeros_like(ro.ends)
+    adv_int, ret_int = gae(int_rewards, ro.values_int, next_value_int, int_ends, int_gamma, lam)
+    return Advantages(ext_coef * adv_ext + int_coef * adv_int, ret_ext, ret_int)

@@ -1,0 +1,161 @@
+"""The iLLM bonus, its distillation losses, the RND-style normaliser and the history tracker."""
+
+import numpy as np
+import pytest
+import torch
+
+from illm_tools.intrinsic import DiscountedReturnNormalizer, HistoryTracker, ILLMBonus, RunningMeanStd
+from illm_tools.intrinsic.illm import action_disagreement, summary_disagreement
+from illm_tools.rl.networks import GridMissionNet, MissionVocab
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """These nets are tiny: one thread is as fast, and immune to a busy second core."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_running_mean_std_matches_numpy_over_batches():
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(3.0, 2.0, size=n) for n in (5, 17, 1, 40)]
+    rms = RunningMeanStd(epsilon=0.0)
+    for b in batches:
+        rms.update(b)
+    allx = np.concatenate(batches)
+    assert rms.count == len(allx)
+    assert rms.mean == pytest.approx(allx.mean())
+    assert rms.var == pytest.approx(allx.var())
+
+
+def test_normaliser_divides_by_std_of_discounted_return_and_keeps_it_across_rollouts():
+    gamma = 0.5
+    norm = DiscountedReturnNormalizer(num_envs=2, gamma=gamma, epsilon=0.0)
+    norm.rms = RunningMeanStd(epsilon=0.0)
+    r1 = torch.tensor([[1.0, 2.0], [1.0, 0.0], [1.0, 4.0]])
+    out1 = norm(r1)
+    # per env: R_t = r_t + gamma R_{t-1}
+    returns1 = np.array([[1.0, 2.0], [1.5, 1.0], [1.75, 4.5]])
+    assert np.allclose(out1.numpy(), r1.numpy() / returns1.std())
+    r2 = torch.tensor([[2.0, 0.0]])
+    out2 = norm(r2)  # the discounted return carries over from the previous rollout
+    returns2 = np.array([1.75 * gamma + 2.0, 4.5 * gamma])
+    std = np.concatenate([returns1.ravel(), returns2]).std()
+    assert np.allclose(out2.numpy(), r2.numpy() / std)
+    assert np.allclose(norm.returns, returns2)
+
+
+def test_normaliser_ignores_steps_without_target():
+    norm = DiscountedReturnNormalizer(num_envs=1, gamma=0.0, epsilon=0.0)
+    norm.rms = RunningMeanStd(epsilon=0.0)
+    r = torch.tensor([[1.0], [5.0], [3.0]])
+    mask = torch.tensor([[True], [False], [True]])
+    out = norm(r, mask)
+    assert out[1, 0] == 0.0
+    assert norm.rms.count == 2  # only the two steps with a target enter the std
+    assert np.allclose(out.numpy()[[0, 2], 0], np.array([1.0, 3.0]) / np.std([1.0, 3.0]))
+
+
+def _batch(t=6, n=3, a=4, d=8, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "action_logits": torch.randn(t, n, a, generator=g),
+        "summary": torch.randn(t, n, d, generator=g),
+        "target_probs": torch.randn(t, n, a, generator=g).softmax(-1),
+        "target_emb": torch.randn(t, n, d, generator=g),
+        "target_mask": torch.rand(t, n, generator=g) > 0.3,
+    }
+
+
+def test_disagreements_are_zero_at_a_match_and_bounded():
+    p = torch.tensor([[0.7, 0.2, 0.1]])
+    for kind in ("tv", "bhattacharyya"):
+        assert action_disagreement(p.log(), p, kind).item() == pytest.approx(0.0, abs=1e-6)
+        far = action_disagreement(torch.tensor([[-30.0, -30.0, 30.0]]), torch.tensor([[1.0, 0.0, 0.0]]), kind)
+        assert far.item() == pytest.approx(1.0, abs=1e-4)
+    v = torch.randn(5, 8)
+    assert torch.allclose(summary_disagreement(v, 3 * v), torch.zeros(5), atol=1e-6)
+    assert torch.allclose(summary_disagreement(v, -v), torch.ones(5))  # 1 - cos = 2, clipped to 1
+
+
+def test_steps_without_target_get_zero_reward_and_are_counted():
+    batch = _batch()
+    batch["target_probs"][~batch["target_mask"]] = float("nan")  # whatever sits there is ignored
+    bonus = ILLMBonus(num_envs=3)
+    out = bonus.compute_rewards(batch)
+    mask = batch["target_mask"]
+    assert torch.all(out.reward[~mask] == 0)
+    assert torch.all(out.reward[mask] > 0)
+    assert out.logs["no_target_steps"] == float((~mask).sum())
+    assert out.logs["target_coverage"] == pytest.approx(mask.float().mean().item())
+    assert 0.0 < out.logs["intrinsic_reward_a"] <= 1.0 and 0.0 < out.logs["intrinsic_reward_hc"] <= 1.0
+
+
+def test_bonus_is_weighted_sum_of_normalised_parts():
+    batch = _batch()
+    bonus = ILLMBonus(num_envs=3, lambda_a=0.8, beta_hc=0.5)
+    ref_a, ref_hc = DiscountedReturnNormalizer(3, 0.99), DiscountedReturnNormalizer(3, 0.99)
+    mask = batch["target_mask"]
+    r_a = torch.where(mask, action_disagreement(batch["action_logits"], batch["target_probs"]), 0.0)
+    r_hc = torch.where(mask, summary_disagreement(batch["summary"], batch["target_emb"]), 0.0)
+    expected = 0.8 * ref_a(r_a, mask) + 0.5 * ref_hc(r_hc, mask)
+    assert torch.allclose(bonus.compute_rewards(batch).reward, expected)
+
+
+def test_noreward_mode_pays_nothing_but_still_reports():
+    bonus = ILLMBonus(num_envs=3, pays_reward=False)
+    out = bonus.compute_rewards(_batch())
+    assert torch.all(out.reward == 0)
+    assert out.logs["intrinsic_reward_a"] > 0
+    assert bonus.norm_a.rms.count < 1  # the normaliser is untouched
+
+
+def test_no_target_rows_cannot_leak_nan_into_the_loss():
+    batch = {k: v.reshape(-1, *v.shape[2:]) for k, v in _batch().items()}
+    batch["target_probs"][~batch["target_mask"]] = float("nan")
+    batch["target_emb"][~batch["target_mask"]] = float("nan")
+    logits = batch["action_logits"].requires_grad_()
+    loss, _ = ILLMBonus(num_envs=3).aux_loss(batch)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(logits.grad).all()
+
+
+@pytest.mark.parametrize("summary_loss", ["cosine", "mse"])
+def test_distillation_loss_decreases_and_trains_the_torso(summary_loss):
+    torch.manual_seed(0)
+    vocab = MissionVocab()
+    net = GridMissionNet(6, vocab_size=len(vocab), embedding_dim=16, head_hidden=64)
+    b = 64
+    images = torch.randint(0, 6, (b, 7, 7, 3), dtype=torch.uint8)
+    missions = torch.as_tensor(vocab.encode(["go to the red ball", "pick up a key"] * (b // 2)))
+    targets = {"target_probs": torch.randn(b, 6).mul(3).softmax(-1), "target_emb": torch.randn(b, 16),
+               "target_mask": torch.arange(b) % 4 != 0}
+    bonus = ILLMBonus(num_envs=1, summary_loss=summary_loss)
+    opt = torch.optim.AdamW(net.parameters(), lr=3e-3)
+    conv_before = net.image_conv[0].weight.detach().clone()
+    losses = []
+    for _ in range(40):
+        a, s = net.heads(net.features(images, missions))
+        loss, logs = bonus.aux_loss({"action_logits": a, "summary": s, **targets})
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert set(logs) == {"distill_action", "distill_summary"}
+    assert losses[-1] < 0.6 * losses[0]
+    assert not torch.equal(conv_before, net.image_conv[0].weight)  # gradients reached the torso
+
+
+def test_history_tracker_keeps_last_k_and_restarts_at_episode_end():
+    h = HistoryTracker(num_envs=2, k=2, valid_actions=["left", "right", "forward"])
+    h.push(["o1", "p1"], [0, 1], [False, False])
+    h.push(["o2", "p2"], [2, 2], [False, True])  # env 1's episode ends here
+    h.push(["o3", "q1"], [1, 0], [False, False])
+    r0, r1 = h.records(["m0", "m1"], ["o4", "q2"])
+    assert r0.history == (("o2", "forward"), ("o3", "right"))
+    assert r0.observation == "o4" and r0.mission == "m0"
+    assert r1.history == (("q1", "left"),)
+    assert r0.valid_actions == ("left", "right", "forward")
+    assert HistoryTracker(1, 0, ["a"]).records(["m"], ["o"])[0].history == ()

@@ -1,0 +1,247 @@
+"""PPO trainer: GAE, the bonus reaching the loss, modes, metrics, checkpoint and resume."""
+
+import json
+import zlib
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from illm_tools.errors import OutputExistsError, UsageError
+from illm_tools.intrinsic import Targets
+from illm_tools.rl import TrainConfig, Trainer, gae, load_checkpoint, load_policy, make_pool
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """These nets are tiny: one thread is as fast, and immune to a busy second core."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
+
+
+class FakePool:
+    """The EnvPool interface over a toy task: an episode ends after 3-9 steps; 'go forward'
+    on the last step succeeds (reward 1)."""
+
+    def __init__(self, num_envs, seed=0):
+        self.num_envs, self.action_names = num_envs, ACTIONS
+        self.rng = np.random.default_rng(seed)
+
+    def _obs(self):
+        n = self.num_envs
+        return SimpleNamespace(
+            images=self.rng.integers(0, 6, size=(n, 7, 7, 3)).astype(np.uint8),
+            directions=np.zeros(n, np.int64), missions=[f"go to the {c} ball" for c in self.colours],
+            texts=[f"you see a wall {s} steps forward" for s in self.steps], seeds=np.arange(n),
+            steps=self.steps.copy())
+
+    def reset(self):
+        self.steps = np.zeros(self.num_envs, np.int64)
+        self.lengths = self.rng.integers(3, 10, self.num_envs)
+        self.returns = np.zeros(self.num_envs)
+        self.colours = self.rng.choice(["red", "blue"], self.num_envs).tolist()
+        return self._obs()
+
+    def step(self, actions):
+        self.steps += 1
+        done = self.steps >= self.lengths
+        rewards = (done & (np.asarray(actions) == 2)).astype(np.float32)
+        self.returns += rewards
+        episodes = [(i, self.returns[i], int(self.steps[i]), bool(rewards[i] > 0)) for i in np.flatnonzero(done)]
+        for i in np.flatnonzero(done):
+            self.steps[i], self.returns[i] = 0, 0.0
+            self.lengths[i] = self.rng.integers(3, 10)
+        return SimpleNamespace(rewards=rewards, terminated=done, truncated=np.zeros_like(done),
+                               obs=self._obs(), episodes=episodes)
+
+
+class FakeProvider:
+    """Deterministic targets from a hash of each record; about one record in four has none."""
+
+    def __init__(self, num_actions, dim):
+        self.num_actions, self.dim, self.calls, self.records = num_actions, dim, 0, []
+
+    def targets(self, records):
+        self.calls += 1
+        self.records.extend(records)
+        probs = np.zeros((len(records), self.num_actions), np.float32)
+        emb = np.zeros((len(records), self.dim), np.float32)
+        mask = np.zeros(len(records), bool)
+        for i, r in enumerate(records):
+            key = zlib.crc32(repr((r.mission, r.history, r.observation)).encode())
+            rng = np.random.default_rng(key)
+            probs[i], emb[i], mask[i] = rng.dirichlet(np.ones(self.num_actions)), rng.normal(size=self.dim), key % 4 != 0
+        return Targets(probs, emb, mask)
+
+    def stats(self):
+        return {"cache_hit_rate": 0.25, "live_annotations": 7}
+
+
+class RefusingProvider:
+    def targets(self, records):
+        raise AssertionError("ppo mode must not ask for LLM targets")
+
+    def stats(self):
+        return {}
+
+
+def make_trainer(tmp_path, mode="illm", updates=2, pool=None, **kw):
+    cfg = TrainConfig(run_dir=tmp_path / "run", mode=mode, num_envs=4, num_steps=32,
+                      total_steps=4 * 32 * updates, embedding_dim=8, head_hidden=32, tensorboard=False,
+                      update_epochs=2, num_minibatches=2, **kw)
+    pool = pool or FakePool(cfg.num_envs)
+    provider = FakeProvider(len(pool.action_names), cfg.embedding_dim) if mode != "ppo" else RefusingProvider()
+    return Trainer(cfg, pool, provider), provider
+
+
+def test_gae_matches_a_direct_computation():
+    g = torch.Generator().manual_seed(0)
+    rewards, values = torch.rand(5, 2, generator=g), torch.rand(5, 2, generator=g)
+    ends = torch.tensor([[0, 0], [1, 0], [0, 0], [0, 1], [0, 0]], dtype=torch.float32)
+    next_value, gamma, lam = torch.tensor([0.3, 0.7]), 0.9, 0.8
+    adv, ret = gae(rewards, values, next_value, ends, gamma, lam)
+    for n in range(2):
+        v = torch.cat([values[:, n], next_value[n:n + 1]])
+        for t in range(5):
+            expected, discount = 0.0, 1.0
+            for k in range(t, 5):
+                delta = rewards[k, n] + gamma * v[k + 1] * (1 - ends[k, n]) - v[k]
+                expected += discount * delta
+                if ends[k, n]:
+                    break
+                discount *= gamma * lam
+            assert adv[t, n].item() == pytest.approx(float(expected), abs=1e-5)
+    assert torch.allclose(ret, adv + values)
+
+
+def test_the_bonus_reaches_the_advantages_the_loss_uses(tmp_path, monkeypatch):
+    trainer, _ = make_trainer(tmp_path, int_gamma=0.9)
+    ro, records, _, next_values = trainer.collect_rollout()
+    trainer.attach_targets(ro, records)
+    bonus = trainer.intrinsic_rewards(ro).reward
+    assert (bonus > 0).any()
+    with_bonus = trainer.advantages(ro, bonus, next_values).advantages
+    without = trainer.advantages(ro, torch.zeros_like(bonus), next_values).advantages
+    # GAE is linear in the reward: the difference is the (gamma_int * lambda)-discounted bonus to go
+    expected = torch.zeros_like(bonus)
+    running = torch.zeros(bonus.shape[1])
+    for t in reversed(range(bonus.shape[0])):
+        running = bonus[t] + 0.9 * 0.95 * running  # the intrinsic stream is non-episodic
+        expected[t] = running
+    assert torch.allclose(with_bonus - without, expected, atol=1e-5)
+    assert (with_bonus >= without - 1e-6).all() and (with_bonus > without).any()
+
+    # and, in the real loop, the update step receives advantages with the bonus in them
+    seen = {}
+
+    def capture(ro, adv):
+        seen.update(ro=ro, adv=adv)
+        return {}
+
+    monkeypatch.setattr(trainer, "update", capture)
+    trainer.train_one_update()
+    ro, adv = seen["ro"], seen["adv"]
+    with torch.no_grad():  # the network is untouched, so this is the rollout's bootstrap value
+        next_ext = trainer.net(*trainer._policy_inputs(trainer.obs)).value_ext
+    ext_only, _ = gae(ro.rewards, ro.values_ext, next_ext, ro.ends, trainer.cfg.gamma, trainer.cfg.gae_lambda)
+    assert not torch.allclose(adv.advantages, ext_only)
+    assert adv.returns_int.abs().sum() > 0
+
+
+def test_ppo_mode_has_no_intrinsic_reward_and_no_head_loss(tmp_path):
+    trainer, _ = make_trainer(tmp_path, mode="ppo", updates=1)
+    assert not trainer.net.has_heads
+    metrics = trainer.train()
+    assert metrics["charts/intrinsic_reward_a"] == 0 and metrics["charts/intrinsic_reward_hc"] == 0
+    assert metrics["charts/target_coverage"] == 0 and metrics["charts/cache_hit_rate"] == 0
+    assert metrics["losses/value_loss_int"] == 0
+    assert not any(k.startswith("losses/distill") for k in metrics)
+
+
+def test_noreward_mode_trains_heads_without_paying(tmp_path):
+    trainer, _ = make_trainer(tmp_path, mode="illm-noreward", updates=1)
+    head_before = trainer.net.f_a[0].weight.detach().clone()
+    metrics = trainer.train()
+    assert metrics["losses/distill_action"] > 0 and metrics["losses/value_loss_int"] == 0
+    assert "charts/intrinsic_reward" not in metrics and metrics["charts/intrinsic_reward_a"] > 0
+    assert not torch.equal(head_before, trainer.net.f_a[0].weight)
+
+
+def test_records_carry_the_rolling_history(tmp_path):
+    trainer, provider = make_trainer(tmp_path, updates=1, history_len=2)
+    trainer.train()
+    assert len(provider.records) == 4 * 32 and provider.calls == 1
+    assert all(len(r.history) <= 2 and r.valid_actions == ACTIONS for r in provider.records)
+    assert any(len(r.history) == 2 for r in provider.records)
+    assert all(r.history == () for r in provider.records if r.observation.startswith("you see a wall 0 "))
+
+
+def test_short_run_writes_metrics_and_checkpoint_and_resumes(tmp_path):
+    trainer, _ = make_trainer(tmp_path, updates=2, checkpoint_every=1)
+    seen = []
+    trainer.on_metrics = seen.append
+    trainer.train()
+    run = tmp_path / "run"
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["global_step"] for r in rows] == [128, 256] and len(seen) == 2
+    for key in ("charts/sps", "charts/intrinsic_reward_a", "charts/intrinsic_reward_hc", "charts/cache_hit_rate",
+                "charts/target_coverage", "charts/live_annotations", "losses/policy_loss",
+                "losses/value_loss", "losses/entropy", "losses/distill_action", "losses/distill_summary"):
+        assert key in rows[-1], key
+    assert rows[-1]["charts/cache_hit_rate"] == 0.25 and rows[-1]["charts/live_annotations"] == 7
+    assert 0 < rows[-1]["charts/target_coverage"] < 1
+    saved = load_checkpoint(run)
+    assert saved["global_step"] == 256 and saved["update"] == 2
+
+    with pytest.raises(OutputExistsError):
+        make_trainer(tmp_path, updates=3)
+    with pytest.raises(UsageError, match="lambda_a"):
+        make_trainer(tmp_path, updates=3, resume=True, lambda_a=0.1)
+
+    resumed, _ = make_trainer(tmp_path, updates=3, resume=True, checkpoint_every=1)
+    assert resumed.global_step == 256 and resumed.update_idx == 2
+    state, before = resumed.state_dict(), trainer.state_dict()
+    for k in before["model"]:
+        assert torch.equal(state["model"][k], before["model"][k]), k
+    assert torch.equal(state["rng"]["torch"], before["rng"]["torch"])
+    assert state["rng"]["numpy"] == before["rng"]["numpy"] and state["bonus"] == before["bonus"]
+    opt_a, opt_b = state["optimizer"]["state"], before["optimizer"]["state"]
+    assert all(torch.equal(opt_a[i]["exp_avg"], opt_b[i]["exp_avg"]) for i in opt_b)
+    resumed.train()
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["update"] for r in rows] == [1, 2, 3] and load_checkpoint(run)["global_step"] == 384
+
+
+def test_config_is_validated():
+    with pytest.raises(UsageError, match="mode"):
+        TrainConfig(mode="rnd")
+    with pytest.raises(UsageError, match="divisible"):
+        TrainConfig(num_envs=3, num_steps=5, num_minibatches=4)
+    cfg = TrainConfig(num_envs=16, num_steps=128, total_steps=10_000)
+    assert (cfg.batch_size, cfg.minibatch_size, cfg.num_updates) == (2048, 512, 4)
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_illm_mode_needs_a_provider(tmp_path):
+    cfg = TrainConfig(run_dir=tmp_path, num_envs=4, num_steps=32)
+    with pytest.raises(UsageError, match="ppo"):
+        Trainer(cfg, FakePool(4), None)
+
+
+def test_real_babyai_pool_short_run_and_load_policy(tmp_path):
+    cfg = TrainConfig(env_id="BabyAI-GoToRedBallGrey-v0", run_dir=tmp_path / "run", num_envs=4, num_steps=32,
+                      total_steps=128, embedding_dim=8, head_hidden=32, tensorboard=False)
+    pool = make_pool(cfg)
+    provider = FakeProvider(len(pool.action_names), cfg.embedding_dim)
+    metrics = Trainer(cfg, pool, provider).train()
+    assert metrics["global_step"] == 128 and np.isfinite(metrics["losses/policy_loss"])
+    assert all(r.observation for r in provider.records) and provider.records[0].mission.startswith("go to")
+    policy = load_policy(cfg.run_dir, pool, seed=0)
+    actions = policy.act(pool.reset())
+    assert actions.shape == (4,) and ((0 <= actions) & (actions < len(pool.action_names))).all()
