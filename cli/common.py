@@ -35,10 +35,13 @@ def progress(total: int, description: str, unit: str = "steps"):
         TimeElapsedColumn(),
     ]
     with Progress(*columns, console=console, transient=not sys.stderr.isatty(), disable=not console.is_terminal) as bar:
-        task = bar.add_task(description, total=total, rate="", extra="")
+        task = bar.add_task(description, total=total or None, rate="", extra="")
 
-        def advance(n: int, rate: float | None = None, **fields) -> None:
+        def advance(n: int, rate: float | None = None, total: int | None = None, **fields) -> None:
+            """Move the bar by n; `total` sets the total once it is known."""
             extra = "  ".join(f"{k}={v}" for k, v in fields.items())
-            bar.update(task, advance=n, rate=f"{rate:,.0f} {unit}/s" if rate is not None else "", extra=extra)
+            if total is not None:
+                bar.update(task, total=total)
+            bar.update(task, advance=n, rate=f"{rate:,.2f} {unit}/s" if rate is not None else "", extra=extra)
 
         yield advance

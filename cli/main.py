@@ -36,10 +36,14 @@ def root(
 
 
 def _register() -> None:
-    from cli import collect, data
+    from cli import annotate, cache, collect, data, models, train
 
     collect.register(app)
     app.add_typer(data.app, name="data")
+    models.register(app)
+    annotate.register(app)
+    cache.register(app)
+    train.register(app)
 
 
 _register()

@@ -1,13 +1,15 @@
 """The files of a training run directory, and loading a trained run's policy for other stages.
 
 Owns `run_dir/checkpoint.pt` (written atomically: temporary file, fsync, rename, so a crash
-leaves the previous checkpoint intact), `run_dir/metrics.jsonl` (one JSON object per update, plus
-TensorBoard events when asked) and `load_policy`, which rebuilds the network from
+leaves the previous checkpoint intact), `run_dir/metrics.jsonl` (one JSON object per update, every
+metric), `run_dir/metrics.csv` (the same rows, a fixed set of columns, for spreadsheets and
+`illm report`), TensorBoard events when asked and `load_policy`, which rebuilds the network from
 `run_dir/config.json` + the checkpoint for `collect` / `eval`.
 """
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 from pathlib import Path
@@ -20,6 +22,18 @@ from illm_tools.errors import UsageError
 CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_VERSION = 1
 METRICS_NAME = "metrics.jsonl"
+CSV_NAME = "metrics.csv"
+# metrics.csv columns: metric keys without their charts/ or losses/ group; empty when not logged
+CSV_COLUMNS = ("global_step", "update", "episodic_return", "episodic_length", "success_rate", "sps",
+               "intrinsic_reward_a", "intrinsic_reward_hc", "cache_hit_rate", "target_coverage",
+               "live_annotations", "no_target_steps", "episodes", "learning_rate", "policy_loss",
+               "value_loss", "value_loss_int", "entropy", "approx_kl", "clipfrac", "explained_variance",
+               "distill_action", "distill_summary")
+
+
+def csv_row(metrics: dict) -> list:
+    flat = {key.split("/", 1)[-1]: value for key, value in metrics.items()}
+    return ["" if flat.get(c) is None else flat[c] for c in CSV_COLUMNS]
 
 
 class MetricsLog:
@@ -27,23 +41,36 @@ class MetricsLog:
 
     def __init__(self, run_dir: Path, *, tensorboard: bool, keep_until_update: int | None = None):
         self.path = Path(run_dir) / METRICS_NAME
+        self.csv_path = Path(run_dir) / CSV_NAME
+        rows: list[str] = []
         if keep_until_update is not None and self.path.exists():
             # on resume, drop rows logged after the checkpoint: they are about to be redone
             rows = [r for r in self.path.read_text().splitlines()
                     if r.strip() and json.loads(r).get("update", 0) <= keep_until_update]
-            tmp = self.path.with_suffix(".jsonl.tmp")
-            tmp.write_text("".join(r + "\n" for r in rows))
-            os.replace(tmp, self.path)
+        self._rewrite(rows)
         self._fh = open(self.path, "a")
+        self._csv_fh = open(self.csv_path, "a", newline="")
+        self._csv = csv.writer(self._csv_fh)
         self._tb = None
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter  # heavy import, only when asked
 
             self._tb = SummaryWriter(str(run_dir))
 
+    def _rewrite(self, rows: list[str]) -> None:
+        """Start both files afresh with the given JSON rows (atomically each)."""
+        for path, lines in ((self.path, [r + "\n" for r in rows]),
+                            (self.csv_path, [",".join(CSV_COLUMNS) + "\n"]
+                             + [",".join(map(str, csv_row(json.loads(r)))) + "\n" for r in rows])):
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text("".join(lines))
+            os.replace(tmp, path)
+
     def write(self, metrics: dict) -> None:
         self._fh.write(json.dumps(metrics) + "\n")
         self._fh.flush()
+        self._csv.writerow(csv_row(metrics))
+        self._csv_fh.flush()
         if self._tb is not None:
             step = int(metrics["global_step"])
             for key, value in metrics.items():
@@ -52,6 +79,7 @@ class MetricsLog:
 
     def close(self) -> None:
         self._fh.close()
+        self._csv_fh.close()
         if self._tb is not None:
             self._tb.close()
 
@@ -81,7 +109,7 @@ def load_checkpoint(run_dir: Path) -> dict:
 
 
 # settings a resumed run may change; any other difference is refused
-RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "tensorboard"})
+RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "tensorboard", "live_budget", "threads"})
 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:

@@ -96,6 +96,24 @@ class TrainConfig:
     int_coef: float = 1.0
     """Weight of the intrinsic advantage; 1 with ext_coef 1 matches r* = r + lambda r^a + beta r^hc."""
 
+    # --- LLM targets -----------------------------------------------------------------------
+    cache: Path | None = None
+    """Annotation cache the targets are read from (and live annotations written back to)."""
+    model: str = "smollm2-135m"
+    """LLM whose annotations are the targets: its fingerprint is part of every cache key."""
+    model_dtype: str = "bfloat16"
+    """Compute dtype of that LLM (part of its fingerprint, as in `illm annotate --dtype`)."""
+    quant: str = "none"
+    """Quantisation of that LLM (part of its fingerprint, as in `illm annotate --quant`)."""
+    layout: str = "shared"
+    """Prompt template layout, as in `illm annotate --layout`."""
+    action_score: str = "sum"
+    """Calibration of the stored action log-probs: sum (paper), mean per token, or pmi."""
+    live_budget: int = 64
+    """Distinct uncached states annotated by the live LLM after each rollout; 0: cache only."""
+    threads: int = 1
+    """Torch threads for the policy (small nets run best on one); live annotation uses all cores."""
+
     # --- bookkeeping -----------------------------------------------------------------------
     checkpoint_every: int = 10
     """Save a checkpoint every this many updates (and after the last one); 0 only at the end."""
@@ -108,6 +126,11 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         self.run_dir = Path(self.run_dir)
+        self.cache = Path(self.cache) if self.cache is not None else None
+        if self.action_score not in ("sum", "mean", "pmi"):
+            raise UsageError(f"--action-score must be sum, mean or pmi, got {self.action_score!r}")
+        if self.live_budget < 0 or self.threads <= 0:
+            raise UsageError("--live-budget must be >= 0 and --threads positive")
         if self.mode not in MODES:
             raise UsageError(f"unknown mode {self.mode!r}; choose one of {', '.join(MODES)}")
         for name in ("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",
@@ -160,6 +183,7 @@ class TrainConfig:
         """JSON-ready form (paths as strings)."""
         out = asdict(self)
         out["run_dir"] = str(self.run_dir)
+        out["cache"] = str(self.cache) if self.cache is not None else None
         return out
 
     @classmethod

@@ -1,0 +1,49 @@
+"""`illm annotate`: annotate a trajectory dataset's states with an LLM, into the shared cache."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from cli.common import progress
+from cli.errors import friendly
+
+
+def register(app: typer.Typer) -> None:
+    @app.command(epilog="Example: illm annotate data/traj/gotolocal --cache data/ann --model smollm2-135m "
+                        "--tasks action,summary")
+    @friendly
+    def annotate(
+        data: Path = typer.Argument(..., help="Trajectory dataset written by `illm collect`."),
+        cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache folder (shared across runs)."),
+        model: str = typer.Option("smollm2-135m", "--model", help="Alias (see `illm models`), hub id or local folder."),
+        tasks: str = typer.Option("action,summary", "--tasks", help="Comma-separated: action, summary."),
+        history: int = typer.Option(3, "--history", help="Observation/action pairs of history in the prompts."),
+        layout: str = typer.Option("shared", "--layout", help="Templates: shared (history first, prefix computed once) or paper (as printed)."),
+        batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
+        limit: int = typer.Option(None, "--limit", help="Annotate at most N missing states."),
+        dtype: str = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16."),
+        quant: str = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit."),
+    ) -> None:
+        """Annotate every distinct state once: next-action log-prob ranking and 64-token summary with embedding."""
+        from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
+
+        config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()),
+                                history=history, layout=layout, batch_size=batch_size, limit=limit, dtype=dtype, quant=quant)
+        with progress(0, f"annotate {model}", unit="states") as advance:
+            def on_plan(stats, todo: int) -> None:
+                typer.echo(f"{stats.states:,} distinct states, {stats.keys:,} keys: {stats.hits:,} cached, "
+                           f"{stats.misses:,} to annotate", err=True)
+                advance(0, total=todo)
+
+            def on_progress(n: int, stats) -> None:
+                advance(n, stats.states_per_s, hits=stats.hits, misses=stats.misses)
+
+            stats = annotate_dataset(config, on_progress=on_progress, on_plan=on_plan)
+        typer.echo(
+            f"annotated {stats.annotated_states:,} states ({stats.rows:,} rows: "
+            + ", ".join(f"{k} {v:,}" for k, v in sorted(stats.per_task.items()))
+            + f") in {stats.seconds:.1f}s, {stats.states_per_s:.2f} states/s; {stats.hits:,} keys were already cached "
+            f"-> {cache}"
+        )

@@ -1,0 +1,94 @@
+"""`illm cache info|verify|merge|repair`: inspect, check, combine and repair annotation caches."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import typer
+
+from cli.common import emit_json
+from cli.errors import friendly
+
+app = typer.Typer(help="Inspect, verify, merge and repair annotation caches.", no_args_is_help=True)
+
+
+def register(root: typer.Typer) -> None:
+    root.add_typer(app, name="cache")
+
+
+@app.command("info", epilog="Example: illm cache info data/ann --json")
+@friendly
+def info(
+    path: Path = typer.Argument(..., help="Annotation cache folder."),
+    as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
+) -> None:
+    """Entries per task and model, embedding dimension, shards and size."""
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.errors import UsageError
+
+    if not (path / "manifest.json").is_file():
+        raise UsageError(f"no annotation cache at {path}: run `illm annotate DATA --cache {path}` first")
+    stats = AnnotationCache(path).info()
+    if as_json:
+        emit_json(stats)
+        return
+    typer.echo(f"{path}: annotation cache, {stats['schema']}")
+    typer.echo(f"  entries     {stats['entries']:,}")
+    for task, n in sorted(stats["tasks"].items()):
+        typer.echo(f"  task        {task}: {n:,}")
+    for model, n in sorted(stats["models"].items()):
+        typer.echo(f"  task/model  {model}: {n:,}")
+    typer.echo(f"  embeddings  dim {', '.join(map(str, stats['embedding_dims'])) or '-'}")
+    typer.echo(f"  shards      {stats['shards']} ({stats['bytes'] / 1e6:.1f} MB)")
+
+
+@app.command("verify", epilog="Example: illm cache verify data/ann")
+@friendly
+def verify(
+    path: Path = typer.Argument(..., help="Annotation cache folder."),
+    as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
+) -> None:
+    """Check schema, checksums, row counts and duplicate keys of every shard; exit 1 on damage."""
+    from illm_tools.cache.verify import verify as run
+
+    report = run(path)
+    if as_json:
+        emit_json({**dataclasses.asdict(report), "ok": report.ok})
+    else:
+        typer.echo(f"{path}: {report.schema or 'unknown schema'}, {report.shards} shards, {report.rows:,} rows, "
+                   f"{report.keys:,} keys")
+        for problem in report.problems:
+            typer.echo(f"  DAMAGED  {problem}")
+        for orphan in report.orphans:
+            typer.echo(f"  orphan   {orphan} (from an interrupted write; `illm cache repair` adopts or removes it)")
+        typer.echo("ok" if report.ok else "damaged: restore the named shards from a copy, or remove them from "
+                   "manifest.json and annotate again")
+    if not report.ok:
+        raise typer.Exit(1)
+
+
+@app.command("merge", epilog="Example: illm cache merge runs/a/ann runs/b/ann --into data/ann")
+@friendly
+def merge(
+    sources: list[Path] = typer.Argument(..., help="Caches to copy from (left untouched)."),
+    into: Path = typer.Option(..., "--into", help="Cache to merge into (created if absent)."),
+) -> None:
+    """Copy into --into every entry it lacks from verified sources; keys are never duplicated."""
+    from illm_tools.cache.verify import merge as run
+
+    report = run(sources, into)
+    typer.echo(f"merged {len(sources)} caches into {into}: {report.rows_copied:,} rows copied, "
+               f"{report.rows_skipped:,} already present, {len(report.shards_written)} new shards")
+
+
+@app.command("repair", epilog="Example: illm cache repair data/ann")
+@friendly
+def repair(path: Path = typer.Argument(..., help="Annotation cache folder.")) -> None:
+    """Adopt complete shards left unlisted by an interrupted write; remove temp files."""
+    from illm_tools.cache.store import AnnotationCache
+
+    report = AnnotationCache(path).adopt_orphans()
+    typer.echo(f"{path}: adopted {len(report.adopted)}, rewrote {len(report.rewritten)}, removed "
+               f"{len(report.removed)} redundant, rejected {len(report.rejected)}, "
+               f"{len(report.temp_removed)} temp files removed")

@@ -1,0 +1,81 @@
+"""`illm train` and `illm eval`: PPO with the iLLM heads on cached LLM targets, and evaluation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from cli.common import emit_json, progress
+from cli.errors import friendly
+
+
+def register(app: typer.Typer) -> None:
+    @app.command(epilog="Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm "
+                        "--frames 200000 --seed 0 --out runs/gotolocal-illm")
+    @friendly
+    def train(
+        env: str = typer.Option("BabyAI-GoToLocal-v0", "--env", help="Environment id."),
+        out: Path = typer.Option(..., "--out", help="Run folder: config.json, checkpoint.pt, metrics.csv, TensorBoard events."),
+        method: str = typer.Option("illm", "--method", help="illm (heads + bonus) | illm-noreward (heads only, paper Table 3) | ppo."),
+        cache: Path = typer.Option(None, "--cache", help="Annotation cache with the LLM targets (needed by illm methods)."),
+        model: str = typer.Option("smollm2-135m", "--model", help="LLM whose annotations are the targets (as in `illm annotate`)."),
+        frames: int = typer.Option(200_000, "--frames", help="Environment steps to train for."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the network, sampling and episodes."),
+        live_budget: int = typer.Option(64, "--live-budget", help="Uncached states annotated live per rollout; 0: cache only."),
+        action_score: str = typer.Option("sum", "--action-score", help="Calibration of the action log-probs: sum | mean | pmi."),
+        history: int = typer.Option(3, "--history", help="History pairs in the prompts (must match the annotation)."),
+        layout: str = typer.Option("shared", "--layout", help="Prompt layout (must match the annotation): shared | paper."),
+        dtype: str = typer.Option("bfloat16", "--dtype", help="LLM compute dtype (must match the annotation)."),
+        quant: str = typer.Option("none", "--quant", help="LLM quantisation (must match the annotation): none | 4bit | 8bit."),
+        lambda_a: float = typer.Option(0.8, "--lambda-a", help="Weight of the action bonus r^a."),
+        beta_hc: float = typer.Option(0.5, "--beta-hc", help="Weight of the summary bonus r^hc."),
+        num_envs: int = typer.Option(16, "--num-envs", help="Parallel environments."),
+        num_steps: int = typer.Option(128, "--num-steps", help="Steps per env per rollout."),
+        action_space: str = typer.Option("augmented", "--action-space", help="original | augmented | irrelevant."),
+        num_dists: int = typer.Option(None, "--num-dists", help="Distractors, for levels that take it."),
+        threads: int = typer.Option(1, "--threads", help="Torch threads for the policy."),
+        resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its last checkpoint."),
+    ) -> None:
+        """Train PPO with the iLLM heads and intrinsic rewards, reading targets from the cache."""
+        from illm_tools.rl.config import TrainConfig
+        from illm_tools.rl.run import train as run
+
+        cfg = TrainConfig(env_id=env, run_dir=out, mode=method, seed=seed, total_steps=frames, num_envs=num_envs,
+                          num_steps=num_steps, action_space=action_space, num_dists=num_dists, history_len=history,
+                          lambda_a=lambda_a, beta_hc=beta_hc, cache=cache, model=model, model_dtype=dtype, quant=quant,
+                          layout=layout, action_score=action_score, live_budget=live_budget, threads=threads,
+                          resume=resume)
+        last: dict = {}
+        with progress(cfg.num_updates * cfg.batch_size, f"train {method}", unit="steps") as advance:
+            def on_metrics(m: dict) -> None:
+                last.update(m)
+                fields = {"success": f"{m.get('charts/success_rate', float('nan')):.2f}"}
+                if cfg.uses_heads:
+                    fields["cache_hit"] = f"{m.get('charts/cache_hit_rate', 0.0):.2f}"
+                advance(cfg.batch_size, m.get("charts/sps"), **fields)
+
+            run(cfg, on_metrics)
+        typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames "
+                   f"({last.get('charts/sps', 0):,.0f} steps/s); last success rate "
+                   f"{last.get('charts/success_rate', float('nan')):.2f} -> {out}")
+
+    @app.command("eval", epilog="Example: illm eval runs/gotolocal-illm --episodes 100 --json")
+    @friendly
+    def evaluate(
+        run_dir: Path = typer.Argument(..., help="Run folder written by `illm train`."),
+        episodes: int = typer.Option(100, "--episodes", help="Episodes to play."),
+        seed: int = typer.Option(0, "--seed", help="Evaluation seed (episodes are disjoint from training seeds)."),
+        greedy: bool = typer.Option(False, "--greedy", help="Take the most likely action instead of sampling."),
+        as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
+    ) -> None:
+        """Success rate and mean return of a trained policy on fresh episodes."""
+        from illm_tools.rl.run import evaluate as run
+
+        result = run(run_dir, episodes=episodes, seed=seed, greedy=greedy)
+        if as_json:
+            emit_json(result)
+            return
+        typer.echo(f"{result['run']} ({result['method']} on {result['env_id']}): success rate "
+                   f"{result['success_rate']:.3f}, mean return {result['mean_return']:.3f}, "
+                   f"mean length {result['mean_length']:.1f} over {episodes} episodes")

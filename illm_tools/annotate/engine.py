@@ -1,0 +1,197 @@
+"""The annotation engine: states in, cache rows out. Used by `illm annotate` (bulk, from a
+trajectory dataset) and by the trainer's live fallback (cache misses after a rollout), so both
+write identical rows under identical keys.
+
+For each distinct state it renders the language tasks' prompts (illm_tools.tasks), drops keys the
+cache already holds, and runs the LLM on the rest in length-sorted batches: candidate scoring for
+`action` (context KV computed once per state and shared by all candidates), greedy generation of
+at most 64 tokens plus the summary embedding for `summary`. Rows are written in chunks, so a run
+killed at any point keeps every finished chunk and a restart does only what is missing.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from illm_tools.cache.keys import canonical_json, fingerprint_hash
+from illm_tools.cache.store import AnnotationCache
+from illm_tools.errors import UsageError
+from illm_tools.tasks.prompts import TASKS, Prompt, PromptBuilder, neutral_prompt
+from illm_tools.tasks.state import StateRecord
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Job:
+    """One (state, task) the LLM must answer."""
+
+    key: str
+    prompt: Prompt
+    builder: PromptBuilder
+
+
+@dataclass
+class Stats:
+    """Counters of an annotation run (distinct states and (state, task) keys)."""
+
+    states: int = 0
+    """Distinct states planned."""
+    keys: int = 0
+    """Distinct (state, task) keys planned."""
+    hits: int = 0
+    """Keys the cache already held."""
+    misses: int = 0
+    """Keys the cache lacked."""
+    annotated_states: int = 0
+    """States the LLM answered in this run (all their missing tasks)."""
+    rows: int = 0
+    """Rows written to the cache."""
+    seconds: float = 0.0
+    per_task: dict = field(default_factory=dict)
+
+    @property
+    def states_per_s(self) -> float:
+        return self.annotated_states / self.seconds if self.seconds else 0.0
+
+
+class Annotator:
+    """Owns a loaded model, a cache and the prompt builders of the envs it has seen."""
+
+    def __init__(self, lm, cache: AnnotationCache, *, model: str, tasks: Sequence[str] = TASKS,
+                 history_len: int = 3, layout: str = "shared", batch_size: int = 8, chunk: int = 64):
+        unknown = sorted(set(tasks) - set(TASKS))
+        if unknown or not tasks:
+            raise UsageError(f"unknown tasks {unknown or list(tasks)}: choose from {', '.join(TASKS)}")
+        self.lm = lm
+        self.cache = cache
+        self.model = model
+        self.tasks = tuple(tasks)
+        self.history_len = history_len
+        self.layout = layout
+        self.batch_size = batch_size
+        self.chunk = chunk
+        self.model_fingerprint = fingerprint_hash(lm.fingerprint)
+        self._builders: dict[tuple[str, str], PromptBuilder] = {}
+        self._neutral: dict[tuple[str, ...], list[float]] = {}
+
+    def builder(self, env_id: str, renderer: str) -> PromptBuilder:
+        key = (env_id, renderer)
+        if key not in self._builders:
+            self._builders[key] = PromptBuilder(env_id=env_id, renderer=renderer, model=self.model,
+                                                model_fingerprint=self.model_fingerprint,
+                                                history_len=self.history_len, layout=self.layout)
+        return self._builders[key]
+
+    def plan(self, records: Sequence[StateRecord], env_ids: Sequence[str], renderers: Sequence[str],
+             stats: Stats | None = None) -> list[list[Job]]:
+        """Jobs for the distinct (state, task) keys the cache misses, grouped per state."""
+        stats = stats if stats is not None else Stats()
+        seen: set[str] = set()
+        per_state: dict[StateRecord, list[Job]] = {}
+        distinct: set[tuple] = set()
+        for record, env_id, renderer in zip(records, env_ids, renderers):
+            builder = self.builder(env_id, renderer)
+            distinct.add((record, builder))
+            for task in self.tasks:
+                prompt = builder.render(task, record)
+                key = builder.key(prompt)
+                if key in seen:
+                    continue
+                seen.add(key)
+                per_state.setdefault((record, builder), []).append(Job(key, prompt, builder))
+        keys = list(seen)
+        found = self.cache.contains(keys) if keys else np.zeros(0, bool)
+        present = {k for k, f in zip(keys, found) if f}
+        stats.states += len(distinct)
+        stats.keys += len(keys)
+        stats.hits += len(present)
+        stats.misses += len(keys) - len(present)
+        plan = [[j for j in jobs if j.key not in present] for jobs in per_state.values()]
+        return [jobs for jobs in plan if jobs]
+
+    def run(self, plan: list[list[Job]], *, limit: int | None = None, stats: Stats | None = None,
+            on_progress: Callable[[int, Stats], None] | None = None) -> Stats:
+        """Annotate the planned states (at most `limit` of them), writing a shard per chunk."""
+        stats = stats if stats is not None else Stats()
+        if limit is not None:
+            plan = plan[:limit]
+        start = time.perf_counter()
+        for i in range(0, len(plan), self.chunk):
+            chunk = plan[i:i + self.chunk]
+            rows = self.annotate(chunk)
+            self.cache.write(rows)
+            for row in rows:
+                stats.per_task[row["task"]] = stats.per_task.get(row["task"], 0) + 1
+            stats.rows += len(rows)
+            stats.annotated_states += len(chunk)
+            stats.seconds = time.perf_counter() - start
+            if on_progress is not None:
+                on_progress(len(chunk), stats)
+        stats.seconds = time.perf_counter() - start
+        return stats
+
+    # ---- the LLM calls ---------------------------------------------------------------------
+
+    def annotate(self, states: list[list[Job]]) -> list[dict]:
+        """Cache rows for the jobs of these states (no writing)."""
+        from illm_tools.llm.scoring import score_candidates
+        from illm_tools.llm.generation import generate
+
+        jobs = [j for state in states for j in state]
+        action = [j for j in jobs if j.prompt.task == "action"]
+        summary = [j for j in jobs if j.prompt.task == "summary"]
+        rows = []
+        if action:
+            scores = score_candidates(self.lm, [j.prompt.text for j in action],
+                                      [list(j.prompt.candidates) for j in action], batch_size=self.batch_size)
+            rows += [self._action_row(j, s) for j, s in zip(action, scores)]
+        if summary:
+            gens = generate(self.lm, [j.prompt.text for j in summary], max_new_tokens=64, batch_size=self.batch_size)
+            rows += [self._summary_row(j, g) for j, g in zip(summary, gens)]
+        return rows
+
+    def neutral_scores(self, candidates: tuple[str, ...]) -> list[float]:
+        """Each candidate's summed log-prob after the neutral prompt (once per candidate set)."""
+        if candidates not in self._neutral:
+            from illm_tools.llm.scoring import score_candidates
+
+            (scores,) = score_candidates(self.lm, [neutral_prompt()], [list(candidates)], batch_size=1)
+            self._neutral[candidates] = [float(s) for s in scores.sums]
+        return self._neutral[candidates]
+
+    def _base_row(self, job: Job) -> dict:
+        p, b = job.prompt, job.builder
+        return {
+            "key": job.key, "task": p.task, "template_version": b.template(p.task)[1],
+            "renderer": b.renderer, "model": self.model, "model_fingerprint": self.model_fingerprint,
+            "decoding": canonical_json(b.decoding(p.task)), "history_len": b.history_len,
+            "goal": p.goal, "history": p.history, "observation": p.observation, "prompt": p.text,
+            "candidates": None, "cand_token_logprobs": None, "cand_logprob_sum": None,
+            "cand_token_count": None, "neutral_logprob_sum": None, "chosen_index": None,
+            "text": None, "embedding": None, "embedding_dim": None, "created_unix": time.time(),
+        }
+
+    def _action_row(self, job: Job, scores) -> dict:
+        row = self._base_row(job)
+        sums = [float(s) for s in scores.sums]
+        row.update(
+            candidates=[c.strip() for c in job.prompt.candidates],
+            cand_token_logprobs=[[float(x) for x in t] for t in scores.token_logprobs],
+            cand_logprob_sum=sums,
+            cand_token_count=[int(n) for n in scores.token_counts],
+            neutral_logprob_sum=self.neutral_scores(job.prompt.candidates),
+            chosen_index=int(np.argmax(sums)),
+        )
+        return row
+
+    def _summary_row(self, job: Job, gen) -> dict:
+        row = self._base_row(job)
+        emb = np.asarray(gen.embedding, dtype=np.float32)
+        row.update(text=gen.text, embedding=emb.tolist(), embedding_dim=int(emb.shape[0]))
+        return row

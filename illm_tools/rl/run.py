@@ -1,0 +1,135 @@
+"""Assembling a training run from its config: the env pool, the LLM target provider (cache, and the
+live model when a budget is given), and the trainer; plus evaluation of a finished run."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Callable
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from illm_tools.errors import CacheError, UsageError
+from illm_tools.rl.config import TrainConfig
+
+EVAL_SEED_OFFSET = 1_000_000
+"""Evaluation episodes use seeds from here on, away from every training run's episode seeds."""
+
+
+@contextmanager
+def torch_threads(n: int):
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+class _AllCores:
+    """Wraps an Annotator so its LLM calls use every core while the policy runs on few."""
+
+    def __init__(self, annotator, cores: int):
+        self.annotator, self.cores = annotator, cores
+
+    def plan(self, *args, **kwargs):
+        return self.annotator.plan(*args, **kwargs)
+
+    def run(self, *args, **kwargs):
+        with torch_threads(self.cores):
+            return self.annotator.run(*args, **kwargs)
+
+
+def make_provider(cfg: TrainConfig, num_actions: int):
+    """The `CachedTargets` for an iLLM run, or None for plain PPO. Returns (provider, cfg) where
+    cfg carries the model's embedding dimension."""
+    if not cfg.uses_heads:
+        return None, cfg
+    if cfg.cache is None:
+        raise UsageError(f"--method {cfg.mode} reads LLM targets: pass --cache DIR (an annotation cache, "
+                         "see `illm annotate`), or use --method ppo")
+    from illm_tools.annotate.engine import Annotator
+    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.envs import renderer_of
+    from illm_tools.llm.loading import load_model, model_fingerprint, model_hidden_size
+    from illm_tools.rl.targets import CachedTargets
+    from illm_tools.tasks.prompts import PromptBuilder
+
+    cache = AnnotationCache(cfg.cache)
+    renderer = renderer_of(cfg.env_id)
+    annotator = None
+    if cfg.live_budget > 0:
+        import os
+
+        lm = load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+        annotator = Annotator(lm, cache, model=cfg.model, history_len=cfg.history_len, layout=cfg.layout)
+        builder = annotator.builder(cfg.env_id, renderer)
+        dim = lm.hidden_size
+        annotator = _AllCores(annotator, os.cpu_count() or 1)
+    else:
+        fp = fingerprint_hash(model_fingerprint(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant))
+        builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=cfg.model, model_fingerprint=fp,
+                                history_len=cfg.history_len, layout=cfg.layout)
+        dim = model_hidden_size(cfg.model)
+        if len(cache) == 0:
+            raise CacheError(f"the cache {cfg.cache} is empty and --live-budget is 0: nothing would give targets; "
+                             "run `illm annotate` first or allow a live budget")
+    if dim != cfg.embedding_dim:
+        cfg = dataclasses.replace(cfg, embedding_dim=dim)
+    provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
+                             embedding_dim=dim, annotator=annotator, live_budget=cfg.live_budget)
+    return provider, cfg
+
+
+def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None) -> dict:
+    """Build and run a training run to cfg.total_steps; returns the last update's metrics."""
+    from illm_tools.rl.ppo import Trainer, make_pool
+
+    with torch_threads(cfg.threads):
+        pool = make_pool(cfg)
+        provider, cfg = make_provider(cfg, len(pool.action_names))
+        trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
+        try:
+            return trainer.train()
+        finally:
+            pool.close()
+
+
+def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy: bool = False,
+             num_envs: int = 8) -> dict:
+    """Success rate and mean return of a run's policy over `episodes` fresh episodes."""
+    from illm_tools.envs.pool import EnvPool
+    from illm_tools.rl.checkpoint import load_policy
+
+    run_dir = Path(run_dir)
+    if not (run_dir / "config.json").is_file():
+        raise UsageError(f"{run_dir} is not a training run (no config.json): pass a folder written by `illm train`")
+    if episodes <= 0:
+        raise UsageError(f"--episodes must be positive, got {episodes}")
+    cfg = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+    num_envs = min(num_envs, episodes)
+    pool = EnvPool(cfg.env_id, num_envs, EVAL_SEED_OFFSET + seed, render=False, action_space=cfg.action_space,
+                   num_dists=cfg.num_dists, **cfg.env_options)
+    policy = load_policy(run_dir, pool, greedy=greedy, seed=seed)
+    returns, successes, lengths = [], [], []
+    counted = np.zeros(num_envs, dtype=np.int64)  # episodes taken from each env: equal shares, no bias to short ones
+    quota = [episodes // num_envs + (i < episodes % num_envs) for i in range(num_envs)]
+    obs = pool.reset()
+    with torch_threads(cfg.threads):
+        while len(returns) < episodes:
+            step = pool.step(policy.act(obs))
+            for i, ret, length, success in step.episodes:
+                if counted[i] < quota[i]:
+                    counted[i] += 1
+                    returns.append(ret)
+                    lengths.append(length)
+                    successes.append(success)
+            obs = step.obs
+    pool.close()
+    return {"run": str(run_dir), "env_id": cfg.env_id, "method": cfg.mode, "episodes": episodes,
+            "success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns)),
+            "mean_length": float(np.mean(lengths)), "greedy": greedy, "policy": policy.name}
