@@ -1,0 +1,17 @@
+"""The LLM backend: model registry and loading, candidate scoring, greedy generation, embeddings.
+
+Importing this package is cheap: torch and transformers are imported inside the functions that
+need them. The three backend calls of DESIGN.md are `score_candidates`, `generate` and
+`embed_texts`; `extend` / `score_continuations` expose the KV-cache step underneath them.
+"""
+
+from illm_tools.llm.generation import Generation, embed_texts, generate
+from illm_tools.llm.loading import LoadedModel, cache_root, load_model
+from illm_tools.llm.registry import DEFAULT_MODEL, ModelInfo, ModelSpec, list_models, resolve
+from illm_tools.llm.scoring import CandidateScores, PrefixState, extend, score_candidates, score_continuations
+
+__all__ = [
+    "DEFAULT_MODEL", "CandidateScores", "Generation", "LoadedModel", "ModelInfo", "ModelSpec", "PrefixState",
+    "cache_root", "embed_texts", "extend", "generate", "list_models", "load_model", "resolve",
+    "score_candidates", "score_continuations",
+]

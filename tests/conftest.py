@@ -1,0 +1,118 @@
+"""Shared test fixtures: tiny random causal LMs with a tiny trained BPE tokenizer (offline, built
+once per session in well under a second), BabyAI-like prompts, and the plain reference scorer
+that the one scoring path is checked against."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+ACTIONS = ["turn left", "turn right", "go forward", "pick up", "drop", "toggle"]
+_CORPUS = [
+    "You are an expert player playing BabyAI. Your goal is to go to the red ball.",
+    "Valid actions: turn left, turn right, go forward, pick up, drop, toggle",
+    "Observation 0: You see a wall 2 steps forward, a red ball 1 step left and 3 steps forward.",
+    "Action 0: go forward. Observation 1: You see a grey key 2 steps right, a blue box 1 step left.",
+    "Suggest the best action the player can take. What do you do? Summarize the main points.",
+] * 3
+
+
+def babyai_context(step: int) -> str:
+    """A BabyAI-Text style prompt; `step` varies its length and content."""
+    history = "".join(
+        f"Observation {i}: You see a wall {i + 2} steps forward, a red ball {i % 3 + 1} step left.\n"
+        f"Action {i}: {ACTIONS[(i + step) % len(ACTIONS)]}\n" for i in range(step % 3 + 1))
+    return ("You are an expert player playing BabyAI. Your goal is to go to the red ball.\n"
+            f"Valid actions: {', '.join(ACTIONS)}\nYou see: {history}"
+            "Suggest the best action the player can take. What do you do?\nAction:")
+
+
+def _train_tokenizer(folder, *, add_bos: bool):
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, processors, trainers
+    from transformers import PreTrainedTokenizerFast
+
+    tok = Tokenizer(models.BPE())
+    tok.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    tok.decoder = decoders.ByteLevel()
+    trainer = trainers.BpeTrainer(vocab_size=400, special_tokens=["<eos>", "<bos>"],
+                                  initial_alphabet=pre_tokenizers.ByteLevel.alphabet(), show_progress=False)
+    tok.train_from_iterator(_CORPUS, trainer)
+    if add_bos:
+        tok.post_processor = processors.TemplateProcessing(single="<bos> $A", special_tokens=[("<bos>", 1)])
+    fast = PreTrainedTokenizerFast(tokenizer_object=tok, eos_token="<eos>", bos_token="<bos>")
+    fast.save_pretrained(folder)
+    return fast
+
+
+def _tiny_model(folder, vocab: int, kind: str) -> None:
+    import torch
+    from transformers import AutoModelForCausalLM, Gemma3TextConfig, LlamaConfig
+
+    torch.manual_seed(0)
+    common = dict(vocab_size=vocab, hidden_size=64, intermediate_size=128, num_hidden_layers=2,
+                  num_attention_heads=4, num_key_value_heads=2, max_position_embeddings=1024,
+                  bos_token_id=1, eos_token_id=0, pad_token_id=None, tie_word_embeddings=True)
+    if kind == "sliding":
+        config = Gemma3TextConfig(**common, head_dim=16, sliding_window=8,
+                                  layer_types=["sliding_attention", "full_attention"])
+    else:
+        config = LlamaConfig(**common)
+    model = AutoModelForCausalLM.from_config(config)
+    with torch.no_grad():  # larger weights than the default init, so log-probs differ visibly
+        for p in model.parameters():
+            p.mul_(8.0) if p.dim() > 1 else None
+    model.save_pretrained(folder)
+
+
+def _build(tmp_path_factory, name: str, *, add_bos: bool = False, kind: str = "llama"):
+    from illm_tools.llm.loading import load_model
+
+    folder = tmp_path_factory.mktemp(name)
+    tok = _train_tokenizer(folder, add_bos=add_bos)
+    _tiny_model(folder, len(tok), kind)
+    return load_model(str(folder), dtype="float32", cache_dir=tmp_path_factory.mktemp(f"{name}-cache"))
+
+
+@pytest.fixture(scope="session")
+def tiny_lm(tmp_path_factory):
+    """Tiny random Llama, tokenizer without BOS (like SmolLM2)."""
+    return _build(tmp_path_factory, "tiny-llama")
+
+
+@pytest.fixture(scope="session")
+def tiny_lm_bos(tmp_path_factory):
+    """Tiny random Llama whose tokenizer prepends <bos> (like Gemma)."""
+    return _build(tmp_path_factory, "tiny-llama-bos", add_bos=True)
+
+
+@pytest.fixture(scope="session")
+def tiny_lm_sliding(tmp_path_factory):
+    """Tiny random Gemma-3 text model with an 8-token sliding window on one layer."""
+    return _build(tmp_path_factory, "tiny-gemma3", add_bos=True, kind="sliding")
+
+
+@pytest.fixture(scope="session")
+def smollm2_cache(tmp_path_factory):
+    """Cache folder for the real embedded model (de-quantised once per session, ~15 s)."""
+    return tmp_path_factory.mktemp("illm-cache")
+
+
+def plain_scores(lm, context: str, candidates: list[str]) -> list[list[float]]:
+    """Reference: one full forward per candidate over ids(context + candidate), log_softmax,
+    gather; the candidate's tokens are those after the common prefix with ids(context)."""
+    import torch
+
+    context_ids = lm.encode(context)
+    out = []
+    for cand in candidates:
+        ids = lm.encode(context + cand)
+        start = next((i for i, (a, b) in enumerate(zip(ids, context_ids)) if a != b),
+                     min(len(ids), len(context_ids)))
+        with torch.inference_mode():
+            logits = lm.model(input_ids=torch.tensor([ids])).logits[0].float()
+        logprobs = torch.log_softmax(logits, dim=-1)
+        out.append([float(logprobs[t - 1, ids[t]]) for t in range(start, len(ids))])
+    return out
