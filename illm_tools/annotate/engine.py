@@ -21,7 +21,7 @@ import numpy as np
 from illm_tools.cache.keys import canonical_json, fingerprint_hash
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
-from illm_tools.tasks.prompts import TASKS, Prompt, PromptBuilder, neutral_prompt
+from illm_tools.tasks.prompts import SUMMARY_TOKENS, TASKS, Prompt, PromptBuilder, neutral_prompt
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
@@ -139,20 +139,37 @@ class Annotator:
     # ---- the LLM calls ---------------------------------------------------------------------
 
     def annotate(self, states: list[list[Job]]) -> list[dict]:
-        """Cache rows for the jobs of these states (no writing)."""
-        from illm_tools.llm.scoring import score_candidates
+        """Cache rows for the jobs of these states (no writing). A state needing both tasks under
+        the shared layout runs its common prompt prefix once for both."""
         from illm_tools.llm.generation import generate
+        from illm_tools.llm.joint import can_share_prefix, score_and_generate
+        from illm_tools.llm.scoring import score_candidates
 
-        jobs = [j for state in states for j in state]
-        action = [j for j in jobs if j.prompt.task == "action"]
-        summary = [j for j in jobs if j.prompt.task == "summary"]
-        rows = []
+        rows: list[dict] = []
+        action: list[Job] = []
+        summary: list[Job] = []
+        pairs: list[tuple[Job, Job]] = []
+        share = self.layout == "shared" and can_share_prefix(self.lm)
+        for jobs in states:
+            by_task = {j.prompt.task: j for j in jobs}
+            if share and len(by_task) == 2:
+                pairs.append((by_task["action"], by_task["summary"]))
+                continue
+            action += [j for j in jobs if j.prompt.task == "action"]
+            summary += [j for j in jobs if j.prompt.task == "summary"]
+        if pairs:
+            scores, gens = score_and_generate(
+                self.lm, [a.prompt.text for a, _ in pairs], [list(a.prompt.candidates) for a, _ in pairs],
+                [s.prompt.text for _, s in pairs], max_new_tokens=SUMMARY_TOKENS, batch_size=self.batch_size)
+            rows += [self._action_row(a, sc) for (a, _), sc in zip(pairs, scores)]
+            rows += [self._summary_row(s, g) for (_, s), g in zip(pairs, gens)]
         if action:
             scores = score_candidates(self.lm, [j.prompt.text for j in action],
                                       [list(j.prompt.candidates) for j in action], batch_size=self.batch_size)
-            rows += [self._action_row(j, s) for j, s in zip(action, scores)]
+            rows += [self._action_row(j, sc) for j, sc in zip(action, scores)]
         if summary:
-            gens = generate(self.lm, [j.prompt.text for j in summary], max_new_tokens=64, batch_size=self.batch_size)
+            gens = generate(self.lm, [j.prompt.text for j in summary], max_new_tokens=SUMMARY_TOKENS,
+                            batch_size=self.batch_size)
             rows += [self._summary_row(j, g) for j, g in zip(summary, gens)]
         return rows
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from illm_tools.errors import UsageError
 from illm_tools.llm.loading import LoadedModel
-from illm_tools.llm.scoring import extend, length_batches
+from illm_tools.llm.scoring import PrefixState, extend, length_batches
 
 log = logging.getLogger(__name__)
 
@@ -42,12 +42,17 @@ class Generation:
 
 def _greedy(lm: LoadedModel, prompts: list[list[int]], max_new_tokens: int) -> list[tuple[list[int], bool, np.ndarray]]:
     """Greedy decoding of one left-padded batch; per row: tokens, finished, embedding."""
+    return greedy_from(lm, extend(lm, prompts), max_new_tokens)
+
+
+def greedy_from(lm: LoadedModel, state: PrefixState, max_new_tokens: int) -> list[tuple[list[int], bool, np.ndarray]]:
+    """Greedy decoding after an already-computed prompt state (e.g. a shared prefix extended by
+    each row's own suffix); per row: tokens, finished, embedding."""
     import torch
 
     eos = set(lm.eos_ids)
     filler = lm.eos_ids[0] if lm.eos_ids else lm.pad_id
-    state = extend(lm, prompts)
-    n = len(prompts)
+    n = state.batch_size
     tokens: list[list[int]] = [[] for _ in range(n)]
     sums = [torch.zeros(lm.hidden_size, dtype=torch.float64) for _ in range(n)]
     done, finished = [False] * n, [False] * n

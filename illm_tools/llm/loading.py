@@ -218,12 +218,8 @@ def _eos_ids(model: Any, tokenizer: Any) -> tuple[int, ...]:
     return tuple(sorted(set(int(i) for i in ids)))
 
 
-def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
-               cache_dir: str | os.PathLike | None = None, device: str = "cpu") -> LoadedModel:
-    """Load an alias, hub id (from the HF cache, offline) or local folder for inference."""
-    dtype, quant = _normalise(dtype, quant)
-    spec = resolve(name)
-    root = cache_root(cache_dir)
+def _folder_and_fingerprint(spec: ModelSpec, dtype: str, quant: str, root: Path) -> tuple[Path, dict]:
+    """The folder transformers loads from, and the named inputs that identify the model's answers."""
     sha: str | None = None
     revision: str | None = None
     if spec.source == "gguf-package":
@@ -234,6 +230,31 @@ def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
             revision = folder.name  # snapshot folders are named by commit
         else:
             sha = folder_sha256(folder, root)
+    return folder, {"model_id": spec.model_id, "source": spec.source, "sha256": sha,
+                    "revision": revision, "dtype": dtype, "quant": quant}
+
+
+def model_fingerprint(name: str, *, dtype: str = "bfloat16", quant: str = "none",
+                      cache_dir: str | os.PathLike | None = None) -> dict:
+    """`load_model(...).fingerprint` without loading the weights (file hashes are memoised)."""
+    dtype, quant = _normalise(dtype, quant)
+    return _folder_and_fingerprint(resolve(name), dtype, quant, cache_root(cache_dir))[1]
+
+
+def model_hidden_size(name: str, *, cache_dir: str | os.PathLike | None = None) -> int:
+    """The hidden size (summary embedding dimension) from the model's config, without weights."""
+    from transformers import AutoConfig
+
+    folder, _ = _folder_and_fingerprint(resolve(name), "float32", "none", cache_root(cache_dir))
+    return int(AutoConfig.from_pretrained(folder).get_text_config().hidden_size)
+
+
+def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
+               cache_dir: str | os.PathLike | None = None, device: str = "cpu") -> LoadedModel:
+    """Load an alias, hub id (from the HF cache, offline) or local folder for inference."""
+    dtype, quant = _normalise(dtype, quant)
+    spec = resolve(name)
+    folder, fingerprint = _folder_and_fingerprint(spec, dtype, quant, cache_root(cache_dir))
     import torch
     from transformers import AutoModelForCausalLM, AutoTokenizer, BitsAndBytesConfig
 
@@ -250,8 +271,6 @@ def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
     model.eval().requires_grad_(False)
     tokenizer = AutoTokenizer.from_pretrained(folder)
     bos_ids = _prepare_tokenizer(tokenizer)
-    fingerprint = {"model_id": spec.model_id, "source": spec.source, "sha256": sha,
-                   "revision": revision, "dtype": dtype, "quant": quant}
     hidden = model.config.get_text_config().hidden_size
     return LoadedModel(spec.alias, model, tokenizer, fingerprint, int(hidden), spec,
                        bos_ids=bos_ids, eos_ids=_eos_ids(model, tokenizer))

@@ -209,7 +209,7 @@ class _Plan:
     skip: list[int]
 
 
-def _common_prefix(a: Sequence[int], b: Sequence[int]) -> int:
+def common_prefix(a: Sequence[int], b: Sequence[int]) -> int:
     n = 0
     for x, y in zip(a, b):
         if x != y:
@@ -222,7 +222,7 @@ def plan_state(lm: LoadedModel, context: str, candidates: Sequence[str]) -> _Pla
     """Tokenise a context and its candidates together and split them at the boundary."""
     context_ids = lm.encode(context)
     joint = [lm.encode(context + cand) for cand in candidates]
-    owns = [_common_prefix(context_ids, ids) for ids in joint]
+    owns = [common_prefix(context_ids, ids) for ids in joint]
     shared = min(owns, default=len(context_ids))
     if shared < len(context_ids):
         log.debug("context and candidate share a token at the boundary; scoring from token %d", shared)
