@@ -1,145 +1,125 @@
-"""Benchmark of the LLM backend on this machine: model load, candidate scoring, generation.
+"""`illm annotate` against the loop a user would write first, on the same states, model and dtype.
 
-Every figure is reported next to a baseline measured in the same run (DESIGN.md habit 9):
-scoring with the context KV cache reused vs one full forward per candidate, batched (sorted by
-length) vs one state at a time; generation batched vs transformers' own `generate`.
+States: distinct BabyAI GoToLocal steps from a random-policy collection, with the paper's 3-step
+history (prompts of about 330 tokens). Both sides answer both language tasks for every state:
+- naive: one full forward per candidate action (log-softmax, gather), then one `generate` of 64
+  greedy tokens per state and one forward over prompt + summary for the mean-pooled embedding;
+- illm: `Annotator.annotate` (context KV reused for all candidates, states batched by length, the
+  prompt prefix shared by the two tasks computed once, batched greedy decoding).
+Prints states/s of both and the speedup, and the share of this machine's bf16 matmul rate
+(measured in the same run) that illm's forward passes reach (2 x non-embedding parameters x
+tokens fed, attention left out). Targets: speedup >= 8x; >= 4 states/s for both tasks together.
 
-    .venv/bin/python benchmarks/annotate.py --model smollm2-135m --dtype bfloat16
+    .venv/bin/python benchmarks/annotate.py [--states 32] [--naive-states 4] [--batch-size 8]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import random
-import statistics
 import tempfile
 import time
+from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-ACTIONS = ["turn left", "turn right", "go forward", "pick up", "drop", "toggle"]
-COLOURS = ["red", "green", "blue", "purple", "yellow", "grey"]
-OBJECTS = ["ball", "box", "key", "door"]
 
-
-def babyai_prompt(rng: random.Random, n_objects: int) -> str:
-    """The paper's action prompt (B.2) around a 3-step BabyAI-Text history."""
-    def observation() -> str:
-        seen = [f"a {rng.choice(COLOURS)} {rng.choice(OBJECTS)} {rng.randint(1, 4)} steps "
-                f"{rng.choice(['left', 'right'])} and {rng.randint(1, 5)} steps forward" for _ in range(n_objects)]
-        return "You see a wall 3 steps forward, " + ", ".join(seen)
-
-    history = "\n".join(f"Observation {i}: {observation()}\nAction {i}: {rng.choice(ACTIONS)}" for i in range(3))
-    return ("You are an expert player playing BabyAI, go to the red ball\n"
-            f"Valid actions: {', '.join(ACTIONS)}\nYou see: {history}\n"
-            "Suggest the best action the player can take. Do not recommend actions that are not possible "
-            "or not desirable, such as ''Eat door''. Prioritize actions which involve the object you are "
-            "facing or which the agent has not achieved before. What do you do?\nAction:")
-
-
-def plain_score(lm, context: str, candidates: list[str]) -> list[float]:
-    """Baseline: one full forward per candidate over context + candidate (logits computed only
-    where they are used, so the baseline is not slowed by the unused vocabulary projections)."""
+def matmul_rate(dtype, seconds: float = 2.0) -> float:
+    """GFLOP/s of a bf16 matmul shaped like the model's MLP over a batch of tokens."""
     import torch
 
-    ctx = lm.encode(context)
-    sums = []
-    for cand in candidates:
-        ids = lm.encode(context + cand)
-        keep = len(ids) - len(ctx) + 1
-        with torch.inference_mode():
-            logits = lm.model(input_ids=torch.tensor([ids]), logits_to_keep=keep).logits[0, :-1].float()
-        logprobs = torch.log_softmax(logits, -1)
-        sums.append(sum(float(logprobs[i, t]) for i, t in enumerate(ids[len(ctx):])))
-    return sums
-
-
-def timed(fn, repeats: int = 1) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
-def matmul_gflops(dtype_name: str) -> float:
-    """Calibration: the machine's matmul speed now (others' jobs share these cores)."""
-    import torch
-
-    dtype = getattr(torch, dtype_name)
     a, b = torch.randn(2048, 576, dtype=dtype), torch.randn(576, 1536, dtype=dtype)
-    return 2 * 2048 * 576 * 1536 / timed(lambda: a @ b, repeats=20) / 1e9
+    a @ b
+    n, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        a @ b
+        n += 1
+    return n * 2 * 2048 * 576 * 1536 / (time.perf_counter() - start) / 1e9
+
+
+def babyai_states(n: int, history: int, workdir: Path):
+    from illm_tools.collect import CollectConfig, collect
+    from illm_tools.data.trajectories import open_table
+    from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
+
+    collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=workdir / "traj", steps=max(4 * n, 64), num_envs=4, seed=0))
+    records, _ = records_from_table(open_table(workdir / "traj", columns=TABLE_COLUMNS), history)
+    full = [r for r in dict.fromkeys(records) if len(r.history) == history]  # states with a full history
+    return full[:n]
+
+
+def naive(lm, jobs) -> None:
+    """One forward per candidate; one generate and one embedding forward per state."""
+    import torch
+
+    model, tok = lm.model, lm.tokenizer
+    for action, summary in jobs:
+        ctx = tok(action.prompt.text, return_tensors="pt").input_ids
+        for cand in action.prompt.candidates:
+            ids = tok(action.prompt.text + cand, return_tensors="pt").input_ids
+            with torch.no_grad():
+                logp = model(ids).logits.log_softmax(-1)
+            logp[0, ctx.shape[1] - 1:-1].gather(1, ids[0, ctx.shape[1]:, None]).sum()
+        ids = tok(summary.prompt.text, return_tensors="pt").input_ids
+        with torch.no_grad():
+            out = model.generate(ids, max_new_tokens=64, do_sample=False, pad_token_id=lm.pad_id)
+            hidden = model(out, output_hidden_states=True).hidden_states[-1]
+        hidden[0, ids.shape[1]:].mean(0)
 
 
 def main() -> None:
-    import torch
-
-    from illm_tools.llm.generation import generate
-    from illm_tools.llm.loading import load_model
-    from illm_tools.llm.scoring import score_candidates
-
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="smollm2-135m")
     parser.add_argument("--dtype", default="bfloat16")
-    parser.add_argument("--quant", default="none")
-    parser.add_argument("--states", type=int, default=24, help="states scored with the KV cache reused")
-    parser.add_argument("--plain-states", type=int, default=6, help="states scored by the plain baseline")
-    parser.add_argument("--objects", type=int, default=5, help="objects per observation (about 330 tokens)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    parser.add_argument("--cache-dir", default=None, help="illm cache; default: a fresh temporary folder")
-    parser.add_argument("--skip", default="", help="comma list of sections to skip: load,score,generate")
+    parser.add_argument("--states", type=int, default=32, help="States annotated by illm.")
+    parser.add_argument("--naive-states", type=int, default=4, help="States annotated by the naive loop (slow).")
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--layout", default="shared", help="Template layout: shared or paper.")
     args = parser.parse_args()
-    skip = set(filter(None, args.skip.split(",")))
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    out: dict = {"model": args.model, "dtype": args.dtype, "quant": args.quant, "threads": torch.get_num_threads(),
-                 "matmul_bf16_gflops_before": matmul_gflops("bfloat16")}
 
-    cache_dir = args.cache_dir or tempfile.mkdtemp(prefix="illm-bench-")
-    start = time.perf_counter()
-    lm = load_model(args.model, dtype=args.dtype, quant=args.quant, cache_dir=cache_dir)
-    out["load_first_s"] = time.perf_counter() - start
-    if "load" not in skip:
-        out["load_cached_s"] = timed(lambda: load_model(args.model, dtype=args.dtype, quant=args.quant,
-                                                        cache_dir=cache_dir), repeats=3)
+    import torch
 
-    rng = random.Random(0)
-    contexts = [babyai_prompt(rng, args.objects - rng.randint(0, 1)) for _ in range(args.states)]
-    candidates = [[" " + a for a in ACTIONS]] * len(contexts)
-    out["prompt_tokens_mean"] = statistics.mean(len(lm.encode(c)) for c in contexts)
-    if "score" not in skip:
-        score_candidates(lm, contexts[:2], candidates[:2])  # warm-up
-        n_plain = min(args.plain_states, len(contexts))
-        plain = timed(lambda: [plain_score(lm, c, k) for c, k in zip(contexts[:n_plain], candidates)])
-        out["score_plain_states_per_s"] = n_plain / plain
-        for bs in (1, 4, 8):
-            t = timed(lambda: score_candidates(lm, contexts, candidates, batch_size=bs))
-            out[f"score_kv_bs{bs}_states_per_s"] = len(contexts) / t
-        out["score_kv_bs8_vs_plain"] = out["score_kv_bs8_states_per_s"] / out["score_plain_states_per_s"]
-        out["score_kv_bs8_vs_bs1"] = out["score_kv_bs8_states_per_s"] / out["score_kv_bs1_states_per_s"]
+    from illm_tools.annotate.engine import Annotator
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.llm.loading import load_model
 
-    if "generate" not in skip:
-        from transformers import GenerationConfig
+    lm = load_model(args.model, dtype=args.dtype)
+    rate = matmul_rate(getattr(torch, args.dtype))
+    with tempfile.TemporaryDirectory() as tmp:
+        records = babyai_states(args.states, 3, Path(tmp))
+        annotator = Annotator(lm, AnnotationCache(Path(tmp) / "ann"), model=args.model, layout=args.layout,
+                              batch_size=args.batch_size, chunk=args.states)
+        plan = annotator.plan(records, ["BabyAI-GoToLocal-v0"] * len(records), ["babyai-text@1"] * len(records))
+        jobs = [(s[0], s[1]) for s in plan]
+        tokens = [0]
 
-        prompts = contexts[:16]
-        for bs in (8, 16):
-            out[f"generate_16x64_bs{bs}_s"] = timed(lambda: generate(lm, prompts, max_new_tokens=64, batch_size=bs))
-        gens = generate(lm, prompts, max_new_tokens=64, batch_size=16)
-        out["generated_tokens_mean"] = statistics.mean(len(g.token_ids) for g in gens)
-        ids = [lm.encode(p) for p in prompts]  # baseline: transformers' generate, left padded, no embedding
-        width = max(map(len, ids))
-        input_ids = torch.tensor([[lm.pad_id] * (width - len(r)) + r for r in ids])
-        mask = torch.tensor([[0] * (width - len(r)) + [1] * len(r) for r in ids])
-        config = GenerationConfig(do_sample=False, max_new_tokens=64, eos_token_id=list(lm.eos_ids),
-                                  pad_token_id=lm.pad_id)
-        with torch.inference_mode():
-            out["hf_generate_16x64_bs16_s"] = timed(lambda: lm.model.generate(
-                input_ids=input_ids, attention_mask=mask, generation_config=config))
-    out["matmul_bf16_gflops_after"] = matmul_gflops("bfloat16")
-    print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}, indent=1))
+        def count(_module, _args, kwargs):
+            tokens[0] += kwargs["input_ids"].numel()
+
+        hook = lm.model.register_forward_pre_hook(count, with_kwargs=True)
+        annotator.neutral_scores(jobs[0][0].prompt.candidates)  # once per model; not part of the timing
+        tokens[0] = 0
+        start = time.perf_counter()
+        annotator.annotate(plan)
+        t_illm = time.perf_counter() - start
+        hook.remove()
+        start = time.perf_counter()
+        naive(lm, jobs[: args.naive_states])
+        t_naive = time.perf_counter() - start
+
+    params = sum(p.numel() for n, p in lm.model.named_parameters() if "embed" not in n)
+    prompt_tokens = sum(len(lm.encode(a.prompt.text)) for a, _ in jobs) / len(jobs)
+    illm_rate = len(jobs) / t_illm
+    naive_rate = args.naive_states / t_naive
+    achieved = 2 * params * tokens[0] / t_illm / 1e9
+    print(f"model {args.model} ({args.dtype}), {len(jobs)} BabyAI GoToLocal states, 3-step history, "
+          f"action prompt ~{prompt_tokens:.0f} tokens, layout {args.layout}, batch {args.batch_size}, "
+          f"{torch.get_num_threads()} threads")
+    print(f"naive loop        {naive_rate:6.2f} states/s  ({args.naive_states} states, action ranking + summary)")
+    print(f"illm annotate     {illm_rate:6.2f} states/s  ({len(jobs)} states, action ranking + summary)")
+    print(f"speedup           {illm_rate / naive_rate:6.1f}x  (target >= 8x; illm target >= 4 states/s)")
+    print(f"bf16 matmul rate  {rate:6.0f} GFLOP/s measured; illm forward passes reach {achieved:.0f} GFLOP/s "
+          f"= {100 * achieved / rate:.0f}% of it ({tokens[0] / len(jobs):.0f} tokens fed per state)")
 
 
 if __name__ == "__main__":

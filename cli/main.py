@@ -36,7 +36,7 @@ def root(
 
 
 def _register() -> None:
-    from cli import annotate, cache, collect, data, models, train
+    from cli import annotate, cache, collect, data, models, report, train
 
     collect.register(app)
     app.add_typer(data.app, name="data")
@@ -44,6 +44,7 @@ def _register() -> None:
     annotate.register(app)
     cache.register(app)
     train.register(app)
+    report.register(app)
 
 
 _register()

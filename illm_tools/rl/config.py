@@ -83,6 +83,11 @@ class TrainConfig:
     """Weight beta of the history-compression bonus r^hc (paper: 0.5)."""
     distill_coef: float = 1.0
     """Weight of the head distillation losses in the total loss."""
+    distill_epochs: int = 1
+    """Epochs of each update that train the heads (the 2 x 1024-unit heads cost as much as the rest
+    of the update on CPU; later epochs train the policy alone)."""
+    heads_bf16: bool = True
+    """Run the heads' matmuls in bfloat16 on CPU (float32 parameters and losses)."""
     summary_loss: str = "cosine"
     """Distillation loss of f^hc: cosine (1 - cos) or mse."""
     action_similarity: str = "tv"
@@ -137,6 +142,8 @@ class TrainConfig:
                      "mission_max_len", "head_hidden", "embedding_dim"):
             if getattr(self, name) <= 0:
                 raise UsageError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.distill_epochs < 0:
+            raise UsageError(f"distill_epochs must be >= 0, got {self.distill_epochs}")
         if self.history_len < 0:
             raise UsageError(f"history_len must be >= 0, got {self.history_len}")
         if self.batch_size % self.num_minibatches:

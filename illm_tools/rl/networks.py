@@ -82,7 +82,7 @@ class GridMissionNet(nn.Module):
     """
 
     def __init__(self, num_actions: int, *, vocab_size: int, embedding_dim: int | None = None,
-                 head_hidden: int = 1024, image_shape: tuple[int, int] = (7, 7),
+                 head_hidden: int = 1024, image_shape: tuple[int, int] = (7, 7), heads_bf16: bool = True,
                  word_embed: int = 32, text_hidden: int = 128, hidden: int = 64):
         super().__init__()
         self.register_buffer("cell_sizes", torch.tensor(GRID_CHANNEL_SIZES), persistent=False)
@@ -103,6 +103,7 @@ class GridMissionNet(nn.Module):
         self.critic_ext = mlp_head(self.feature_dim, hidden, 1, std=1.0)
         self.critic_int = mlp_head(self.feature_dim, hidden, 1, std=1.0)
         self.f_a = self.f_hc = None
+        self.heads_bf16 = heads_bf16
         if embedding_dim is not None:
             self.f_a = mlp_head(self.feature_dim, head_hidden, num_actions, std=0.01, act=nn.ReLU)
             self.f_hc = mlp_head(self.feature_dim, head_hidden, embedding_dim, std=1.0, act=nn.ReLU)
@@ -138,4 +139,9 @@ class GridMissionNet(nn.Module):
         """(f^a logits [B, A], f^hc embedding [B, D])."""
         if self.f_a is None:
             raise RuntimeError("this network was built without iLLM heads (mode ppo)")
-        return self.f_a(features), self.f_hc(features)
+        # the heads are most of the iLLM update's FLOPs: bf16 matmuls run ~2x faster on CPU;
+        # parameters, gradients and outputs stay float32
+        with torch.autocast(features.device.type, dtype=torch.bfloat16,
+                            enabled=self.heads_bf16 and features.device.type == "cpu"):
+            action, summary = self.f_a(features), self.f_hc(features)
+        return action.float(), summary.float()

@@ -67,7 +67,8 @@ class Trainer:
             self.image_shape = tuple(self.obs.images.shape[1:])
             self.net = GridMissionNet(len(self.action_names), vocab_size=len(self.vocab),
                                       embedding_dim=cfg.embedding_dim if cfg.uses_heads else None,
-                                      head_hidden=cfg.head_hidden, image_shape=self.image_shape[:2])
+                                      head_hidden=cfg.head_hidden, image_shape=self.image_shape[:2],
+                                      heads_bf16=cfg.heads_bf16)
         self.generator = torch.Generator().manual_seed(cfg.seed + 1)  # action sampling
         self.np_rng = np.random.default_rng(cfg.seed + 2)             # minibatch order
 
@@ -215,7 +216,8 @@ class Trainer:
         b_actions, b_logprobs = ro.flat("actions"), ro.flat("logprobs")
         b_v_ext, b_v_int = ro.flat("values_ext"), ro.flat("values_int")
         sums: dict[str, float] = {}
-        count, clipfracs = 0, []
+        counts: dict[str, int] = {}
+        clipfracs: list[float] = []
         inds = np.arange(cfg.batch_size)
         for _epoch in range(cfg.update_epochs):
             self.np_rng.shuffle(inds)
@@ -242,7 +244,7 @@ class Trainer:
                 logs = {"policy_loss": pg_loss.item(), "value_loss": v_loss.item(),
                         "value_loss_int": v_loss_int.item(), "entropy": entropy.item(),
                         "approx_kl": approx_kl.item()}
-                if cfg.uses_heads:
+                if cfg.uses_heads and _epoch < cfg.distill_epochs:
                     distill, distill_logs = self.bonus.aux_loss(self._head_batch(out.features, ro, mb))
                     loss = loss + cfg.distill_coef * distill
                     logs.update(distill_logs)
@@ -252,10 +254,10 @@ class Trainer:
                 self.optimizer.step()
                 for k, v in logs.items():
                     sums[k] = sums.get(k, 0.0) + v
-                count += 1
+                    counts[k] = counts.get(k, 0) + 1
             if cfg.target_kl is not None and float(approx_kl) > cfg.target_kl:
                 break
-        out = {f"losses/{k}": v / count for k, v in sums.items()}
+        out = {f"losses/{k}": v / counts[k] for k, v in sums.items()}
         y_pred, y_true = b_v_ext.numpy(), b_ret_ext.numpy()
         var_y = np.var(y_true)
         out["losses/clipfrac"] = float(np.mean(clipfracs))

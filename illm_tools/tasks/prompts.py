@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-from illm_tools.cache.keys import make_key
+from illm_tools.cache.keys import canonical_json, make_key
 from illm_tools.errors import UsageError
 from illm_tools.tasks.state import StateRecord
 
@@ -120,22 +120,27 @@ class PromptBuilder:
         candidates = tuple(" " + a for a in record.valid_actions) if task == "action" else None
         return Prompt(task, text, record.mission, history, record.observation, candidates)
 
+    def setup_key(self, task: str) -> str:
+        """Digest of every named input that is the same for all states of a task: task, template
+        and version, renderer, model fingerprint, decoding parameters."""
+        template, version = self.template(task)
+        return _setup_key(task, template, version, self.renderer, self.model_fingerprint,
+                          canonical_json(self.decoding(task)))
+
     def key(self, prompt: Prompt) -> str:
-        """The cache key: every named input that determines the LLM's answer."""
-        return make_key(
-            task=prompt.task,
-            template=self.template(prompt.task)[0],
-            template_version=self.template(prompt.task)[1],
-            renderer=self.renderer,
-            model_fingerprint=self.model_fingerprint,
-            decoding=self.decoding(prompt.task),
-            prompt=prompt.text,
-            candidates=list(prompt.candidates) if prompt.candidates is not None else None,
-        )
+        """The cache key: the task's setup digest plus the rendered prompt and candidates."""
+        return make_key(setup=self.setup_key(prompt.task), prompt=prompt.text,
+                        candidates=list(prompt.candidates) if prompt.candidates is not None else None)
 
     def keys(self, task: str, records: list[StateRecord]) -> tuple[list[str], list[Prompt]]:
         prompts = [self.render(task, r) for r in records]
         return [self.key(p) for p in prompts], prompts
+
+
+@lru_cache(maxsize=256)
+def _setup_key(task: str, template: str, version: int, renderer: str, model_fingerprint: str, decoding: str) -> str:
+    return make_key(task=task, template=template, template_version=version, renderer=renderer,
+                    model_fingerprint=model_fingerprint, decoding=decoding)
 
 
 def neutral_prompt() -> str:

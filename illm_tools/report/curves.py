@@ -1,0 +1,75 @@
+"""Learning curves from run folders: success rate against frames, grouped by method over seeds.
+
+Each run's `metrics.csv` gives, per update, the success rate of the episodes that finished in it
+and how many there were; a curve point at frame F is the episode-weighted success rate over the
+window (F - every, F]. Runs are grouped by the method (and env) in their config.json.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from illm_tools.errors import UsageError
+
+
+@dataclass
+class Curve:
+    run: str
+    method: str
+    env_id: str
+    seed: int
+    frames: list[int]
+    success: list[float]
+    coverage: float
+    """Mean share of rollout steps that had an LLM target."""
+    hit_rate: float
+    """Share of looked-up states found in the cache (cumulative, at the end of the run)."""
+
+
+def load_curve(run_dir: Path, every: int) -> Curve:
+    cfg_path, csv_path = run_dir / "config.json", run_dir / "metrics.csv"
+    if not cfg_path.is_file() or not csv_path.is_file():
+        raise UsageError(f"{run_dir} is not a training run (no config.json / metrics.csv): pass folders of `illm train`")
+    cfg = json.loads(cfg_path.read_text())
+    with open(csv_path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    steps = np.array([int(r["global_step"]) for r in rows])
+    eps = np.array([float(r["episodes"] or 0) for r in rows])
+    succ = np.array([float(r["success_rate"]) if r["success_rate"] else 0.0 for r in rows])
+    frames, points = [], []
+    for end in range(every, int(steps.max(initial=0)) + 1, every):
+        window = (steps > end - every) & (steps <= end)
+        n = eps[window].sum()
+        frames.append(end)
+        points.append(float((succ[window] * eps[window]).sum() / n) if n else float("nan"))
+    def mean_of(column: str) -> float:
+        values = [float(r[column]) for r in rows if r.get(column)]
+        return float(np.mean(values)) if values else 0.0
+
+    last = rows[-1] if rows else {}
+    return Curve(str(run_dir), cfg["mode"], cfg["env_id"], int(cfg["seed"]), frames, points,
+                 mean_of("target_coverage"), float(last.get("cache_hit_rate") or 0.0))
+
+
+def summarise(run_dirs: list[Path], every: int) -> dict:
+    """{(env, method): {"frames": [...], "mean": [...], "std": [...], "seeds": n, ...}}."""
+    if every <= 0:
+        raise UsageError(f"--every must be positive, got {every}")
+    groups: dict[tuple[str, str], list[Curve]] = {}
+    for run in run_dirs:
+        curve = load_curve(Path(run), every)
+        groups.setdefault((curve.env_id, curve.method), []).append(curve)
+    out = {}
+    for key, curves in sorted(groups.items()):
+        n = min(len(c.frames) for c in curves)
+        table = np.array([c.success[:n] for c in curves])
+        out[key] = {"frames": curves[0].frames[:n], "mean": np.nanmean(table, 0).tolist(),
+                    "std": np.nanstd(table, 0).tolist(), "seeds": sorted(c.seed for c in curves),
+                    "coverage": float(np.mean([c.coverage for c in curves])),
+                    "hit_rate": float(np.mean([c.hit_rate for c in curves]))}
+    return out
