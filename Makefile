@@ -40,12 +40,24 @@ test: install
 test-fast: install
 	$(BIN)/python -m pytest -q -p no:cacheprovider -m "not slow"
 
+# The main job end to end on the embedded model (SmolLM2-135M): collect, annotate, train a short
+# illm run and a short ppo run, evaluate both. A few minutes on 2 cores; re-runs start afresh.
 demo: install
-	$(BIN)/illm collect --env BabyAI-GoToLocal-v0 --steps 2000 --num-envs 8 --seed 0 --out $(DEMO)/traj --overwrite
+	rm -rf $(DEMO)
+	$(BIN)/illm collect --env BabyAI-GoToLocal-v0 --steps 2000 --num-envs 8 --seed 0 --out $(DEMO)/traj
 	$(BIN)/illm data info $(DEMO)/traj
+	$(BIN)/illm annotate $(DEMO)/traj --cache $(DEMO)/ann --model smollm2-135m --tasks action,summary --limit 32
+	$(BIN)/illm cache info $(DEMO)/ann
+	$(BIN)/illm cache verify $(DEMO)/ann
+	$(BIN)/illm train --env BabyAI-GoToLocal-v0 --cache $(DEMO)/ann --method illm --frames 8192 --live-budget 8 \
+	    --seed 0 --out $(DEMO)/runs/illm
+	$(BIN)/illm train --env BabyAI-GoToLocal-v0 --method ppo --frames 8192 --seed 0 --out $(DEMO)/runs/ppo
+	$(BIN)/illm eval $(DEMO)/runs/illm $(DEMO)/runs/ppo --episodes 50
 
 bench: install
 	$(BIN)/python benchmarks/collect.py
+	$(BIN)/python benchmarks/annotate.py
+	$(BIN)/python benchmarks/train.py
 
 clean-demo:
 	rm -rf $(DEMO)

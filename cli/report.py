@@ -29,7 +29,7 @@ def register(app: typer.Typer) -> None:
         typer.echo("| env | method | seeds | " + " | ".join(f"{f // 1000}k" for f in frames) + " | targets covered |")
         typer.echo("|---" * (4 + len(frames)) + "|")
         for (env, method), g in groups.items():
-            cells = [f"{m:.2f} ± {s:.2f}" for m, s in zip(g["mean"], g["std"])]
+            cells = ["-" if m != m else f"{m:.2f} ± {s:.2f}" for m, s in zip(g["mean"], g["std"])]  # m != m: no episode
             cells += [""] * (len(frames) - len(cells))
             cover = f"{g['coverage']:.2f}" if method != "ppo" else "-"
             typer.echo(f"| {env} | {method} | {len(g['seeds'])} | " + " | ".join(cells) + f" | {cover} |")

@@ -60,22 +60,24 @@ def register(app: typer.Typer) -> None:
                    f"({last.get('charts/sps', 0):,.0f} steps/s); last success rate "
                    f"{last.get('charts/success_rate', float('nan')):.2f} -> {out}")
 
-    @app.command("eval", epilog="Example: illm eval runs/gotolocal-illm --episodes 100 --json")
+    @app.command("eval", epilog="Example: illm eval runs/gotolocal-illm runs/gotolocal-ppo --episodes 100")
     @friendly
     def evaluate(
-        run_dir: Path = typer.Argument(..., help="Run folder written by `illm train`."),
-        episodes: int = typer.Option(100, "--episodes", help="Episodes to play."),
+        runs: list[Path] = typer.Argument(..., help="Run folders written by `illm train` (several give a table)."),
+        episodes: int = typer.Option(100, "--episodes", help="Episodes to play per run."),
         seed: int = typer.Option(0, "--seed", help="Evaluation seed (episodes are disjoint from training seeds)."),
         greedy: bool = typer.Option(False, "--greedy", help="Take the most likely action instead of sampling."),
         as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
     ) -> None:
-        """Success rate and mean return of a trained policy on fresh episodes."""
+        """Success rate and mean return of trained policies on the same fresh episodes."""
         from illm_tools.rl.run import evaluate as run
 
-        result = run(run_dir, episodes=episodes, seed=seed, greedy=greedy)
+        results = [run(r, episodes=episodes, seed=seed, greedy=greedy) for r in runs]
         if as_json:
-            emit_json(result)
+            emit_json(results[0] if len(results) == 1 else results)
             return
-        typer.echo(f"{result['run']} ({result['method']} on {result['env_id']}): success rate "
-                   f"{result['success_rate']:.3f}, mean return {result['mean_return']:.3f}, "
-                   f"mean length {result['mean_length']:.1f} over {episodes} episodes")
+        typer.echo(f"| run | method | env | success rate | mean return | mean length |  ({episodes} episodes each)")
+        typer.echo("|---|---|---|---|---|---|")
+        for r in results:
+            typer.echo(f"| {r['run']} | {r['method']} | {r['env_id']} | {r['success_rate']:.3f} | "
+                       f"{r['mean_return']:.3f} | {r['mean_length']:.1f} |")

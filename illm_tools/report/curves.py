@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,8 +69,10 @@ def summarise(run_dirs: list[Path], every: int) -> dict:
     for key, curves in sorted(groups.items()):
         n = min(len(c.frames) for c in curves)
         table = np.array([c.success[:n] for c in curves])
-        out[key] = {"frames": curves[0].frames[:n], "mean": np.nanmean(table, 0).tolist(),
-                    "std": np.nanstd(table, 0).tolist(), "seeds": sorted(c.seed for c in curves),
+        with np.errstate(all="ignore"), warnings.catch_warnings():  # windows with no finished episode stay NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean, std = np.nanmean(table, 0), np.nanstd(table, 0)
+        out[key] = {"frames": curves[0].frames[:n], "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in curves),
                     "coverage": float(np.mean([c.coverage for c in curves])),
                     "hit_rate": float(np.mean([c.hit_rate for c in curves]))}
     return out
