@@ -124,7 +124,8 @@ class Trainer:
         """T steps of every env. Returns (rollout, records t-major, episode stats, next values)."""
         cfg = self.cfg
         ro = Rollout.empty(cfg.num_steps, cfg.num_envs, self.image_shape, cfg.mission_max_len,
-                           len(self.action_names), cfg.embedding_dim if cfg.uses_heads else 0)
+                           len(self.action_names), cfg.embedding_dim if cfg.uses_heads else 0,
+                           self.net.feature_dim if cfg.uses_heads else 0)
         records: list[StateRecord] = []
         returns, lengths, successes = [], [], []
         obs = self.obs
@@ -142,6 +143,8 @@ class Trainer:
             ro.images[t], ro.missions[t], ro.actions[t] = images, missions, action
             ro.logprobs[t] = logp_all.gather(1, action[:, None]).squeeze(1)
             ro.values_ext[t], ro.values_int[t] = out.value_ext, out.value_int
+            if cfg.uses_heads:  # the bonus is computed before the update, with these same weights
+                ro.features[t] = out.features
             ro.rewards[t] = torch.as_tensor(step.rewards, dtype=torch.float32)
             ro.ends[t] = torch.as_tensor(ends, dtype=torch.float32)
             for _i, ret, length, success in step.episodes:
@@ -186,12 +189,12 @@ class Trainer:
 
     @torch.no_grad()
     def intrinsic_rewards(self, ro: Rollout) -> BonusRewards:
-        """The bonus for every step, from the heads' current outputs vs the stored targets."""
+        """The bonus for every step, from the heads' current outputs vs the stored targets. Called
+        between the rollout and the update, so the features stored while acting are current."""
         t, n = ro.actions.shape
         if not self.cfg.uses_heads:
             return BonusRewards(torch.zeros(t, n), {"intrinsic_reward_a": 0.0, "intrinsic_reward_hc": 0.0})
-        features = self.net.features(ro.flat("images"), ro.flat("missions"))
-        batch = {k: v.reshape(t, n, *v.shape[1:]) for k, v in self._head_batch(features, ro).items()}
+        batch = {k: v.reshape(t, n, *v.shape[1:]) for k, v in self._head_batch(ro.flat("features"), ro).items()}
         return self.bonus.compute_rewards(batch)
 
     # --- 4. advantages ----------------------------------------------------------------------

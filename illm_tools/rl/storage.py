@@ -31,17 +31,18 @@ class Rollout:
     target_probs: torch.Tensor  # float [T, N, A] LLM distribution over valid actions
     target_emb: torch.Tensor    # float [T, N, D] LLM summary embedding
     target_mask: torch.Tensor   # bool [T, N]
+    features: torch.Tensor      # float [T, N, F] policy features at acting time ([T, N, 0] without heads)
 
     @classmethod
     def empty(cls, num_steps: int, num_envs: int, image_shape: tuple[int, ...], mission_len: int,
-              num_actions: int, embedding_dim: int) -> "Rollout":
+              num_actions: int, embedding_dim: int, feature_dim: int = 0) -> "Rollout":
         t, n = num_steps, num_envs
         z = lambda *shape, dtype=torch.float32: torch.zeros((t, n, *shape), dtype=dtype)  # noqa: E731
         return cls(
             images=z(*image_shape, dtype=torch.uint8), missions=z(mission_len, dtype=torch.int64),
             actions=z(dtype=torch.int64), logprobs=z(), rewards=z(), ends=z(),
             values_ext=z(), values_int=z(), target_probs=z(num_actions),
-            target_emb=z(embedding_dim), target_mask=z(dtype=torch.bool),
+            target_emb=z(embedding_dim), target_mask=z(dtype=torch.bool), features=z(feature_dim),
         )
 
     @property

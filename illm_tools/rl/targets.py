@@ -47,8 +47,7 @@ class CachedTargets:
         for r in records:
             pair = self._keys.get(r)
             if pair is None:
-                pair = self._keys[r] = (self.builder.key(self.builder.render("action", r)),
-                                        self.builder.key(self.builder.render("summary", r)))
+                pair = self._keys[r] = self.builder.state_keys(r)
             out_a.append(pair[0])
             out_s.append(pair[1])
         return out_a, out_s

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 
-from illm_tools.cache.keys import canonical_json, make_key
+from illm_tools.cache.keys import make_key
 from illm_tools.errors import UsageError
 from illm_tools.tasks.state import StateRecord
 
@@ -111,10 +111,12 @@ class PromptBuilder:
     def task_line(self, record: StateRecord) -> str:
         return f"{game_of(self.env_id)}. The goal is: {record.mission}."
 
-    def render(self, task: str, record: StateRecord) -> Prompt:
+    def render(self, task: str, record: StateRecord, history: str | None = None) -> Prompt:
+        """The task's prompt for a state; `history` is `format_history(record)` when the caller
+        already has it (both tasks of a state share it)."""
         if task not in TASKS:
             raise UsageError(f"unknown language task {task!r}: use one of {', '.join(TASKS)}")
-        history = format_history(record)
+        history = format_history(record) if history is None else history
         fields = {"task": self.task_line(record), "history": history, "actions": ", ".join(record.valid_actions)}
         text = template_text(self.template(task)[0]).format(**fields)
         candidates = tuple(" " + a for a in record.valid_actions) if task == "action" else None
@@ -123,24 +125,26 @@ class PromptBuilder:
     def setup_key(self, task: str) -> str:
         """Digest of every named input that is the same for all states of a task: task, template
         and version, renderer, model fingerprint, decoding parameters."""
-        template, version = self.template(task)
-        return _setup_key(task, template, version, self.renderer, self.model_fingerprint,
-                          canonical_json(self.decoding(task)))
+        return self._setup_keys[task]
+
+    @cached_property
+    def _setup_keys(self) -> dict[str, str]:
+        keys = {}
+        for task in TASKS:
+            template, version = self.template(task)
+            keys[task] = make_key(task=task, template=template, template_version=version, renderer=self.renderer,
+                                  model_fingerprint=self.model_fingerprint, decoding=self.decoding(task))
+        return keys
 
     def key(self, prompt: Prompt) -> str:
         """The cache key: the task's setup digest plus the rendered prompt and candidates."""
         return make_key(setup=self.setup_key(prompt.task), prompt=prompt.text,
                         candidates=list(prompt.candidates) if prompt.candidates is not None else None)
 
-    def keys(self, task: str, records: list[StateRecord]) -> tuple[list[str], list[Prompt]]:
-        prompts = [self.render(task, r) for r in records]
-        return [self.key(p) for p in prompts], prompts
-
-
-@lru_cache(maxsize=256)
-def _setup_key(task: str, template: str, version: int, renderer: str, model_fingerprint: str, decoding: str) -> str:
-    return make_key(task=task, template=template, template_version=version, renderer=renderer,
-                    model_fingerprint=model_fingerprint, decoding=decoding)
+    def state_keys(self, record: StateRecord) -> tuple[str, str]:
+        """(action key, summary key) of one state, its history rendered once."""
+        history = format_history(record)
+        return (self.key(self.render("action", record, history)), self.key(self.render("summary", record, history)))
 
 
 def neutral_prompt() -> str:
