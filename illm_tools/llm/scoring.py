@@ -102,6 +102,31 @@ class PrefixState:
         return PrefixState(state.cache, self.attention_mask[index], self.lengths[index], self.last_logprobs[index])
 
 
+def merge_states(states: Sequence[PrefixState]) -> PrefixState:
+    """One state holding the rows of several (e.g. prompt batches prefilled apart, to be decoded
+    together): shorter caches are left-padded with masked columns, which shift no position ids
+    (those come from `lengths`). Not for sliding-window models (padding would shift the window)."""
+    import copy
+
+    import torch
+    import torch.nn.functional as F
+
+    if len(states) == 1:
+        return states[0]
+    width = max(s.attention_mask.shape[1] for s in states)
+    pads = [width - s.attention_mask.shape[1] for s in states]
+    cache = copy.copy(states[0].cache)
+    cache.layers = []
+    for i, layer in enumerate(states[0].cache.layers):
+        merged = copy.copy(layer)
+        merged.keys = torch.cat([F.pad(s.cache.layers[i].keys, (0, 0, p, 0)) for s, p in zip(states, pads)])
+        merged.values = torch.cat([F.pad(s.cache.layers[i].values, (0, 0, p, 0)) for s, p in zip(states, pads)])
+        cache.layers.append(merged)
+    mask = torch.cat([F.pad(s.attention_mask, (p, 0)) for s, p in zip(states, pads)])
+    return PrefixState(cache, mask, torch.cat([s.lengths for s in states]),
+                       torch.cat([s.last_logprobs for s in states]))
+
+
 def _left_pad(rows: Sequence[Sequence[int]], pad_id: int, device: Any) -> tuple[Any, Any]:
     import torch
 
