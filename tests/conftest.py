@@ -116,3 +116,12 @@ def plain_scores(lm, context: str, candidates: list[str]) -> list[list[float]]:
         logprobs = torch.log_softmax(logits, dim=-1)
         out.append([float(logprobs[t - 1, ids[t]]) for t in range(start, len(ids))])
     return out
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """For modules of tiny nets: one thread is as fast, and immune to a busy second core."""
+    from illm_tools.rl.run import torch_threads
+
+    with torch_threads(1):
+        yield

@@ -9,13 +9,7 @@ from illm_tools.intrinsic.illm import action_disagreement, summary_disagreement
 from illm_tools.rl.networks import GridMissionNet, MissionVocab
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """These nets are tiny: one thread is as fast, and immune to a busy second core."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_running_mean_std_matches_numpy_over_batches():

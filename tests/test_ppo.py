@@ -13,13 +13,7 @@ from illm_tools.intrinsic import Targets
 from illm_tools.rl import TrainConfig, Trainer, gae, load_checkpoint, load_policy, make_pool
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """These nets are tiny: one thread is as fast, and immune to a busy second core."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
