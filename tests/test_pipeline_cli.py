@@ -52,6 +52,10 @@ def test_collect_annotate_train_eval_report(tmp_path, tiny_lm):
         assert [int(r["global_step"]) for r in csv.DictReader(fh)] == [128, 256, 384]
     ok(["train", "--method", "ppo", "--frames", 256, "--num-envs", 4, "--num-steps", 32, "--out", runs / "ppo"])
 
+    out = ok(["collect", "--env", "BabyAI-GoToLocal-v0", "--policy", runs / "ppo", "--steps", 32, "--num-envs", 4,
+              "--out", tmp_path / "traj-ppo"])
+    assert "with policy run:ppo@256" in out
+
     result = json.loads(ok(["eval", runs / "illm", "--episodes", 4, "--json"]))
     assert result["episodes"] == 4 and 0.0 <= result["success_rate"] <= 1.0
     assert "| ppo |" in ok(["eval", runs / "illm", runs / "ppo", "--episodes", 2])
