@@ -22,7 +22,7 @@ def register(app: typer.Typer) -> None:
         model: str = typer.Option("smollm2-135m", "--model", help="LLM whose annotations are the targets (as in `illm annotate`)."),
         frames: int = typer.Option(200_000, "--frames", help="Environment steps to train for."),
         seed: int = typer.Option(0, "--seed", help="Seed of the network, sampling and episodes."),
-        live_budget: int = typer.Option(64, "--live-budget", help="Uncached states annotated live per rollout; 0: cache only."),
+        live_budget: int = typer.Option(16, "--live-budget", help="Uncached states annotated live per rollout (about 1 s each on 2 CPU cores); 0: cache only."),
         action_score: str = typer.Option("sum", "--action-score", help="Calibration of the action log-probs: sum | mean | pmi."),
         history: int = typer.Option(3, "--history", help="History pairs in the prompts (must match the annotation)."),
         layout: str = typer.Option("shared", "--layout", help="Prompt layout (must match the annotation): shared | paper."),

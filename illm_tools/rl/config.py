@@ -114,7 +114,7 @@ class TrainConfig:
     """Prompt template layout, as in `illm annotate --layout`."""
     action_score: str = "sum"
     """Calibration of the stored action log-probs: sum (paper), mean per token, or pmi."""
-    live_budget: int = 64
+    live_budget: int = 16
     """Distinct uncached states annotated by the live LLM after each rollout; 0: cache only."""
     threads: int = 1
     """Torch threads for the policy (small nets run best on one); live annotation uses all cores."""
