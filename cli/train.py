@@ -35,6 +35,7 @@ def register(app: typer.Typer) -> None:
         action_space: str = typer.Option("augmented", "--action-space", help="original | augmented | irrelevant."),
         num_dists: int = typer.Option(None, "--num-dists", help="Distractors, for levels that take it."),
         threads: int = typer.Option(1, "--threads", help="Torch threads for the policy."),
+        llm_threads: int = typer.Option(0, "--llm-threads", help="Torch threads for live annotation; 0: all cores."),
         resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its last checkpoint."),
     ) -> None:
         """Train PPO with the iLLM heads and intrinsic rewards, reading targets from the cache."""
@@ -44,7 +45,7 @@ def register(app: typer.Typer) -> None:
         cfg = TrainConfig(env_id=env, run_dir=out, mode=method, seed=seed, total_steps=frames, num_envs=num_envs,
                           num_steps=num_steps, action_space=action_space, num_dists=num_dists, history_len=history,
                           lambda_a=lambda_a, beta_hc=beta_hc, cache=cache, model=model, model_dtype=dtype, quant=quant,
-                          layout=layout, action_score=action_score, live_budget=live_budget, threads=threads,
+                          layout=layout, action_score=action_score, live_budget=live_budget, threads=threads, llm_threads=llm_threads,
                           resume=resume)
         last: dict = {}
         with progress(cfg.num_updates * cfg.batch_size, f"train {method}", unit="steps") as advance:

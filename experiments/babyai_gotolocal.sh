@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Success-rate curves of ppo, illm-noreward and illm on BabyAI-GoToLocal-v0, 3 seeds, at a
-# budget a 2-core CPU machine affords (about 30 minutes with 2 runs side by side):
+# budget a 2-core CPU machine affords (about 30 minutes with 2 runs side by side, one thread each):
 # - targets from the embedded SmolLM2-135M (bf16) with the shared-layout prompts;
 # - history 0 (current observation only) so that states repeat and the shared cache pays off;
 # - a cache pre-filled from 1,000 random steps, then at most 4 live annotations per rollout,
 #   written back to the same cache that all six illm runs share;
-# - 100k frames per run (16 envs x 128 steps per rollout).
+# - 60k frames per run (16 envs x 128 steps per rollout).
 # Usage: bash experiments/babyai_gotolocal.sh [OUT]   (default data/exp-gotolocal)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -26,7 +26,7 @@ done | xargs -P 2 -L 1 bash -c '
   method=$0 seed=$1 run="'"$OUT"'/runs/$method-s$seed"
   [ -f "$run/checkpoint.pt" ] && resume=--resume || resume=
   "'"$ILLM"'" train --env '"$ENV"' --method $method --cache "'"$OUT"'/ann" --history 0 --live-budget 4 \
-      --frames 100000 --seed $seed --out "$run" $resume > "$run.log" 2>&1
+      --llm-threads 1 --frames 60000 --seed $seed --out "$run" $resume > "$run.log" 2>&1
   echo "done $run"'
 
 "$ILLM" report "$OUT"/runs/* --every 20000

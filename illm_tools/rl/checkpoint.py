@@ -109,7 +109,7 @@ def load_checkpoint(run_dir: Path) -> dict:
 
 
 # settings a resumed run may change; any other difference is refused
-RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "tensorboard", "live_budget", "threads"})
+RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "tensorboard", "live_budget", "threads", "llm_threads"})
 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:

@@ -117,7 +117,9 @@ class TrainConfig:
     live_budget: int = 16
     """Distinct uncached states annotated by the live LLM after each rollout; 0: cache only."""
     threads: int = 1
-    """Torch threads for the policy (small nets run best on one); live annotation uses all cores."""
+    """Torch threads for the policy (small nets run best on one)."""
+    llm_threads: int = 0
+    """Torch threads for live annotation; 0: all cores (give 1 when runs share the machine)."""
 
     # --- bookkeeping -----------------------------------------------------------------------
     checkpoint_every: int = 10
@@ -134,8 +136,8 @@ class TrainConfig:
         self.cache = Path(self.cache) if self.cache is not None else None
         if self.action_score not in ("sum", "mean", "pmi"):
             raise UsageError(f"--action-score must be sum, mean or pmi, got {self.action_score!r}")
-        if self.live_budget < 0 or self.threads <= 0:
-            raise UsageError("--live-budget must be >= 0 and --threads positive")
+        if self.live_budget < 0 or self.threads <= 0 or self.llm_threads < 0:
+            raise UsageError("--live-budget and --llm-threads must be >= 0 and --threads positive")
         if self.mode not in MODES:
             raise UsageError(f"unknown mode {self.mode!r}; choose one of {', '.join(MODES)}")
         for name in ("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",

@@ -30,7 +30,7 @@ def torch_threads(n: int):
 
 
 class _AllCores:
-    """Wraps an Annotator so its LLM calls use every core while the policy runs on few."""
+    """Wraps an Annotator so its LLM calls use more threads than the policy's few."""
 
     def __init__(self, annotator, cores: int):
         self.annotator, self.cores = annotator, cores
@@ -69,7 +69,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
         annotator = Annotator(lm, cache, model=cfg.model, history_len=cfg.history_len, layout=cfg.layout)
         builder = annotator.builder(cfg.env_id, renderer)
         dim = lm.hidden_size
-        annotator = _AllCores(annotator, os.cpu_count() or 1)
+        annotator = _AllCores(annotator, cfg.llm_threads or os.cpu_count() or 1)
     else:
         fp = fingerprint_hash(model_fingerprint(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant))
         builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=cfg.model, model_fingerprint=fp,
