@@ -26,7 +26,7 @@ def register(app: typer.Typer) -> None:
             emit_json([{"env_id": env, "method": method, **g} for (env, method), g in groups.items()])
             return
         frames = max((g["frames"] for g in groups.values()), key=len, default=[])
-        typer.echo("| env | method | seeds | " + " | ".join(f"{f // 1000}k" for f in frames) + " | targets covered |")
+        typer.echo("| env | method | seeds | " + " | ".join(f"{f / 1000:.4g}k" for f in frames) + " | targets covered |")
         typer.echo("|---" * (4 + len(frames)) + "|")
         for (env, method), g in groups.items():
             cells = ["-" if m != m else f"{m:.2f} ± {s:.2f}" for m, s in zip(g["mean"], g["std"])]  # m != m: no episode

@@ -43,8 +43,12 @@ def load_curve(run_dir: Path, every: int) -> Curve:
     eps = np.array([float(r["episodes"] or 0) for r in rows])
     succ = np.array([float(r["success_rate"]) if r["success_rate"] else 0.0 for r in rows])
     frames, points = [], []
-    for end in range(every, int(steps.max(initial=0)) + 1, every):
-        window = (steps > end - every) & (steps <= end)
+    last_step = int(steps.max(initial=0))
+    ends = list(range(every, last_step + 1, every))
+    if last_step % every and last_step > every // 2:  # a last, shorter window up to the run's end
+        ends.append(last_step)
+    for end in ends:
+        window = (steps > (end - 1) // every * every) & (steps <= end)
         n = eps[window].sum()
         frames.append(end)
         points.append(float((succ[window] * eps[window]).sum() / n) if n else float("nan"))
