@@ -129,9 +129,10 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
             })
             done_steps += take
             for i, ret, _length, success in result.episodes:
-                finished += 1
-                successes += int(success)
-                returns.append(float(ret))
+                if i < take:  # an episode whose last step was logged
+                    finished += 1
+                    successes += int(success)
+                    returns.append(float(ret))
                 episode_ids[i] = next_episode
                 next_episode += 1
             obs = result.obs
