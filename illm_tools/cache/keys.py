@@ -29,6 +29,8 @@ def _plain(value: Any, path: str) -> Any:
             raise ValueError(f"{path}: non-finite float {value!r} cannot be part of a cache key")
         return value
     if type(value) is list:
+        if all(type(v) is str for v in value):  # the common case (candidates): nothing to convert
+            return value
         return [_plain(v, f"{path}[{i}]") for i, v in enumerate(value)]
     if type(value) is dict:
         out = {}

@@ -63,6 +63,8 @@ def format_history(record: StateRecord) -> str:
 
 
 def _one_line(text: str) -> str:
+    if "\n" not in text and "\r" not in text:  # renderers write one line: the hot path
+        return text.strip() or "nothing"
     return ", ".join(part.strip() for part in text.splitlines() if part.strip()) or "nothing"
 
 
