@@ -29,7 +29,7 @@ class Curve:
     coverage: float
     """Mean share of rollout steps that had an LLM target."""
     hit_rate: float
-    """Share of looked-up states found in the cache (cumulative, at the end of the run)."""
+    """Mean share of rollout steps found in the cache before the live fallback."""
 
 
 def load_curve(run_dir: Path, every: int) -> Curve:
@@ -56,9 +56,8 @@ def load_curve(run_dir: Path, every: int) -> Curve:
         values = [float(r[column]) for r in rows if r.get(column)]
         return float(np.mean(values)) if values else 0.0
 
-    last = rows[-1] if rows else {}
     return Curve(str(run_dir), cfg["mode"], cfg["env_id"], int(cfg["seed"]), frames, points,
-                 mean_of("target_coverage"), float(last.get("cache_hit_rate") or 0.0))
+                 mean_of("target_coverage"), mean_of("cache_hit_rate"))
 
 
 def summarise(run_dirs: list[Path], every: int) -> dict:
@@ -71,12 +70,12 @@ def summarise(run_dirs: list[Path], every: int) -> dict:
         groups.setdefault((curve.env_id, curve.method), []).append(curve)
     out = {}
     for key, curves in sorted(groups.items()):
-        n = min(len(c.frames) for c in curves)
-        table = np.array([c.success[:n] for c in curves])
+        frames = sorted(set.intersection(*(set(c.frames) for c in curves)))  # points every seed has
+        table = np.array([[dict(zip(c.frames, c.success))[f] for f in frames] for c in curves])
         with np.errstate(all="ignore"), warnings.catch_warnings():  # windows with no finished episode stay NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             mean, std = np.nanmean(table, 0), np.nanstd(table, 0)
-        out[key] = {"frames": curves[0].frames[:n], "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in curves),
+        out[key] = {"frames": frames, "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in curves),
                     "coverage": float(np.mean([c.coverage for c in curves])),
                     "hit_rate": float(np.mean([c.hit_rate for c in curves]))}
     return out

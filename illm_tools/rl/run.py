@@ -15,8 +15,8 @@ import torch
 from illm_tools.errors import CacheError, UsageError
 from illm_tools.rl.config import TrainConfig
 
-EVAL_SEED_OFFSET = 1_000_000
-"""Evaluation episodes use seeds from here on, away from every training run's episode seeds."""
+EVAL_SEED_OFFSET = 2**40
+"""Evaluation episodes use seeds from here on: training seeds (seed + steps) never get this far."""
 
 
 @contextmanager

@@ -37,7 +37,7 @@ class CachedTargets:
         self.annotator = annotator if live_budget > 0 else None
         self.live_budget = live_budget
         self._keys: dict[StateRecord, tuple[str, str]] = {}
-        self._looked_up = self._hits = self._live = self._with_target = 0
+        self._last: dict[str, float] = {"cache_hit_rate": 0.0, "target_coverage": 0.0, "live_annotations": 0.0}
 
     def keys(self, records: Sequence[StateRecord]) -> tuple[list[str], list[str]]:
         """(action keys, summary keys) of the records, memoised per distinct record."""
@@ -69,10 +69,9 @@ class CachedTargets:
         self.cache.refresh()  # other runs may have written to the shared cache meanwhile
         keys_a, keys_s = self.keys(records)
         found = self._found(keys_a, keys_s)
-        self._looked_up += len(records)
-        self._hits += int(found.sum())
+        hits, live = int(found.sum()), 0
         if self.annotator is not None and not found.all():
-            self._live += self._annotate_missing(records, found)
+            live = self._annotate_missing(records, found)
             found = self._found(keys_a, keys_s)
         b = len(records)
         probs = np.zeros((b, self.num_actions), np.float32)
@@ -83,12 +82,11 @@ class CachedTargets:
             scores = [np.asarray(cols[c], dtype=np.float64) for c in ACTION_COLUMNS]
             probs[idx] = action_distribution(*scores, self.calibration)
             emb[idx] = self.cache.get_columns([keys_s[i] for i in idx], ["embedding"], task="summary")["embedding"]
-        self._with_target += idx.size
+        n = max(b, 1)
+        self._last = {"cache_hit_rate": hits / n, "target_coverage": idx.size / n, "live_annotations": float(live)}
         return Targets(probs, emb, found)
 
     def stats(self) -> Mapping[str, float]:
-        return {
-            "cache_hit_rate": self._hits / max(self._looked_up, 1),
-            "target_coverage": self._with_target / max(self._looked_up, 1),
-            "live_annotations": float(self._live),
-        }
+        """Of the last `targets` call (one rollout): share of steps found in the cache before the
+        live fallback, share with a target after it, and states annotated live."""
+        return dict(self._last)

@@ -1,0 +1,32 @@
+"""`illm report`: curve points are episode-weighted windows, aligned by frame across seeds."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+from illm_tools.report.curves import summarise
+from illm_tools.rl.checkpoint import CSV_COLUMNS
+
+
+def fake_run(path, seed, rows):
+    path.mkdir()
+    (path / "config.json").write_text(json.dumps({"mode": "illm", "env_id": "BabyAI-GoToLocal-v0", "seed": seed}))
+    with open(path / "metrics.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for step, success, episodes in rows:
+            writer.writerow({"global_step": step, "success_rate": success, "episodes": episodes,
+                             "target_coverage": 0.5, "cache_hit_rate": 0.25})
+
+
+def test_points_are_weighted_windows_aligned_by_frame(tmp_path):
+    # run a: 4 updates of 50 frames; run b killed after 2 updates plus a short one at 120
+    fake_run(tmp_path / "a", 0, [(50, 1.0, 1), (100, 0.0, 3), (150, 0.5, 2), (200, 0.5, 2)])
+    fake_run(tmp_path / "b", 1, [(50, 0.0, 1), (100, 0.0, 1), (120, 1.0, 1)])
+    (group,) = summarise([tmp_path / "a", tmp_path / "b"], every=100).values()
+    assert group["frames"] == [100]  # b's short window (100, 120] has no partner in a
+    assert group["mean"] == [(0.25 + 0.0) / 2]  # a: (1*1 + 0*3) / 4; b: 0
+    assert group["coverage"] == 0.5 and group["hit_rate"] == 0.25
+    (alone,) = summarise([tmp_path / "b"], every=100).values()
+    assert alone["frames"] == [100, 120] and alone["mean"] == [0.0, 1.0]
