@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from illm_tools.intrinsic import DiscountedReturnNormalizer, HistoryTracker, ILLMBonus, RunningMeanStd
+from illm_tools.intrinsic import DiscountedReturnNormalizer, ILLMBonus, RunningMeanStd
+from illm_tools.tasks.state import HistoryTracker
 from illm_tools.intrinsic.illm import action_disagreement, summary_disagreement
 from illm_tools.rl.networks import GridMissionNet, MissionVocab
 

@@ -93,11 +93,9 @@ class Annotator:
         """Jobs for the distinct (state, task) keys the cache misses, grouped per state."""
         stats = stats if stats is not None else Stats()
         seen: set[str] = set()
-        per_state: dict[StateRecord, list[Job]] = {}
-        distinct: set[tuple] = set()
+        per_state: dict[tuple[StateRecord, PromptBuilder], list[Job]] = {}
         for record, env_id, renderer in zip(records, env_ids, renderers):
             builder = self.builder(env_id, renderer)
-            distinct.add((record, builder))
             for task in self.tasks:
                 prompt = builder.render(task, record)
                 key = builder.key(prompt)
@@ -108,7 +106,7 @@ class Annotator:
         keys = list(seen)
         found = self.cache.contains(keys) if keys else np.zeros(0, bool)
         present = {k for k, f in zip(keys, found) if f}
-        stats.states += len(distinct)
+        stats.states += len(per_state)
         stats.keys += len(keys)
         stats.hits += len(present)
         stats.misses += len(keys) - len(present)

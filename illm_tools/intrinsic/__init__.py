@@ -2,7 +2,6 @@
 
 from illm_tools.intrinsic.base import (
     BonusRewards,
-    HistoryTracker,
     IntrinsicBonus,
     StateRecord,
     TargetProvider,
@@ -12,6 +11,6 @@ from illm_tools.intrinsic.illm import ILLMBonus
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer, RunningMeanStd
 
 __all__ = [
-    "BonusRewards", "DiscountedReturnNormalizer", "HistoryTracker", "ILLMBonus", "IntrinsicBonus",
+    "BonusRewards", "DiscountedReturnNormalizer", "ILLMBonus", "IntrinsicBonus",
     "RunningMeanStd", "StateRecord", "TargetProvider", "Targets",
 ]

@@ -18,9 +18,9 @@ from typing import NamedTuple, Protocol, runtime_checkable
 import numpy as np
 import torch
 
-from illm_tools.tasks.state import HistoryTracker, StateRecord
+from illm_tools.tasks.state import StateRecord
 
-__all__ = ["BonusRewards", "HistoryTracker", "IntrinsicBonus", "StateRecord", "TargetProvider", "Targets"]
+__all__ = ["BonusRewards", "IntrinsicBonus", "StateRecord", "TargetProvider", "Targets"]
 
 
 class Targets(NamedTuple):

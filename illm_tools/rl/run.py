@@ -29,17 +29,17 @@ def torch_threads(n: int):
         torch.set_num_threads(before)
 
 
-class _AllCores:
-    """Wraps an Annotator so its LLM calls use more threads than the policy's few."""
+class _WithThreads:
+    """Wraps an Annotator so its LLM calls run with their own thread count (the policy uses few)."""
 
-    def __init__(self, annotator, cores: int):
-        self.annotator, self.cores = annotator, cores
+    def __init__(self, annotator, threads: int):
+        self.annotator, self.threads = annotator, threads
 
     def plan(self, *args, **kwargs):
         return self.annotator.plan(*args, **kwargs)
 
     def run(self, *args, **kwargs):
-        with torch_threads(self.cores):
+        with torch_threads(self.threads):
             return self.annotator.run(*args, **kwargs)
 
 
@@ -69,7 +69,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
         annotator = Annotator(lm, cache, model=cfg.model, history_len=cfg.history_len, layout=cfg.layout)
         builder = annotator.builder(cfg.env_id, renderer)
         dim = lm.hidden_size
-        annotator = _AllCores(annotator, cfg.llm_threads or os.cpu_count() or 1)
+        annotator = _WithThreads(annotator, cfg.llm_threads or os.cpu_count() or 1)
     else:
         fp = fingerprint_hash(model_fingerprint(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant))
         builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=cfg.model, model_fingerprint=fp,

@@ -52,8 +52,11 @@ class CachedTargets:
             out_s.append(pair[1])
         return out_a, out_s
 
-    def _found(self, keys_a: list[str], keys_s: list[str]) -> np.ndarray:
-        return self.cache.contains(keys_a) & self.cache.contains(keys_s)
+    def _lookup(self, keys_a: list[str], keys_s: list[str]) -> tuple[dict, dict, np.ndarray]:
+        """One cache look-up per task: (action columns, summary columns, mask with both)."""
+        a = self.cache.get_columns(keys_a, ACTION_COLUMNS, task="action")
+        s = self.cache.get_columns(keys_s, ["embedding"], task="summary")
+        return a, s, a["found"] & s["found"]
 
     def _annotate_missing(self, records: Sequence[StateRecord], found: np.ndarray) -> int:
         """Live fallback: the first `live_budget` distinct missing states, in rollout order."""
@@ -68,20 +71,19 @@ class CachedTargets:
     def targets(self, records: Sequence[StateRecord]) -> Targets:
         self.cache.refresh()  # other runs may have written to the shared cache meanwhile
         keys_a, keys_s = self.keys(records)
-        found = self._found(keys_a, keys_s)
+        a, s, found = self._lookup(keys_a, keys_s)
         hits, live = int(found.sum()), 0
         if self.annotator is not None and not found.all():
             live = self._annotate_missing(records, found)
-            found = self._found(keys_a, keys_s)
+            a, s, found = self._lookup(keys_a, keys_s)
         b = len(records)
         probs = np.zeros((b, self.num_actions), np.float32)
         emb = np.zeros((b, self.embedding_dim), np.float32)
         idx = np.flatnonzero(found)
         if idx.size:
-            cols = self.cache.get_columns([keys_a[i] for i in idx], ACTION_COLUMNS, task="action")
-            scores = [np.asarray(cols[c], dtype=np.float64) for c in ACTION_COLUMNS]
+            scores = [np.asarray([a[c][i] for i in idx], dtype=np.float64) for c in ACTION_COLUMNS]
             probs[idx] = action_distribution(*scores, self.calibration)
-            emb[idx] = self.cache.get_columns([keys_s[i] for i in idx], ["embedding"], task="summary")["embedding"]
+            emb[idx] = s["embedding"][idx]
         n = max(b, 1)
         self._last = {"cache_hit_rate": hits / n, "target_coverage": idx.size / n, "live_annotations": float(live)}
         return Targets(probs, emb, found)
