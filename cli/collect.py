@@ -21,7 +21,7 @@ def register(app: typer.Typer) -> None:
         num_envs: int = typer.Option(8, "--num-envs", help="Environments stepped side by side."),
         seed: int = typer.Option(0, help="Base seed for episodes and the random policy."),
         policy: str = typer.Option("random", help="'random', or a training run folder (its policy acts)."),
-        action_space: str = typer.Option("augmented", "--action-space", help="original (3) | augmented (6) | irrelevant (9) actions (paper Table 5)."),
+        action_space: str = typer.Option("auto", "--action-space", help="original (3) | augmented (6) | irrelevant (9) actions (paper Table 5) | auto: original for GoTo levels (paper Tables 1, 5), augmented otherwise, a --policy run's own."),
         num_dists: int = typer.Option(None, "--num-dists", help="Distractors, for levels that take it (paper Table 1)."),
         no_raw: bool = typer.Option(False, "--no-raw", help="Do not store raw observation arrays."),
         append: bool = typer.Option(False, "--append", help="Add to an existing dataset at --out."),
@@ -48,5 +48,6 @@ def register(app: typer.Typer) -> None:
         typer.echo(
             f"collected {summary['rows']:,} steps, {summary['episodes_finished']:,} finished episodes "
             f"(success {summary['success_rate']:.2f}, mean return {summary['mean_return']:.3f}) "
-            f"from {env} with policy {summary['policy']} in {seconds:.1f}s -> {summary['out']}"
+            f"from {env} ({summary['action_space']} actions) with policy {summary['policy']} in {seconds:.1f}s "
+            f"-> {summary['out']}"
         )

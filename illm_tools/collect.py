@@ -3,12 +3,14 @@ trajectory dataset (schema `trajectory` v1)."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+import pyarrow.compute as pc
 
 from illm_tools.data.trajectories import TrajectoryWriter
 from illm_tools.errors import UsageError
@@ -30,8 +32,10 @@ class CollectConfig:
     """Base seed: episode seeds and the random policy derive from it."""
     policy: str = "random"
     """'random', or a training run folder whose policy picks the actions."""
-    action_space: str = "augmented"
-    """BabyAI action vocabulary: original (3), augmented (6) or irrelevant (9); paper Table 5."""
+    action_space: str = "auto"
+    """BabyAI action vocabulary: original (3), augmented (6) or irrelevant (9), paper Table 5; auto:
+    original for the GoTo levels (paper Tables 1 and 5), augmented otherwise, or with a trained
+    policy the action space its run was trained with."""
     num_dists: int | None = None
     """Number of distractors for levels that take it (paper Table 1); None keeps the level's own."""
     save_raw: bool = True
@@ -74,6 +78,34 @@ class RandomPolicy:
         return self.rng.integers(0, self.num_actions, size=len(obs.missions))
 
 
+def resolved_action_space(config: CollectConfig) -> str:
+    """config.action_space, or for "auto" with a trained policy the action space its run recorded
+    (so the policy's actions fit the env); "auto" otherwise, resolved by the env pool."""
+    if config.action_space != "auto" or config.policy == "random":
+        return config.action_space
+    run_config = Path(config.policy) / "config.json"
+    if not run_config.is_file():
+        return "auto"  # load_policy says what is wrong with the folder
+    return json.loads(run_config.read_text()).get("action_space", "auto")
+
+
+def check_append_keeps_actions(config: CollectConfig, names: list[str]) -> None:
+    """Appending must keep the dataset's action list for this env (it is in every row and every
+    prompt): refuse, naming the list, when the resolved action space offers another one."""
+    from illm_tools.data.trajectories import open_table
+
+    if config.mode != "append":
+        return
+    try:
+        table = open_table(config.out, columns=["env_id", "valid_actions"])
+    except UsageError:
+        return  # nothing to append to yet (or not a dataset: the writer says so)
+    rows = table.filter(pc.equal(table["env_id"], config.env_id))
+    if rows.num_rows and (old := rows["valid_actions"][0].as_py()) != names:
+        raise UsageError(f"{config.out} holds {config.env_id} steps with the {len(old)} actions {old}; this run "
+                         f"offers {names}: pass the --action-space the dataset was collected with")
+
+
 def make_policy(config: CollectConfig, pool) -> Policy:
     if config.policy == "random":
         return RandomPolicy(len(pool.action_names), config.seed)
@@ -87,11 +119,12 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
     from illm_tools.envs import renderer_of
     from illm_tools.envs.pool import EnvPool
 
-    pool = EnvPool(config.env_id, config.num_envs, config.seed, action_space=config.action_space,
+    pool = EnvPool(config.env_id, config.num_envs, config.seed, action_space=resolved_action_space(config),
                    num_dists=config.num_dists, **config.env_options)
+    names = list(pool.action_names)
+    check_append_keeps_actions(config, names)
     policy = make_policy(config, pool)
     renderer = renderer_of(config.env_id)
-    names = list(pool.action_names)
     n = pool.num_envs
     writer = TrajectoryWriter(config.out, mode=config.mode, shard_rows=config.shard_rows)
     next_episode = writer.first_episode_id
@@ -145,5 +178,6 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
         "success_rate": successes / max(finished, 1),
         "mean_return": float(np.mean(returns)) if returns else 0.0,
         "env_id": config.env_id,
+        "action_space": pool.action_space_name,
         "policy": policy.name,
     }

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX, STATE_TO_IDX
 
-from illm_tools.envs import known_env_ids, make_env, renderer_of
+from illm_tools.envs import known_env_ids, make_env, renderer_of, resolve_action_space
 from illm_tools.envs.babyai import ACTION_SPACES, RENDERER_VERSION, describe, render_text
 from illm_tools.errors import UnknownEnvError, UsageError
 
@@ -28,7 +28,7 @@ CASES = [("BabyAI-GoToLocal-v0", 4), ("BabyAI-GoToLocal-v0", 11), ("BabyAI-Picku
 def _record(env_id: str, seed: int) -> dict:
     from minigrid.utils.baby_ai_bot import BabyAIBot
 
-    env = make_env(env_id)
+    env = make_env(env_id, action_space="augmented")  # the bot's action indices are MiniGrid's
     _, info = env.reset(seed=seed)
     bot, actions, texts = BabyAIBot(env.unwrapped), [], [info["text"]]
     for _ in range(64):
@@ -53,7 +53,7 @@ def _snapshots() -> dict:
 def test_snapshot(env_id, seed):
     case = _snapshots()[f"{env_id}/{seed}"]
     assert case["renderer_version"] == RENDERER_VERSION, "snapshot of another renderer version: regenerate"
-    env = make_env(env_id)
+    env = make_env(env_id, action_space="augmented")
     _, info = env.reset(seed=seed)
     texts = [info["text"]]
     for action in case["actions"]:
@@ -130,6 +130,59 @@ def test_action_space_sizes(space, size):
     assert env.action_space.n == size == len(env.action_names) == len(info["valid_actions"])
     assert tuple(info["valid_actions"]) == ACTION_SPACES[space]
     assert env.action_names[:3] == ("turn left", "turn right", "go forward")
+
+
+@pytest.mark.parametrize("env_id,size", [("BabyAI-GoToLocal-v0", 3), ("BabyAI-GoToRedBallGrey-v0", 3),
+                                         ("BabyAI-UnlockLocal-v0", 6), ("BabyAI-PickupLoc-v0", 6),
+                                         ("MiniGrid-DoorKey-5x5-v0", 6)])
+def test_default_action_space_is_the_papers(env_id, size):
+    """Paper Tables 1 and 5: the Go To levels have the 3 original actions; other levels keep 6."""
+    env = make_env(env_id)
+    _, info = env.reset(seed=0)
+    assert len(env.action_names) == len(info["valid_actions"]) == env.action_space.n == size
+    assert resolve_action_space(env_id) == {3: "original", 6: "augmented"}[size]
+
+
+def test_explicit_action_space_wins():
+    assert len(make_env("BabyAI-GoToLocal-v0", action_space="augmented").action_names) == 6
+    assert len(make_env("BabyAI-UnlockLocal-v0", action_space="original").action_names) == 3
+    assert resolve_action_space("BabyAI-GoToLocal-v0", "irrelevant") == "irrelevant"
+
+
+def _bot_actions(env_id: str, seeds=range(3)) -> set[int]:
+    """The MiniGrid actions the BabyAI expert bot takes to solve a few episodes of a level."""
+    import contextlib
+    import io
+
+    import gymnasium as gym
+    from minigrid.utils.baby_ai_bot import BabyAIBot
+
+    env, used = gym.make(env_id), set()
+    for seed in seeds:
+        with contextlib.redirect_stdout(io.StringIO()):  # level generation chatter
+            env.reset(seed=seed)
+        bot = BabyAIBot(env.unwrapped)
+        for _ in range(env.unwrapped.max_steps):
+            action = int(bot.replan())
+            used.add(action)
+            _, _, terminated, truncated, _ = env.step(action)
+            if terminated or truncated:
+                break
+    return used
+
+
+GOTO_IDS = [i for i in known_env_ids() if i.startswith("BabyAI-GoTo")]
+
+
+@pytest.mark.parametrize("env_id", [i for i in GOTO_IDS if resolve_action_space(i) == "original"])
+def test_goto_levels_given_the_original_actions_need_no_other(env_id):
+    assert _bot_actions(env_id) <= {0, 1, 2}  # turn left, turn right, go forward
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_id", [i for i in GOTO_IDS if resolve_action_space(i) != "original"])
+def test_goto_levels_behind_closed_doors_keep_the_augmented_actions(env_id):
+    assert resolve_action_space(env_id) == "augmented" and _bot_actions(env_id) - {0, 1, 2}
 
 
 def test_irrelevant_actions_only_consume_a_step():

@@ -28,7 +28,7 @@ def test_reset_shapes_and_dtypes():
     assert obs.directions.dtype == np.int64 and obs.directions.shape == (3,)
     assert obs.seeds.tolist() == [10, 11, 12] and obs.steps.tolist() == [0, 0, 0]
     assert all(t.startswith("You see") for t in obs.texts) and all(obs.missions)
-    assert pool.action_names == ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
+    assert pool.action_names == ("turn left", "turn right", "go forward")  # GoTo: the paper's 3 actions
 
 
 def test_same_seed_same_episodes():
@@ -92,6 +92,14 @@ def test_render_false_skips_text_only():
     assert all(t == "" for o in without for t in o.texts)
     assert all(np.array_equal(x.images, y.images) and x.missions == y.missions
                for x, y in zip(with_text, without))
+
+
+def test_pool_records_the_resolved_action_space():
+    pool = EnvPool(ENV, 2, seed=0, render=False)
+    assert pool.action_space_name == "original" and pool.action_names == ("turn left", "turn right", "go forward")
+    assert pool.envs[0].action_names == pool.action_names
+    assert EnvPool("BabyAI-PickupLoc-v0", 1, seed=0, render=False).action_space_name == "augmented"
+    assert EnvPool(ENV, 1, seed=0, render=False, action_space="irrelevant").action_space_name == "irrelevant"
 
 
 def test_usage_errors():

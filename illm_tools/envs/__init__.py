@@ -25,7 +25,8 @@ class Suite:
     renderer: str
     """"<renderer name>@<version>": part of every annotation cache key."""
     module: str
-    """Module holding the maker and `env_ids()`; imported only when needed."""
+    """Module holding the maker, `env_ids()` and optionally `default_action_space(env_id)`; imported
+    only when needed."""
     maker: str
     """Name of the module's `maker(env_id, *, action_space, num_dists, **options) -> gym.Env`."""
 
@@ -68,12 +69,28 @@ def renderer_of(env_id: str) -> str:
     return _suite_of(env_id).renderer
 
 
-def make_env(env_id: str, *, action_space: str = "augmented", num_dists: int | None = None, **kw: Any) -> gym.Env:
+def resolve_action_space(env_id: str, action_space: str = "auto") -> str:
+    """The action space an env is made with: `action_space` itself, or for "auto" the suite's default
+    for this level (BabyAI: "original" for the GoTo levels, paper Tables 1 and 5; else "augmented").
+    The one place "auto" is resolved, so collect, annotate and train of one env offer the same
+    valid actions (they are part of every prompt and cache key)."""
+    if action_space != "auto":
+        return action_space
+    suite = _suite_of(env_id)
+    try:
+        return suite.load("default_action_space")(env_id)
+    except AttributeError:
+        return "augmented"
+
+
+def make_env(env_id: str, *, action_space: str = "auto", num_dists: int | None = None, **kw: Any) -> gym.Env:
     """The text environment for `env_id`: `info` holds `text`, `mission` and `valid_actions`.
 
-    action_space: "original" (3 actions), "augmented" (6, default) or "irrelevant" (9), paper Table 5.
+    action_space: "original" (3 actions), "augmented" (6) or "irrelevant" (9), paper Table 5, or
+    "auto" (default): `resolve_action_space`.
     num_dists: number of distractors, for levels that take one (paper Table 1).
     Other keywords go to the suite's maker (e.g. render_text=False) and then to gym.make.
     """
     suite = _suite_of(env_id)
-    return suite.load(suite.maker)(env_id, action_space=action_space, num_dists=num_dists, **kw)
+    return suite.load(suite.maker)(env_id, action_space=resolve_action_space(env_id, action_space),
+                                   num_dists=num_dists, **kw)

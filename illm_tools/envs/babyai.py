@@ -62,6 +62,20 @@ ACTION_SPACES: dict[str, tuple[str, ...]] = {
                    "sleep", "do nothing", "think"),
 }
 DEFAULT_ACTION_SPACE = "augmented"
+# GoTo levels whose rooms are joined by closed doors: "go forward" cannot pass one, so they keep
+# "toggle" (GoToImpUnlock also needs "pick up" for the key); GoToOpen and GoToObjMazeOpen open them.
+_GOTO_WITH_CLOSED_DOORS = ("BabyAI-GoTo-", "BabyAI-GoToObjMaze", "BabyAI-GoToSeq", "BabyAI-GoToImpUnlock")
+
+
+def default_action_space(env_id: str) -> str:
+    """"original" (turn left, turn right, go forward) for the BabyAI "Go to" levels, as in paper
+    Tables 1 and 5 (D.6: "the only 3 useful actions"); "augmented" for every other level and for
+    GoTo levels behind closed doors."""
+    if not env_id.startswith("BabyAI-GoTo"):
+        return DEFAULT_ACTION_SPACE
+    if env_id.startswith(_GOTO_WITH_CLOSED_DOORS) and not env_id.startswith("BabyAI-GoToObjMazeOpen"):
+        return DEFAULT_ACTION_SPACE
+    return "original"
 
 
 def _steps(n: int, direction: str) -> str:

@@ -16,7 +16,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from illm_tools.envs import make_env
+from illm_tools.envs import make_env, resolve_action_space
 from illm_tools.errors import UsageError
 
 
@@ -73,7 +73,10 @@ class EnvPool:
         self.num_envs = int(num_envs)
         self.seed = int(seed)
         self.render = render
-        self.envs = [make_env(env_id, render_text=render, **options) for _ in range(self.num_envs)]
+        # the resolved action space ("auto" never appears here): what a run or dataset records
+        self.action_space_name = resolve_action_space(env_id, options.pop("action_space", "auto"))
+        self.envs = [make_env(env_id, render_text=render, action_space=self.action_space_name, **options)
+                     for _ in range(self.num_envs)]
         self.action_names: tuple[str, ...] = tuple(self.envs[0].action_names)
         n = self.num_envs
         self._episode_index = np.zeros(n, dtype=np.int64)  # k: episodes started by each env

@@ -21,6 +21,28 @@ Choices (documented here once):
   two streams); with unit advantage weights this is PPO on r* = r + lambda r^a + beta r^hc.
 - The rewards of a rollout are paid for the state the agent acts from (paper Alg. 1, line 11):
   reward t belongs to state s_t, computed after the rollout from the updated heads in one batch.
+
+Compared with CleanRL's RND (`cleanrl/ppo_rnd_envpool.py`), the reference most users know:
+- Same: the reward is divided by sqrt(var) of a RunningMeanStd of the discounted intrinsic
+  return R = r + gamma R (int_gamma 0.99), per-env filter never reset at episode ends, moments of
+  all T x N values merged once per rollout, mean not subtracted; the intrinsic stream is
+  non-episodic (int_nextnonterminal = 1; our int_episodic=False); the two advantages are summed
+  with weights and then normalised per minibatch, so only their ratio matters (logged per update as
+  charts/adv_int_ext_ratio, with charts/adv_ext_abs, adv_int_abs, return_ext, return_int).
+- CleanRL filters over the wrong axis: it iterates over `curiosity_rewards.T` ([N, T]), so its
+  "return" accumulates across envs at each time step (cleanrl issue #360); we, like the original
+  openai/random-network-distillation code, accumulate over time per env. Its std differs from ours.
+- Weights: RND uses ext_coef 2, int_coef 1 (and gamma 0.999); we default to 1, 1, i.e. PPO on
+  r* = r + lambda r^a + beta r^hc as the paper writes it (`illm train --bonus-preset rnd` for 2, 1).
+- RND pays every step; here steps without an LLM target pay 0 and are left out of the variance,
+  so at low coverage the std is that of the covered steps' returns. r^a and r^hc are normalised
+  separately, then weighted by lambda and beta; RND has one bonus. We add 1e-8 to the std.
+- CleanRL never clips the intrinsic value loss; the trainer clips both (clip_vloss). RND pays the
+  reward of transition t for s_{t+1} (its prediction error on next_obs); we pay it for s_t.
+- Scale: the normaliser fixes the spread of R, not the reward's level. A bonus that is nearly
+  constant (as with small LLMs' near state-independent rankings) has a large R with a small spread,
+  so its normalised reward grows as the running variance settles; V_int absorbs the constant part,
+  and the ratio metric shows how much of the summed advantage the bonus still is.
 """
 
 from __future__ import annotations

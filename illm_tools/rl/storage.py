@@ -75,11 +75,24 @@ def gae(rewards: torch.Tensor, values: torch.Tensor, next_value: torch.Tensor, e
 
 @dataclass
 class Advantages:
-    """What the PPO loss consumes: the summed advantage and a return target per value head."""
+    """What the PPO loss consumes: the summed advantage and a return target per value head; and
+    the two weighted parts of the sum, to watch the bonus's scale."""
 
-    advantages: torch.Tensor   # [T, N] ext_coef * A_ext + int_coef * A_int
+    advantages: torch.Tensor   # [T, N] ext_part + int_part
     returns_ext: torch.Tensor  # [T, N]
-    returns_int: torch.Tensor  # [T, N]
+    returns_int: torch.Tensor  # [T, N] (zeros without a bonus)
+    ext_part: torch.Tensor     # [T, N] ext_coef * A_ext
+    int_part: torch.Tensor     # [T, N] int_coef * A_int (zeros without a bonus)
+
+    def scale_logs(self) -> dict[str, float]:
+        """How big the bonus is next to the task reward, per update: mean |ext_coef A_ext| and
+        mean |int_coef A_int| (`adv_ext_abs`, `adv_int_abs`), their ratio `adv_int_ext_ratio`
+        (int / max(ext, 1e-8); above 1 the bonus steers the normalised advantage more than the
+        task does, and it is the bonus alone while no episode has paid a reward), and the mean GAE
+        return of each stream (`return_ext`, `return_int`, the latter in normalised-bonus units)."""
+        ext, intr = float(self.ext_part.abs().mean()), float(self.int_part.abs().mean())
+        return {"adv_ext_abs": ext, "adv_int_abs": intr, "adv_int_ext_ratio": intr / max(ext, 1e-8),
+                "return_ext": float(self.returns_ext.mean()), "return_int": float(self.returns_int.mean())}
 
 
 def two_stream_advantages(ro: Rollout, int_rewards: torch.Tensor | None, next_value_ext: torch.Tensor,
@@ -92,7 +105,9 @@ def two_stream_advantages(ro: Rollout, int_rewards: torch.Tensor | None, next_va
     """
     adv_ext, ret_ext = gae(ro.rewards, ro.values_ext, next_value_ext, ro.ends, gamma, lam)
     if int_rewards is None:
-        return Advantages(ext_coef * adv_ext, ret_ext, torch.zeros_like(ret_ext))
+        zeros = torch.zeros_like(ret_ext)
+        return Advantages(ext_coef * adv_ext, ret_ext, zeros, ext_coef * adv_ext, zeros)
     int_ends = ro.ends if int_episodic else torch.zeros_like(ro.ends)
     adv_int, ret_int = gae(int_rewards, ro.values_int, next_value_int, int_ends, int_gamma, lam)
-    return Advantages(ext_coef * adv_ext + int_coef * adv_int, ret_ext, ret_int)
+    ext_part, int_part = ext_coef * adv_ext, int_coef * adv_int
+    return Advantages(ext_part + int_part, ret_ext, ret_int, ext_part, int_part)
