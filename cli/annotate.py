@@ -22,7 +22,8 @@ def register(app: typer.Typer) -> None:
         history: int = typer.Option(3, "--history", help="Observation/action pairs of history in the prompts."),
         layout: str = typer.Option("shared", "--layout", help="Templates: shared (history first, prefix computed once) or paper (as printed)."),
         batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
-        limit: int = typer.Option(None, "--limit", help="Annotate at most N missing states."),
+        limit: int = typer.Option(None, "--limit", help="Annotate the N most visited distinct states (those not cached yet); the same --limit again annotates nothing."),
+        max_minutes: float = typer.Option(None, "--max-minutes", help="Stop after M minutes, keeping every finished chunk; run again to go on."),
         dtype: str = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16."),
         quant: str = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit."),
     ) -> None:
@@ -30,20 +31,29 @@ def register(app: typer.Typer) -> None:
         from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()),
-                                history=history, layout=layout, batch_size=batch_size, limit=limit, dtype=dtype, quant=quant)
+                                history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
+                                dtype=dtype, quant=quant)
         with progress(0, f"annotate {model}", unit="states") as advance:
             def on_plan(stats, todo: int) -> None:
-                typer.echo(f"{stats.states:,} distinct states, {stats.keys:,} keys: {stats.hits:,} cached, "
-                           f"{stats.misses:,} to annotate", err=True)
+                typer.echo(f"{stats.states:,} states selected (most visited first), {stats.keys:,} keys: "
+                           f"{stats.hits:,} cached, {stats.misses:,} to annotate", err=True)
                 advance(0, total=todo)
 
             def on_progress(n: int, stats) -> None:
                 advance(n, stats.states_per_s, hits=stats.hits, misses=stats.misses)
 
-            stats = annotate_dataset(config, on_progress=on_progress, on_plan=on_plan)
+            result = annotate_dataset(config, on_progress=on_progress, on_plan=on_plan)
+        stats = result.stats
+        summary = f", summaries {stats.mean_summary_tokens:.1f} tokens on average" if stats.summaries else ""
         typer.echo(
             f"annotated {stats.annotated_states:,} states ({stats.rows:,} rows: "
             + ", ".join(f"{k} {v:,}" for k, v in sorted(stats.per_task.items()))
-            + f") in {stats.seconds:.1f}s, {stats.states_per_s:.2f} states/s; {stats.hits:,} keys were already cached "
-            f"-> {cache}"
+            + f") in {stats.seconds:.1f}s, {stats.states_per_s:.2f} states/s{summary}"
+            + ("; stopped at --max-minutes, run again to go on" if stats.stopped_early else "")
         )
+        if config.limit is not None:
+            typer.echo(f"the {result.selected_states:,} most visited states cover {result.selected_step_share:.0%} "
+                       f"of the {result.dataset_steps:,} steps")
+        typer.echo(f"the cache now answers {result.covered_states:,} of the {result.dataset_states:,} distinct states "
+                   f"(history {config.history}), covering {result.covered_step_share:.0%} of the "
+                   f"{result.dataset_steps:,} steps -> {cache}")

@@ -31,3 +31,36 @@ def info(
     typer.echo(f"  env ids     {', '.join(stats['env_ids'])}")
     typer.echo(f"  policies    {', '.join(stats['policies'])}")
     typer.echo(f"  shards      {stats['shards']} ({stats['bytes'] / 1e6:.1f} MB)")
+
+
+@app.command("coverage", epilog="Example: illm data coverage data/traj/gotolocal --cache data/ann --history 0 --history 3")
+@friendly
+def coverage(
+    path: Path = typer.Argument(..., help="Folder of a trajectory dataset."),
+    cache: Path = typer.Option(None, "--cache", help="Annotation cache to measure (leave out to see only the costs)."),
+    history: list[int] = typer.Option([0, 1, 3], "--history", help="History lengths to measure (repeat the option)."),
+    model: str = typer.Option("smollm2-135m", "--model", help="LLM whose annotations count (as in `illm annotate`)."),
+    tasks: str = typer.Option("action,summary", "--tasks", help="Tasks a state needs to count as covered."),
+    layout: str = typer.Option("shared", "--layout", help="Prompt layout (as in `illm annotate`)."),
+    dtype: str = typer.Option("bfloat16", "--dtype", help="LLM compute dtype (as in `illm annotate`)."),
+    quant: str = typer.Option("none", "--quant", help="LLM quantisation (as in `illm annotate`)."),
+    as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
+) -> None:
+    """Per history length: distinct states, the share of steps the cache answers, and the share the
+    k most visited states cover (what annotating them with `illm annotate --limit k` would reach)."""
+    from illm_tools.annotate.coverage import TOP_K, measure_coverage
+
+    rows = measure_coverage(path, cache=cache, histories=history, model=model, dtype=dtype, quant=quant,
+                            layout=layout, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()))
+    if as_json:
+        emit_json(rows)
+        return
+    typer.echo(f"{path}: {rows[0]['steps']:,} steps" + (f"; cache {cache}" if cache else "; no cache given"))
+    head = "| history | distinct states | cached: states | cached: steps | " + " | ".join(
+        f"top {k:,}: steps" for k in TOP_K) + " |"
+    typer.echo(head)
+    typer.echo("|" + "---|" * (4 + len(TOP_K)))
+    for r in rows:
+        typer.echo(f"| {r['history']} | {r['distinct_states']:,} ({r['distinct_share']:.1%} of steps) | "
+                   f"{r['cached_states']:,} | {r['cached_step_share']:.1%} | "
+                   + " | ".join(f"{r['top_k_step_share'][str(k)]:.1%}" for k in TOP_K) + " |")

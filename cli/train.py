@@ -22,44 +22,56 @@ def register(app: typer.Typer) -> None:
         model: str = typer.Option("smollm2-135m", "--model", help="LLM whose annotations are the targets (as in `illm annotate`)."),
         frames: int = typer.Option(200_000, "--frames", help="Environment steps to train for."),
         seed: int = typer.Option(0, "--seed", help="Seed of the network, sampling and episodes."),
-        live_budget: int = typer.Option(16, "--live-budget", help="Uncached states annotated live per rollout (about 1 s each on 2 CPU cores); 0: cache only."),
+        live_budget: int = typer.Option(16, "--live-budget", help="Missed states handed to the live LLM after each rollout, most visited first (sync: about 1 s each on 2 CPU cores); 0: cache only."),
+        live_mode: str = typer.Option("async", "--live-mode", help="async: the LLM annotates in a worker process beside the rollouts, later rollouts use its answers | sync: the trainer waits for them."),
+        new_setup: bool = typer.Option(False, "--new-setup", help="Accept a cache whose annotations are all of another setup (model, dtype, quant, history, layout): live annotation starts this one."),
         action_score: str = typer.Option("sum", "--action-score", help="Calibration of the action log-probs: sum | mean | pmi."),
+        action_target: str = typer.Option("distribution", "--action-target", help="f^a's target: distribution (softmax of the scores) | argmax (one-hot of the best: the paper's Alg. 1 line 7)."),
         history: int = typer.Option(3, "--history", help="History pairs in the prompts (must match the annotation)."),
         layout: str = typer.Option("shared", "--layout", help="Prompt layout (must match the annotation): shared | paper."),
         dtype: str = typer.Option("bfloat16", "--dtype", help="LLM compute dtype (must match the annotation)."),
         quant: str = typer.Option("none", "--quant", help="LLM quantisation (must match the annotation): none | 4bit | 8bit."),
-        lambda_a: float = typer.Option(0.8, "--lambda-a", help="Weight of the action bonus r^a."),
-        beta_hc: float = typer.Option(0.5, "--beta-hc", help="Weight of the summary bonus r^hc."),
+        bonus_preset: str = typer.Option("paper", "--bonus-preset", help="paper (lambda 0.8, beta 0.5, ext/int advantage weights 1, 1) | rnd (CleanRL RND's weights 2, 1); explicit flags win."),
+        lambda_a: float = typer.Option(None, "--lambda-a", help="Weight of the action bonus r^a (from --bonus-preset: 0.8)."),
+        beta_hc: float = typer.Option(None, "--beta-hc", help="Weight of the summary bonus r^hc (from --bonus-preset: 0.5)."),
+        ext_coef: float = typer.Option(None, "--ext-coef", help="Weight of the extrinsic advantage (from --bonus-preset: paper 1, rnd 2)."),
+        int_coef: float = typer.Option(None, "--int-coef", help="Weight of the intrinsic advantage (from --bonus-preset: 1)."),
         num_envs: int = typer.Option(16, "--num-envs", help="Parallel environments."),
         num_steps: int = typer.Option(128, "--num-steps", help="Steps per env per rollout."),
-        action_space: str = typer.Option("augmented", "--action-space", help="original | augmented | irrelevant."),
+        action_space: str = typer.Option("auto", "--action-space", help="original | augmented | irrelevant | auto: original for GoTo levels (paper Tables 1, 5), augmented otherwise."),
         num_dists: int = typer.Option(None, "--num-dists", help="Distractors, for levels that take it."),
         threads: int = typer.Option(1, "--threads", help="Torch threads for the policy."),
-        llm_threads: int = typer.Option(0, "--llm-threads", help="Torch threads for live annotation; 0: all cores."),
+        llm_threads: int = typer.Option(0, "--llm-threads", help="Torch threads for live annotation; 0: sync all cores, async the cores --threads leaves."),
         resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its last checkpoint."),
     ) -> None:
         """Train PPO with the iLLM heads and intrinsic rewards, reading targets from the cache."""
-        from illm_tools.rl.config import TrainConfig
+        from illm_tools.rl.config import TrainConfig, bonus_weights
         from illm_tools.rl.run import train as run
 
+        weights = bonus_weights(bonus_preset, lambda_a=lambda_a, beta_hc=beta_hc, ext_coef=ext_coef, int_coef=int_coef)
         cfg = TrainConfig(env_id=env, run_dir=out, mode=method, seed=seed, total_steps=frames, num_envs=num_envs,
                           num_steps=num_steps, action_space=action_space, num_dists=num_dists, history_len=history,
-                          lambda_a=lambda_a, beta_hc=beta_hc, cache=cache, model=model, model_dtype=dtype, quant=quant,
-                          layout=layout, action_score=action_score, live_budget=live_budget, threads=threads, llm_threads=llm_threads,
-                          resume=resume)
+                          cache=cache, model=model, model_dtype=dtype, quant=quant, layout=layout, action_score=action_score,
+                          action_target=action_target, live_budget=live_budget, live_mode=live_mode, new_setup=new_setup, threads=threads, llm_threads=llm_threads,
+                          resume=resume, **weights)
         last: dict = {}
+        coverage: list[float] = []
         with progress(cfg.num_updates * cfg.batch_size, f"train {method}", unit="steps") as advance:
             def on_metrics(m: dict) -> None:
                 last.update(m)
                 fields = {"success": f"{m.get('charts/success_rate', float('nan')):.2f}"}
                 if cfg.uses_heads:
-                    fields["cache_hit"] = f"{m.get('charts/cache_hit_rate', 0.0):.2f}"
+                    coverage.append(m.get("charts/target_coverage", 0.0))
+                    fields["targets"] = f"{coverage[-1]:.2f}"
+                    if "charts/live_queue" in m:
+                        fields["live_queue"] = f"{m['charts/live_queue']:.0f}"
                 advance(cfg.batch_size, m.get("charts/sps"), **fields)
 
             run(cfg, on_metrics)
+        targets = f"; steps with an LLM target {sum(coverage) / len(coverage):.0%} on average" if coverage else ""
         typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames "
                    f"({last.get('charts/sps', 0):,.0f} steps/s); last success rate "
-                   f"{last.get('charts/success_rate', float('nan')):.2f} -> {out}")
+                   f"{last.get('charts/success_rate', float('nan')):.2f}{targets} -> {out}")
 
     @app.command("eval", epilog="Example: illm eval runs/gotolocal-illm runs/gotolocal-ppo --episodes 100")
     @friendly

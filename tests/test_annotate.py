@@ -31,7 +31,7 @@ def _illm_cache(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def trajectories(tmp_path_factory):
     out = tmp_path_factory.mktemp("traj") / "gotolocal"
-    collect(CollectConfig(env_id=ENV, out=out, steps=48, num_envs=4, seed=5))
+    collect(CollectConfig(env_id=ENV, out=out, steps=48, num_envs=4, seed=5, action_space="augmented"))
     return out
 
 
@@ -60,7 +60,7 @@ def test_shared_prefix_equals_separate_paths(tiny_lm):
 
 def test_annotate_writes_each_distinct_key_once(trajectories, tmp_path, tiny_lm):
     cache = tmp_path / "ann"
-    stats = annotate_dataset(config(trajectories, cache, tiny_lm))
+    stats = annotate_dataset(config(trajectories, cache, tiny_lm)).stats
     assert stats.misses == stats.keys and stats.annotated_states == stats.states
     ann = AnnotationCache(cache)
     assert len(ann) == stats.keys == 2 * stats.states
@@ -73,7 +73,7 @@ def test_annotate_writes_each_distinct_key_once(trajectories, tmp_path, tiny_lm)
     row = next(r for r in ann.lookup(keys).values() if r["task"] == "action")
     assert row["candidates"] == list(ACTIONS) and len(row["neutral_logprob_sum"]) == 6
     assert row["chosen_index"] == int(np.argmax(row["cand_logprob_sum"]))
-    again = annotate_dataset(config(trajectories, cache, tiny_lm))
+    again = annotate_dataset(config(trajectories, cache, tiny_lm)).stats
     assert again.hits == again.keys and again.annotated_states == 0 and len(AnnotationCache(cache)) == len(ann)
 
 
@@ -94,7 +94,7 @@ def test_killed_run_resumes_with_only_what_is_missing(trajectories, tmp_path, ti
     monkeypatch.setattr(AnnotationCache, "write", real_write)
     kept = len(AnnotationCache(cache))
     assert kept == sum(writes) > 0
-    resumed = annotate_dataset(config(trajectories, cache, tiny_lm))
+    resumed = annotate_dataset(config(trajectories, cache, tiny_lm)).stats
     assert resumed.hits == kept and resumed.rows == resumed.keys - kept
     assert verify(cache).ok and len(AnnotationCache(cache)) == resumed.keys
 
@@ -105,7 +105,7 @@ def _annotate_in_process(args):
 
     os.environ["ILLM_CACHE_DIR"] = cache_dir
     stats = annotate_dataset(AnnotateConfig(data=trajectories, cache=cache, model=model, dtype="float32",
-                                            batch_size=4, chunk=4))
+                                            batch_size=4, chunk=4)).stats
     return stats.keys
 
 
@@ -126,7 +126,7 @@ def test_trainer_keys_hit_the_rows_annotate_wrote_and_live_fallback_writes_back(
     cache = tmp_path / "ann"
     annotate_dataset(config(trajectories, cache, tiny_lm))
     # replay the collection (same seeds, same random policy) the way the trainer sees it
-    pool = EnvPool(ENV, 4, 5)
+    pool = EnvPool(ENV, 4, 5, action_space="augmented")
     policy = RandomPolicy(len(pool.action_names), 5)
     tracker = HistoryTracker(4, 3, pool.action_names)
     obs, records = pool.reset(), []

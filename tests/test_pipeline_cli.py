@@ -40,7 +40,7 @@ def test_collect_annotate_train_eval_report(tmp_path, tiny_lm):
     assert ok(["cache", "verify", ann]).strip().endswith("ok")
 
     train = ["train", "--env", "BabyAI-GoToLocal-v0", "--cache", ann, "--model", model, "--dtype", "float32",
-             "--num-envs", 4, "--num-steps", 32, "--live-budget", 4, "--seed", 0]
+             "--num-envs", 4, "--num-steps", 32, "--live-budget", 4, "--live-mode", "sync", "--seed", 0]
     ok([*train, "--method", "illm", "--frames", 256, "--out", runs / "illm"])
     with open(runs / "illm" / "metrics.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))

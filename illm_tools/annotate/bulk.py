@@ -6,6 +6,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from illm_tools.annotate.engine import Annotator, Stats
 from illm_tools.errors import UsageError
 from illm_tools.tasks.prompts import LAYOUTS, TASKS
@@ -30,7 +32,10 @@ class AnnotateConfig:
     batch_size: int = 8
     """States per LLM batch."""
     limit: int | None = None
-    """Annotate at most this many missing states (None: all)."""
+    """Annotate the `limit` most visited distinct states of the dataset, those the cache lacks
+    (None: all). The same limit again annotates nothing."""
+    max_minutes: float | None = None
+    """Stop after this many minutes, between chunks, with every finished chunk written."""
     dtype: str = "bfloat16"
     """Compute dtype (bfloat16 is the fast path on CPU)."""
     quant: str = "none"
@@ -50,12 +55,32 @@ class AnnotateConfig:
             raise UsageError("--batch-size and --chunk must be positive")
         if self.limit is not None and self.limit < 0:
             raise UsageError(f"--limit must be 0 or more, got {self.limit}")
+        if self.max_minutes is not None and self.max_minutes <= 0:
+            raise UsageError(f"--max-minutes must be positive, got {self.max_minutes}")
+
+
+@dataclass
+class AnnotateResult:
+    """A bulk run's counters and what the cache covers of the dataset afterwards."""
+
+    stats: Stats
+    dataset_states: int
+    """Distinct states in the dataset (under this history length)."""
+    dataset_steps: int
+    selected_states: int
+    """States the run was asked for: the `limit` most visited (all without a limit)."""
+    selected_step_share: float
+    """Share of the dataset's steps those states cover."""
+    covered_states: int
+    """Distinct states of the dataset the cache now answers for every task."""
+    covered_step_share: float
+    """Share of the dataset's steps they cover: the target coverage a run retracing it would get."""
 
 
 def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats], None] | None = None,
-                     on_plan: Callable[[Stats, int], None] | None = None) -> Stats:
-    """Plan (keys, hits, misses; `on_plan(stats, states_to_do)`), then annotate the missing states.
-    Returns the run's counters."""
+                     on_plan: Callable[[Stats, int], None] | None = None) -> AnnotateResult:
+    """Count the dataset's distinct states, most visited first; plan the `limit` most visited that
+    the cache lacks (`on_plan(stats, states_to_do)`); annotate them; report the coverage."""
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.data.trajectories import open_table
     from illm_tools.llm.loading import load_model
@@ -70,8 +95,14 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     lm = load_model(config.model, dtype=config.dtype, quant=config.quant)
     annotator = Annotator(lm, cache, model=config.model, tasks=config.tasks, history_len=config.history,
                           layout=config.layout, batch_size=config.batch_size, chunk=config.chunk)
+    visited = annotator.visited(records, env_ids, renderers)
     stats = Stats()
-    plan = annotator.plan(records, env_ids, renderers, stats)
+    plan = annotator.plan(visited, stats=stats, limit=config.limit)
     if on_plan is not None:
-        on_plan(stats, len(plan) if config.limit is None else min(len(plan), config.limit))
-    return annotator.run(plan, limit=config.limit, stats=stats, on_progress=on_progress)
+        on_plan(stats, len(plan))
+    max_seconds = None if config.max_minutes is None else 60.0 * config.max_minutes
+    annotator.run(plan, stats=stats, on_progress=on_progress, max_seconds=max_seconds)
+    covered = visited.covered(cache)
+    selected = visited.top(config.limit)
+    return AnnotateResult(stats, len(visited), visited.total_steps, len(selected), visited.step_share(
+        np.arange(len(visited)) < len(selected)), int(covered.sum()), visited.step_share(covered))

@@ -21,7 +21,8 @@ import numpy as np
 from illm_tools.cache.keys import canonical_json, fingerprint_hash
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
-from illm_tools.tasks.prompts import SUMMARY_TOKENS, TASKS, Prompt, PromptBuilder, neutral_prompt
+from illm_tools.annotate.coverage import VisitedStates
+from illm_tools.tasks.prompts import SUMMARY_TOKENS, TASKS, Prompt, PromptBuilder, format_history, neutral_prompt
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
@@ -52,12 +53,24 @@ class Stats:
     """States the LLM answered in this run (all their missing tasks)."""
     rows: int = 0
     """Rows written to the cache."""
+    selected_steps: int = 0
+    """Steps of the input that the planned states cover (all of them, cached or not)."""
+    summary_tokens: int = 0
+    """Tokens generated for summaries (their mean length is summary_tokens / summaries)."""
+    summaries: int = 0
+    """Summaries generated."""
+    stopped_early: bool = False
+    """True when the time limit ended the run before its plan was done."""
     seconds: float = 0.0
     per_task: dict = field(default_factory=dict)
 
     @property
     def states_per_s(self) -> float:
         return self.annotated_states / self.seconds if self.seconds else 0.0
+
+    @property
+    def mean_summary_tokens(self) -> float:
+        return self.summary_tokens / self.summaries if self.summaries else 0.0
 
 
 class Annotator:
@@ -88,44 +101,65 @@ class Annotator:
                                                 history_len=self.history_len, layout=self.layout)
         return self._builders[key]
 
-    def plan(self, records: Sequence[StateRecord], env_ids: Sequence[str], renderers: Sequence[str],
-             stats: Stats | None = None) -> list[list[Job]]:
-        """Jobs for the distinct (state, task) keys the cache misses, grouped per state."""
+    def visited(self, records: Sequence[StateRecord], env_ids: Sequence[str],
+                renderers: Sequence[str]) -> VisitedStates:
+        """The distinct states of these steps, most visited first, keyed for this run's tasks."""
+        return VisitedStates.count(records, env_ids, renderers, self.builder, self.tasks)
+
+    def plan(self, records: Sequence[StateRecord] | VisitedStates, env_ids: Sequence[str] = (),
+             renderers: Sequence[str] = (), stats: Stats | None = None, *, limit: int | None = None) -> list[list[Job]]:
+        """Jobs for the (state, task) keys the cache misses, grouped per state, most visited state
+        first. `limit` keeps the `limit` most visited states before the cache is asked, so the
+        same limit over the same steps plans nothing once those states are annotated."""
         stats = stats if stats is not None else Stats()
-        seen: set[str] = set()
-        per_state: dict[tuple[StateRecord, PromptBuilder], list[Job]] = {}
-        for record, env_id, renderer in zip(records, env_ids, renderers):
-            builder = self.builder(env_id, renderer)
-            for task in self.tasks:
-                prompt = builder.render(task, record)
-                key = builder.key(prompt)
-                if key in seen:
-                    continue
-                seen.add(key)
-                per_state.setdefault((record, builder), []).append(Job(key, prompt, builder))
-        keys = list(seen)
-        found = self.cache.contains(keys) if keys else np.zeros(0, bool)
-        present = {k for k, f in zip(keys, found) if f}
-        stats.states += len(per_state)
-        stats.keys += len(keys)
+        visited = records if isinstance(records, VisitedStates) else self.visited(records, env_ids, renderers)
+        selected = visited.top(limit)
+        flat = [k for keys in selected.keys for k in keys]
+        found = self.cache.contains(flat) if flat else np.zeros(0, bool)
+        present = {k for k, f in zip(flat, found) if f}
+        stats.states += len(selected)
+        stats.keys += len(set(flat))
         stats.hits += len(present)
-        stats.misses += len(keys) - len(present)
-        plan = [[j for j in jobs if j.key not in present] for jobs in per_state.values()]
-        return [jobs for jobs in plan if jobs]
+        stats.misses += len(set(flat)) - len(present)
+        stats.selected_steps += int(selected.steps.sum())
+        plan = []
+        for record, builder, keys in zip(selected.records, selected.builders, selected.keys):
+            history = None
+            jobs = []
+            for task, key in zip(selected.tasks, keys):
+                if key in present:
+                    continue
+                present.add(key)  # a key shared by two states (e.g. one summary prompt) is planned once
+                history = format_history(record) if history is None else history
+                jobs.append(Job(key, builder.render(task, record, history), builder))
+            if jobs:
+                plan.append(jobs)
+        return plan
 
     def run(self, plan: list[list[Job]], *, limit: int | None = None, stats: Stats | None = None,
-            on_progress: Callable[[int, Stats], None] | None = None) -> Stats:
-        """Annotate the planned states (at most `limit` of them), writing a shard per chunk."""
+            on_progress: Callable[[int, Stats], None] | None = None, max_seconds: float | None = None,
+            should_stop: Callable[[], bool] | None = None) -> Stats:
+        """Annotate the planned states (at most `limit` of them), writing a shard per chunk. Stops
+        between chunks once `max_seconds` have passed or `should_stop()` says so: every chunk is
+        written whole or not at all, so what is done stays in the cache."""
         stats = stats if stats is not None else Stats()
         if limit is not None:
             plan = plan[:limit]
         start = time.perf_counter()
         for i in range(0, len(plan), self.chunk):
+            if (max_seconds is not None and time.perf_counter() - start >= max_seconds) or \
+                    (should_stop is not None and should_stop()):
+                stats.stopped_early = True
+                break
             chunk = plan[i:i + self.chunk]
             rows = self.annotate(chunk)
-            self.cache.write(rows)
             for row in rows:
                 stats.per_task[row["task"]] = stats.per_task.get(row["task"], 0) + 1
+                tokens = row.pop("_tokens", None)  # not a cache column: counted, then dropped
+                if tokens is not None:
+                    stats.summaries += 1
+                    stats.summary_tokens += tokens
+            self.cache.write(rows)
             stats.rows += len(rows)
             stats.annotated_states += len(chunk)
             stats.seconds = time.perf_counter() - start
@@ -208,5 +242,6 @@ class Annotator:
     def _summary_row(self, job: Job, gen) -> dict:
         row = self._base_row(job)
         emb = np.asarray(gen.embedding, dtype=np.float32)
-        row.update(text=gen.text, embedding=emb.tolist(), embedding_dim=int(emb.shape[0]))
+        row.update(text=gen.text, embedding=emb.tolist(), embedding_dim=int(emb.shape[0]),
+                   _tokens=len(gen.token_ids))
         return row

@@ -26,6 +26,8 @@ from illm_tools.cache.index import InvalidKeyError, KeyIndex, parse_keys
 from illm_tools.errors import CacheError, SchemaError
 
 _OPEN_SHARDS = 64  # shards kept memory-mapped per cache object
+SETUP_COLUMNS = ("task", "template_version", "renderer", "model", "model_fingerprint", "decoding", "history_len")
+"""The columns that are the same for every key of one run's setup (the rest vary per state)."""
 
 
 @dataclass
@@ -188,6 +190,22 @@ class AnnotationCache:
     def _distinct(self, columns: list[str]) -> pa.Table:
         """The given columns of every distinct key's row."""
         return self._gather(np.flatnonzero(self._index.first_rows()), columns)
+
+    def setups(self) -> list[dict]:
+        """The distinct setups the cache holds (the SETUP_COLUMNS every key of a run shares), each
+        with its entry count and one of its prompts (from which a template layout can be read)."""
+        rows = np.flatnonzero(self._index.first_rows())
+        if not rows.size:
+            return []
+        table = self._gather(rows, list(SETUP_COLUMNS)).append_column("row", pa.array(rows))
+        groups = table.group_by(list(SETUP_COLUMNS)).aggregate([("row", "min"), ("row", "count")])
+        prompts = self._gather(groups.column("row_min").to_numpy(), ["prompt"]).column("prompt").to_pylist()
+        out = []
+        for group, prompt in zip(groups.to_pylist(), prompts):
+            group["entries"] = group.pop("row_count")
+            group.pop("row_min")
+            out.append({**group, "prompt": prompt})
+        return out
 
     def tasks(self) -> dict[str, int]:
         """Number of entries per task."""

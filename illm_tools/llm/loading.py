@@ -18,6 +18,8 @@ import logging
 import os
 import shutil
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -162,8 +164,9 @@ def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
             gguf_folder = tmp / "gguf"
             gemma.assemble(output_path=gguf_folder / spec.gguf_file)
         log.info("de-quantising %s once into %s (tens of seconds)", spec.gguf_file, target)
-        model = AutoModelForCausalLM.from_pretrained(gguf_folder, gguf_file=spec.gguf_file, dtype=torch.float32)
-        tokenizer = AutoTokenizer.from_pretrained(gguf_folder, gguf_file=spec.gguf_file)
+        with _quiet_transformers():
+            model = AutoModelForCausalLM.from_pretrained(gguf_folder, gguf_file=spec.gguf_file, dtype=torch.float32)
+            tokenizer = AutoTokenizer.from_pretrained(gguf_folder, gguf_file=spec.gguf_file)
         model.hf_quantizer = None  # save_pretrained refuses a model that still carries its GGUF quantizer
         if hasattr(model.config, "quantization_config"):
             del model.config.quantization_config
@@ -249,6 +252,23 @@ def model_hidden_size(name: str, *, cache_dir: str | os.PathLike | None = None) 
     return int(AutoConfig.from_pretrained(folder).get_text_config().hidden_size)
 
 
+@contextmanager
+def _quiet_transformers() -> Iterator[None]:
+    """Silence transformers' own progress bars and warnings (weight loading, GGUF de-quantising)
+    while it loads: what a user reads is illm's output. Restores the previous settings."""
+    from transformers.utils import logging as hf_logging
+
+    bars, verbosity = hf_logging.is_progress_bar_enabled(), hf_logging.get_verbosity()
+    hf_logging.disable_progress_bar()
+    hf_logging.set_verbosity_error()
+    try:
+        yield
+    finally:
+        hf_logging.set_verbosity(verbosity)
+        if bars:
+            hf_logging.enable_progress_bar()
+
+
 def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
                cache_dir: str | os.PathLike | None = None, device: str = "cpu") -> LoadedModel:
     """Load an alias, hub id (from the HF cache, offline) or local folder for inference."""
@@ -265,7 +285,8 @@ def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
             load_in_4bit=quant == "4bit", load_in_8bit=quant == "8bit",
             bnb_4bit_compute_dtype=torch_dtype)
         kwargs["device_map"] = device
-    model = AutoModelForCausalLM.from_pretrained(folder, **kwargs)
+    with _quiet_transformers():
+        model = AutoModelForCausalLM.from_pretrained(folder, **kwargs)
     if quant == "none":
         model.to(device)
     model.eval().requires_grad_(False)

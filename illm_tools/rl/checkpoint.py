@@ -28,7 +28,8 @@ CSV_COLUMNS = ("global_step", "update", "episodic_return", "episodic_length", "s
                "intrinsic_reward_a", "intrinsic_reward_hc", "cache_hit_rate", "target_coverage",
                "live_annotations", "no_target_steps", "episodes", "learning_rate", "policy_loss",
                "value_loss", "value_loss_int", "entropy", "approx_kl", "clipfrac", "explained_variance",
-               "distill_action", "distill_summary")
+               "distill_action", "distill_summary", "live_queue", "adv_ext_abs", "adv_int_abs",
+               "adv_int_ext_ratio", "return_ext", "return_int")
 
 
 def csv_row(metrics: dict) -> list:
@@ -109,13 +110,16 @@ def load_checkpoint(run_dir: Path) -> dict:
 
 
 # settings a resumed run may change; any other difference is refused
-RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "tensorboard", "live_budget", "threads", "llm_threads"})
+RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "tensorboard", "live_budget", "threads",
+                               "llm_threads", "live_mode", "new_setup"})
 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:
     """Refuse to resume a checkpoint under other settings or another action list."""
     saved, now = state["config"], cfg.to_dict()
-    changed = sorted(k for k in now if saved.get(k) != now[k] and k not in RESUMABLE_CHANGES)
+    # a setting added after the checkpoint was written counts at its default value
+    defaults = type(cfg)().to_dict() if any(k not in saved for k in now) else {}
+    changed = sorted(k for k in now if saved.get(k, defaults.get(k)) != now[k] and k not in RESUMABLE_CHANGES)
     if changed:
         raise UsageError(f"cannot resume with changed settings {changed}; "
                          "only total_steps and checkpointing may change")

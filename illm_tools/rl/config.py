@@ -11,7 +11,21 @@ from pathlib import Path
 
 from illm_tools.errors import UsageError
 
+LIVE_MODES = ("sync", "async")
+from illm_tools.tasks.calibration import ACTION_TARGETS
+
 MODES = ("illm", "illm-noreward", "ppo")
+BONUS_PRESETS = {  # `illm train --bonus-preset`: bonus weights and advantage weights together
+    "paper": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0},  # Appendix B
+    "rnd": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 2.0, "int_coef": 1.0},    # CleanRL RND's advantage weights
+}
+
+
+def bonus_weights(preset: str, **given: float | None) -> dict[str, float]:
+    """lambda_a, beta_hc, ext_coef and int_coef of a BONUS_PRESETS entry; `given` values not None win."""
+    if preset not in BONUS_PRESETS:
+        raise UsageError(f"--bonus-preset must be one of {', '.join(BONUS_PRESETS)}, got {preset!r}")
+    return {k: v if given.get(k) is None else float(given[k]) for k, v in BONUS_PRESETS[preset].items()}
 
 
 @dataclass
@@ -33,8 +47,10 @@ class TrainConfig:
     """Environments stepped side by side."""
     num_steps: int = 128
     """Steps per env in one rollout; a rollout holds num_envs * num_steps transitions."""
-    action_space: str = "augmented"
-    """BabyAI action vocabulary given to the env pool: original, augmented or irrelevant."""
+    action_space: str = "auto"
+    """BabyAI action vocabulary: original (3), augmented (6) or irrelevant (9), paper Table 5; auto:
+    original for the GoTo levels (paper Tables 1 and 5), augmented otherwise. The run records the
+    resolved name."""
     num_dists: int | None = None
     """Distractor count for levels that take it; None keeps the level's default."""
 
@@ -114,12 +130,23 @@ class TrainConfig:
     """Prompt template layout, as in `illm annotate --layout`."""
     action_score: str = "sum"
     """Calibration of the stored action log-probs: sum (paper), mean per token, or pmi."""
+    action_target: str = "distribution"
+    """f^a's target: distribution (softmax of the calibrated scores) or argmax (the one-hot of the
+    best one: the paper's Algorithm 1 line 7 and Appendix A select the highest log-probability)."""
     live_budget: int = 16
-    """Distinct uncached states annotated by the live LLM after each rollout; 0: cache only."""
+    """Missed states handed to the live LLM after each rollout, most visited first: sync annotates
+    them before the update; async gives them to the worker in place of its queue. 0: cache only."""
+    live_mode: str = "async"
+    """sync: annotate in the trainer's process, which waits; async: a worker process beside the
+    rollouts, whose answers later rollouts use (the trainer never waits)."""
+    new_setup: bool = False
+    """Accept a cache that holds annotations, none of them for this run's setup (model, dtype,
+    quantisation, history length, layout, templates, renderer): live annotation starts it."""
     threads: int = 1
     """Torch threads for the policy (small nets run best on one)."""
     llm_threads: int = 0
-    """Torch threads for live annotation; 0: all cores (give 1 when runs share the machine)."""
+    """Torch threads for live annotation; 0: sync all cores, async the cores the policy leaves
+    (one of 2). Give 1 when runs share the machine."""
 
     # --- bookkeeping -----------------------------------------------------------------------
     checkpoint_every: int = 10
@@ -136,6 +163,10 @@ class TrainConfig:
         self.cache = Path(self.cache) if self.cache is not None else None
         if self.action_score not in ("sum", "mean", "pmi"):
             raise UsageError(f"--action-score must be sum, mean or pmi, got {self.action_score!r}")
+        if self.action_target not in ACTION_TARGETS:
+            raise UsageError(f"--action-target must be distribution or argmax, got {self.action_target!r}")
+        if self.live_mode not in LIVE_MODES:
+            raise UsageError(f"--live-mode must be {' or '.join(LIVE_MODES)}, got {self.live_mode!r}")
         if self.live_budget < 0 or self.threads <= 0 or self.llm_threads < 0:
             raise UsageError("--live-budget and --llm-threads must be >= 0 and --threads positive")
         if self.mode not in MODES:
@@ -187,6 +218,16 @@ class TrainConfig:
     def pays_bonus(self) -> bool:
         """Whether the intrinsic rewards reach the advantages."""
         return self.mode == "illm"
+
+    @property
+    def live_threads(self) -> int:
+        """Torch threads of the live LLM (see `llm_threads`)."""
+        import os
+
+        cores = os.cpu_count() or 1
+        if self.llm_threads:
+            return self.llm_threads
+        return cores if self.live_mode == "sync" else max(1, cores - self.threads)
 
     def to_dict(self) -> dict:
         """JSON-ready form (paths as strings)."""

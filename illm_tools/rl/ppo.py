@@ -12,6 +12,7 @@ The trainer never prints: metrics go to run_dir/metrics.jsonl, TensorBoard, and 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -37,10 +38,13 @@ def make_pool(cfg: TrainConfig):
     env i has seed `seed + i + k * num_envs`, so `seed + global_step + num_envs` is unused)."""
     from illm_tools.envs.pool import EnvPool
 
-    seed = cfg.seed
+    seed, space = cfg.seed, cfg.action_space
     if cfg.resume:
-        seed += int(load_checkpoint(cfg.run_dir)["global_step"]) + cfg.num_envs
-    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.uses_heads, action_space=cfg.action_space,
+        state = load_checkpoint(cfg.run_dir)
+        seed += int(state["global_step"]) + cfg.num_envs
+        if space == "auto":  # the run's own action space, as its config recorded it
+            space = state["config"].get("action_space", space)
+    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.uses_heads, action_space=space,
                    num_dists=cfg.num_dists, **cfg.env_options)
 
 
@@ -54,6 +58,8 @@ class Trainer:
                              "pass one or train with mode ppo")
         if pool.num_envs != cfg.num_envs:
             raise UsageError(f"the pool has {pool.num_envs} envs, the config asks for {cfg.num_envs}")
+        if cfg.action_space == "auto" and getattr(pool, "action_space_name", None):
+            cfg = dataclasses.replace(cfg, action_space=pool.action_space_name)  # the run records the resolved name
         self.cfg, self.pool, self.on_metrics = cfg, pool, on_metrics
         self.provider = provider if cfg.uses_heads else None
         self.action_names = list(pool.action_names)
@@ -174,9 +180,11 @@ class Trainer:
         ro.target_emb[:] = torch.as_tensor(np.asarray(emb, dtype=np.float32)).view(t, n, d)
         ro.target_mask[:] = torch.as_tensor(np.asarray(mask, dtype=bool)).view(t, n)
         stats = dict(self.provider.stats())
-        return {"cache_hit_rate": float(stats.get("cache_hit_rate", 0.0)),
-                "target_coverage": float(ro.target_mask.float().mean()),
-                "live_annotations": float(stats.get("live_annotations", 0.0))}
+        out = {"cache_hit_rate": float(stats.get("cache_hit_rate", 0.0)),
+               "target_coverage": float(ro.target_mask.float().mean()),
+               "live_annotations": float(stats.get("live_annotations", 0.0))}
+        out.update({k: float(stats[k]) for k in ("live_queue", "live_worker_restarts") if k in stats})
+        return out
 
     # --- 3. intrinsic rewards ---------------------------------------------------------------
     def _head_batch(self, features: torch.Tensor, ro: Rollout, idx: torch.Tensor | None = None) -> dict:
@@ -294,6 +302,7 @@ class Trainer:
             metrics["charts/success_rate"] = float(np.mean(episodes["successes"]))
         metrics.update({f"charts/{k}": v for k, v in {**target_logs, **bonus.logs}.items()})
         metrics.update(loss_logs)
+        metrics.update({f"charts/{k}": v for k, v in adv.scale_logs().items()})
         return metrics
 
     def train(self) -> dict:

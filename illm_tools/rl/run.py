@@ -51,38 +51,50 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     if cfg.cache is None:
         raise UsageError(f"--method {cfg.mode} reads LLM targets: pass --cache DIR (an annotation cache, "
                          "see `illm annotate`), or use --method ppo")
-    from illm_tools.annotate.engine import Annotator
     from illm_tools.cache.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.envs import renderer_of
-    from illm_tools.llm.loading import load_model, model_fingerprint, model_hidden_size
-    from illm_tools.rl.targets import CachedTargets
+    from illm_tools.llm.loading import model_fingerprint, model_hidden_size
+    from illm_tools.rl.targets import CachedTargets, check_setup
     from illm_tools.tasks.prompts import PromptBuilder
 
     cache = AnnotationCache(cfg.cache)
     renderer = renderer_of(cfg.env_id)
-    annotator = None
-    if cfg.live_budget > 0:
-        import os
-
-        lm = load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
-        annotator = Annotator(lm, cache, model=cfg.model, history_len=cfg.history_len, layout=cfg.layout)
-        builder = annotator.builder(cfg.env_id, renderer)
-        dim = lm.hidden_size
-        annotator = _WithThreads(annotator, cfg.llm_threads or os.cpu_count() or 1)
-    else:
-        fp = fingerprint_hash(model_fingerprint(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant))
-        builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=cfg.model, model_fingerprint=fp,
-                                history_len=cfg.history_len, layout=cfg.layout)
-        dim = model_hidden_size(cfg.model)
-        if len(cache) == 0:
-            raise CacheError(f"the cache {cfg.cache} is empty and --live-budget is 0: nothing would give targets; "
-                             "run `illm annotate` first or allow a live budget")
+    fp = fingerprint_hash(model_fingerprint(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant))
+    builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=cfg.model, model_fingerprint=fp,
+                            history_len=cfg.history_len, layout=cfg.layout)
+    if len(cache) == 0 and cfg.live_budget == 0:
+        raise CacheError(f"the cache {cfg.cache} is empty and --live-budget is 0: nothing would give targets; "
+                         "run `illm annotate` first or allow a live budget")
+    if len(cache) and not cfg.new_setup:
+        check_setup(cache, builder, model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+    dim = model_hidden_size(cfg.model)
     if dim != cfg.embedding_dim:
         cfg = dataclasses.replace(cfg, embedding_dim=dim)
     provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
-                             embedding_dim=dim, annotator=annotator, live_budget=cfg.live_budget)
+                             embedding_dim=dim, action_target=cfg.action_target, live=make_live(cfg, builder, cache))
     return provider, cfg
+
+
+def make_live(cfg: TrainConfig, builder, cache):
+    """The live annotator of a run (`illm_tools.rl.live`), or None with no live budget; sync
+    writes through `cache`, the object the targets are read from."""
+    if cfg.live_budget == 0:
+        return None
+    from illm_tools.rl.live import AsyncLive, SyncLive, WorkerSpec
+
+    if cfg.live_mode == "async":
+        spec = WorkerSpec(cache=str(cfg.cache), model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant,
+                          env_id=builder.env_id, renderer=builder.renderer, history_len=cfg.history_len,
+                          layout=cfg.layout, threads=cfg.live_threads)
+        return AsyncLive(spec, budget=cfg.live_budget)
+    from illm_tools.annotate.engine import Annotator
+    from illm_tools.llm.loading import load_model
+
+    lm = load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+    annotator = Annotator(lm, cache, model=cfg.model, history_len=cfg.history_len,
+                          layout=cfg.layout)
+    return SyncLive(_WithThreads(annotator, cfg.live_threads), builder.env_id, builder.renderer, cfg.live_budget)
 
 
 def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None) -> dict:
@@ -92,11 +104,13 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None) ->
     with torch_threads(cfg.threads):
         pool = make_pool(cfg)
         provider, cfg = make_provider(cfg, len(pool.action_names))
-        trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
         try:
+            trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
             return trainer.train()
         finally:
             pool.close()
+            if provider is not None:
+                provider.close()
 
 
 def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy: bool = False,

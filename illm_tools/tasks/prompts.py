@@ -14,11 +14,12 @@ Changing a template's text must bump its version (tests pin each version's text 
 from __future__ import annotations
 
 import hashlib
+import re
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from pathlib import Path
 
-from illm_tools.cache.keys import make_key
+from illm_tools.cache.keys import canonical_json, make_key
 from illm_tools.errors import UsageError
 from illm_tools.tasks.state import StateRecord
 
@@ -124,6 +125,12 @@ class PromptBuilder:
         candidates = tuple(" " + a for a in record.valid_actions) if task == "action" else None
         return Prompt(task, text, record.mission, history, record.observation, candidates)
 
+    def setup(self, task: str) -> dict:
+        """The named inputs every key of a task shares, in the cache's column names (plus the layout)."""
+        return {"task": task, "template_version": self.template(task)[1], "renderer": self.renderer,
+                "model_fingerprint": self.model_fingerprint, "decoding": canonical_json(self.decoding(task)),
+                "history_len": self.history_len, "layout": self.layout}
+
     def setup_key(self, task: str) -> str:
         """Digest of every named input that is the same for all states of a task: task, template
         and version, renderer, model fingerprint, decoding parameters."""
@@ -147,6 +154,18 @@ class PromptBuilder:
         """(action key, summary key) of one state, its history rendered once."""
         history = format_history(record)
         return (self.key(self.render("action", record, history)), self.key(self.render("summary", record, history)))
+
+
+@lru_cache(maxsize=None)
+def _template_pattern(name: str) -> re.Pattern:
+    """The template's fixed text with each {field} as a wildcard."""
+    parts = re.split(r"\{[a-z_]+\}", template_text(name))
+    return re.compile(".*?".join(re.escape(p) for p in parts), re.DOTALL)
+
+
+def layouts_of(task: str, prompt: str) -> list[str]:
+    """The layouts whose template for `task` could have rendered `prompt` (read from a cache row)."""
+    return [layout for layout in LAYOUTS if _template_pattern(TEMPLATES[(task, layout)][0]).fullmatch(prompt)]
 
 
 def neutral_prompt() -> str:

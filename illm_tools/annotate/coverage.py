@@ -1,0 +1,135 @@
+"""What a set of visited states costs to annotate and how much of it a cache already answers.
+
+Owns `VisitedStates`: the distinct states of a stream of agent steps (a trajectory dataset, or a
+training run's rollouts), most visited first, with each state's step count and its cache keys per
+language task. Bulk annotation takes its `--limit N` states from the front of this order (the N
+states that cover the most steps), `illm data coverage` prints its curves, and the annotate stage
+reports the share of steps the cache covers after a run.
+
+A state is *covered* when the cache holds the keys of every requested task for it: that is when
+the trainer has a target for the step (`illm_tools.rl.targets` needs both the action and the
+summary row).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from illm_tools.tasks.prompts import PromptBuilder, format_history
+from illm_tools.tasks.state import StateRecord
+
+TOP_K = (100, 1_000, 10_000)
+"""The points of the "steps covered by the k most visited states" curve that are reported."""
+
+
+@dataclass
+class VisitedStates:
+    """Distinct states, most visited first (ties: first visited first)."""
+
+    records: list[StateRecord]
+    builders: list[PromptBuilder]
+    """The prompt builder of each state's env (renderer, templates, history length, model)."""
+    steps: np.ndarray
+    """int64 [n]: steps that visited each state."""
+    tasks: tuple[str, ...]
+    keys: list[tuple[str, ...]]
+    """Per state, its cache key of each task in `tasks`."""
+
+    @classmethod
+    def count(cls, records: Sequence[StateRecord], env_ids: Sequence[str], renderers: Sequence[str],
+              builder_for: Callable[[str, str], PromptBuilder], tasks: Sequence[str]) -> VisitedStates:
+        """Count the visits of each distinct (state, env, renderer) and key the distinct ones."""
+        counts = Counter(zip(records, env_ids, renderers))
+        ordered = sorted(counts.items(), key=lambda item: -item[1])  # stable: ties keep first visits first
+        states, builders, keys = [], [], []
+        for (record, env_id, renderer), _n in ordered:
+            builder = builder_for(env_id, renderer)
+            history = format_history(record)
+            keys.append(tuple(builder.key(builder.render(task, record, history)) for task in tasks))
+            states.append(record)
+            builders.append(builder)
+        steps = np.fromiter((n for _, n in ordered), np.int64, len(ordered))
+        return cls(states, builders, steps, tuple(tasks), keys)
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    @property
+    def total_steps(self) -> int:
+        return int(self.steps.sum())
+
+    def top(self, limit: int | None) -> VisitedStates:
+        """The `limit` most visited states (all when None)."""
+        if limit is None or limit >= len(self):
+            return self
+        return VisitedStates(self.records[:limit], self.builders[:limit], self.steps[:limit], self.tasks,
+                             self.keys[:limit])
+
+    def covered(self, cache) -> np.ndarray:
+        """bool [n]: states whose every task's key the cache holds."""
+        if not len(self):
+            return np.zeros(0, bool)
+        flat = [k for keys in self.keys for k in keys]
+        return cache.contains(flat).reshape(len(self), len(self.tasks)).all(axis=1)
+
+    def step_share(self, mask: np.ndarray | None = None) -> float:
+        """Share of all counted steps that the states in `mask` (all when None) cover."""
+        total = self.total_steps
+        if not total:
+            return 0.0
+        return float(self.steps.sum() if mask is None else self.steps[mask].sum()) / total
+
+    def top_k_curve(self, ks: Sequence[int] = TOP_K) -> dict[int, float]:
+        """Share of steps covered by the k most visited states, for each k."""
+        total = max(self.total_steps, 1)
+        cum = np.cumsum(self.steps)
+        return {k: float(cum[min(k, len(cum)) - 1]) / total if len(cum) else 0.0 for k in ks}
+
+
+def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), model: str = "smollm2-135m",
+                     dtype: str = "bfloat16", quant: str = "none", layout: str = "shared",
+                     tasks: Sequence[str] = ("action", "summary")) -> list[dict]:
+    """`illm data coverage`: per history length, the dataset's distinct states, the share of its
+    steps the cache answers (for this model setup), and the top-k curve. No model is loaded: the
+    keys need only the model's fingerprint."""
+    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.data.trajectories import open_table
+    from illm_tools.errors import UsageError
+    from illm_tools.llm.loading import model_fingerprint
+    from illm_tools.tasks.prompts import TASKS
+    from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
+
+    unknown = sorted(set(tasks) - set(TASKS))
+    if unknown or not tasks:
+        raise UsageError(f"unknown --tasks {','.join(unknown) or '(none)'}: choose from {','.join(TASKS)}")
+    if not histories or min(histories) < 0:
+        raise UsageError("--history must be 0 or more (repeat the option for several lengths)")
+    table = open_table(data, columns=TABLE_COLUMNS + ["renderer"])
+    ann = AnnotationCache(cache) if cache is not None else None
+    fp = fingerprint_hash(model_fingerprint(model, dtype=dtype, quant=quant))
+    renderers = table.column("renderer").to_pylist()
+    out = []
+    for k in histories:
+        records, env_ids = records_from_table(table, k)
+        builders: dict[tuple[str, str], PromptBuilder] = {}
+
+        def builder_for(env_id: str, renderer: str, k: int = k) -> PromptBuilder:
+            if (env_id, renderer) not in builders:
+                builders[env_id, renderer] = PromptBuilder(env_id=env_id, renderer=renderer, model=model,
+                                                           model_fingerprint=fp, history_len=k, layout=layout)
+            return builders[env_id, renderer]
+
+        visited = VisitedStates.count(records, env_ids, renderers, builder_for, tasks)
+        covered = visited.covered(ann) if ann is not None else np.zeros(len(visited), bool)
+        out.append({
+            "history": k, "steps": visited.total_steps, "distinct_states": len(visited),
+            "distinct_share": len(visited) / max(visited.total_steps, 1),
+            "cached_states": int(covered.sum()), "cached_step_share": visited.step_share(covered),
+            "top_k_step_share": {str(k_): v for k_, v in visited.top_k_curve().items()},
+        })
+    return out

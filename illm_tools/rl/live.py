@@ -1,0 +1,196 @@
+"""Live annotation of the states a training run misses: in the trainer's process between rollouts
+(`sync`), or in a worker process beside the rollouts (`async`).
+
+Both take, after each rollout, the run's missed states ordered most visited first (visits
+counted over the run so far, `illm_tools.rl.targets`) and write their answers through the same
+`Annotator` and cache API as `illm annotate`, so other runs sharing the cache benefit too.
+
+- `SyncLive` annotates the first `budget` of them at once; the trainer waits (about 1 s a state
+  on 2 CPU cores) and uses them in this rollout.
+- `AsyncLive` hands them to a worker process and returns at once. The worker keeps only the
+  newest list (the trainer's priorities move as the run goes on), annotates it a few states per
+  shard, most visited first, and the trainer uses whatever has landed in the cache by the next
+  rollout. A worker that dies is restarted (at most `max_restarts` times, each logged as one
+  line); after that the run goes on with the targets the cache has. The worker is a spawned
+  process (not forked: a forked torch with live OpenMP threads can hang) with its own torch
+  thread count, one core of a 2-core machine by default.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import queue
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from illm_tools.tasks.state import StateRecord
+
+log = logging.getLogger(__name__)
+
+class SyncLive:
+    """Annotates the first `budget` missed states in the trainer's process."""
+
+    waits = True
+    """The answers are in the cache when `submit` returns."""
+
+    def __init__(self, annotator, env_id: str, renderer: str, budget: int):
+        self.annotator, self.env_id, self.renderer, self.budget = annotator, env_id, renderer, budget
+
+    def submit(self, missing: Sequence[StateRecord]) -> int:
+        """Annotate the first `budget` of `missing` (most visited first); returns how many."""
+        todo = list(missing[: self.budget])
+        if not todo:
+            return 0
+        plan = self.annotator.plan(todo, [self.env_id] * len(todo), [self.renderer] * len(todo))
+        return self.annotator.run(plan).annotated_states
+
+    def landed(self) -> int:
+        """States annotated since the last call that `submit` did not count (none: it waits)."""
+        return 0
+
+    def stats(self) -> dict[str, float]:
+        return {"live_queue": 0.0}
+
+    def close(self) -> None:
+        pass
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """Everything the worker process needs to rebuild the annotator (picklable, plain values)."""
+
+    cache: str
+    model: str
+    dtype: str
+    quant: str
+    env_id: str
+    renderer: str
+    history_len: int
+    layout: str
+    threads: int
+    batch_size: int = 8
+    chunk: int = 8
+    """States per written shard: small, so answers reach the trainer soon after they exist."""
+    model_cache_dir: str | None = None
+
+
+def _worker_main(spec: WorkerSpec, inbox, stop, queued, done, errors) -> None:  # pragma: no cover - child
+    """The worker process. Ctrl-C reaches the whole process group: the worker ignores it and
+    stops when the trainer sets `stop`. An error goes back to the trainer as one line."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        _work(spec, inbox, stop, queued, done)
+    except Exception as e:  # noqa: BLE001 - reported to the trainer, which logs it as one line
+        errors.put(f"{type(e).__name__}: {e}")
+        raise SystemExit(1) from None
+
+
+def _work(spec: WorkerSpec, inbox, stop, queued, done) -> None:  # pragma: no cover - runs in the child
+    """Newest priority list in, shards out, until `stop` is set."""
+    import torch
+
+    from illm_tools.annotate.engine import Annotator
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.llm.loading import load_model
+
+    torch.set_num_threads(spec.threads)
+    lm = load_model(spec.model, dtype=spec.dtype, quant=spec.quant, cache_dir=spec.model_cache_dir)
+    annotator = Annotator(lm, AnnotationCache(spec.cache), model=spec.model, history_len=spec.history_len,
+                          layout=spec.layout, batch_size=spec.batch_size, chunk=spec.chunk)
+    pending: list[StateRecord] = []
+    while not stop.is_set():
+        try:  # the newest list replaces the old one; wait for one when idle
+            message = inbox.get(timeout=0.5) if not pending else inbox.get_nowait()
+            while True:
+                pending = list(message)
+                message = inbox.get_nowait()
+        except queue.Empty:
+            pass
+        queued.value = len(pending)
+        if not pending:
+            continue
+        head, pending = pending[: spec.chunk], pending[spec.chunk:]
+        annotator.cache.refresh()
+        plan = annotator.plan(head, [spec.env_id] * len(head), [spec.renderer] * len(head))
+        stats = annotator.run(plan, should_stop=stop.is_set)
+        with done.get_lock():
+            done.value += stats.annotated_states
+        queued.value = len(pending)
+
+
+class AsyncLive:
+    """A worker process that annotates the trainer's missed states while the rollouts go on."""
+
+    waits = False
+
+    def __init__(self, spec: WorkerSpec, *, budget: int, max_restarts: int = 3):
+        self.spec, self.budget, self.max_restarts = spec, budget, max_restarts
+        self._ctx = mp.get_context("spawn")
+        self._queued = self._ctx.Value("l", 0)
+        self._done = self._ctx.Value("l", 0)
+        self._reported = 0
+        self.restarts = 0
+        self.failed = False
+        self.last_error: str | None = None
+        self._start()
+
+    def _start(self) -> None:
+        self._inbox = self._ctx.Queue()
+        self._errors = self._ctx.Queue()
+        self._stop = self._ctx.Event()
+        self.process = self._ctx.Process(target=_worker_main, name="illm-live-annotation", daemon=True,
+                                         args=(self.spec, self._inbox, self._stop, self._queued, self._done,
+                                               self._errors))
+        self.process.start()
+
+    def _check(self) -> bool:
+        """True while a worker runs; restarts a dead one while restarts remain."""
+        if self.failed:
+            return False
+        if self.process.is_alive():
+            return True
+        try:
+            why = self._errors.get(timeout=0.1)
+        except queue.Empty:
+            why = f"exit code {self.process.exitcode}"
+        self.last_error = why
+        if self.restarts >= self.max_restarts:
+            self.failed = True
+            log.warning("live annotation worker stopped (%s) %d times; the run goes on with the targets "
+                        "the cache has", why, self.restarts + 1)
+            return False
+        self.restarts += 1
+        log.warning("live annotation worker stopped (%s); restarting it (%d of %d)", why, self.restarts,
+                    self.max_restarts)
+        self._start()
+        return True
+
+    def submit(self, missing: Sequence[StateRecord]) -> int:
+        """Hand the worker the first `budget` missed states (most visited first) in place of what
+        it still had queued; returns at once (0: nothing is annotated before it returns)."""
+        if self._check():
+            self._inbox.put(list(missing[: self.budget]))
+        return 0
+
+    def landed(self) -> int:
+        """States the worker annotated since the last call."""
+        done = self._done.value
+        landed, self._reported = done - self._reported, done
+        return landed
+
+    def stats(self) -> dict[str, float]:
+        return {"live_queue": float(self._queued.value), "live_worker_restarts": float(self.restarts)}
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Ask the worker to stop after its current chunk (written whole or not at all); end it
+        if it does not within `timeout` seconds. Every shard it wrote stays valid."""
+        self._stop.set()
+        self.process.join(timeout)
+        if self.process.is_alive():
+            self.process.terminate()
+            self.process.join(5.0)
+        self._inbox.close()
+        self._inbox.cancel_join_thread()

@@ -1,0 +1,211 @@
+"""Targets for most training steps: frequency-first bulk annotation (`--limit` takes the most
+visited states, a re-run annotates nothing, `--max-minutes` stops between chunks), `illm data
+coverage`, the live fallback's priority (most visited over the run first), the async worker
+(its rows land in the shared cache and reach a later rollout; killing it leaves the run going and
+the cache valid), and the refusal of a cache that holds none of this run's setup."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cli.main import app
+from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
+from illm_tools.annotate.coverage import VisitedStates, measure_coverage
+from illm_tools.annotate.engine import Annotator
+from illm_tools.cache.store import AnnotationCache
+from illm_tools.cache.verify import verify
+from illm_tools.collect import CollectConfig, collect
+from illm_tools.data.trajectories import open_table
+from illm_tools.errors import CacheError
+from illm_tools.rl.live import AsyncLive, SyncLive, WorkerSpec
+from illm_tools.rl.targets import CachedTargets, check_setup
+from illm_tools.tasks.prompts import PromptBuilder
+from illm_tools.tasks.state import TABLE_COLUMNS, StateRecord, records_from_table
+
+ENV = "BabyAI-GoToLocal-v0"
+ACTIONS = ("turn left", "turn right", "go forward")
+runner = CliRunner()
+
+
+@pytest.fixture(autouse=True)
+def _illm_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("ILLM_CACHE_DIR", str(tmp_path / "illm-cache"))
+
+
+@pytest.fixture(scope="module")
+def trajectories(tmp_path_factory):
+    out = tmp_path_factory.mktemp("traj") / "gotolocal"
+    collect(CollectConfig(env_id=ENV, out=out, steps=400, num_envs=4, seed=3, action_space="original"))
+    return out
+
+
+def config(trajectories, cache, tiny_lm, **kw) -> AnnotateConfig:
+    return AnnotateConfig(data=trajectories, cache=cache, model=tiny_lm.spec.path, dtype="float32", history=0,
+                          batch_size=4, chunk=4, **kw)
+
+
+def state(k: int) -> StateRecord:
+    return StateRecord("go to the red ball", (), f"You see a red ball {k} steps forward", ACTIONS)
+
+
+def test_states_are_counted_most_visited_first():
+    records = [state(1), state(2), state(2), state(3), state(3), state(3), state(4)]
+    b = PromptBuilder(env_id=ENV, renderer="babyai-text@1", model_fingerprint="x", model="m", history_len=0)
+    visited = VisitedStates.count(records, [ENV] * 7, ["babyai-text@1"] * 7, lambda e, r: b, ("action", "summary"))
+    assert visited.records == [state(3), state(2), state(1), state(4)]  # ties keep first visits first
+    assert visited.steps.tolist() == [3, 2, 1, 1] and visited.total_steps == 7
+    assert visited.top_k_curve((1, 2, 10)) == {1: 3 / 7, 2: 5 / 7, 10: 1.0}
+    assert visited.keys[0] == b.state_keys(records[3])
+
+
+def test_limit_annotates_the_most_visited_states_and_a_rerun_annotates_nothing(trajectories, tmp_path, tiny_lm):
+    cache = tmp_path / "ann"
+    first = annotate_dataset(config(trajectories, cache, tiny_lm, limit=6))
+    assert first.stats.annotated_states == 6 and first.covered_states == 6
+    again = annotate_dataset(config(trajectories, cache, tiny_lm, limit=6))
+    assert again.stats.annotated_states == 0 and again.stats.hits == again.stats.keys == 12
+    # frequency order: these 6 states cover as many steps as any 6 states of the dataset can
+    records, _ = records_from_table(open_table(trajectories, columns=TABLE_COLUMNS), 0)
+    counts = sorted(np.unique([hash(r) for r in records], return_counts=True)[1], reverse=True)
+    assert first.covered_step_share * first.dataset_steps == pytest.approx(sum(counts[:6]))
+    assert first.selected_step_share == pytest.approx(first.covered_step_share)
+    assert first.stats.summaries == 6 and 0 < first.stats.mean_summary_tokens <= 64
+    more = annotate_dataset(config(trajectories, cache, tiny_lm, limit=8))
+    assert more.stats.annotated_states == 2 and more.covered_step_share > first.covered_step_share
+
+
+def test_max_minutes_stops_between_chunks_with_what_is_done_written(trajectories, tmp_path, tiny_lm, monkeypatch):
+    from types import SimpleNamespace
+
+    clock = iter(range(0, 10**6, 30))  # each reading of the engine's clock is 30 s later
+    monkeypatch.setattr("illm_tools.annotate.engine.time",
+                        SimpleNamespace(perf_counter=lambda: float(next(clock)), time=time.time))
+    result = annotate_dataset(config(trajectories, tmp_path / "ann", tiny_lm, limit=20, max_minutes=1.5))
+    assert result.stats.stopped_early and 0 < result.stats.annotated_states < 20
+    assert result.stats.annotated_states % 4 == 0  # whole chunks only
+    assert len(AnnotationCache(tmp_path / "ann")) == 2 * result.stats.annotated_states and verify(tmp_path / "ann").ok
+
+
+def test_data_coverage_reports_costs_and_what_the_cache_answers(trajectories, tmp_path, tiny_lm):
+    cache = tmp_path / "ann"
+    annotate_dataset(config(trajectories, cache, tiny_lm, limit=5))
+    rows = measure_coverage(trajectories, cache=cache, histories=[0, 3], model=tiny_lm.spec.path, dtype="float32")
+    assert [r["history"] for r in rows] == [0, 3] and rows[0]["steps"] == rows[1]["steps"]
+    assert rows[0]["distinct_states"] < rows[1]["distinct_states"]
+    assert rows[0]["cached_states"] == 5 and rows[1]["cached_states"] == 0
+    assert 0 < rows[0]["cached_step_share"] <= rows[0]["top_k_step_share"]["100"] <= 1
+    out = runner.invoke(app, ["data", "coverage", str(trajectories), "--cache", str(cache), "--history", "0",
+                              "--model", tiny_lm.spec.path, "--dtype", "float32", "--json"])
+    assert out.exit_code == 0, out.output
+    assert json.loads(out.output)[0]["cached_states"] == 5
+    table = runner.invoke(app, ["data", "coverage", str(trajectories), "--history", "0", "--history", "1",
+                                "--model", tiny_lm.spec.path, "--dtype", "float32"]).output
+    assert "| 0 |" in table and "| 1 |" in table and "top 1,000" in table
+
+
+def _builder(lm, history: int = 0) -> PromptBuilder:
+    from illm_tools.cache.keys import fingerprint_hash
+
+    return PromptBuilder(env_id=ENV, renderer="babyai-text@1", model=lm.spec.path,
+                         model_fingerprint=fingerprint_hash(lm.fingerprint), history_len=history)
+
+
+def test_sync_live_budget_goes_to_the_states_visited_most_over_the_run(tmp_path, tiny_lm):
+    cache = AnnotationCache(tmp_path / "ann")
+    annotator = Annotator(tiny_lm, cache, model=tiny_lm.spec.path, history_len=0, batch_size=4)
+    live = SyncLive(annotator, ENV, "babyai-text@1", budget=1)
+    targets = CachedTargets(cache, _builder(tiny_lm), calibration="sum", num_actions=3,
+                            embedding_dim=tiny_lm.hidden_size, live=live)
+    targets._count_visits([state(2)] * 5)  # earlier rollouts visited state 2 most
+    got = targets.targets([state(1), state(1), state(2)])  # in this rollout state 1 comes first and twice
+    assert got.mask.tolist() == [False, False, True]
+
+
+def test_the_cache_refuses_a_run_of_another_setup_naming_what_differs(trajectories, tmp_path, tiny_lm):
+    cache = tmp_path / "ann"
+    annotate_dataset(config(trajectories, cache, tiny_lm, limit=3))
+    ann = AnnotationCache(cache)
+    check_setup(ann, _builder(tiny_lm, 0), model=tiny_lm.spec.path, dtype="float32", quant="none")
+    with pytest.raises(CacheError, match=r"holds --history 0 annotations .*this run asks for --history 3"):
+        check_setup(ann, _builder(tiny_lm, 3), model=tiny_lm.spec.path, dtype="float32", quant="none")
+    from dataclasses import replace
+
+    paper = replace(_builder(tiny_lm, 0), layout="paper")
+    with pytest.raises(CacheError, match=r"holds no action annotations .*--layout shared.*asks for --layout paper"):
+        check_setup(ann, paper, model=tiny_lm.spec.path, dtype="float32", quant="none")
+    other = replace(_builder(tiny_lm, 0), model_fingerprint="f" * 64)
+    with pytest.raises(CacheError, match=r"--dtype float32 --quant none annotations.*--new-setup"):
+        check_setup(ann, other, model=tiny_lm.spec.path, dtype="bfloat16", quant="none")
+
+
+def test_train_refuses_another_setup_in_one_line_and_new_setup_accepts_it(trajectories, tmp_path, tiny_lm):
+    cache = tmp_path / "ann"
+    annotate_dataset(config(trajectories, cache, tiny_lm, limit=3))
+    train = ["train", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype", "float32",
+             "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-budget", 0, "--history", 3]
+    out = runner.invoke(app, [str(a) for a in [*train, "--out", tmp_path / "run"]])
+    assert out.exit_code == 1 and "--history 0" in out.output and "--history 3" in out.output
+    assert len(out.output.strip().splitlines()) == 1 and not (tmp_path / "run" / "checkpoint.pt").exists()
+    out = runner.invoke(app, [str(a) for a in [*train, "--out", tmp_path / "run", "--new-setup"]])
+    assert out.exit_code == 0, out.output
+    assert "steps with an LLM target 0% on average" in out.output
+
+
+def _wait(predicate, seconds: float = 120.0) -> bool:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.2)
+    return False
+
+
+@pytest.mark.slow
+def test_async_worker_rows_reach_a_later_rollout_and_a_killed_worker_leaves_the_run_going(tmp_path, tiny_lm):
+    cache = AnnotationCache(tmp_path / "ann")
+    spec = WorkerSpec(cache=str(cache.root), model=tiny_lm.spec.path, dtype="float32", quant="none", env_id=ENV,
+                      renderer="babyai-text@1", history_len=0, layout="shared", threads=1, batch_size=4, chunk=2)
+    live = AsyncLive(spec, budget=6, max_restarts=1)
+    targets = CachedTargets(cache, _builder(tiny_lm), calibration="sum", num_actions=3,
+                            embedding_dim=tiny_lm.hidden_size, live=live)
+    try:
+        rollout = [state(k) for k in range(1, 7)] * 2
+        first = targets.targets(rollout)  # the trainer never waits: nothing yet
+        assert not first.mask.any() and targets.stats()["live_annotations"] == 0
+        assert _wait(lambda: (AnnotationCache(cache.root).__len__() >= 12))
+        later = targets.targets(rollout)  # a later rollout reads what the worker wrote to the shared cache
+        assert later.mask.all() and np.isfinite(later.embeddings).all()
+        assert targets.stats()["live_annotations"] == 6 and targets.stats()["live_queue"] == 0
+
+        targets.targets([state(k) for k in range(10, 40)])  # more work; then the worker dies mid-run
+        assert _wait(lambda: live._queued.value > 0, 30)
+        os.kill(live.process.pid, signal.SIGKILL)
+        live.process.join(10)
+        targets.targets([state(k) for k in range(40, 42)])  # the run goes on; the worker is restarted
+        assert live.restarts == 1 and live.process.is_alive()
+        assert verify(cache.root).ok
+    finally:
+        targets.close()
+    assert not live.process.is_alive()
+
+
+@pytest.mark.slow
+def test_train_with_async_live_annotation_logs_its_queue(tmp_path, tiny_lm):
+    traj, cache = tmp_path / "traj", tmp_path / "ann"
+    collect(CollectConfig(env_id=ENV, out=traj, steps=64, num_envs=4, seed=1))
+    annotate_dataset(AnnotateConfig(data=traj, cache=cache, model=tiny_lm.spec.path, dtype="float32", history=0,
+                                    limit=4, batch_size=4))
+    out = runner.invoke(app, [str(a) for a in [
+        "train", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype", "float32", "--history", 0,
+        "--num-envs", 4, "--num-steps", 32, "--frames", 640, "--live-mode", "async", "--out", tmp_path / "run"]])
+    assert out.exit_code == 0, out.output
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == 5 and all("charts/live_queue" in r for r in rows)
+    assert "steps with an LLM target" in out.output and verify(cache).ok
