@@ -46,11 +46,12 @@ demo: install
 	rm -rf $(DEMO)
 	$(BIN)/illm collect --env BabyAI-GoToLocal-v0 --steps 2000 --num-envs 8 --seed 0 --out $(DEMO)/traj
 	$(BIN)/illm data info $(DEMO)/traj
-	$(BIN)/illm annotate $(DEMO)/traj --cache $(DEMO)/ann --model smollm2-135m --tasks action,summary --limit 32
+	$(BIN)/illm data coverage $(DEMO)/traj --history 0 --history 3
+	$(BIN)/illm annotate $(DEMO)/traj --cache $(DEMO)/ann --model smollm2-135m --tasks action,summary --history 0 --limit 48
 	$(BIN)/illm cache info $(DEMO)/ann
 	$(BIN)/illm cache verify $(DEMO)/ann
-	$(BIN)/illm train --env BabyAI-GoToLocal-v0 --cache $(DEMO)/ann --method illm --frames 8192 --live-budget 8 \
-	    --seed 0 --out $(DEMO)/runs/illm
+	$(BIN)/illm train --env BabyAI-GoToLocal-v0 --cache $(DEMO)/ann --method illm --history 0 --frames 8192 \
+	    --live-budget 8 --seed 0 --out $(DEMO)/runs/illm
 	$(BIN)/illm train --env BabyAI-GoToLocal-v0 --method ppo --frames 8192 --seed 0 --out $(DEMO)/runs/ppo
 	$(BIN)/illm eval $(DEMO)/runs/illm $(DEMO)/runs/ppo --episodes 50
 

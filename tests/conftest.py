@@ -125,3 +125,20 @@ def one_torch_thread():
 
     with torch_threads(1):
         yield
+
+
+@pytest.fixture
+def model_cache_in_tmp(tmp_path, monkeypatch):
+    """Point illm's model cache (ILLM_CACHE_DIR) at the test's own folder; modules that load
+    local tiny models use it with `pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")`."""
+    monkeypatch.setenv("ILLM_CACHE_DIR", str(tmp_path / "illm-cache"))
+
+
+def collect_babyai(tmp_path_factory, steps: int, seed: int, action_space: str):
+    """A small random-policy BabyAI GoToLocal trajectory dataset in a fresh folder."""
+    from illm_tools.collect import CollectConfig, collect
+
+    out = tmp_path_factory.mktemp("traj") / "gotolocal"
+    collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=out, steps=steps, num_envs=4, seed=seed,
+                          action_space=action_space))
+    return out

@@ -9,6 +9,7 @@ import multiprocessing as mp
 import numpy as np
 import pytest
 
+from conftest import collect_babyai
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.cache.verify import verify
@@ -23,16 +24,12 @@ ENV = "BabyAI-GoToLocal-v0"
 ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
 
 
-@pytest.fixture(autouse=True)
-def _illm_cache(tmp_path, monkeypatch):
-    monkeypatch.setenv("ILLM_CACHE_DIR", str(tmp_path / "illm-cache"))
+pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")
 
 
 @pytest.fixture(scope="module")
 def trajectories(tmp_path_factory):
-    out = tmp_path_factory.mktemp("traj") / "gotolocal"
-    collect(CollectConfig(env_id=ENV, out=out, steps=48, num_envs=4, seed=5, action_space="augmented"))
-    return out
+    return collect_babyai(tmp_path_factory, steps=48, seed=5, action_space="augmented")
 
 
 def config(trajectories, cache, tiny_lm, **kw) -> AnnotateConfig:

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from conftest import collect_babyai
 from cli.main import app
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 from illm_tools.annotate.coverage import VisitedStates, measure_coverage
@@ -34,16 +35,12 @@ ACTIONS = ("turn left", "turn right", "go forward")
 runner = CliRunner()
 
 
-@pytest.fixture(autouse=True)
-def _illm_cache(tmp_path, monkeypatch):
-    monkeypatch.setenv("ILLM_CACHE_DIR", str(tmp_path / "illm-cache"))
+pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")
 
 
 @pytest.fixture(scope="module")
 def trajectories(tmp_path_factory):
-    out = tmp_path_factory.mktemp("traj") / "gotolocal"
-    collect(CollectConfig(env_id=ENV, out=out, steps=400, num_envs=4, seed=3, action_space="original"))
-    return out
+    return collect_babyai(tmp_path_factory, steps=400, seed=3, action_space="original")
 
 
 def config(trajectories, cache, tiny_lm, **kw) -> AnnotateConfig:

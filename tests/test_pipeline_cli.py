@@ -23,9 +23,7 @@ def ok(args):
     return result.output
 
 
-@pytest.fixture(autouse=True)
-def _illm_cache(tmp_path, monkeypatch):
-    monkeypatch.setenv("ILLM_CACHE_DIR", str(tmp_path / "illm-cache"))
+pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")
 
 
 @pytest.mark.slow

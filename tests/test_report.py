@@ -30,3 +30,17 @@ def test_points_are_weighted_windows_aligned_by_frame(tmp_path):
     assert group["coverage"] == 0.5 and group["hit_rate"] == 0.25
     (alone,) = summarise([tmp_path / "b"], every=100).values()
     assert alone["frames"] == [100, 120] and alone["mean"] == [0.0, 1.0]
+
+
+def test_runs_with_other_bonus_weights_are_reported_apart(tmp_path):
+    from illm_tools.report.curves import method_label
+
+    assert method_label({"mode": "ppo", "ext_coef": 2.0}) == "ppo"
+    assert method_label({"mode": "illm", "lambda_a": 0.8, "ext_coef": 1.0}) == "illm"
+    assert method_label({"mode": "illm", "ext_coef": 2.0, "int_coef": 1.0}) == "illm (ext_coef 2)"
+    fake_run(tmp_path / "a", 0, [(100, 1.0, 1)])
+    fake_run(tmp_path / "b", 0, [(100, 0.0, 1)])
+    cfg = json.loads((tmp_path / "b" / "config.json").read_text())
+    (tmp_path / "b" / "config.json").write_text(json.dumps({**cfg, "ext_coef": 2.0}))
+    groups = summarise([tmp_path / "a", tmp_path / "b"], every=100)
+    assert sorted(method for _, method in groups) == ["illm", "illm (ext_coef 2)"]

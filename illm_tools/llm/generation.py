@@ -1,8 +1,12 @@
 """Greedy generation with summary embeddings, and text embeddings.
 
 Owns `generate()` (the history-compression task's summaries: temperature 0, batched, left-padded
-prompts sorted by length) and `embed_texts()`. Both run on `scoring.extend`, the package's one
-way of feeding tokens through a KV cache with padding, masks and position ids.
+prompts sorted by length) and `embed_texts()`. Prompts run through `scoring.extend`, the
+package's one way of feeding tokens through a KV cache with padding, masks and position ids.
+The decoding steps (`greedy_from`) feed one token per row with the same masks and position ids,
+but on a private copy of the prompt cache preallocated for the new tokens (no copy of the whole
+cache per step), without log-softmax over the vocabulary, and with finished rows dropped from
+the batch rather than fed filler tokens.
 
 A summary's embedding is the mean of the last hidden layer (after the final norm) over the
 summary's tokens, each attending to the prompt and the summary tokens before it: exactly one
@@ -13,6 +17,7 @@ that ends at once is embedded by the hidden state of that end-of-sequence token 
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -45,46 +50,115 @@ def _greedy(lm: LoadedModel, prompts: list[list[int]], max_new_tokens: int) -> l
     return greedy_from(lm, extend(lm, prompts), max_new_tokens)
 
 
+@functools.cache
+def _buffer_layer():
+    """The class of `_decode_cache`'s layers (defined on first use: transformers is imported lazily)."""
+    from transformers.cache_utils import DynamicLayer
+
+    class BufferLayer(DynamicLayer):
+        """A `DynamicLayer` whose keys and values live in buffers allocated once with room for the
+        new tokens, where `DynamicLayer` concatenates (a copy of the whole cache at every step).
+        `keys`/`values` are views of the filled columns: attention sees the same tensors as before.
+        Only what decoding uses is supported (update, batch_select_indices)."""
+
+        def __init__(self, keys, values, room: int):
+            import torch.nn.functional as F
+
+            super().__init__()
+            self._keys, self._values = F.pad(keys, (0, 0, 0, room)), F.pad(values, (0, 0, 0, room))
+            self.length = keys.shape[-2]
+            self.dtype, self.device, self.is_initialized = keys.dtype, keys.device, True
+            self._views()
+
+        def _views(self) -> None:
+            self.keys, self.values = self._keys[:, :, :self.length], self._values[:, :, :self.length]
+
+        def update(self, key_states, value_states, *args, **kwargs):
+            end = self.length + key_states.shape[-2]
+            self._keys[:, :, self.length:end] = key_states
+            self._values[:, :, self.length:end] = value_states
+            self.length = end
+            self._views()
+            return self.keys, self.values
+
+        def batch_select_indices(self, indices) -> None:
+            self._keys, self._values = self._keys[indices], self._values[indices]
+            self._views()
+
+        def _unsupported(self, *args, **kwargs):
+            raise NotImplementedError("a decoding buffer only grows and drops rows")
+
+        crop = batch_repeat_interleave = reorder_cache = reset = _unsupported
+
+    return BufferLayer
+
+
+def _decode_cache(state: PrefixState, room: int):
+    """A private copy of `state`'s cache with room for `room` more tokens: preallocated when every
+    layer is a plain growing one, else (e.g. sliding windows) a fork that grows as `extend`'s do."""
+    import copy
+
+    from transformers.cache_utils import DynamicLayer
+
+    if not all(type(layer) is DynamicLayer and layer.is_initialized for layer in state.cache.layers):
+        return state.fork().cache
+    cache = copy.copy(state.cache)
+    cache.layers = [_buffer_layer()(layer.keys, layer.values, room) for layer in state.cache.layers]
+    return cache
+
+
 def greedy_from(lm: LoadedModel, state: PrefixState, max_new_tokens: int) -> list[tuple[list[int], bool, np.ndarray]]:
     """Greedy decoding after an already-computed prompt state (e.g. a shared prefix extended by
-    each row's own suffix); per row: tokens, finished, embedding."""
+    each row's own suffix); per row: tokens, finished, embedding. `state` is left untouched.
+
+    Each step feeds one token per row still decoding, with the mask and position ids `extend`
+    would give it; the next token is the argmax of the logits (as transformers' greedy search).
+    A row leaves the batch once it has emitted end-of-sequence (after that token is fed, when it
+    is all the row generated), so finished rows cost nothing in later steps."""
     import torch
+    import torch.nn.functional as F
 
     eos = set(lm.eos_ids)
-    filler = lm.eos_ids[0] if lm.eos_ids else lm.pad_id
     n = state.batch_size
     tokens: list[list[int]] = [[] for _ in range(n)]
-    sums = [torch.zeros(lm.hidden_size, dtype=torch.float64) for _ in range(n)]
-    done, finished = [False] * n, [False] * n
-    for _ in range(max_new_tokens):
-        chosen = state.last_logprobs.argmax(dim=-1).tolist()
-        feed, record = [], []
-        for i, token in enumerate(chosen):
-            if done[i]:  # finished rows are fed a filler token whose outputs are ignored
-                feed.append([filler])
-                record.append(False)
+    finished = [False] * n
+    sums = torch.zeros((n, lm.hidden_size), dtype=torch.float64)
+    rows = list(range(n))  # the original row of each batch row still decoding
+    cache = _decode_cache(state, max_new_tokens)
+    width = state.attention_mask.shape[1]
+    mask = F.pad(state.attention_mask, (0, max_new_tokens), value=1)  # every new column is a real token
+    positions = state.lengths
+    chosen = state.last_logprobs.argmax(dim=-1).tolist()
+    for step in range(max_new_tokens):
+        keep, feed = [], []  # batch rows fed at this step, and their tokens
+        for b, (i, token) in enumerate(zip(rows, chosen)):
+            if finished[i]:  # fed its end-of-sequence token at the last step
                 continue
             if token in eos:
-                done[i] = finished[i] = True
-                record.append(not tokens[i])  # empty summary: embed the EOS token itself
+                finished[i] = True
+                if tokens[i]:
+                    continue
+                # an empty summary is embedded by its end-of-sequence token: feed it
             else:
                 tokens[i].append(token)
-                record.append(True)
-            feed.append([token])
-        if not any(record):
+            keep.append(b)
+            feed.append(token)
+        if not keep:
             break
-        state = extend(lm, feed, past=state, hidden=True)
-        last = state.last_hidden[:, -1].double().cpu()
-        for i in range(n):
-            if record[i]:
-                sums[i] += last[i]
-        if all(done):
-            break
-    out = []
-    for i in range(n):
-        count = max(len(tokens[i]), 1)
-        out.append((tokens[i], finished[i], (sums[i] / count).to(torch.float32).numpy()))
-    return out
+        if len(keep) < len(rows):
+            index = torch.tensor(keep, device=mask.device)
+            cache.batch_select_indices(index)
+            mask, positions, rows = mask[index], positions[index], [rows[b] for b in keep]
+        with torch.inference_mode():
+            out = lm.model(input_ids=torch.tensor(feed, device=lm.device)[:, None],
+                           attention_mask=mask[:, :width + step + 1], position_ids=positions[:, None],
+                           past_key_values=cache, use_cache=True, logits_to_keep=1, output_hidden_states=True)
+        sums.index_add_(0, torch.tensor(rows), out.hidden_states[-1][:, -1].double().cpu())
+        chosen = out.logits[:, -1].argmax(dim=-1).tolist()
+        positions = positions + 1
+    counts = torch.tensor([max(len(t), 1) for t in tokens], dtype=torch.float64)[:, None]
+    embeddings = (sums / counts).to(torch.float32).numpy()
+    return [(tokens[i], finished[i], embeddings[i]) for i in range(n)]
 
 
 def generate(lm: LoadedModel, prompts: Sequence[str], *, max_new_tokens: int = 64,

@@ -56,8 +56,20 @@ def load_curve(run_dir: Path, every: int) -> Curve:
         values = [float(r[column]) for r in rows if r.get(column)]
         return float(np.mean(values)) if values else 0.0
 
-    return Curve(str(run_dir), cfg["mode"], cfg["env_id"], int(cfg["seed"]), frames, points,
+    return Curve(str(run_dir), method_label(cfg), cfg["env_id"], int(cfg["seed"]), frames, points,
                  mean_of("target_coverage"), mean_of("cache_hit_rate"))
+
+
+_BONUS_DEFAULTS = {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0}
+
+
+def method_label(cfg: dict) -> str:
+    """The method a run is grouped under: its mode, plus the bonus weights where they differ from
+    the paper's (so runs of one mode with other weights are not averaged together)."""
+    if cfg["mode"] != "illm":
+        return cfg["mode"]
+    changed = [f"{k} {cfg[k]:g}" for k, v in _BONUS_DEFAULTS.items() if cfg.get(k, v) != v]
+    return cfg["mode"] + (f" ({', '.join(changed)})" if changed else "")
 
 
 def summarise(run_dirs: list[Path], every: int) -> dict:
