@@ -1,14 +1,15 @@
 """`illm annotate` against the loop a user would write first, on the same states, model and dtype.
 
 States: distinct BabyAI GoToLocal steps from a random-policy collection, with the paper's 3-step
-history (prompts of about 330 tokens). Both sides answer both language tasks for every state:
+history (prompts of about 370 tokens). Both sides answer both language tasks for every state:
 - naive: one full forward per candidate action (log-softmax, gather), then one `generate` of 64
   greedy tokens per state and one forward over prompt + summary for the mean-pooled embedding;
 - illm: `Annotator.annotate` (context KV reused for all candidates, states batched by length, the
   prompt prefix shared by the two tasks computed once, batched greedy decoding).
-Prints states/s of both and the speedup, and the share of this machine's bf16 matmul rate
-(measured in the same run) that illm's forward passes reach (2 x non-embedding parameters x
-tokens fed, attention left out). Targets: speedup >= 8x; >= 4 states/s for both tasks together.
+Prints states/s of both and the speedup, illm's mean summary length and the share of summaries
+that ended at end-of-text (rather than at the 64-token limit), and the share of this machine's
+bf16 matmul rate (measured in the same run) that illm's forward passes reach (2 x non-embedding
+parameters x tokens fed, attention left out). Targets: speedup >= 8x; >= 4 states/s for both tasks together.
 
     .venv/bin/python benchmarks/annotate.py [--states 32] [--naive-states 4] [--batch-size 8]
 """
@@ -82,6 +83,7 @@ def main() -> None:
     from illm_tools.annotate.engine import Annotator
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.llm.loading import load_model
+    from illm_tools.tasks.prompts import SUMMARY_TOKENS
 
     lm = load_model(args.model, dtype=args.dtype)
     rate = matmul_rate(getattr(torch, args.dtype))
@@ -100,7 +102,7 @@ def main() -> None:
         annotator.neutral_scores(jobs[0][0].prompt.candidates)  # once per model; not part of the timing
         tokens[0] = 0
         start = time.perf_counter()
-        annotator.annotate(plan)
+        rows = annotator.annotate(plan)
         t_illm = time.perf_counter() - start
         hook.remove()
         start = time.perf_counter()
@@ -112,12 +114,16 @@ def main() -> None:
     illm_rate = len(jobs) / t_illm
     naive_rate = args.naive_states / t_naive
     achieved = 2 * params * tokens[0] / t_illm / 1e9
+    lengths = [r["_tokens"] for r in rows if r["task"] == "summary"]  # generated tokens, end-of-text excluded
+    ended = sum(n < SUMMARY_TOKENS for n in lengths)  # a summary cut by the limit has exactly SUMMARY_TOKENS
     print(f"model {args.model} ({args.dtype}), {len(jobs)} BabyAI GoToLocal states, 3-step history, "
           f"action prompt ~{prompt_tokens:.0f} tokens, layout {args.layout}, batch {args.batch_size}, "
           f"{torch.get_num_threads()} threads")
     print(f"naive loop        {naive_rate:6.2f} states/s  ({args.naive_states} states, action ranking + summary)")
     print(f"illm annotate     {illm_rate:6.2f} states/s  ({len(jobs)} states, action ranking + summary)")
     print(f"speedup           {illm_rate / naive_rate:6.1f}x  (target >= 8x; illm target >= 4 states/s)")
+    print(f"summaries         {sum(lengths) / len(lengths):6.1f} tokens on average (limit {SUMMARY_TOKENS}); "
+          f"{ended}/{len(lengths)} ended at end-of-text")
     print(f"bf16 matmul rate  {rate:6.0f} GFLOP/s measured; illm forward passes reach {achieved:.0f} GFLOP/s "
           f"= {100 * achieved / rate:.0f}% of it ({tokens[0] / len(jobs):.0f} tokens fed per state)")
 

@@ -11,7 +11,8 @@ import pytest
 from conftest import babyai_context
 
 from illm_tools.errors import UsageError
-from illm_tools.llm.generation import embed_texts, generate
+from illm_tools.llm.generation import embed_texts, generate, greedy_from
+from illm_tools.llm.scoring import extend
 
 PROMPTS = [babyai_context(i) for i in range(4)] + ["Go", "You see a wall"]
 
@@ -87,6 +88,40 @@ def test_immediate_end_of_sequence(tiny_lm):
     assert got.finished and got.token_ids == [] and got.text == ""
     hidden = _last_hidden(tiny_lm, tiny_lm.encode(PROMPTS[1]) + free.token_ids[:1])
     np.testing.assert_allclose(got.embedding, hidden[-1], atol=1e-5)
+
+
+def test_rows_ending_at_different_steps_leave_the_batch(tiny_lm):
+    """Rows that emit end-of-sequence drop out of the decoding batch (one at once, with an empty
+    summary; others later; some never): each row still equals its own run and the free run cut at
+    its first end-of-sequence token."""
+    free = generate(tiny_lm, PROMPTS, max_new_tokens=8)
+    stops = (free[0].token_ids[2], free[1].token_ids[0])
+    lm = dataclasses.replace(tiny_lm, eos_ids=stops)
+    batched = generate(lm, PROMPTS, max_new_tokens=8, batch_size=len(PROMPTS))
+    ends = []
+    for prompt, f, got in zip(PROMPTS, free, batched):
+        end = next((k for k, t in enumerate(f.token_ids) if t in stops), None)
+        ends.append(end)
+        assert got.token_ids == f.token_ids[:end] and got.finished == (end is not None)
+        (alone,) = generate(lm, [prompt], max_new_tokens=8)
+        assert alone.token_ids == got.token_ids
+        np.testing.assert_allclose(got.embedding, alone.embedding, atol=1e-5)
+    assert ends[1] == 0 and None in ends and len(set(ends)) >= 3  # the case this test is about
+    hidden = _last_hidden(tiny_lm, tiny_lm.encode(PROMPTS[1]) + free[1].token_ids[:1])
+    np.testing.assert_allclose(batched[1].embedding, hidden[-1], atol=1e-5)
+
+
+@pytest.mark.parametrize("fixture", ["tiny_lm", "tiny_lm_sliding"])
+def test_greedy_from_leaves_its_state_untouched(fixture, request):
+    lm = request.getfixturevalue(fixture)
+    state = extend(lm, [lm.encode(p) for p in PROMPTS[:3]])
+    keys = [layer.keys.clone() for layer in state.cache.layers]
+    first = greedy_from(lm, state, 6)
+    second = greedy_from(lm, state, 6)
+    for (ids_a, fin_a, emb_a), (ids_b, fin_b, emb_b) in zip(first, second):
+        assert ids_a == ids_b and fin_a == fin_b
+        np.testing.assert_array_equal(emb_a, emb_b)
+    assert all(layer.keys.equal(k) for layer, k in zip(state.cache.layers, keys))
 
 
 @pytest.mark.parametrize("fixture", ["tiny_lm", "tiny_lm_bos"])

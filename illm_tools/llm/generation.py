@@ -62,11 +62,11 @@ def _buffer_layer():
         Only what decoding uses is supported (update, batch_select_indices)."""
 
         def __init__(self, keys, values, room: int):
-            import torch.nn.functional as F
-
             super().__init__()
-            self._keys, self._values = F.pad(keys, (0, 0, 0, room)), F.pad(values, (0, 0, 0, room))
             self.length = keys.shape[-2]
+            self._keys = keys.new_empty((*keys.shape[:2], self.length + room, keys.shape[3]))
+            self._values = values.new_empty((*values.shape[:2], self.length + room, values.shape[3]))
+            self._keys[:, :, :self.length], self._values[:, :, :self.length] = keys, values
             self.dtype, self.device, self.is_initialized = keys.dtype, keys.device, True
             self._views()
 
@@ -128,7 +128,7 @@ def greedy_from(lm: LoadedModel, state: PrefixState, max_new_tokens: int) -> lis
     width = state.attention_mask.shape[1]
     mask = F.pad(state.attention_mask, (0, max_new_tokens), value=1)  # every new column is a real token
     positions = state.lengths
-    chosen = state.last_logprobs.argmax(dim=-1).tolist()
+    chosen = state.last_logprobs.max(dim=-1).indices.tolist()  # argmax; faster on CPU
     for step in range(max_new_tokens):
         keep, feed = [], []  # batch rows fed at this step, and their tokens
         for b, (i, token) in enumerate(zip(rows, chosen)):
@@ -154,11 +154,11 @@ def greedy_from(lm: LoadedModel, state: PrefixState, max_new_tokens: int) -> lis
                            attention_mask=mask[:, :width + step + 1], position_ids=positions[:, None],
                            past_key_values=cache, use_cache=True, logits_to_keep=1, output_hidden_states=True)
         sums.index_add_(0, torch.tensor(rows), out.hidden_states[-1][:, -1].double().cpu())
-        chosen = out.logits[:, -1].argmax(dim=-1).tolist()
+        chosen = out.logits[:, -1].max(dim=-1).indices.tolist()
         positions = positions + 1
     counts = torch.tensor([max(len(t), 1) for t in tokens], dtype=torch.float64)[:, None]
     embeddings = (sums / counts).to(torch.float32).numpy()
-    return [(tokens[i], finished[i], embeddings[i]) for i in range(n)]
+    return [(tokens[i], finished[i], embeddings[i].copy()) for i in range(n)]
 
 
 def generate(lm: LoadedModel, prompts: Sequence[str], *, max_new_tokens: int = 64,
