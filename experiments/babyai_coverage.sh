@@ -5,18 +5,20 @@
 # - per level, 50,000 random-policy steps, then a frequency-first bulk annotation (the most
 #   visited states first, at most ANNOTATE_MINUTES minutes) into one cache every run shares;
 # - async live annotation (a worker process on the second core) of the states runs miss;
-# - illm with the paper's bonus weights and with CleanRL RND's advantage weights (--bonus-preset).
+# - illm with the paper's bonus weights, with CleanRL RND's advantage weights (--bonus-preset rnd),
+#   and with smaller bonus weights (illm-small: lambda 0.1, beta 0.05).
 # Runs one at a time so that each run's wall-clock time is its own. Every step is resumable: a
 # finished collection, annotation or run is skipped, an unfinished run resumes.
 # Usage: bash experiments/babyai_coverage.sh [OUT]   (default data/exp-coverage)
-#   env: ANNOTATE_MINUTES (20), SEEDS ("0 1 2"), METHODS ("ppo illm illm-rnd"), LEVELS ("GoToLocal UnlockLocal")
+#   env: ANNOTATE_MINUTES (20), SEEDS ("0 1 2"), METHODS ("ppo illm illm-rnd illm-small"),
+#        LEVELS ("GoToLocal UnlockLocal")
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-data/exp-coverage}
 ILLM=${ILLM:-.venv/bin/illm}
 ANNOTATE_MINUTES=${ANNOTATE_MINUTES:-20}
 SEEDS=${SEEDS:-"0 1 2"}
-METHODS=${METHODS:-"ppo illm illm-rnd"}
+METHODS=${METHODS:-"ppo illm illm-rnd illm-small"}
 LEVELS=${LEVELS:-"GoToLocal UnlockLocal"}
 export HF_HUB_OFFLINE=1 TOKENIZERS_PARALLELISM=false
 mkdir -p "$OUT/runs" "$OUT/logs"
@@ -39,6 +41,7 @@ for level in $LEVELS; do
         ppo) args=(--method ppo) ;;
         illm) args=(--method illm --cache "$OUT/ann" --history 0 --live-mode async --bonus-preset paper) ;;
         illm-rnd) args=(--method illm --cache "$OUT/ann" --history 0 --live-mode async --bonus-preset rnd) ;;
+        illm-small) args=(--method illm --cache "$OUT/ann" --history 0 --live-mode async --lambda-a 0.1 --beta-hc 0.05) ;;
       esac
       start=$(date +%s)
       "$ILLM" train --env "$env" "${args[@]}" --frames "$(frames "$level")" --seed "$seed" --out "$run" $resume \
