@@ -37,7 +37,7 @@ class AnnotateConfig:
     max_minutes: float | None = None
     """Stop after this many minutes, between chunks, with every finished chunk written."""
     dtype: str = "bfloat16"
-    """Compute dtype (bfloat16 is the fast path on CPU)."""
+    """Compute dtype (bfloat16 is the fast path on CPUs with fast bf16; part of every cache key)."""
     quant: str = "none"
     """bitsandbytes quantisation: none, 4bit or 8bit."""
     chunk: int = 32

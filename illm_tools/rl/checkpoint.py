@@ -111,7 +111,7 @@ def load_checkpoint(run_dir: Path) -> dict:
 
 # settings a resumed run may change; any other difference is refused
 RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "tensorboard", "live_budget", "threads",
-                               "llm_threads", "live_mode", "new_setup"})
+                               "llm_threads", "live_mode", "new_setup", "heads_bf16"})
 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:

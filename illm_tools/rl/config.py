@@ -102,8 +102,9 @@ class TrainConfig:
     distill_epochs: int = 1
     """Epochs of each update that train the heads (the 2 x 1024-unit heads cost as much as the rest
     of the update on CPU; later epochs train the policy alone)."""
-    heads_bf16: bool = True
-    """Run the heads' matmuls in bfloat16 on CPU (float32 parameters and losses)."""
+    heads_bf16: bool | None = None
+    """Run the heads' matmuls in bfloat16 on CPU (float32 parameters and losses); None: when a
+    timed matmul says bf16 is faster on this CPU (it is on some, not on others)."""
     summary_loss: str = "cosine"
     """Distillation loss of f^hc: cosine (1 - cos) or mse."""
     action_similarity: str = "tv"
