@@ -91,7 +91,8 @@ def main() -> None:
         records = babyai_states(args.states, 3, Path(tmp))
         annotator = Annotator(lm, AnnotationCache(Path(tmp) / "ann"), model=args.model, layout=args.layout,
                               batch_size=args.batch_size, chunk=args.states)
-        plan = annotator.plan(records, ["BabyAI-GoToLocal-v0"] * len(records), ["babyai-text@1"] * len(records))
+        plan = annotator.plan(annotator.visited(records, ["BabyAI-GoToLocal-v0"] * len(records),
+                                                ["babyai-text@1"] * len(records)))
         jobs = [(s[0], s[1]) for s in plan]
         tokens = [0]
 

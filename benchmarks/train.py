@@ -29,6 +29,7 @@ from illm_tools.annotate.engine import Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.envs import renderer_of
 from illm_tools.rl.config import TrainConfig
+from illm_tools.rl.live import SyncLive
 from illm_tools.rl.ppo import Trainer, make_pool
 from illm_tools.rl.run import make_provider, torch_threads
 from illm_tools.rl.targets import CachedTargets
@@ -78,8 +79,9 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
         annotator = SyntheticAnnotator(SyntheticLM(), cache, model="synthetic", history_len=cfg.history_len,
                                        chunk=10_000)
         builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
+        live = SyncLive(annotator, cfg.env_id, builder.renderer, cfg.live_budget) if cfg.live_budget else None
         provider = CachedTargets(cache, builder, calibration="sum", num_actions=len(pool.action_names),
-                                 embedding_dim=DIM, annotator=annotator, live_budget=cfg.live_budget)
+                                 embedding_dim=DIM, live=live)
     phases: dict[str, float] = {}
 
     def on_metrics(m: dict) -> None:

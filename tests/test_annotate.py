@@ -17,6 +17,7 @@ from illm_tools.collect import CollectConfig, RandomPolicy, collect
 from illm_tools.llm.generation import generate
 from illm_tools.llm.joint import score_and_generate
 from illm_tools.llm.scoring import score_candidates
+from illm_tools.rl.live import SyncLive
 from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.state import HistoryTracker, StateRecord
 
@@ -145,7 +146,7 @@ def test_trainer_keys_hit_the_rows_annotate_wrote_and_live_fallback_writes_back(
     unseen = [StateRecord("go to the purple key", (), f"You see a purple key {k} steps forward", ACTIONS)
               for k in range(1, 6)]
     live = CachedTargets(ann, builder, calibration="sum", num_actions=6, embedding_dim=tiny_lm.hidden_size,
-                         annotator=annotator, live_budget=3)
+                         live=SyncLive(annotator, ENV, "babyai-text@1", budget=3))
     first = live.targets(unseen + unseen[:1])
     assert first.mask.tolist() == [True, True, True, False, False, True]
     assert live.stats()["live_annotations"] == 3

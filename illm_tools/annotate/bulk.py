@@ -6,8 +6,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from illm_tools.annotate.engine import Annotator, Stats
 from illm_tools.errors import UsageError
 from illm_tools.tasks.prompts import LAYOUTS, TASKS
@@ -97,13 +95,14 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     annotator = Annotator(lm, cache, model=config.model, tasks=config.tasks, history_len=config.history,
                           layout=config.layout, batch_size=config.batch_size, chunk=config.chunk)
     visited = annotator.visited(records, env_ids, renderers)
+    selected = visited.top(config.limit)
     stats = Stats()
-    plan = annotator.plan(visited, stats=stats, limit=config.limit)
+    plan = annotator.plan(selected, stats=stats)
     if on_plan is not None:
         on_plan(stats, len(plan))
     max_seconds = None if config.max_minutes is None else 60.0 * config.max_minutes
     annotator.run(plan, stats=stats, on_progress=on_progress, max_seconds=max_seconds)
     covered = visited.covered(cache)
-    selected = visited.top(config.limit)
-    return AnnotateResult(stats, len(visited), visited.total_steps, len(selected), visited.step_share(
-        np.arange(len(visited)) < len(selected)), int(covered.sum()), visited.step_share(covered))
+    return AnnotateResult(stats, len(visited), visited.total_steps, len(selected),
+                          selected.total_steps / max(visited.total_steps, 1), int(covered.sum()),
+                          visited.step_share(covered))

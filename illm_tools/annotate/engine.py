@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from illm_tools.annotate.coverage import VisitedStates
 from illm_tools.cache.keys import canonical_json, fingerprint_hash
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
-from illm_tools.annotate.coverage import VisitedStates
 from illm_tools.tasks.prompts import SUMMARY_TOKENS, TASKS, Prompt, PromptBuilder, format_history, neutral_prompt
 from illm_tools.tasks.state import StateRecord
 
@@ -53,8 +53,6 @@ class Stats:
     """States the LLM answered in this run (all their missing tasks)."""
     rows: int = 0
     """Rows written to the cache."""
-    selected_steps: int = 0
-    """Steps of the input that the planned states cover (all of them, cached or not)."""
     summary_tokens: int = 0
     """Tokens generated for summaries (their mean length is summary_tokens / summaries)."""
     summaries: int = 0
@@ -106,27 +104,22 @@ class Annotator:
         """The distinct states of these steps, most visited first, keyed for this run's tasks."""
         return VisitedStates.count(records, env_ids, renderers, self.builder, self.tasks)
 
-    def plan(self, records: Sequence[StateRecord] | VisitedStates, env_ids: Sequence[str] = (),
-             renderers: Sequence[str] = (), stats: Stats | None = None, *, limit: int | None = None) -> list[list[Job]]:
-        """Jobs for the (state, task) keys the cache misses, grouped per state, most visited state
-        first. `limit` keeps the `limit` most visited states before the cache is asked, so the
-        same limit over the same steps plans nothing once those states are annotated."""
+    def plan(self, visited: VisitedStates, stats: Stats | None = None) -> list[list[Job]]:
+        """Jobs for the (state, task) keys the cache misses, grouped per state, in `visited`'s
+        order (most visited first); take `visited.top(n)` to plan only the n most visited."""
         stats = stats if stats is not None else Stats()
-        visited = records if isinstance(records, VisitedStates) else self.visited(records, env_ids, renderers)
-        selected = visited.top(limit)
-        flat = [k for keys in selected.keys for k in keys]
+        flat = [k for keys in visited.keys for k in keys]
         found = self.cache.contains(flat) if flat else np.zeros(0, bool)
         present = {k for k, f in zip(flat, found) if f}
-        stats.states += len(selected)
+        stats.states += len(visited)
         stats.keys += len(set(flat))
         stats.hits += len(present)
         stats.misses += len(set(flat)) - len(present)
-        stats.selected_steps += int(selected.steps.sum())
         plan = []
-        for record, builder, keys in zip(selected.records, selected.builders, selected.keys):
+        for record, builder, keys in zip(visited.records, visited.builders, visited.keys):
             history = None
             jobs = []
-            for task, key in zip(selected.tasks, keys):
+            for task, key in zip(visited.tasks, keys):
                 if key in present:
                     continue
                 present.add(key)  # a key shared by two states (e.g. one summary prompt) is planned once
@@ -136,15 +129,20 @@ class Annotator:
                 plan.append(jobs)
         return plan
 
-    def run(self, plan: list[list[Job]], *, limit: int | None = None, stats: Stats | None = None,
+    def annotate_states(self, records: Sequence[StateRecord], env_id: str, renderer: str,
+                        **run_options) -> Stats:
+        """Annotate what the cache lacks of these states of one env now (the live fallback's call),
+        most visited first; `run_options` go to `run`."""
+        return self.run(self.plan(self.visited(records, [env_id] * len(records), [renderer] * len(records))),
+                        **run_options)
+
+    def run(self, plan: list[list[Job]], *, stats: Stats | None = None,
             on_progress: Callable[[int, Stats], None] | None = None, max_seconds: float | None = None,
             should_stop: Callable[[], bool] | None = None) -> Stats:
-        """Annotate the planned states (at most `limit` of them), writing a shard per chunk. Stops
+        """Annotate the planned states, writing a shard per chunk. Stops
         between chunks once `max_seconds` have passed or `should_stop()` says so: every chunk is
         written whole or not at all, so what is done stays in the cache."""
         stats = stats if stats is not None else Stats()
-        if limit is not None:
-            plan = plan[:limit]
         start = time.perf_counter()
         for i in range(0, len(plan), self.chunk):
             if (max_seconds is not None and time.perf_counter() - start >= max_seconds) or \

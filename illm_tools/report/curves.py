@@ -60,15 +60,14 @@ def load_curve(run_dir: Path, every: int) -> Curve:
                  mean_of("target_coverage"), mean_of("cache_hit_rate"))
 
 
-_BONUS_DEFAULTS = {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0}
-
-
 def method_label(cfg: dict) -> str:
     """The method a run is grouped under: its mode, plus the bonus weights where they differ from
     the paper's (so runs of one mode with other weights are not averaged together)."""
+    from illm_tools.rl.config import BONUS_PRESETS  # the schema of the config.json it reads
+
     if cfg["mode"] != "illm":
         return cfg["mode"]
-    changed = [f"{k} {cfg[k]:g}" for k, v in _BONUS_DEFAULTS.items() if cfg.get(k, v) != v]
+    changed = [f"{k} {cfg[k]:g}" for k, v in BONUS_PRESETS["paper"].items() if cfg.get(k, v) != v]
     return cfg["mode"] + (f" ({', '.join(changed)})" if changed else "")
 
 

@@ -10,11 +10,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from illm_tools.errors import UsageError
-
-LIVE_MODES = ("sync", "async")
-from illm_tools.tasks.calibration import ACTION_TARGETS
+from illm_tools.tasks.calibration import ACTION_TARGETS, CALIBRATIONS
 
 MODES = ("illm", "illm-noreward", "ppo")
+LIVE_MODES = ("sync", "async")
 BONUS_PRESETS = {  # `illm train --bonus-preset`: bonus weights and advantage weights together
     "paper": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0},  # Appendix B
     "rnd": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 2.0, "int_coef": 1.0},    # CleanRL RND's advantage weights
@@ -93,9 +92,9 @@ class TrainConfig:
     """(observation, action) pairs before the current observation handed to the LLM (paper: 3)."""
     embedding_dim: int = 576
     """Dimension of the LLM summary embedding f^hc predicts (576 for SmolLM2-135M)."""
-    lambda_a: float = 0.8
+    lambda_a: float = BONUS_PRESETS["paper"]["lambda_a"]
     """Weight lambda of the action-generation bonus r^a (paper: 0.8)."""
-    beta_hc: float = 0.5
+    beta_hc: float = BONUS_PRESETS["paper"]["beta_hc"]
     """Weight beta of the history-compression bonus r^hc (paper: 0.5)."""
     distill_coef: float = 1.0
     """Weight of the head distillation losses in the total loss."""
@@ -113,9 +112,9 @@ class TrainConfig:
     """Discount of the intrinsic return and of its normaliser (RND uses 0.99)."""
     int_episodic: bool = False
     """Cut the intrinsic return at episode ends; False is RND's non-episodic stream."""
-    ext_coef: float = 1.0
+    ext_coef: float = BONUS_PRESETS["paper"]["ext_coef"]
     """Weight of the extrinsic advantage in the summed advantage."""
-    int_coef: float = 1.0
+    int_coef: float = BONUS_PRESETS["paper"]["int_coef"]
     """Weight of the intrinsic advantage; 1 with ext_coef 1 matches r* = r + lambda r^a + beta r^hc."""
 
     # --- LLM targets -----------------------------------------------------------------------
@@ -162,8 +161,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         self.run_dir = Path(self.run_dir)
         self.cache = Path(self.cache) if self.cache is not None else None
-        if self.action_score not in ("sum", "mean", "pmi"):
-            raise UsageError(f"--action-score must be sum, mean or pmi, got {self.action_score!r}")
+        if self.action_score not in CALIBRATIONS:
+            raise UsageError(f"--action-score must be {', '.join(CALIBRATIONS)}, got {self.action_score!r}")
         if self.action_target not in ACTION_TARGETS:
             raise UsageError(f"--action-target must be distribution or argmax, got {self.action_target!r}")
         if self.live_mode not in LIVE_MODES:

@@ -28,22 +28,29 @@ from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
 
+
 class SyncLive:
     """Annotates the first `budget` missed states in the trainer's process."""
 
     waits = True
     """The answers are in the cache when `submit` returns."""
 
-    def __init__(self, annotator, env_id: str, renderer: str, budget: int):
+    def __init__(self, annotator, env_id: str, renderer: str, budget: int, threads: int | None = None):
         self.annotator, self.env_id, self.renderer, self.budget = annotator, env_id, renderer, budget
+        self.threads = threads
+        """Torch threads of the LLM calls (the policy runs on fewer); None keeps the current count."""
 
     def submit(self, missing: Sequence[StateRecord]) -> int:
         """Annotate the first `budget` of `missing` (most visited first); returns how many."""
+        from contextlib import nullcontext
+
+        from illm_tools.rl.run import torch_threads
+
         todo = list(missing[: self.budget])
         if not todo:
             return 0
-        plan = self.annotator.plan(todo, [self.env_id] * len(todo), [self.renderer] * len(todo))
-        return self.annotator.run(plan).annotated_states
+        with torch_threads(self.threads) if self.threads else nullcontext():
+            return self.annotator.annotate_states(todo, self.env_id, self.renderer).annotated_states
 
     def landed(self) -> int:
         """States annotated since the last call that `submit` did not count (none: it waits)."""
@@ -114,8 +121,7 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done) -> None:  # pragma: no co
             continue
         head, pending = pending[: spec.chunk], pending[spec.chunk:]
         annotator.cache.refresh()
-        plan = annotator.plan(head, [spec.env_id] * len(head), [spec.renderer] * len(head))
-        stats = annotator.run(plan, should_stop=stop.is_set)
+        stats = annotator.annotate_states(head, spec.env_id, spec.renderer, should_stop=stop.is_set)
         with done.get_lock():
             done.value += stats.annotated_states
         queued.value = len(pending)
@@ -134,7 +140,6 @@ class AsyncLive:
         self._reported = 0
         self.restarts = 0
         self.failed = False
-        self.last_error: str | None = None
         self._start()
 
     def _start(self) -> None:
@@ -156,7 +161,6 @@ class AsyncLive:
             why = self._errors.get(timeout=0.1)
         except queue.Empty:
             why = f"exit code {self.process.exitcode}"
-        self.last_error = why
         if self.restarts >= self.max_restarts:
             self.failed = True
             log.warning("live annotation worker stopped (%s) %d times; the run goes on with the targets "
@@ -192,5 +196,6 @@ class AsyncLive:
         if self.process.is_alive():
             self.process.terminate()
             self.process.join(5.0)
-        self._inbox.close()
-        self._inbox.cancel_join_thread()
+        for q in (self._inbox, self._errors):
+            q.close()
+            q.cancel_join_thread()

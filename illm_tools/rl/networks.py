@@ -10,7 +10,6 @@ grid's object/colour/state indices one-hot encoded instead of fed as raw numbers
 from __future__ import annotations
 
 import functools
-
 import re
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -157,7 +156,7 @@ def bf16_is_faster() -> bool:
     than float32 on an AMD EPYC and 1.6x slower on an Intel Xeon with AVX512-BF16."""
     import time
 
-    def rate(dtype) -> float:
+    def seconds(dtype) -> float:
         a, b = torch.full((512, 512), 0.5, dtype=dtype), torch.full((512, 1024), 0.25, dtype=dtype)  # no RNG use
         a @ b
         best = float("inf")
@@ -167,4 +166,4 @@ def bf16_is_faster() -> bool:
             best = min(best, time.perf_counter() - start)
         return best
 
-    return rate(torch.bfloat16) < rate(torch.float32)
+    return seconds(torch.bfloat16) < seconds(torch.float32)

@@ -29,20 +29,6 @@ def torch_threads(n: int):
         torch.set_num_threads(before)
 
 
-class _WithThreads:
-    """Wraps an Annotator so its LLM calls run with their own thread count (the policy uses few)."""
-
-    def __init__(self, annotator, threads: int):
-        self.annotator, self.threads = annotator, threads
-
-    def plan(self, *args, **kwargs):
-        return self.annotator.plan(*args, **kwargs)
-
-    def run(self, *args, **kwargs):
-        with torch_threads(self.threads):
-            return self.annotator.run(*args, **kwargs)
-
-
 def make_provider(cfg: TrainConfig, num_actions: int):
     """The `CachedTargets` for an iLLM run, or None for plain PPO. Returns (provider, cfg) where
     cfg carries the model's embedding dimension."""
@@ -94,7 +80,7 @@ def make_live(cfg: TrainConfig, builder, cache):
     lm = load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
     annotator = Annotator(lm, cache, model=cfg.model, history_len=cfg.history_len,
                           layout=cfg.layout)
-    return SyncLive(_WithThreads(annotator, cfg.live_threads), builder.env_id, builder.renderer, cfg.live_budget)
+    return SyncLive(annotator, builder.env_id, builder.renderer, cfg.live_budget, threads=cfg.live_threads)
 
 
 def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None) -> dict:

@@ -19,7 +19,6 @@ import numpy as np
 
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.intrinsic.base import Targets
-from illm_tools.rl.live import SyncLive
 from illm_tools.tasks.calibration import ACTION_TARGETS, action_target
 from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.state import StateRecord
@@ -29,14 +28,13 @@ _MEMO_LIMIT = 500_000
 
 
 class CachedTargets:
-    """`TargetProvider` over an `AnnotationCache`; `annotator` (an `illm_tools.annotate.engine.
-    Annotator` over the same cache) enables the live fallback. `action_target`: f^a's target is the
+    """`TargetProvider` over an `AnnotationCache`; `live` (`illm_tools.rl.live.SyncLive` or
+    `AsyncLive`, writing to the same cache) enables the live fallback. `action_target`: f^a's target is the
     softmax of the calibrated scores (`distribution`) or the one-hot of their argmax (`argmax`,
     the paper's choice)."""
 
     def __init__(self, cache: AnnotationCache, builder: PromptBuilder, *, calibration: str,
-                 num_actions: int, embedding_dim: int, annotator=None, live_budget: int = 0,
-                 action_target: str = "distribution", live=None):
+                 num_actions: int, embedding_dim: int, action_target: str = "distribution", live=None):
         self.cache = cache
         self.builder = builder
         self.calibration = calibration
@@ -45,8 +43,6 @@ class CachedTargets:
         self.action_target = action_target
         self.num_actions = num_actions
         self.embedding_dim = embedding_dim
-        if live is None and annotator is not None and live_budget > 0:
-            live = SyncLive(annotator, builder.env_id, builder.renderer, live_budget)
         self.live = live
         self._keys: dict[StateRecord, tuple[str, str]] = {}
         self._visits: Counter[StateRecord] = Counter()
@@ -74,7 +70,7 @@ class CachedTargets:
     def _annotate_missing(self, records: Sequence[StateRecord], found: np.ndarray) -> int:
         """Live fallback: the distinct missing states, most visited over the run so far first,
         go to the live annotator (`illm_tools.rl.live`); returns the states it annotated."""
-        missing = [r for r in dict.fromkeys(r for r, f in zip(records, found) if not f)]
+        missing = list(dict.fromkeys(r for r, f in zip(records, found) if not f))
         missing.sort(key=self._visits.__getitem__, reverse=True)  # stable: ties in rollout order
         return self.live.submit(missing)
 
@@ -88,12 +84,12 @@ class CachedTargets:
         keys_a, keys_s = self.keys(records)
         a, s, found = self._lookup(keys_a, keys_s)
         hits, live = int(found.sum()), 0
-        self._count_visits(records)
-        if self.live is not None and not found.all():
-            live = self._annotate_missing(records, found)
-            if self.live.waits:  # sync: this rollout uses the new answers; async: a later one
-                a, s, found = self._lookup(keys_a, keys_s)
         if self.live is not None:
+            self._count_visits(records)  # only the live fallback's priorities need them
+            if not found.all():
+                live = self._annotate_missing(records, found)
+                if self.live.waits:  # sync: this rollout uses the new answers; async: a later one
+                    a, s, found = self._lookup(keys_a, keys_s)
             live += self.live.landed()
         b = len(records)
         probs = np.zeros((b, self.num_actions), np.float32)
