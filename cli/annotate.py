@@ -57,3 +57,5 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"the cache now answers {result.covered_states:,} of the {result.dataset_states:,} distinct states "
                    f"(history {config.history}), covering {result.covered_step_share:.0%} of the "
                    f"{result.dataset_steps:,} steps -> {cache}")
+        typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
+                   f"{config.data} --cache {cache} --history {config.history}` estimates how many")

@@ -46,8 +46,10 @@ def coverage(
     quant: str = typer.Option("none", "--quant", help="LLM quantisation (as in `illm annotate`)."),
     as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
 ) -> None:
-    """Per history length: distinct states, the share of steps the cache answers, and the share the
-    k most visited states cover (what annotating them with `illm annotate --limit k` would reach)."""
+    """Per history length: distinct states, the share of steps the cache answers, the share the k
+    most visited states cover (what annotating them with `illm annotate --limit k` reaches on this
+    data), and a held-out estimate of what they reach on a run's new episodes (the top k of half
+    the episodes against the other half's steps)."""
     from illm_tools.annotate.coverage import TOP_K, measure_coverage
 
     rows = measure_coverage(path, cache=cache, histories=history, model=model, dtype=dtype, quant=quant,
@@ -57,10 +59,14 @@ def coverage(
         return
     typer.echo(f"{path}: {rows[0]['steps']:,} steps" + (f"; cache {cache}" if cache else "; no cache given"))
     head = "| history | distinct states | cached: states | cached: steps | " + " | ".join(
-        f"top {k:,}: steps" for k in TOP_K) + " |"
+        f"top {k:,}: steps (new episodes)" for k in TOP_K) + " |"
     typer.echo(head)
     typer.echo("|" + "---|" * (4 + len(TOP_K)))
     for r in rows:
+        held = r["heldout_top_k_step_share"]
         typer.echo(f"| {r['history']} | {r['distinct_states']:,} ({r['distinct_share']:.1%} of steps) | "
                    f"{r['cached_states']:,} | {r['cached_step_share']:.1%} | "
-                   + " | ".join(f"{r['top_k_step_share'][str(k)]:.1%}" for k in TOP_K) + " |")
+                   + " | ".join(f"{r['top_k_step_share'][str(k)]:.1%} ({held[str(k)]:.1%})" for k in TOP_K) + " |")
+    typer.echo("top k: the share of these steps the k most visited states cover; in brackets, the share of "
+               "every second episode's steps covered by the top k of the others: about what a training run, "
+               "which plays new episodes, would find in a cache annotated from this data.")

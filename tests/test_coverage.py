@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from conftest import collect_babyai
 from cli.main import app
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
-from illm_tools.annotate.coverage import VisitedStates, measure_coverage
+from illm_tools.annotate.coverage import VisitedStates, heldout_curve, measure_coverage
 from illm_tools.annotate.engine import Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.cache.verify import verify
@@ -90,6 +90,18 @@ def test_max_minutes_stops_between_chunks_with_what_is_done_written(trajectories
     assert len(AnnotationCache(tmp_path / "ann")) == 2 * result.stats.annotated_states and verify(tmp_path / "ann").ok
 
 
+def test_the_heldout_curve_counts_the_other_episodes_steps_only():
+    # episodes (sorted) a, b, c, d: a and c are counted, b and d are held out
+    steps = [("a", state(1)), ("a", state(1)), ("a", state(2)), ("b", state(1)), ("b", state(9)),
+             ("c", state(3)), ("d", state(2)), ("d", state(8))]
+    episodes, records = zip(*steps)
+    curve = heldout_curve(records, [ENV] * 8, ["babyai-text@1"] * 8, episodes, ks=(1, 2))
+    # the top 1 of a, c is state 1 (twice): 1 of the 4 held-out steps; top 2 adds state 2: 2 of 4
+    assert curve == {"1": 0.25, "2": 0.5, "all": 0.5}
+    other_env = heldout_curve(records, ["MiniGrid-Other-v0"] * 3 + [ENV] * 5, ["babyai-text@1"] * 8, episodes)
+    assert other_env["all"] == 0.0  # states 1 and 2 were counted in another env only: other states
+
+
 def test_data_coverage_reports_costs_and_what_the_cache_answers(trajectories, tmp_path, tiny_lm):
     cache = tmp_path / "ann"
     annotate_dataset(config(trajectories, cache, tiny_lm, limit=5))
@@ -98,13 +110,15 @@ def test_data_coverage_reports_costs_and_what_the_cache_answers(trajectories, tm
     assert rows[0]["distinct_states"] < rows[1]["distinct_states"]
     assert rows[0]["cached_states"] == 5 and rows[1]["cached_states"] == 0
     assert 0 < rows[0]["cached_step_share"] <= rows[0]["top_k_step_share"]["100"] <= 1
+    held = rows[0]["heldout_top_k_step_share"]
+    assert 0 <= held["100"] <= held["all"] <= 1 and held["all"] < rows[0]["top_k_step_share"]["10000"]
     out = runner.invoke(app, ["data", "coverage", str(trajectories), "--cache", str(cache), "--history", "0",
                               "--model", tiny_lm.spec.path, "--dtype", "float32", "--json"])
     assert out.exit_code == 0, out.output
     assert json.loads(out.output)[0]["cached_states"] == 5
     table = runner.invoke(app, ["data", "coverage", str(trajectories), "--history", "0", "--history", "1",
                                 "--model", tiny_lm.spec.path, "--dtype", "float32"]).output
-    assert "| 0 |" in table and "| 1 |" in table and "top 1,000" in table
+    assert "| 0 |" in table and "| 1 |" in table and "top 1,000" in table and "new episodes" in table
 
 
 def _builder(lm, history: int = 0) -> PromptBuilder:
