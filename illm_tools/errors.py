@@ -27,3 +27,8 @@ class ModelNotFoundError(IllmError):
 
 class CacheError(IllmError):
     """The annotation cache is damaged or inconsistent."""
+
+
+class DamagedFileError(IllmError):
+    """A file illm wrote earlier cannot be read back as written (cut short, bits flipped, edited);
+    the message names the file and how to recover (re-collect, repair, an older checkpoint)."""

@@ -99,11 +99,19 @@ def test_overwrite_refuses_a_folder_that_is_not_a_dataset(tmp_path):
 
 
 def _rewrite_metadata(out, metadata):
-    shard = json.loads((out / "state.json").read_text())["_data_files"][0]["filename"]
+    """Rewrite the first shard with other schema metadata, as another writer would (its state.json
+    entry updated too, so only the metadata differs)."""
+    from illm_tools.cache.layout import sha256_file
+
+    state = json.loads((out / "state.json").read_text())
+    entry = state["_data_files"][0]
+    shard = entry["filename"]
     table = pa.ipc.open_stream(pa.BufferReader((out / shard).read_bytes())).read_all()
     table = table.replace_schema_metadata(metadata)
     with pa.OSFile(str(out / shard), "wb") as sink, pa.ipc.new_stream(sink, table.schema) as writer:
         writer.write_table(table)
+    entry.update(illm_bytes=(out / shard).stat().st_size, illm_sha256=sha256_file(out / shard))
+    (out / "state.json").write_text(json.dumps(state))
 
 
 def test_unknown_version_and_wrong_kind_are_refused(tmp_path):

@@ -7,6 +7,9 @@ plain pyarrow read it with no illm code:
     DIR/dataset_info.json      Hugging Face features
     DIR/state.json             the list of shards; rewritten atomically, last
 
+Each shard's entry in state.json also records its size, sha256 and row count (extra keys that
+`datasets` ignores), so a shard cut short or with flipped bits is refused with one line naming it,
+never read as other data; datasets written before these keys existed are read unchecked.
 A dataset becomes visible whole: a new or overwritten dataset is written to a staging folder and
 renamed into place at the end; appended shards are listed in state.json only once complete. A
 crash leaves the old dataset as it was.
@@ -27,7 +30,7 @@ import pyarrow.compute as pc
 
 import schemas
 from illm_tools.data import schema as schema_check
-from illm_tools.errors import OutputExistsError, UsageError
+from illm_tools.errors import DamagedFileError, OutputExistsError, UsageError
 
 KIND = "trajectory"
 STATE = "state.json"
@@ -43,9 +46,47 @@ def _fsync_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def _recollect(root: Path) -> str:
+    return f"re-collect it (`illm collect ... --out {root} --overwrite`) or restore the folder from a copy"
+
+
+def _shard_entries(root: Path) -> list[dict]:
+    """state.json's shard entries ({"filename", and for checked datasets "illm_bytes",
+    "illm_sha256", "illm_rows"}), refusing a state.json that is not what the writer wrote."""
+    try:
+        entries = json.loads((root / STATE).read_text())["_data_files"]
+        if not all(isinstance(e, dict) and isinstance(e["filename"], str) for e in entries):
+            raise TypeError("a shard entry lacks its file name")
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as e:
+        raise DamagedFileError(f"{root / STATE} is damaged ({type(e).__name__}): {_recollect(root)}") from None
+    return entries
+
+
 def _shard_files(root: Path) -> list[str]:
-    state = json.loads((root / STATE).read_text())
-    return [f["filename"] for f in state["_data_files"]]
+    return [e["filename"] for e in _shard_entries(root)]
+
+
+def _read_shard(root: Path, entry: dict) -> pa.Table:
+    """One shard, checked against its state.json entry when it has one; damage -> one line."""
+    from illm_tools.cache.layout import sha256_file
+
+    path = root / entry["filename"]
+    if not path.is_file():
+        raise DamagedFileError(f"trajectory shard {path} is listed in {STATE} but missing: {_recollect(root)}")
+    if "illm_sha256" in entry and (path.stat().st_size != entry.get("illm_bytes")
+                                   or sha256_file(path) != entry["illm_sha256"]):
+        raise DamagedFileError(f"trajectory shard {path} is damaged (size or checksum differs from {STATE}): "
+                               f"{_recollect(root)}")
+    try:
+        with pa.memory_map(str(path)) as source:
+            table = pa.ipc.open_stream(source).read_all()
+    except (OSError, pa.ArrowException) as e:
+        raise DamagedFileError(f"trajectory shard {path} cannot be read ({str(e).splitlines()[0][:80]}): "
+                               f"{_recollect(root)}") from None
+    if "illm_rows" in entry and table.num_rows != entry["illm_rows"]:
+        raise DamagedFileError(f"trajectory shard {path} has {table.num_rows} rows, {STATE} says "
+                               f"{entry['illm_rows']}: {_recollect(root)}")
+    return table
 
 
 def _is_dataset(root: Path) -> bool:
@@ -69,6 +110,7 @@ class TrajectoryWriter:
         self.arrow_schema = self._with_hf_features(self.definition.arrow)
         self._buffer: dict[str, list] = {name: [] for name in self.definition.names}
         self._new_files: list[str] = []
+        self._entries: dict[str, dict] = {}  # shard name -> its state.json entry
         self.rows_written = 0
         self.first_episode_id = 0
 
@@ -81,7 +123,9 @@ class TrajectoryWriter:
             if not _is_dataset(self.out):
                 raise OutputExistsError(f"{self.out} holds files but no illm trajectory dataset: choose another --out")
             open_table(self.out, columns=["episode_id"])  # refuses another kind or version
-            self._old_files = _shard_files(self.out)
+            old = _shard_entries(self.out)
+            self._old_files = [e["filename"] for e in old]
+            self._entries.update({e["filename"]: e for e in old})
             self.first_episode_id = self._next_episode_id()
             self.workdir = self.out
         else:
@@ -132,6 +176,10 @@ class TrajectoryWriter:
             writer.write_batch(batch)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        from illm_tools.cache.layout import sha256_file
+
+        self._entries[name] = {"filename": name, "illm_bytes": tmp.stat().st_size, "illm_sha256": sha256_file(tmp),
+                               "illm_rows": n}
         os.replace(tmp, self.workdir / name)
         self._new_files.append(name)
         self.rows_written += n
@@ -146,7 +194,7 @@ class TrajectoryWriter:
         features = datasets.Features.from_arrow_schema(self.arrow_schema)
         files = self._old_files + self._new_files
         state = {
-            "_data_files": [{"filename": f} for f in files],
+            "_data_files": [self._entries[f] for f in files],
             "_fingerprint": uuid.uuid4().hex[:16],
             "_format_columns": None,
             "_format_kwargs": {},
@@ -195,10 +243,9 @@ def open_table(path: str | Path, columns: list[str] | None = None) -> pa.Table:
     if not _is_dataset(root):
         raise UsageError(f"no trajectory dataset at {root}: run `illm collect --out {root}` first")
     tables = []
-    for name in _shard_files(root):
-        with pa.memory_map(str(root / name)) as source:
-            table = pa.ipc.open_stream(source).read_all()
-        schema_check.check(table.schema, KIND, root / name)
+    for entry in _shard_entries(root):
+        table = _read_shard(root, entry)
+        schema_check.check(table.schema, KIND, root / entry["filename"])
         tables.append(table.select(columns) if columns else table)
     if not tables:
         return schemas.load(KIND).arrow.empty_table()
@@ -206,14 +253,20 @@ def open_table(path: str | Path, columns: list[str] | None = None) -> pa.Table:
 
 
 def info(path: str | Path) -> dict:
-    """Rows, episodes, env ids, schema version and size of a trajectory dataset."""
+    """Rows, episodes, env ids, schema version and size of a trajectory dataset. Also checks
+    dataset_info.json, which illm does not need but `datasets.load_from_disk` does."""
     root = Path(path)
+    if _is_dataset(root):
+        try:
+            json.loads((root / INFO).read_text())["features"]
+        except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError) as e:
+            raise DamagedFileError(f"{root / INFO} is missing or damaged ({type(e).__name__}); illm can still read "
+                                   f"the data, `datasets.load_from_disk` cannot: {_recollect(root)}") from None
     table = open_table(root, columns=["episode_id", "env_id", "policy", "terminated", "reward"])
     files = _shard_files(root)
     kind, version = KIND, None
     if files:
-        with pa.memory_map(str(root / files[0])) as source:
-            _, version = schema_check.kind_and_version(pa.ipc.open_stream(source).schema)
+        _, version = schema_check.kind_and_version(_read_shard(root, _shard_entries(root)[0]).schema)
     ends = table.filter(table["terminated"]) if table.num_rows else table
     successes = int(pc.sum(pc.greater(ends["reward"], 0)).as_py() or 0) if ends.num_rows else 0
     return {

@@ -6,8 +6,14 @@ bitsandbytes quantisation options, and the tokenizer conventions the rest of `ll
 (`LoadedModel.encode`: the tokenizer's leading special tokens, never trailing ones).
 
 Cache layout, under `cache_dir` or `$ILLM_CACHE_DIR` or `~/.cache/illm`:
-    models/<alias>-<sha256[:12]>/   de-quantised weights + tokenizer (complete or absent)
+    models/<alias>-<sha256[:12]>/   de-quantised weights + tokenizer (complete or absent);
+                                    illm_source.json records the sha256 of each file written
     hashes/<key>.json               sha256 of a big file, keyed by path + size + mtime
+
+The annotation keys name the GGUF's hash, not the de-quantised files', so a damaged file there
+would give wrong answers under the right keys: `load_model` checks the files against
+illm_source.json (hashes memoised by path, size and mtime, so a file is read again only after it
+changed) and refuses a damaged entry in one line that says to delete it.
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from illm_tools.errors import UsageError
+from illm_tools.errors import DamagedFileError, UsageError
 from illm_tools.llm.registry import ModelSpec, locate, resolve
 
 log = logging.getLogger(__name__)
@@ -79,13 +85,17 @@ def _write_json_atomic(path: Path, payload: dict) -> None:
     os.replace(tmp, path)
 
 
+def _memo(path: Path, root: Path) -> tuple[Path, dict]:
+    """The memo file of a file's hash and the identity (path, size, mtime) it is valid for."""
+    st = path.stat()
+    key = hashlib.sha256(str(path).encode()).hexdigest()[:24]
+    return root / "hashes" / f"{key}.json", {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
 def file_sha256(path: str | os.PathLike, root: Path) -> str:
     """sha256 of a file, hashed once and memoised under `root/hashes` by path + size + mtime."""
     path = Path(path).resolve()
-    st = path.stat()
-    key = hashlib.sha256(str(path).encode()).hexdigest()[:24]
-    memo = root / "hashes" / f"{key}.json"
-    ident = {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    memo, ident = _memo(path, root)
     if memo.is_file():
         try:
             saved = json.loads(memo.read_text())
@@ -93,12 +103,42 @@ def file_sha256(path: str | os.PathLike, root: Path) -> str:
                 return saved["sha256"]
         except (ValueError, KeyError):
             log.warning("ignoring unreadable hash memo %s", memo)
+    digest = _sha256(path)
+    _write_json_atomic(memo, {**ident, "sha256": digest})
+    return digest
+
+
+def _sha256(path: Path) -> str:
     digest = hashlib.sha256()
     with path.open("rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             digest.update(block)
-    _write_json_atomic(memo, {**ident, "sha256": digest.hexdigest()})
     return digest.hexdigest()
+
+
+SOURCE = "illm_source.json"
+
+
+def _damaged(folder: Path, what: str) -> DamagedFileError:
+    return DamagedFileError(f"model cache entry {folder} is damaged ({what}): delete it (`rm -r {folder}`) and "
+                            "illm rebuilds it from the GGUF on the next run")
+
+
+def check_model_folder(folder: Path, root: Path) -> None:
+    """Refuse a de-quantised model folder whose files differ from what illm wrote there
+    (folders written before the hashes were recorded are not checked)."""
+    try:
+        files = json.loads((folder / SOURCE).read_text()).get("files")
+    except (OSError, ValueError, AttributeError) as e:
+        raise _damaged(folder, f"{SOURCE} unreadable: {type(e).__name__}") from None
+    if files is None:
+        return
+    for name, digest in files.items():
+        path = folder / name
+        if not path.is_file():
+            raise _damaged(folder, f"{name} is missing")
+        if file_sha256(path, root) != digest:
+            raise _damaged(folder, f"{name} differs from when it was written")
 
 
 def folder_sha256(folder: Path, root: Path) -> str:
@@ -173,11 +213,15 @@ def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
         model.save_pretrained(tmp)
         tokenizer.save_pretrained(tmp)
         shutil.rmtree(tmp / "gguf", ignore_errors=True)
-        _write_json_atomic(tmp / "illm_source.json",
-                           {"model_id": spec.model_id, "gguf_sha256": sha, "gguf_file": spec.gguf_file})
+        files = {p.name: _sha256(p) for p in sorted(tmp.iterdir()) if p.is_file()}
+        _write_json_atomic(tmp / SOURCE, {"model_id": spec.model_id, "gguf_sha256": sha, "gguf_file": spec.gguf_file,
+                                          "files": files})
         _fsync_tree(tmp)
         try:
             os.rename(tmp, target)
+            for name, digest in files.items():  # a rename keeps size and mtime: the hashes stay valid
+                memo, ident = _memo((target / name).resolve(), root)
+                _write_json_atomic(memo, {**ident, "sha256": digest})
         except OSError:  # another process finished first; its folder is as good as ours
             if not (target / "config.json").is_file():
                 raise
@@ -274,7 +318,11 @@ def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
     """Load an alias, hub id (from the HF cache, offline) or local folder for inference."""
     dtype, quant = _normalise(dtype, quant)
     spec = resolve(name)
-    folder, fingerprint = _folder_and_fingerprint(spec, dtype, quant, cache_root(cache_dir))
+    root = cache_root(cache_dir)
+    folder, fingerprint = _folder_and_fingerprint(spec, dtype, quant, root)
+    cached = spec.source == "gguf-package"
+    if cached:
+        check_model_folder(folder, root)
     import torch
     from transformers import AutoModelForCausalLM, AutoTokenizer, BitsAndBytesConfig
 
@@ -285,12 +333,18 @@ def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
             load_in_4bit=quant == "4bit", load_in_8bit=quant == "8bit",
             bnb_4bit_compute_dtype=torch_dtype)
         kwargs["device_map"] = device
-    with _quiet_transformers():
-        model = AutoModelForCausalLM.from_pretrained(folder, **kwargs)
+    try:
+        with _quiet_transformers():
+            model = AutoModelForCausalLM.from_pretrained(folder, **kwargs)
+            tokenizer = AutoTokenizer.from_pretrained(folder)
+    except (OSError, ValueError, RuntimeError, KeyError) as e:  # safetensors' and json's errors among them
+        if cached:
+            raise _damaged(folder, f"{type(e).__name__} while loading") from None
+        raise DamagedFileError(f"the model folder {folder} cannot be loaded ({type(e).__name__}: "
+                               f"{str(e).splitlines()[0][:100] if str(e) else ''}): check or replace its files") from None
     if quant == "none":
         model.to(device)
     model.eval().requires_grad_(False)
-    tokenizer = AutoTokenizer.from_pretrained(folder)
     bos_ids = _prepare_tokenizer(tokenizer)
     hidden = model.config.get_text_config().hidden_size
     return LoadedModel(spec.alias, model, tokenizer, fingerprint, int(hidden), spec,

@@ -32,13 +32,40 @@ class Curve:
     """Mean share of rollout steps found in the cache before the live fallback."""
 
 
+def read_metrics_csv(path: Path) -> list[dict]:
+    """metrics.csv's rows, refusing (one line naming the line) a file cut short, a row with missing
+    or extra fields, or numbers that do not parse: what a damaged or hand-edited file shows."""
+    from illm_tools.errors import DamagedFileError
+
+    with open(path, "rb") as fh:
+        size = fh.seek(0, 2)
+        fh.seek(max(size - 1, 0))
+        if size and fh.read(1) != b"\n":  # the trainer ends every row with one
+            raise DamagedFileError(f"{path} is cut short (its last row has no line end): the run's metrics.jsonl "
+                                   "holds the same rows; restore metrics.csv from a copy")
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        rows = []
+        for row in reader:
+            try:
+                if None in row or any(v is None for v in row.values()):
+                    raise ValueError("wrong number of fields")
+                int(row["global_step"]), float(row["episodes"] or 0), float(row["success_rate"] or 0)
+                for name in ("target_coverage", "cache_hit_rate"):
+                    float(row.get(name) or 0)
+            except (ValueError, KeyError) as e:
+                raise DamagedFileError(f"{path} line {reader.line_num} is damaged ({e}): the run's metrics.jsonl "
+                                       "holds the same rows; restore metrics.csv from a copy") from None
+            rows.append(row)
+    return rows
+
+
 def load_curve(run_dir: Path, every: int) -> Curve:
     cfg_path, csv_path = run_dir / "config.json", run_dir / "metrics.csv"
     if not cfg_path.is_file() or not csv_path.is_file():
         raise UsageError(f"{run_dir} is not a training run (no config.json / metrics.csv): pass folders of `illm train`")
     cfg = json.loads(cfg_path.read_text())
-    with open(csv_path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
+    rows = read_metrics_csv(csv_path)
     steps = np.array([int(r["global_step"]) for r in rows])
     eps = np.array([float(r["episodes"] or 0) for r in rows])
     succ = np.array([float(r["success_rate"]) if r["success_rate"] else 0.0 for r in rows])

@@ -1,0 +1,153 @@
+"""Damaged files: every file kind illm reads back, cut short or with a flipped bit at random
+offsets, gives one line naming it (a typed error; on the CLI exit code 1, no traceback) or a
+verified recovery, and never silently other data; nothing on disk is overwritten."""
+
+from __future__ import annotations
+
+import json
+import random
+import shutil
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cli.main import app
+from illm_tools.cache.store import AnnotationCache
+from illm_tools.data.trajectories import TrajectoryWriter, open_table
+from illm_tools.errors import CacheError, DamagedFileError, IllmError
+from test_trajectories import rows
+
+runner = CliRunner()
+OFFSETS = 6  # random offsets tried per file and damage kind (seeded)
+
+
+def truncate(path, rng: random.Random) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[:rng.randrange(len(data))])
+
+
+def flip(path, rng: random.Random) -> None:
+    data = bytearray(path.read_bytes())
+    at = rng.randrange(len(data))
+    data[at] ^= 1 << rng.randrange(8)
+    path.write_bytes(bytes(data))
+
+
+def damaged_copies(src, tmp_path, name: str):
+    """(damage kind, folder) copies of `src` with file `name` damaged at random offsets."""
+    rng = random.Random(f"{name}")
+    for kind, damage in (("truncated", truncate), ("bit flip", flip)):
+        for i in range(OFFSETS):
+            dst = tmp_path / f"{name.replace('/', '_')}-{kind.replace(' ', '_')}-{i}"
+            shutil.copytree(src, dst)
+            damage(dst / name, rng)
+            yield kind, dst
+
+
+@pytest.fixture()
+def trajectories(tmp_path):
+    out = tmp_path / "traj"
+    with TrajectoryWriter(out, shard_rows=6) as w:
+        w.add(rows(10, 0))
+        w.add(rows(5, 1))
+    return out
+
+
+def test_a_damaged_trajectory_shard_or_state_is_refused_never_read_as_other_data(trajectories, tmp_path):
+    shard = json.loads((trajectories / "state.json").read_text())["_data_files"][0]["filename"]
+    intact = open_table(trajectories)
+    for name in (shard, "state.json"):
+        for kind, folder in damaged_copies(trajectories, tmp_path, name):
+            try:
+                table = open_table(folder)
+            except IllmError as e:
+                assert name in str(e) and ("re-collect" in str(e) or "illm collect" in str(e)), (kind, str(e))
+                continue
+            assert table.equals(intact), f"{kind} of {name} was read as other data"  # e.g. whitespace in JSON
+
+
+def test_data_info_and_annotate_give_one_line_for_a_damaged_dataset(trajectories, tmp_path):
+    shard = json.loads((trajectories / "state.json").read_text())["_data_files"][1]["filename"]
+    truncate(trajectories / shard, random.Random(0))
+    out = runner.invoke(app, ["data", "info", str(trajectories)])
+    assert out.exit_code == 1 and "Traceback" not in out.output
+    assert out.output.count("\n") == 1 and shard in out.output and "damaged" in out.output
+    cache = tmp_path / "ann"
+    out = runner.invoke(app, ["annotate", str(trajectories), "--cache", str(cache), "--model", "smollm2-135m"])
+    assert out.exit_code == 1 and "Traceback" not in out.output and shard in out.output
+    assert not cache.exists()  # nothing written
+
+
+def test_damaged_dataset_info_is_named_by_data_info(trajectories):
+    (trajectories / "dataset_info.json").write_text('{"citation": "", "feat')
+    out = runner.invoke(app, ["data", "info", str(trajectories)])
+    assert out.exit_code == 1 and "dataset_info.json" in out.output and "Traceback" not in out.output
+    assert open_table(trajectories).num_rows == 15  # illm itself does not need it
+
+
+def _cache(tmp_path):
+    cache = AnnotationCache(tmp_path / "ann")
+    for part in range(2):
+        cache.write([{"key": f"{'%064x' % (part * 10 + i)}", "task": "summary", "template_version": 1,
+                      "renderer": "r@1", "model": "m", "model_fingerprint": "f", "decoding": "{}", "history_len": 0,
+                      "goal": "g", "history": "h", "observation": "o", "prompt": "p", "candidates": None,
+                      "cand_token_logprobs": None, "cand_logprob_sum": None, "cand_token_count": None,
+                      "neutral_logprob_sum": None, "chosen_index": None, "text": "t",
+                      "embedding": [float(i), 1.0], "embedding_dim": 2, "created_unix": 0.0} for i in range(4)])
+    return cache.root
+
+
+def test_a_damaged_cache_shard_or_manifest_is_refused_never_read_as_other_data(tmp_path):
+    from illm_tools.cache.verify import verify
+
+    root = _cache(tmp_path)
+    keys = ["%064x" % k for k in (0, 1, 2, 3, 10, 11, 12, 13)]
+    intact = AnnotationCache(root).get_columns(keys, ["embedding"])["embedding"]
+    manifest = json.loads((root / "manifest.json").read_text())
+    for name in (manifest["shards"][0]["name"], "manifest.json"):
+        for kind, folder in damaged_copies(root, tmp_path, name):
+            try:
+                got = AnnotationCache(folder).get_columns(keys, ["embedding"])["embedding"]
+            except (CacheError, IllmError) as e:
+                assert str(e).strip() and "\n" not in str(e).strip(), (kind, str(e))
+                continue
+            assert np.array_equal(got, intact, equal_nan=True), f"{kind} of {name} was read as other data"
+            assert verify(folder).ok or name == "manifest.json"
+
+
+@pytest.mark.slow
+def test_a_damaged_model_cache_entry_is_refused_saying_to_delete_it(smollm2_cache, tmp_path):
+    from illm_tools.llm.loading import load_model
+
+    load_model("smollm2-135m", dtype="float32", cache_dir=smollm2_cache)  # de-quantised once per session
+    (entry,) = (smollm2_cache / "models").iterdir()
+    rng = random.Random(0)
+    for name, damage in (("model.safetensors", flip), ("config.json", truncate), ("illm_source.json", truncate)):
+        root = tmp_path / name
+        shutil.copytree(entry, root / "models" / entry.name)
+        damage(root / "models" / entry.name / name, rng)
+        with pytest.raises(DamagedFileError, match=f"{entry.name} is damaged.*rm -r"):
+            load_model("smollm2-135m", dtype="float32", cache_dir=root)
+
+
+def test_a_damaged_metrics_csv_is_refused_by_report_naming_the_line(tmp_path):
+    from test_report import fake_run
+
+    run = tmp_path / "run"
+    fake_run(run, 0, [(50 * i, 0.5, 1) for i in range(1, 9)])
+    intact = runner.invoke(app, ["report", str(run), "--every", "100", "--json"])
+    assert intact.exit_code == 0
+    rng = random.Random(1)
+    for i in range(OFFSETS):
+        copy = tmp_path / f"copy{i}"
+        shutil.copytree(run, copy)
+        text = (copy / "metrics.csv").read_text()
+        header = len(text.splitlines()[0]) + 1
+        (copy / "metrics.csv").write_text(text[:rng.randrange(header + 1, len(text) - 1)])  # cut inside the rows
+        out = runner.invoke(app, ["report", str(copy), "--every", "100", "--json"])
+        if out.exit_code == 0:  # cut at a line end: a shorter run, whose rows are the intact ones
+            assert json.loads(out.output)[0]["frames"] == json.loads(intact.output)[0]["frames"][:len(
+                json.loads(out.output)[0]["frames"])]
+            continue
+        assert out.exit_code == 1 and "metrics.csv" in out.output and "Traceback" not in out.output
