@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import progress
+from cli.common import progress, stop_on_signals
 from cli.errors import friendly
 
 
@@ -33,7 +33,8 @@ def register(app: typer.Typer) -> None:
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()),
                                 history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
                                 dtype=dtype, quant=quant)
-        with progress(0, f"annotate {model}", unit="states") as advance:
+        with stop_on_signals("the chunk in progress (written whole)") as stop, \
+                progress(0, f"annotate {model}", unit="states") as advance:
             def on_plan(stats, todo: int) -> None:
                 typer.echo(f"{stats.states:,} states selected (most visited first), {stats.keys:,} keys: "
                            f"{stats.hits:,} cached, {stats.misses:,} to annotate", err=True)
@@ -42,14 +43,16 @@ def register(app: typer.Typer) -> None:
             def on_progress(n: int, stats) -> None:
                 advance(n, stats.states_per_s, hits=stats.hits, misses=stats.misses)
 
-            result = annotate_dataset(config, on_progress=on_progress, on_plan=on_plan)
+            result = annotate_dataset(config, on_progress=on_progress, on_plan=on_plan,
+                                      should_stop=lambda: stop.requested)
         stats = result.stats
         summary = f", summaries {stats.mean_summary_tokens:.1f} tokens on average" if stats.summaries else ""
         typer.echo(
             f"annotated {stats.annotated_states:,} states ({stats.rows:,} rows: "
             + ", ".join(f"{k} {v:,}" for k, v in sorted(stats.per_task.items()))
             + f") in {stats.seconds:.1f}s, {stats.states_per_s:.2f} states/s{summary}"
-            + ("; stopped at --max-minutes, run again to go on" if stats.stopped_early else "")
+            + ("" if not stats.stopped_early else "; stopped by a signal, run again to go on" if stop.requested
+               else "; stopped at --max-minutes, run again to go on")
         )
         if config.limit is not None:
             typer.echo(f"the {result.selected_states:,} most visited states cover {result.selected_step_share:.0%} "
@@ -59,3 +62,5 @@ def register(app: typer.Typer) -> None:
                    f"{result.dataset_steps:,} steps -> {cache}")
         typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
                    f"{config.data} --cache {cache} --history {config.history}` estimates how many")
+        if stop.requested and stats.stopped_early:
+            raise typer.Exit(stop.exit_code)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import signal
 import sys
+from collections.abc import Iterator
 from contextlib import contextmanager
 
 import typer
@@ -45,3 +47,46 @@ def progress(total: int, description: str, unit: str = "steps"):
             bar.update(task, advance=n, rate=f"{rate:,.2f} {unit}/s" if rate is not None else "", extra=extra)
 
         yield advance
+
+
+class Stop:
+    """What `stop_on_signals` yields: `requested` turns true at the first SIGINT or SIGTERM, and
+    `exit_code` is the shell's code for that signal (130 or 143)."""
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+
+    @property
+    def requested(self) -> bool:
+        return self.signal is not None
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + int(self.signal or 0)
+
+
+@contextmanager
+def stop_on_signals(what: str) -> Iterator[Stop]:
+    """The first SIGINT or SIGTERM asks the work to stop at its next safe point (`what` it finishes,
+    said in one line); a second one stops at once (KeyboardInterrupt, or exit 143 for SIGTERM:
+    the files stay consistent because every write is atomic). Handlers are restored on exit."""
+    stop = Stop()
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum, _frame) -> None:
+        if stop.requested:
+            for s, h in previous.items():
+                signal.signal(s, h)
+            if signum == signal.SIGTERM:
+                raise SystemExit(128 + signum)
+            raise KeyboardInterrupt
+        stop.signal = signum
+        print(f"{signal.Signals(signum).name}: finishing {what}; a second signal stops at once", file=sys.stderr)
+
+    for s in previous:
+        signal.signal(s, handler)
+    try:
+        yield stop
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)

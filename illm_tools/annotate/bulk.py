@@ -77,9 +77,11 @@ class AnnotateResult:
 
 
 def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats], None] | None = None,
-                     on_plan: Callable[[Stats, int], None] | None = None) -> AnnotateResult:
+                     on_plan: Callable[[Stats, int], None] | None = None,
+                     should_stop: Callable[[], bool] | None = None) -> AnnotateResult:
     """Count the dataset's distinct states, most visited first; plan the `limit` most visited that
-    the cache lacks (`on_plan(stats, states_to_do)`); annotate them; report the coverage."""
+    the cache lacks (`on_plan(stats, states_to_do)`); annotate them, stopping between chunks once
+    `max_minutes` have passed or `should_stop()` says so; report the coverage."""
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.data.trajectories import open_table
     from illm_tools.llm.loading import load_model
@@ -101,7 +103,7 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     if on_plan is not None:
         on_plan(stats, len(plan))
     max_seconds = None if config.max_minutes is None else 60.0 * config.max_minutes
-    annotator.run(plan, stats=stats, on_progress=on_progress, max_seconds=max_seconds)
+    annotator.run(plan, stats=stats, on_progress=on_progress, max_seconds=max_seconds, should_stop=should_stop)
     covered = visited.covered(cache)
     return AnnotateResult(stats, len(visited), visited.total_steps, len(selected),
                           selected.total_steps / max(visited.total_steps, 1), int(covered.sum()),
