@@ -62,8 +62,9 @@ def verify(
             typer.echo(f"  DAMAGED  {problem}")
         for orphan in report.orphans:
             typer.echo(f"  orphan   {orphan} (from an interrupted write; `illm cache repair` adopts or removes it)")
-        typer.echo("ok" if report.ok else "damaged: restore the named shards from a copy, or remove them from "
-                   "manifest.json and annotate again")
+        typer.echo("ok" if report.ok else f"damaged: run `illm cache repair {path} --drop-damaged` (moves the damaged "
+                   "files to damaged/ and drops them from the manifest; annotating again redoes their entries), or "
+                   "restore them from a copy")
     if not report.ok:
         raise typer.Exit(1)
 
@@ -82,13 +83,39 @@ def merge(
                f"{report.rows_skipped:,} already present, {len(report.shards_written)} new shards")
 
 
-@app.command("repair", epilog="Example: illm cache repair data/ann")
+@app.command("repair", epilog="Example: illm cache repair data/ann --drop-damaged")
 @friendly
-def repair(path: Path = typer.Argument(..., help="Annotation cache folder.")) -> None:
-    """Adopt complete shards left unlisted by an interrupted write; remove temp files."""
+def repair(
+    path: Path = typer.Argument(..., help="Annotation cache folder."),
+    drop_damaged: bool = typer.Option(False, "--drop-damaged", help="Also drop shards that fail verification (their "
+                                      "files move to damaged/; annotating again redoes their entries)."),
+) -> None:
+    """Adopt complete shards left unlisted by an interrupted write, remove temp files; with
+    --drop-damaged, first take damaged shards (or an unreadable manifest) out of the cache."""
     from illm_tools.cache.store import AnnotationCache
+    from illm_tools.cache.verify import DAMAGED_DIR
+    from illm_tools.cache.verify import drop_damaged as drop
+    from illm_tools.cache.verify import verify as check
+    from illm_tools.errors import CacheError
 
+    found = check(path)
+    if found.problems and not drop_damaged:
+        raise CacheError(f"{len(found.problems)} problem(s), first: {found.problems[0]}; run `illm cache repair {path} "
+                         "--drop-damaged` to take the damaged files out (kept in damaged/), or restore them from a copy")
+    if drop_damaged:
+        dropped = drop(path)
+        if dropped.manifest_rebuilt:
+            typer.echo(f"{path}: the manifest was unreadable: moved to {DAMAGED_DIR}/, every shard that reads back "
+                       "whole is listed again")
+        elif dropped.dropped:
+            typer.echo(f"{path}: dropped {len(dropped.dropped)} damaged shards ({dropped.rows_lost:,} entries, to be "
+                       f"annotated again), files moved to {DAMAGED_DIR}/: {', '.join(dropped.dropped)}")
     report = AnnotationCache(path).adopt_orphans()
     typer.echo(f"{path}: adopted {len(report.adopted)}, rewrote {len(report.rewritten)}, removed "
                f"{len(report.removed)} redundant, rejected {len(report.rejected)}, "
                f"{len(report.temp_removed)} temp files removed")
+    final = check(path)
+    typer.echo(f"{path}: {final.rows:,} rows in {final.shards} shards; " + ("ok" if final.ok else "still damaged: "
+               + final.problems[0]))
+    if not final.ok:
+        raise typer.Exit(1)

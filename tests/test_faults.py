@@ -209,3 +209,35 @@ def test_sigterm_during_annotate_keeps_whole_chunks_and_a_rerun_finishes_the_sam
     a = done.get_columns(keys, ["embedding", "cand_logprob_sum"])
     b = reference.get_columns(keys, ["embedding", "cand_logprob_sum"])
     assert np.allclose(a["embedding"], b["embedding"], equal_nan=True) and a["cand_logprob_sum"] == b["cand_logprob_sum"]
+
+
+def test_cache_verify_and_repair_agree_on_one_path_to_a_usable_cache(tmp_path):
+    root = _cache(tmp_path)
+    shards = [s["name"] for s in json.loads((root / "manifest.json").read_text())["shards"]]
+    flip(root / shards[0], random.Random(3))
+    out = runner.invoke(app, ["cache", "verify", str(root)])
+    assert out.exit_code == 1 and f"illm cache repair {root} --drop-damaged" in out.output
+    out = runner.invoke(app, ["cache", "repair", str(root)])
+    assert out.exit_code == 1 and "--drop-damaged" in out.output and "Traceback" not in out.output
+    assert (root / shards[0]).is_file()  # nothing moved without the flag
+    out = runner.invoke(app, ["cache", "repair", str(root), "--drop-damaged"])
+    assert out.exit_code == 0, out.output
+    assert f"dropped 1 damaged shards (4 entries" in out.output and out.output.rstrip().endswith("ok")
+    assert (root / "damaged" / shards[0]).is_file() and not (root / shards[0]).exists()
+    cache = AnnotationCache(root)
+    assert len(cache) == 4 and cache.contains(["%064x" % 10]).all()
+    assert runner.invoke(app, ["cache", "verify", str(root)]).exit_code == 0
+
+
+def test_repair_rebuilds_an_unreadable_manifest_from_the_shards(tmp_path):
+    root = _cache(tmp_path)
+    keys = ["%064x" % k for k in (0, 1, 2, 3, 10, 11, 12, 13)]
+    intact = AnnotationCache(root).get_columns(keys, ["embedding"])["embedding"]
+    truncate(root / "manifest.json", random.Random(4))
+    out = runner.invoke(app, ["cache", "info", str(root)])
+    assert out.exit_code == 1 and "Traceback" not in out.output
+    out = runner.invoke(app, ["cache", "repair", str(root), "--drop-damaged"])
+    assert out.exit_code == 0, out.output
+    assert "manifest was unreadable" in out.output and "adopted 2" in out.output
+    assert np.array_equal(AnnotationCache(root).get_columns(keys, ["embedding"])["embedding"], intact)
+    assert list((root / "damaged").iterdir())[0].name.startswith("manifest.json.")

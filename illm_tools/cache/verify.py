@@ -1,4 +1,5 @@
-"""Whole-cache checks and merges: ``verify`` (behind `illm cache verify`) and ``merge``.
+"""Whole-cache checks, repairs and merges: ``verify`` (behind `illm cache verify`), ``drop_damaged``
+(`illm cache repair --drop-damaged`) and ``merge``.
 
 ``verify`` reads every file and reports every problem it finds instead of stopping at the first;
 ``merge`` copies what a target lacks from verified sources through the target's ordinary atomic
@@ -8,6 +9,7 @@ write path, so a merge interrupted at any point leaves the target valid.
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -107,6 +109,59 @@ def _check_shard(root: Path, entry: dict, index: KeyIndex) -> str | None:
     if not new.all():
         return f"shard {name}: {int((~new).sum())} keys duplicate keys of earlier rows"
     return None
+
+
+DAMAGED_DIR = "damaged"
+"""Where `drop_damaged` moves the files it takes out of a cache (kept, never deleted)."""
+
+
+@dataclass
+class DropReport:
+    """Outcome of ``drop_damaged``: shards taken out of the manifest (their files moved to
+    ``damaged/``), the rows they listed, and whether the manifest itself had to be rebuilt."""
+
+    dropped: list[str] = field(default_factory=list)
+    rows_lost: int = 0
+    manifest_rebuilt: bool = False
+
+
+def drop_damaged(root: str | os.PathLike) -> DropReport:
+    """Make a damaged cache usable again, losing only what is damaged: every listed shard that
+    fails ``verify``'s checks is dropped from the manifest and its file moved to ``damaged/``. An
+    unreadable manifest is moved there too and an empty one started, so that ``adopt_orphans``
+    (run next by `illm cache repair`) lists every shard that reads back whole. The entries lost
+    are annotated again by the next `illm annotate` or live fallback."""
+    root = Path(root)
+    report = DropReport()
+    if not (root / layout.MANIFEST).is_file():
+        raise UsageError(f"no annotation cache at {root}: nothing to repair")
+    aside = root / DAMAGED_DIR
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    with layout.locked(root):
+        try:
+            manifest = layout.read_manifest(root)
+        except (CacheError, SchemaError):
+            aside.mkdir(exist_ok=True)
+            os.replace(root / layout.MANIFEST, aside / f"{layout.MANIFEST}.{stamp}")
+            layout.write_manifest(root, layout.empty_manifest())
+            report.manifest_rebuilt = True
+            return report
+        index = KeyIndex()
+        keep = []
+        for entry in manifest["shards"]:
+            if _check_shard(root, entry, index) is None:
+                keep.append(entry)
+                continue
+            name = entry.get("name") if isinstance(entry, dict) else None
+            report.dropped.append(str(name))
+            report.rows_lost += int(entry.get("rows", 0)) if isinstance(entry, dict) else 0
+            if isinstance(name, str) and (root / name).is_file():
+                aside.mkdir(exist_ok=True)
+                os.replace(root / name, aside / name)
+        if report.dropped:
+            manifest["shards"] = keep
+            layout.write_manifest(root, manifest)
+    return report
 
 
 def merge(sources: list[str | os.PathLike], into: str | os.PathLike) -> MergeReport:
