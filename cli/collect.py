@@ -26,6 +26,7 @@ def register(app: typer.Typer) -> None:
         no_raw: bool = typer.Option(False, "--no-raw", help="Do not store raw observation arrays."),
         append: bool = typer.Option(False, "--append", help="Add to an existing dataset at --out."),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace the dataset at --out (only once the new one is complete)."),
+        mix_envs: bool = typer.Option(False, "--mix-envs", help="With --append: allow adding another env's steps to the dataset."),
     ) -> None:
         """Collect trajectories with a policy into an Arrow dataset (one row per step)."""
         from illm_tools.collect import CollectConfig
@@ -33,7 +34,7 @@ def register(app: typer.Typer) -> None:
 
         config = CollectConfig(env_id=env, out=out, steps=steps, num_envs=num_envs, seed=seed, policy=policy,
                                action_space=action_space, num_dists=num_dists, save_raw=not no_raw,
-                               mode=write_mode(append, overwrite))
+                               mode=write_mode(append, overwrite), mix_envs=mix_envs)
         start = time.perf_counter()
         with progress(steps, f"collect {env}") as advance:
             done = [0]

@@ -27,7 +27,9 @@ def info(
         return
     typer.echo(f"{stats['path']}: {stats['kind']} dataset, schema v{stats['schema_version']}")
     typer.echo(f"  rows        {stats['rows']:,}")
-    typer.echo(f"  episodes    {stats['episodes']:,} ({stats['successful_episodes']:,} successful)")
+    typer.echo(f"  episodes    {stats['episodes']:,}: {stats['finished_episodes']:,} finished "
+               f"({stats['successful_episodes']:,} successful), "
+               f"{stats['episodes'] - stats['finished_episodes']:,} cut off by the end of collection")
     typer.echo(f"  env ids     {', '.join(stats['env_ids'])}")
     typer.echo(f"  policies    {', '.join(stats['policies'])}")
     typer.echo(f"  shards      {stats['shards']} ({stats['bytes'] / 1e6:.1f} MB)")

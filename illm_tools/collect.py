@@ -42,6 +42,8 @@ class CollectConfig:
     """Store the raw observation array beside its text (needed by the Hopfield path)."""
     mode: str = "new"
     """new: refuse a folder that holds data; append: add to it; overwrite: replace it once done."""
+    mix_envs: bool = False
+    """With mode append: allow adding steps of an env the dataset does not hold yet."""
     shard_rows: int = 50_000
     """Rows per Arrow shard."""
     env_options: dict = field(default_factory=dict)
@@ -89,21 +91,36 @@ def resolved_action_space(config: CollectConfig) -> str:
     return json.loads(run_config.read_text()).get("action_space", "auto")
 
 
-def check_append_keeps_actions(config: CollectConfig, names: list[str]) -> None:
+def check_append(config: CollectConfig, names: list[str]) -> None:
     """Appending must keep the dataset's action list for this env (it is in every row and every
-    prompt): refuse, naming the list, when the resolved action space offers another one."""
+    prompt), must not log episodes it already holds again (the pool's episode seeds run up from
+    --seed), and adds another env only when asked (`mix_envs`). Each refusal is one line naming
+    what the dataset holds and the option that works."""
     from illm_tools.data.trajectories import open_table
 
     if config.mode != "append":
         return
     try:
-        table = open_table(config.out, columns=["env_id", "valid_actions"])
+        table = open_table(config.out, columns=["env_id", "valid_actions", "seed"])
     except UsageError:
         return  # nothing to append to yet (or not a dataset: the writer says so)
+    if not table.num_rows:
+        return
+    envs = sorted(pc.unique(table["env_id"]).to_pylist())
+    if config.env_id not in envs and not config.mix_envs:
+        raise UsageError(f"{config.out} holds steps of {', '.join(envs)}, not {config.env_id}: pass --mix-envs to "
+                         "add another env to it, or collect into another --out")
     rows = table.filter(pc.equal(table["env_id"], config.env_id))
-    if rows.num_rows and (old := rows["valid_actions"][0].as_py()) != names:
+    if not rows.num_rows:
+        return
+    if (old := rows["valid_actions"][0].as_py()) != names:
         raise UsageError(f"{config.out} holds {config.env_id} steps with the {len(old)} actions {old}; this run "
                          f"offers {names}: pass the --action-space the dataset was collected with")
+    lo, hi = pc.min(rows["seed"]).as_py(), pc.max(rows["seed"]).as_py()
+    if hi >= config.seed:
+        raise UsageError(f"{config.out} already holds {config.env_id} episodes with seeds {lo:,}–{hi:,}, and this "
+                         f"run's episodes take the seeds from {config.seed:,} up: pass --seed {hi + 1} (or higher) "
+                         "to add new episodes")
 
 
 def make_policy(config: CollectConfig, pool) -> Policy:
@@ -122,7 +139,7 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
     pool = EnvPool(config.env_id, config.num_envs, config.seed, action_space=resolved_action_space(config),
                    num_dists=config.num_dists, **config.env_options)
     names = list(pool.action_names)
-    check_append_keeps_actions(config, names)
+    check_append(config, names)
     policy = make_policy(config, pool)
     renderer = renderer_of(config.env_id)
     n = pool.num_envs

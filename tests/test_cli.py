@@ -65,8 +65,16 @@ def test_collect_refuses_existing_output_and_keeps_it(tmp_path):
     assert result.exit_code == 1
     assert "already holds data: pass --append" in result.output
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
-    assert runner.invoke(app, [*args, "--append"]).exit_code == 0
-    assert json.loads(runner.invoke(app, ["data", "info", str(out), "--json"]).output)["rows"] == 80
+    again = runner.invoke(app, [*args, "--append"])  # the same seeds would log the same episodes again
+    assert again.exit_code == 1 and "already holds BabyAI-GoToLocal-v0 episodes with seeds 0–" in again.output
+    hint = again.output.split("pass --seed ")[1].split()[0]
+    assert runner.invoke(app, [*args, "--append", "--seed", hint]).exit_code == 0
+    stats = json.loads(runner.invoke(app, ["data", "info", str(out), "--json"]).output)
+    assert stats["rows"] == 80 and stats["finished_episodes"] <= stats["episodes"]
+    other = runner.invoke(app, [*args[:2], "BabyAI-GoToObj-v0", *args[3:], "--append", "--seed", "1000"])
+    assert other.exit_code == 1 and "--mix-envs" in other.output
+    assert runner.invoke(app, [*args[:2], "BabyAI-GoToObj-v0", *args[3:], "--append", "--seed", "1000",
+                               "--mix-envs"]).exit_code == 0
     assert runner.invoke(app, [*args, "--append", "--overwrite"]).exit_code != 0
 
 

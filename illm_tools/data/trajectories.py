@@ -262,7 +262,7 @@ def info(path: str | Path) -> dict:
         except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError) as e:
             raise DamagedFileError(f"{root / INFO} is missing or damaged ({type(e).__name__}); illm can still read "
                                    f"the data, `datasets.load_from_disk` cannot: {_recollect(root)}") from None
-    table = open_table(root, columns=["episode_id", "env_id", "policy", "terminated", "reward"])
+    table = open_table(root, columns=["episode_id", "env_id", "policy", "terminated", "truncated", "reward"])
     files = _shard_files(root)
     kind, version = KIND, None
     if files:
@@ -275,6 +275,8 @@ def info(path: str | Path) -> dict:
         "schema_version": version if version is not None else schemas.load(KIND).version,
         "rows": table.num_rows,
         "episodes": len(pc.unique(table["episode_id"])) if table.num_rows else 0,
+        "finished_episodes": len(pc.unique(table.filter(pc.or_(table["terminated"], table["truncated"]))["episode_id"]))
+        if table.num_rows else 0,
         "successful_episodes": successes,
         "env_ids": sorted(pc.unique(table["env_id"]).to_pylist()),
         "policies": sorted(pc.unique(table["policy"]).to_pylist()),
