@@ -23,13 +23,23 @@ def info(
     path: Path = typer.Argument(..., help="Annotation cache folder."),
     as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
 ) -> None:
-    """Entries per task and model, embedding dimension, shards and size."""
+    """Entries per task and model, embedding dimension, shards and size, and the setups the entries
+    belong to (model with dtype and quantisation, history length, layout, template, renderer)."""
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.errors import UsageError
 
     if not (path / "manifest.json").is_file():
         raise UsageError(f"no annotation cache at {path}: run `illm annotate DATA --cache {path}` first")
-    stats = AnnotationCache(path).info()
+    from illm_tools.llm.loading import model_options
+    from illm_tools.tasks.prompts import layouts_of
+
+    cache = AnnotationCache(path)
+    stats = cache.info()
+    stats["setups"] = [
+        {**{k: u[k] for k in ("task", "model", "model_fingerprint", "history_len", "template_version", "renderer",
+                              "decoding", "entries")},
+         "model_options": model_options(u["model"], u["model_fingerprint"]), "layouts": layouts_of(u["task"], u["prompt"])}
+        for u in sorted(cache.setups(), key=lambda u: (u["task"], -u["entries"]))]
     if as_json:
         emit_json(stats)
         return
@@ -41,6 +51,13 @@ def info(
         typer.echo(f"  task/model  {model}: {n:,}")
     typer.echo(f"  embeddings  dim {', '.join(map(str, stats['embedding_dims'])) or '-'}")
     typer.echo(f"  shards      {stats['shards']} ({stats['bytes'] / 1e6:.1f} MB)")
+    if stats["setups"]:
+        typer.echo("  setups (what `illm train` must be given to use them):")
+        typer.echo("    | task | model, dtype, quantisation | history | layout | template | renderer | entries |")
+        typer.echo("    |---|---|---|---|---|---|---|")
+        for u in stats["setups"]:
+            typer.echo(f"    | {u['task']} | {u['model_options']} | {u['history_len']} | {'/'.join(u['layouts']) or '?'} | "
+                       f"v{u['template_version']} | {u['renderer']} | {u['entries']:,} |")
 
 
 @app.command("verify", epilog="Example: illm cache verify data/ann")

@@ -128,6 +128,18 @@ def _builder(lm, history: int = 0) -> PromptBuilder:
                          model_fingerprint=fingerprint_hash(lm.fingerprint), history_len=history)
 
 
+def test_cache_info_names_each_setup_with_the_options_that_select_it(trajectories, tmp_path, tiny_lm):
+    cache = tmp_path / "ann"
+    annotate_dataset(config(trajectories, cache, tiny_lm, limit=3))
+    out = runner.invoke(app, ["cache", "info", str(cache), "--json"])
+    assert out.exit_code == 0, out.output
+    setups = json.loads(out.output)["setups"]
+    assert {u["task"] for u in setups} == {"action", "summary"} and all(u["entries"] == 3 for u in setups)
+    assert all(u["model_options"] == f"--model {tiny_lm.spec.path} --dtype float32 --quant none" for u in setups)
+    assert all(u["history_len"] == 0 and "shared" in u["layouts"] for u in setups)
+    assert "| action | --model" in runner.invoke(app, ["cache", "info", str(cache)]).output
+
+
 def test_sync_live_budget_goes_to_the_states_visited_most_over_the_run(tmp_path, tiny_lm):
     cache = AnnotationCache(tmp_path / "ann")
     annotator = Annotator(tiny_lm, cache, model=tiny_lm.spec.path, history_len=0, batch_size=4)

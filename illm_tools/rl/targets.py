@@ -120,25 +120,11 @@ _FLAGS = {"history_len": "--history", "layout": "--layout", "renderer": "rendere
           "decoding": "decoding"}
 
 
-def _model_setting(alias: str, fingerprint: str) -> str:
-    """`--model A --dtype D --quant Q` whose fingerprint is `fingerprint`, or the alias alone when
-    no dtype/quantisation of it matches (another revision or file) or it is not available here."""
-    from illm_tools.cache.keys import fingerprint_hash
-    from illm_tools.llm.loading import model_fingerprint
-
-    for dtype in ("bfloat16", "float32", "float16"):
-        for quant in ("none", "4bit", "8bit"):
-            try:
-                if fingerprint_hash(model_fingerprint(alias, dtype=dtype, quant=quant)) == fingerprint:
-                    return f"--model {alias} --dtype {dtype} --quant {quant}"
-            except Exception:  # noqa: BLE001 - a model not available here is only described by name
-                return f"--model {alias} (another file or revision)"
-    return f"--model {alias} (another file or revision)"
-
-
 def _describe(setup: dict, fields: list[str], model: str | None) -> str:
     """The differing settings of a setup as the flags that select them."""
-    return ", ".join((model or _model_setting(setup["model"], setup["model_fingerprint"]))
+    from illm_tools.llm.loading import model_options
+
+    return ", ".join((model or model_options(setup["model"], setup["model_fingerprint"]))
                      if f == "model_fingerprint" else f"{_FLAGS[f]} {setup[f]}" for f in fields)
 
 
