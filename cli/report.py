@@ -18,7 +18,9 @@ def register(app: typer.Typer) -> None:
         every: int = typer.Option(20_000, "--every", help="Frames per curve point (window of the success rate)."),
         as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
     ) -> None:
-        """Success rate against frames, mean ± std over seeds, one row per method (a markdown table)."""
+        """Success rate against frames, mean ± std over seeds, one row per configuration (a markdown
+        table), then what was grouped: runs are seeds of one row when their config.json agree on
+        everything that changes what is learned."""
         from illm_tools.report.curves import summarise
 
         groups = summarise([r for r in runs if r.is_dir()], every)
@@ -26,10 +28,17 @@ def register(app: typer.Typer) -> None:
             emit_json([{"env_id": env, "method": method, **g} for (env, method), g in groups.items()])
             return
         frames = max((g["frames"] for g in groups.values()), key=len, default=[])
-        typer.echo("| env | method | seeds | " + " | ".join(f"{f / 1000:.4g}k" for f in frames) + " | targets covered |")
+        typer.echo("| env | method | seeds | " + " | ".join(f"{f / 1000:.4g}k" for f in frames)
+                   + " | steps with a target |")
         typer.echo("|---" * (4 + len(frames)) + "|")
         for (env, method), g in groups.items():
-            cells = ["-" if m != m else f"{m:.2f} ± {s:.2f}" for m, s in zip(g["mean"], g["std"])]  # m != m: no episode
-            cells += [""] * (len(frames) - len(cells))
-            cover = f"{g['coverage']:.2f}" if method != "ppo" else "-"
+            by_frame = dict(zip(g["frames"], zip(g["mean"], g["std"])))
+            cells = ["-" if f not in by_frame or by_frame[f][0] != by_frame[f][0]  # nan: no episode ended there
+                     else f"{by_frame[f][0]:.2f} ± {by_frame[f][1]:.2f}" for f in frames]
+            cover = f"{g['coverage']:.1%}" if not method.startswith("ppo") else "-"
             typer.echo(f"| {env} | {method} | {len(g['seeds'])} | " + " | ".join(cells) + f" | {cover} |")
+        typer.echo("")
+        for (env, method), g in groups.items():
+            typer.echo(f"{env}, {method}: seeds {', '.join(map(str, g['seeds'])) or '-'} ({', '.join(g['runs']) or 'no run'})")
+            for run, last in g["short_runs"].items():
+                typer.echo(f"  {run} left out: trained for {last:,} frames, shorter than --every {every:,}")

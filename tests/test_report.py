@@ -33,14 +33,35 @@ def test_points_are_weighted_windows_aligned_by_frame(tmp_path):
 
 
 def test_runs_with_other_bonus_weights_are_reported_apart(tmp_path):
-    from illm_tools.report.curves import method_label
+    from illm_tools.report.curves import group_labels
 
-    assert method_label({"mode": "ppo", "ext_coef": 2.0}) == "ppo"
-    assert method_label({"mode": "illm", "lambda_a": 0.8, "ext_coef": 1.0}) == "illm"
-    assert method_label({"mode": "illm", "ext_coef": 2.0, "int_coef": 1.0}) == "illm (ext_coef 2)"
+    base = {"mode": "illm", "env_id": "E", "lambda_a": 0.8, "ext_coef": 1.0, "seed": 0, "run_dir": "a"}
+    assert group_labels([{**base, "mode": "ppo"}, base]) == ["ppo", "illm"]  # other methods are not compared
+    assert group_labels([base, {**base, "ext_coef": 2.0, "seed": 1, "run_dir": "b"}]) == \
+        ["illm (ext_coef 1)", "illm (ext_coef 2)"]
     fake_run(tmp_path / "a", 0, [(100, 1.0, 1)])
     fake_run(tmp_path / "b", 0, [(100, 0.0, 1)])
     cfg = json.loads((tmp_path / "b" / "config.json").read_text())
     (tmp_path / "b" / "config.json").write_text(json.dumps({**cfg, "ext_coef": 2.0}))
     groups = summarise([tmp_path / "a", tmp_path / "b"], every=100)
-    assert sorted(method for _, method in groups) == ["illm", "illm (ext_coef 2)"]
+    assert sorted(method for _, method in groups) == ["illm (ext_coef 2)", "illm (ext_coef None)"]
+
+
+def test_duplicate_seeds_are_refused_and_short_runs_are_named(tmp_path):
+    import pytest
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from illm_tools.errors import UsageError
+
+    fake_run(tmp_path / "a", 0, [(100, 1.0, 1)])
+    fake_run(tmp_path / "copy", 0, [(100, 1.0, 1)])
+    with pytest.raises(UsageError, match="same configuration with the same seed 0"):
+        summarise([tmp_path / "a", tmp_path / "copy"], every=100)
+    fake_run(tmp_path / "short", 1, [(50, 1.0, 1)])
+    out = CliRunner().invoke(app, ["report", str(tmp_path / "a"), str(tmp_path / "short"), "--every", "100"])
+    assert out.exit_code == 0, out.output
+    assert "short left out: trained for 50 frames, shorter than --every 100" in out.output
+    table = [line for line in out.output.splitlines() if line.startswith("|")]
+    assert len({line.count("|") for line in table}) == 1  # every row has the header's columns
+    assert "| 1 | 1.00 ± 0.00 | 50.0% |" in out.output

@@ -2,7 +2,14 @@
 
 Each run's `metrics.csv` gives, per update, the success rate of the episodes that finished in it
 and how many there were; a curve point at frame F is the episode-weighted success rate over the
-window (F - every, F]. Runs are grouped by the method (and env) in their config.json.
+window (F - every, F].
+
+Grouping. Runs are seeds of one configuration when their config.json agree on everything but the
+settings that do not change what is learned (`NOT_LEARNED`: seed, folders, threads, resume). A
+group is labelled by its env, its method, and the settings in which it differs from other runs of
+the same env and method ("illm (ext_coef 2)"), so runs of different configurations are never
+averaged as seeds; two runs of one configuration with the same seed are refused (a copied folder
+would count twice).
 """
 
 from __future__ import annotations
@@ -18,10 +25,15 @@ import numpy as np
 from illm_tools.errors import UsageError
 
 
+NOT_LEARNED = frozenset({"seed", "run_dir", "resume", "threads", "llm_threads", "new_setup", "heads_bf16", "cache"})
+"""config.json settings that may differ between seeds of one configuration (where a run is, how
+it uses the CPU, numerics chosen by timing, and which cache folder holds its targets)."""
+
+
 @dataclass
 class Curve:
     run: str
-    method: str
+    config: dict
     env_id: str
     seed: int
     frames: list[int]
@@ -30,6 +42,8 @@ class Curve:
     """Mean share of rollout steps that had an LLM target."""
     hit_rate: float
     """Mean share of rollout steps found in the cache before the live fallback."""
+    last_step: int
+    """Frames the run was trained for (its last logged update)."""
 
 
 def read_metrics_csv(path: Path) -> list[dict]:
@@ -83,37 +97,62 @@ def load_curve(run_dir: Path, every: int) -> Curve:
         values = [float(r[column]) for r in rows if r.get(column)]
         return float(np.mean(values)) if values else 0.0
 
-    return Curve(str(run_dir), method_label(cfg), cfg["env_id"], int(cfg["seed"]), frames, points,
-                 mean_of("target_coverage"), mean_of("cache_hit_rate"))
+    return Curve(str(run_dir), cfg, cfg["env_id"], int(cfg["seed"]), frames, points,
+                 mean_of("target_coverage"), mean_of("cache_hit_rate"), last_step)
 
 
-def method_label(cfg: dict) -> str:
-    """The method a run is grouped under: its mode, plus the bonus weights where they differ from
-    the paper's (so runs of one mode with other weights are not averaged together)."""
-    from illm_tools.rl.config import BONUS_PRESETS  # the schema of the config.json it reads
+def _setting(value) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
-    if cfg["mode"] != "illm":
-        return cfg["mode"]
-    changed = [f"{k} {cfg[k]:g}" for k, v in BONUS_PRESETS["paper"].items() if cfg.get(k, v) != v]
-    return cfg["mode"] + (f" ({', '.join(changed)})" if changed else "")
+
+def _learned(cfg: dict) -> str:
+    """The canonical form of what a run learns with (its config.json minus NOT_LEARNED)."""
+    return json.dumps({k: v for k, v in cfg.items() if k not in NOT_LEARNED}, sort_keys=True, default=str)
+
+
+def group_labels(configs: list[dict]) -> list[str]:
+    """Each run's group label: its method, plus the settings in which its configuration differs
+    from other configurations of the same env and method ("illm (ext_coef 2, lambda_a 0.1)")."""
+    method = [c.get("mode", c.get("method", "?")) for c in configs]
+    labels = []
+    for i, cfg in enumerate(configs):
+        peers = [c for j, c in enumerate(configs) if c["env_id"] == cfg["env_id"] and method[j] == method[i]]
+        varying = sorted({k for c in peers for k in set(c) | set(cfg)
+                          if k not in NOT_LEARNED and c.get(k) != cfg.get(k)})
+        shown = [f"{k} {_setting(cfg.get(k))}" for k in varying]
+        labels.append(method[i] + (f" ({', '.join(shown)})" if shown else ""))
+    return labels
 
 
 def summarise(run_dirs: list[Path], every: int) -> dict:
-    """{(env, method): {"frames": [...], "mean": [...], "std": [...], "seeds": n, ...}}."""
+    """{(env, label): {"frames", "mean", "std", "seeds", "runs", "coverage", "hit_rate"}}, one
+    entry per configuration (see the module docstring), plus the runs shorter than `every` under
+    each group's "short_runs" (they give no curve point)."""
     if every <= 0:
         raise UsageError(f"--every must be positive, got {every}")
+    curves = [load_curve(Path(run), every) for run in run_dirs]
+    if not curves:
+        raise UsageError("no run folders given: pass folders written by `illm train`")
+    labels = group_labels([c.config for c in curves])
     groups: dict[tuple[str, str], list[Curve]] = {}
-    for run in run_dirs:
-        curve = load_curve(Path(run), every)
-        groups.setdefault((curve.env_id, curve.method), []).append(curve)
+    for curve, label in zip(curves, labels):
+        groups.setdefault((curve.env_id, label), []).append(curve)
     out = {}
-    for key, curves in sorted(groups.items()):
-        frames = sorted(set.intersection(*(set(c.frames) for c in curves)))  # points every seed has
-        table = np.array([[dict(zip(c.frames, c.success))[f] for f in frames] for c in curves])
+    for key, members in sorted(groups.items()):
+        by_config: dict[tuple[str, int], str] = {}
+        for c in members:
+            other = by_config.setdefault((_learned(c.config), c.seed), c.run)
+            if other != c.run:
+                raise UsageError(f"{other} and {c.run} are the same configuration with the same seed {c.seed} (a "
+                                 "copy?): pass one of them")
+        long = [c for c in members if c.frames]
+        frames = sorted(set.intersection(*(set(c.frames) for c in long))) if long else []  # points every seed has
+        table = np.array([[dict(zip(c.frames, c.success))[f] for f in frames] for c in long]).reshape(len(long), -1)
         with np.errstate(all="ignore"), warnings.catch_warnings():  # windows with no finished episode stay NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             mean, std = np.nanmean(table, 0), np.nanstd(table, 0)
-        out[key] = {"frames": frames, "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in curves),
-                    "coverage": float(np.mean([c.coverage for c in curves])),
-                    "hit_rate": float(np.mean([c.hit_rate for c in curves]))}
+        out[key] = {"frames": frames, "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in long),
+                    "runs": [c.run for c in long], "short_runs": {c.run: c.last_step for c in members if not c.frames},
+                    "coverage": float(np.mean([c.coverage for c in members])),
+                    "hit_rate": float(np.mean([c.hit_rate for c in members]))}
     return out
