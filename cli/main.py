@@ -20,6 +20,26 @@ app = typer.Typer(
 )
 
 
+def _flags_as_flags() -> None:
+    """Typer 0.29's help shows every boolean flag with a `<bool>` type column, as if it took a
+    value (`--no-raw <bool>`); click's own help does not. Typer has no setting for it, so its
+    display hook returns no type for flags. Display only; a Typer without the hook is left as is."""
+    from typer.core import TyperOption
+
+    show = getattr(TyperOption, "display_type_rich", None)
+    if show is None or getattr(show, "_illm", False):
+        return
+
+    def display_type_rich(self, ctx):
+        return None if self.is_flag else show(self, ctx)
+
+    display_type_rich._illm = True
+    TyperOption.display_type_rich = display_type_rich
+
+
+_flags_as_flags()
+
+
 def _version(value: bool) -> None:
     if value:
         typer.echo(f"illm {__version__}")

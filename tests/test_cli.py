@@ -89,3 +89,9 @@ def test_unknown_env_is_one_line_with_close_matches(tmp_path):
 def test_data_info_on_a_missing_folder(tmp_path):
     result = runner.invoke(app, ["data", "info", str(tmp_path / "none")])
     assert result.exit_code == 1 and "illm collect" in result.output
+
+
+def test_boolean_flags_show_as_flags_in_help():
+    for command in (["collect"], ["annotate"], ["train"], ["cache", "repair"], ["data", "coverage"]):
+        out = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "160"})
+        assert out.exit_code == 0 and "<bool>" not in out.output and "--help" in out.output, command
