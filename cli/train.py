@@ -11,13 +11,15 @@ from cli.errors import friendly
 
 
 def register(app: typer.Typer) -> None:
+    from illm_tools.intrinsic.registry import method_help  # light: names only, no torch
+
     @app.command(epilog="Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm "
                         "--frames 200000 --seed 0 --out runs/gotolocal-illm")
     @friendly
     def train(
         env: str = typer.Option("BabyAI-GoToLocal-v0", "--env", help="Environment id."),
         out: Path = typer.Option(..., "--out", help="Run folder: config.json, checkpoint.pt, metrics.csv, TensorBoard events."),
-        method: str = typer.Option("illm", "--method", help="illm (heads + bonus) | illm-noreward (heads only, paper Table 3) | ppo."),
+        method: str = typer.Option("illm", "--method", help=method_help() + "."),
         cache: Path = typer.Option(None, "--cache", help="Annotation cache with the LLM targets (needed by illm methods)."),
         model: str = typer.Option("smollm2-135m", "--model", help="LLM whose annotations are the targets (as in `illm annotate`)."),
         frames: int = typer.Option(200_000, "--frames", help="Environment steps to train for."),
@@ -31,7 +33,8 @@ def register(app: typer.Typer) -> None:
         layout: str = typer.Option("shared", "--layout", help="Prompt layout (must match the annotation): shared | paper."),
         dtype: str = typer.Option("bfloat16", "--dtype", help="LLM compute dtype (must match the annotation)."),
         quant: str = typer.Option("none", "--quant", help="LLM quantisation (must match the annotation): none | 4bit | 8bit."),
-        bonus_preset: str = typer.Option("paper", "--bonus-preset", help="paper (lambda 0.8, beta 0.5, ext/int advantage weights 1, 1) | rnd (CleanRL RND's weights 2, 1); explicit flags win."),
+        bonus_preset: str = typer.Option(None, "--bonus-preset", help="paper (lambda 0.8, beta 0.5, ext/int advantage weights 1, 1) | rnd (CleanRL RND's weights 2, 1); default: the method's own (rnd: rnd, others: paper); explicit flags win."),
+        bonus_option: list[str] = typer.Option(None, "--bonus-option", help="KEY=VALUE setting of the method's bonus, repeatable (e.g. rnd: update_proportion=0.5); see illm_tools.intrinsic.registry."),
         lambda_a: float = typer.Option(None, "--lambda-a", help="Weight of the action bonus r^a (from --bonus-preset: 0.8)."),
         beta_hc: float = typer.Option(None, "--beta-hc", help="Weight of the summary bonus r^hc (from --bonus-preset: 0.5)."),
         ext_coef: float = typer.Option(None, "--ext-coef", help="Weight of the extrinsic advantage (from --bonus-preset: paper 1, rnd 2)."),
@@ -44,23 +47,25 @@ def register(app: typer.Typer) -> None:
         llm_threads: int = typer.Option(0, "--llm-threads", help="Torch threads for live annotation; 0: sync all cores, async the cores --threads leaves."),
         resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its last checkpoint."),
     ) -> None:
-        """Train PPO with the iLLM heads and intrinsic rewards, reading targets from the cache."""
+        """Train PPO with the method's intrinsic bonus (iLLM: heads and rewards on LLM targets read from the cache)."""
+        from illm_tools.intrinsic.registry import get_method
         from illm_tools.rl.config import TrainConfig, bonus_weights
         from illm_tools.rl.run import train as run
 
-        weights = bonus_weights(bonus_preset, lambda_a=lambda_a, beta_hc=beta_hc, ext_coef=ext_coef, int_coef=int_coef)
+        spec = get_method(method)
+        weights = bonus_weights(bonus_preset or spec.preset, lambda_a=lambda_a, beta_hc=beta_hc, ext_coef=ext_coef, int_coef=int_coef)
         cfg = TrainConfig(env_id=env, run_dir=out, mode=method, seed=seed, total_steps=frames, num_envs=num_envs,
                           num_steps=num_steps, action_space=action_space, num_dists=num_dists, history_len=history,
                           cache=cache, model=model, model_dtype=dtype, quant=quant, layout=layout, action_score=action_score,
                           action_target=action_target, live_budget=live_budget, live_mode=live_mode, new_setup=new_setup, threads=threads, llm_threads=llm_threads,
-                          resume=resume, **weights)
+                          resume=resume, bonus_options=spec.parse_options(bonus_option or []), **weights)
         last: dict = {}
         coverage: list[float] = []
         with progress(cfg.num_updates * cfg.batch_size, f"train {method}", unit="steps") as advance:
             def on_metrics(m: dict) -> None:
                 last.update(m)
                 fields = {"success": f"{m.get('charts/success_rate', float('nan')):.2f}"}
-                if cfg.uses_heads:
+                if cfg.needs_targets:
                     coverage.append(m.get("charts/target_coverage", 0.0))
                     fields["targets"] = f"{coverage[-1]:.2f}"
                     if "charts/live_queue" in m:

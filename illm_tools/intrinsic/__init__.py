@@ -1,16 +1,26 @@
-"""Intrinsic bonuses (one file each) behind the interface in `base.py`, plus shared normalisation."""
+"""Intrinsic bonuses (one file each) behind the interface in `base.py`, the method registry
+(`registry.py`), and shared normalisation.
 
-from illm_tools.intrinsic.base import (
-    BonusRewards,
-    IntrinsicBonus,
-    StateRecord,
-    TargetProvider,
-    Targets,
-)
-from illm_tools.intrinsic.illm import ILLMBonus
-from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer, RunningMeanStd
+Names are imported on first use (PEP 562), so `illm_tools.intrinsic.registry` stays light: the
+command line lists the methods without importing torch.
+"""
 
-__all__ = [
-    "BonusRewards", "DiscountedReturnNormalizer", "ILLMBonus", "IntrinsicBonus",
-    "RunningMeanStd", "StateRecord", "TargetProvider", "Targets",
-]
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "BonusContext": "base", "BonusRewards": "base", "IntrinsicBonus": "base", "NoBonus": "base",
+    "StateRecord": "base", "TargetProvider": "base", "Targets": "base",
+    "ILLMBonus": "illm", "ILLMConfig": "illm", "RNDBonus": "rnd", "RNDConfig": "rnd",
+    "DiscountedReturnNormalizer": "normalize", "RunningMeanStd": "normalize",
+    "METHODS": "registry", "Method": "registry", "get_method": "registry", "register": "registry",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,11 +1,50 @@
-"""The interface every intrinsic bonus sits behind, and what the trainer hands an LLM target source.
+"""The interface every intrinsic bonus sits behind, and what the trainer hands it.
 
-Owns: `Targets` and the `TargetProvider` protocol (cache lookup with live fallback, implemented
-in `illm_tools.rl.targets`), and `IntrinsicBonus`, the small rllte-style interface (compute
-rewards for a rollout, auxiliary loss, update, state for checkpoints). Bonuses work on tensors
-only; they never step environments. `StateRecord` and `HistoryTracker` (the per-step text state
-and the per-env rolling history that builds it) live in `illm_tools.tasks.state`, shared with the
-annotate stage, and are re-exported here.
+Owns `IntrinsicBonus` (the plug-in contract), `BonusContext` (what a bonus knows about the run
+when it is built), `NoBonus` (plain PPO), `Targets` and the `TargetProvider` protocol (cache lookup
+with live fallback, implemented in `illm_tools.rl.targets`). Bonuses work on tensors only; they
+never step environments. Methods (a name such as `rnd` -> a bonus class and its config) are
+registered in `registry.py`. `StateRecord` and `HistoryTracker` (the per-step text state and the
+per-env rolling history that builds it) live in `illm_tools.tasks.state`, shared with the annotate
+stage, and are re-exported here.
+
+The tensors a bonus may read (the trainer's side of the contract; every bonus gets all of them):
+
+  images         uint8 [.., H, W, 3]  the observation the policy acted from (MiniGrid's symbolic
+                                      (object, colour, state) view)
+  missions       int64 [.., L]        its mission as word ids (`illm_tools.rl.networks.MissionVocab`)
+  actions        int64 [..]           the action taken
+  ends           float [..]           1.0 where that transition ended its episode (terminated or
+                                      truncated)
+  next_images    uint8 [.., H, W, 3]  the observation after the transition;
+  next_missions  int64 [.., L]        ... and its mission. The pool resets in the same step (as
+                                      gymnasium's SAME_STEP autoreset, and as CleanRL's
+                                      ppo_rnd_envpool.py uses its next_obs), so where `ends` is 1
+                                      this is the FIRST observation of the next episode, not the
+                                      last one of the ended episode. For a rollout's last step it
+                                      is the observation the next rollout starts from.
+  features       float [.., F]        the policy network's torso features of `images`: as computed
+                                      when acting (rollout, step), or with gradient (minibatch)
+
+and, when the bonus's class declares them:
+
+  needs_targets = True (LLM targets from the run's `TargetProvider`, e.g. an annotation cache):
+  target_probs   float [.., A]        the LLM's distribution over the valid actions
+  target_emb     float [.., D]        the LLM's summary embedding
+  target_mask    bool  [..]           True where a target exists (other rows hold anything)
+  policy_heads = True (the policy network carries iLLM's heads f^a / f^hc on its features):
+  action_logits  float [.., A]        f^a's logits on `features`
+  summary        float [.., D]        f^hc's predicted embedding on `features`
+
+The leading axes `..` are [N] for `observe` (one env step), [T, N] for `compute_rewards` and
+`update` (one rollout, t-major), and [B] for `aux_loss` (one PPO minibatch of flat rows).
+
+Hooks, in the order the trainer calls them per update: `observe` after every env step;
+`compute_rewards` once after the rollout (reward t is paid with transition t, before the policy
+update, and reaches the advantages through the intrinsic value stream); `aux_loss` on each
+minibatch of the first `distill_epochs` epochs (its gradient reaches the policy network: iLLM's
+distillation); `update` once after the policy update (a bonus's own model, own optimiser: RND's
+predictor); `state_dict` / `load_state_dict` with every checkpoint.
 """
 
 from __future__ import annotations
@@ -13,14 +52,15 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol, runtime_checkable
+from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
 from illm_tools.tasks.state import StateRecord
 
-__all__ = ["BonusRewards", "IntrinsicBonus", "StateRecord", "TargetProvider", "Targets"]
+__all__ = ["BonusContext", "BonusRewards", "IntrinsicBonus", "NoBonus", "StateRecord", "TargetProvider",
+           "Targets"]
 
 
 class Targets(NamedTuple):
@@ -59,27 +99,91 @@ class BonusRewards:
     logs: dict[str, float]
 
 
-class IntrinsicBonus(ABC):
-    """One intrinsic bonus. `batch` maps documented names to [T, N, ...] (rewards) or [B, ...]
-    (loss) tensors; each bonus's docstring lists the names it reads."""
+@dataclass(frozen=True)
+class BonusContext:
+    """What a bonus knows about the run when it is built (sizes of the tensors it will read)."""
 
+    num_envs: int
+    """N, the environments stepped side by side."""
+    num_steps: int
+    """T, the steps of one rollout per env."""
+    image_shape: tuple[int, ...]
+    """(H, W, 3) of one observation image."""
+    num_actions: int
+    """A, the valid actions."""
+    feature_dim: int
+    """F, the size of the policy's `features`."""
+    int_gamma: float
+    """Discount of the intrinsic value stream (a reward normaliser should use the same)."""
+    seed: int
+    """Seed of the bonus's own random streams (derived from the run's seed, apart from the
+    trainer's; the trainer also seeds torch's global RNG with it while it builds the bonus)."""
+
+
+class IntrinsicBonus(ABC):
+    """One intrinsic bonus (see the module docstring for the tensors and the order of the hooks).
+
+    A subclass sets `config_class` (a dataclass of its settings, built by the registry) and, when
+    it needs them, `needs_targets` / `policy_heads`; it is built by `from_config(config, ctx)`.
+    """
+
+    config_class: ClassVar[type | None] = None
+    """Dataclass of the bonus's settings (fields with defaults and docstrings); None: no settings.
+    Its ClassVar `RUN_SETTINGS` names fields whose value is the run's TrainConfig field of the same
+    name (so they stay top-level options, e.g. iLLM's lambda_a) rather than a bonus option."""
+    needs_targets: ClassVar[bool] = False
+    """The run must supply LLM targets (a `TargetProvider`); the batches then carry target_*."""
+    policy_heads: ClassVar[bool] = False
+    """The policy network carries the iLLM heads f^a / f^hc (trained by `aux_loss` through the
+    policy's optimiser); the batches then carry action_logits and summary."""
     pays_reward: bool = True
+    """Whether the rewards reach the advantages; False trains the bonus's models and pays nothing
+    (e.g. `illm-noreward`, paper Table 3). Set by the registry entry, read by the trainer."""
+
+    @classmethod
+    def from_config(cls, config: Any, ctx: BonusContext) -> "IntrinsicBonus":
+        """Build the bonus for a run (default: `cls(config, ctx)`)."""
+        return cls(config, ctx)  # type: ignore[call-arg]
+
+    def observe(self, step: Mapping[str, torch.Tensor]) -> None:
+        """Called after every env step with that step's [N, ...] tensors (default: nothing).
+        For per-step state such as an episodic memory; must not change what the policy does."""
 
     @abstractmethod
     def compute_rewards(self, batch: Mapping[str, torch.Tensor]) -> BonusRewards:
-        """Intrinsic rewards for a whole rollout (no gradient); updates normalisers."""
+        """Intrinsic rewards [T, N] for a whole rollout (no gradient); updates normalisers."""
 
     def aux_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         """Loss added to the PPO loss for one minibatch (default: none)."""
         return torch.zeros(()), {}
 
+    @property
+    def uses_aux_loss(self) -> bool:
+        """Whether this bonus overrides `aux_loss` (the trainer skips the call otherwise)."""
+        return type(self).aux_loss is not IntrinsicBonus.aux_loss
+
     def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
-        """Train a bonus's own model with its own optimiser (default: nothing to train)."""
+        """Train the bonus's own model with its own optimiser, once per rollout, after the policy
+        update (default: nothing to train). Returns scalars to log."""
         return {}
 
     def state_dict(self) -> dict:
-        """State to checkpoint (normalisers, own models)."""
+        """State to checkpoint (normalisers, own models, optimisers, random streams)."""
         return {}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore what `state_dict` returned."""
+
+
+class NoBonus(IntrinsicBonus):
+    """Plain PPO: no reward, no loss, no state. Logs iLLM's two reward columns as 0, as plain PPO
+    runs always have (metrics.csv keeps them filled for side-by-side reports)."""
+
+    pays_reward = False
+
+    def __init__(self, config: Any = None, ctx: BonusContext | None = None):
+        pass
+
+    def compute_rewards(self, batch: Mapping[str, torch.Tensor]) -> BonusRewards:
+        t, n = batch["actions"].shape[:2]
+        return BonusRewards(torch.zeros(t, n), {"intrinsic_reward_a": 0.0, "intrinsic_reward_hc": 0.0})

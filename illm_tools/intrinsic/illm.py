@@ -1,6 +1,10 @@
 """The iLLM bonus: distil the LLM into the heads f^a / f^hc and pay where they still disagree.
 
-Reads (rewards: [T, N, ...]; loss: [B, ...]):
+Methods `illm` and `illm-noreward` (registry.py). Declares `needs_targets` (the run supplies LLM
+targets) and `policy_heads` (the policy network carries f^a / f^hc, trained through `aux_loss`).
+Settings: `ILLMConfig`, whose fields are the run's own (TrainConfig) settings of the same names.
+
+Reads (rewards: [T, N, ...]; loss: [B, ...]; see base.py):
   action_logits  f^a's logits over the valid actions      [.., A]
   summary        f^hc's predicted summary embedding        [.., D]
   target_probs   the LLM's distribution over valid actions [.., A]
@@ -48,12 +52,38 @@ Compared with CleanRL's RND (`cleanrl/ppo_rnd_envpool.py`), the reference most u
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
 
-from illm_tools.intrinsic.base import BonusRewards, IntrinsicBonus
+from illm_tools.errors import UsageError
+from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer
+
+
+@dataclass
+class ILLMConfig:
+    """iLLM's settings. Each is the training run's setting of the same name (`TrainConfig`,
+    `illm train --lambda-a` etc.), so they are not bonus options."""
+
+    RUN_SETTINGS: ClassVar[tuple[str, ...]] = ("lambda_a", "beta_hc", "summary_loss", "action_similarity")
+
+    lambda_a: float = 0.8
+    """Weight lambda of the action-generation bonus r^a (paper: 0.8)."""
+    beta_hc: float = 0.5
+    """Weight beta of the history-compression bonus r^hc (paper: 0.5)."""
+    summary_loss: str = "cosine"
+    """Distillation loss of f^hc: cosine (1 - cos) or mse."""
+    action_similarity: str = "tv"
+    """Similarity behind r^a = 1 - sim: tv (1 - total variation) or bhattacharyya."""
+
+    def __post_init__(self) -> None:
+        if self.summary_loss not in ("cosine", "mse"):
+            raise UsageError(f"summary_loss must be cosine or mse, got {self.summary_loss!r}")
+        if self.action_similarity not in ("tv", "bhattacharyya"):
+            raise UsageError(f"action_similarity must be tv or bhattacharyya, got {self.action_similarity!r}")
 
 
 def action_disagreement(logits: torch.Tensor, target: torch.Tensor, kind: str = "tv") -> torch.Tensor:
@@ -87,6 +117,10 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 class ILLMBonus(IntrinsicBonus):
     """iLLM's two bonuses and distillation losses (see the module docstring)."""
 
+    config_class = ILLMConfig
+    needs_targets = True
+    policy_heads = True
+
     def __init__(self, num_envs: int, *, lambda_a: float = 0.8, beta_hc: float = 0.5,
                  gamma: float = 0.99, pays_reward: bool = True, summary_loss: str = "cosine",
                  action_similarity: str = "tv"):
@@ -97,6 +131,11 @@ class ILLMBonus(IntrinsicBonus):
         self.action_similarity = action_similarity
         self.norm_a = DiscountedReturnNormalizer(num_envs, gamma)
         self.norm_hc = DiscountedReturnNormalizer(num_envs, gamma)
+
+    @classmethod
+    def from_config(cls, config: ILLMConfig, ctx: BonusContext) -> "ILLMBonus":
+        return cls(ctx.num_envs, lambda_a=config.lambda_a, beta_hc=config.beta_hc, gamma=ctx.int_gamma,
+                   summary_loss=config.summary_loss, action_similarity=config.action_similarity)
 
     @torch.no_grad()
     def compute_rewards(self, batch: Mapping[str, torch.Tensor]) -> BonusRewards:

@@ -5,6 +5,9 @@ An intrinsic reward is divided by a running estimate of the standard deviation o
 (never reset at episode ends: RND's intrinsic stream is non-episodic), and a RunningMeanStd
 (Chan et al. parallel update, float64) tracks the mean/variance of those R_t. Only the scale is
 changed; the mean is not subtracted, so a reward of zero stays zero.
+
+`RunningMeanStd` also tracks element-wise moments of arrays (`shape`), as RND's observation
+normaliser does.
 """
 
 from __future__ import annotations
@@ -14,20 +17,24 @@ import torch
 
 
 class RunningMeanStd:
-    """Running mean and variance of a stream of scalars, merged batch by batch."""
+    """Running mean and variance of a stream of samples of `shape` (scalars by default), merged
+    batch by batch (Chan et al.'s parallel update, float64). The prior (mean 0, var 1, weight
+    `epsilon`) keeps the variance above zero."""
 
-    def __init__(self, epsilon: float = 1e-4):
-        self.mean = 0.0
-        self.var = 1.0
+    def __init__(self, epsilon: float = 1e-4, shape: tuple[int, ...] = ()):
+        self.shape = tuple(shape)
+        self.mean = np.zeros(self.shape) if self.shape else 0.0
+        self.var = np.ones(self.shape) if self.shape else 1.0
         self.count = epsilon
 
     def update(self, x: np.ndarray) -> None:
-        x = np.asarray(x, dtype=np.float64).reshape(-1)
-        if x.size == 0:
+        """Merge a batch of samples: any array whose trailing axes are `shape`."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, *self.shape)
+        if x.shape[0] == 0:
             return
-        self.update_from_moments(float(x.mean()), float(x.var()), x.size)
+        self.update_from_moments(x.mean(0), x.var(0), x.shape[0])
 
-    def update_from_moments(self, batch_mean: float, batch_var: float, batch_count: int) -> None:
+    def update_from_moments(self, batch_mean, batch_var, batch_count: int) -> None:
         delta = batch_mean - self.mean
         total = self.count + batch_count
         self.mean = self.mean + delta * batch_count / total
@@ -37,13 +44,20 @@ class RunningMeanStd:
 
     @property
     def std(self) -> float:
+        """sqrt(var) of a scalar stream."""
         return float(np.sqrt(self.var))
 
     def state_dict(self) -> dict:
-        return {"mean": self.mean, "var": self.var, "count": self.count}
+        # plain floats / nested lists: checkpoints are read with torch.load(weights_only=True)
+        return {"mean": np.asarray(self.mean).tolist(), "var": np.asarray(self.var).tolist(), "count": self.count}
 
     def load_state_dict(self, state: dict) -> None:
-        self.mean, self.var, self.count = float(state["mean"]), float(state["var"]), float(state["count"])
+        if self.shape:
+            self.mean = np.asarray(state["mean"], dtype=np.float64).reshape(self.shape)
+            self.var = np.asarray(state["var"], dtype=np.float64).reshape(self.shape)
+        else:
+            self.mean, self.var = float(state["mean"]), float(state["var"])
+        self.count = float(state["count"])
 
 
 class DiscountedReturnNormalizer:

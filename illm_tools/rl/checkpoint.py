@@ -161,8 +161,9 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
         raise UsageError(f"the run was trained with actions {state['action_names']}, "
                          f"the environment offers {names}; use the same --action-space")
     vocab = MissionVocab(cfg.mission_max_len)
+    heads = "f_hc.2.weight" in state["model"]  # the method's bonus put the iLLM heads on the network
     net = GridMissionNet(len(names), vocab_size=len(vocab),
-                         embedding_dim=cfg.embedding_dim if cfg.uses_heads else None,
+                         embedding_dim=state["model"]["f_hc.2.weight"].shape[0] if heads else None,
                          head_hidden=cfg.head_hidden, image_shape=tuple(state["image_shape"][:2]))
     net.load_state_dict(state["model"])
     return TrainedPolicy(net, vocab, name=f"run:{run_dir.name}@{state['global_step']}",

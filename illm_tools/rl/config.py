@@ -10,9 +10,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from illm_tools.errors import UsageError
+from illm_tools.intrinsic.registry import METHODS, get_method
 from illm_tools.tasks.calibration import ACTION_TARGETS, CALIBRATIONS
 
-MODES = ("illm", "illm-noreward", "ppo")
+MODES = METHODS  # the bonus registry, name -> method (a live mapping: methods registered later count)
 LIVE_MODES = ("sync", "async")
 BONUS_PRESETS = {  # `illm train --bonus-preset`: bonus weights and advantage weights together
     "paper": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0},  # Appendix B
@@ -37,7 +38,11 @@ class TrainConfig:
     run_dir: Path = Path("data/runs/default")
     """Folder for config.json, metrics.jsonl, TensorBoard events and checkpoint.pt."""
     mode: str = "illm"
-    """illm: heads + bonus; illm-noreward: heads only, no bonus (paper Table 3); ppo: neither."""
+    """The method (`--method`), a name in `illm_tools.intrinsic.registry`: illm: heads + bonus;
+    illm-noreward: heads only, no bonus (paper Table 3); ppo: neither; rnd: RND's bonus."""
+    bonus_options: dict = field(default_factory=dict)
+    """Settings of the method's bonus by name (the fields of its config dataclass, e.g. rnd's
+    update_proportion; `--bonus-option KEY=VALUE`); unset ones keep their defaults."""
     seed: int = 0
     """Seed of the network initialisation, action sampling, minibatch order and env pool."""
     total_steps: int = 1_000_000
@@ -169,8 +174,7 @@ class TrainConfig:
             raise UsageError(f"--live-mode must be {' or '.join(LIVE_MODES)}, got {self.live_mode!r}")
         if self.live_budget < 0 or self.threads <= 0 or self.llm_threads < 0:
             raise UsageError("--live-budget and --llm-threads must be >= 0 and --threads positive")
-        if self.mode not in MODES:
-            raise UsageError(f"unknown mode {self.mode!r}; choose one of {', '.join(MODES)}")
+        get_method(self.mode).make_config(self.to_dict(), self.bonus_options)  # refuses unknown methods, options
         for name in ("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",
                      "mission_max_len", "head_hidden", "embedding_dim"):
             if getattr(self, name) <= 0:
@@ -211,13 +215,18 @@ class TrainConfig:
 
     @property
     def uses_heads(self) -> bool:
-        """Whether the network carries f^a / f^hc and the loss distils the LLM."""
-        return self.mode != "ppo"
+        """Whether the network carries f^a / f^hc and the loss distils the LLM (the bonus says)."""
+        return get_method(self.mode).policy_heads
+
+    @property
+    def needs_targets(self) -> bool:
+        """Whether the run reads LLM targets (an annotation cache; the bonus says)."""
+        return get_method(self.mode).needs_targets
 
     @property
     def pays_bonus(self) -> bool:
         """Whether the intrinsic rewards reach the advantages."""
-        return self.mode == "illm"
+        return get_method(self.mode).pays
 
     @property
     def live_threads(self) -> int:

@@ -1,12 +1,16 @@
-"""PPO with the iLLM heads and bonus: rollout, LLM targets, intrinsic rewards, GAE, clipped update.
+"""PPO with a plug-in intrinsic bonus: rollout, LLM targets, intrinsic rewards, GAE, clipped update.
 
 Reads top to bottom like CleanRL's ppo.py, but as an importable `Trainer` over an env pool
-(`illm_tools.envs.pool.EnvPool` interface) and an optional `TargetProvider`. Per update:
-  1. rollout: T steps of N envs, actions sampled from the policy, per-step `StateRecord`s kept;
+(`illm_tools.envs.pool.EnvPool` interface) and an optional `TargetProvider`. The run's method
+(`cfg.mode`) names a bonus in `illm_tools.intrinsic.registry`; the trainer knows bonuses only
+through `IntrinsicBonus` (base.py documents the tensors it hands them and the hooks). Per update:
+  1. rollout: T steps of N envs, actions sampled from the policy, `bonus.observe` after each step,
+     per-step `StateRecord`s kept when the bonus needs LLM targets;
   2. targets: the provider answers for every step of the rollout at once (cache + live fallback);
-  3. bonus: f^a / f^hc (current weights) vs the targets -> r^a, r^hc, normalised, weighted;
+  3. bonus: `bonus.compute_rewards` on the whole rollout (iLLM: f^a / f^hc vs the targets);
   4. advantages: extrinsic GAE + intrinsic GAE on the bonus (two value heads, RND-style);
-  5. update: epochs x minibatches of clipped PPO loss + value losses + distillation loss.
+  5. update: epochs x minibatches of clipped PPO loss + value losses + the bonus's `aux_loss`;
+     then `bonus.update` trains the bonus's own model (RND's predictor).
 The trainer never prints: metrics go to run_dir/metrics.jsonl, TensorBoard, and `on_metrics`.
 """
 
@@ -22,8 +26,8 @@ import torch
 from torch import nn
 
 from illm_tools.errors import OutputExistsError, UsageError
-from illm_tools.intrinsic.base import BonusRewards, TargetProvider
-from illm_tools.intrinsic.illm import ILLMBonus
+from illm_tools.intrinsic.base import BonusContext, BonusRewards, TargetProvider
+from illm_tools.intrinsic.registry import get_method
 from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint,
                                       save_checkpoint)
 from illm_tools.rl.config import TrainConfig
@@ -33,7 +37,7 @@ from illm_tools.tasks.state import HistoryTracker, StateRecord
 
 
 def make_pool(cfg: TrainConfig):
-    """The env pool a run trains on. Text is rendered only when the LLM targets need it. A resumed
+    """The env pool a run trains on. Text is rendered only when LLM targets need it. A resumed
     run starts its episodes past every seed the run can have used so far (the pool's episode k of
     env i has seed `seed + i + k * num_envs`, so `seed + global_step + num_envs` is unused)."""
     from illm_tools.envs.pool import EnvPool
@@ -44,7 +48,7 @@ def make_pool(cfg: TrainConfig):
         seed += int(state["global_step"]) + cfg.num_envs
         if space == "auto":  # the run's own action space, as its config recorded it
             space = state["config"].get("action_space", space)
-    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.uses_heads, action_space=space,
+    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets, action_space=space,
                    num_dists=cfg.num_dists, **cfg.env_options)
 
 
@@ -53,7 +57,8 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, pool, provider: TargetProvider | None = None,
                  on_metrics: Callable[[dict], None] | None = None):
-        if cfg.uses_heads and provider is None:
+        self.method = method = get_method(cfg.mode)
+        if method.needs_targets and provider is None:
             raise UsageError(f"mode {cfg.mode} needs LLM targets (an annotation cache); "
                              "pass one or train with mode ppo")
         if pool.num_envs != cfg.num_envs:
@@ -61,7 +66,7 @@ class Trainer:
         if cfg.action_space == "auto" and getattr(pool, "action_space_name", None):
             cfg = dataclasses.replace(cfg, action_space=pool.action_space_name)  # the run records the resolved name
         self.cfg, self.pool, self.on_metrics = cfg, pool, on_metrics
-        self.provider = provider if cfg.uses_heads else None
+        self.provider = provider if method.needs_targets else None
         self.action_names = list(pool.action_names)
         self.vocab = MissionVocab(cfg.mission_max_len)
 
@@ -72,16 +77,19 @@ class Trainer:
             self.obs = pool.reset()
             self.image_shape = tuple(self.obs.images.shape[1:])
             self.net = GridMissionNet(len(self.action_names), vocab_size=len(self.vocab),
-                                      embedding_dim=cfg.embedding_dim if cfg.uses_heads else None,
+                                      embedding_dim=cfg.embedding_dim if method.policy_heads else None,
                                       head_hidden=cfg.head_hidden, image_shape=self.image_shape[:2],
                                       heads_bf16=cfg.heads_bf16)
         self.generator = torch.Generator().manual_seed(cfg.seed + 1)  # action sampling
         self.np_rng = np.random.default_rng(cfg.seed + 2)             # minibatch order
 
         self.optimizer = torch.optim.AdamW(self.net.parameters(), lr=cfg.learning_rate, eps=1e-5)
-        self.bonus = ILLMBonus(cfg.num_envs, lambda_a=cfg.lambda_a, beta_hc=cfg.beta_hc,
-                               gamma=cfg.int_gamma, pays_reward=cfg.pays_bonus,
-                               summary_loss=cfg.summary_loss, action_similarity=cfg.action_similarity)
+        ctx = BonusContext(num_envs=cfg.num_envs, num_steps=cfg.num_steps, image_shape=self.image_shape,
+                           num_actions=len(self.action_names), feature_dim=self.net.feature_dim,
+                           int_gamma=cfg.int_gamma, seed=cfg.seed + 3)
+        with torch.random.fork_rng(devices=[]):  # the bonus's own models: their own seeded stream
+            torch.manual_seed(ctx.seed)
+            self.bonus = method.build(cfg.to_dict(), cfg.bonus_options, ctx)
         self.history = HistoryTracker(cfg.num_envs, cfg.history_len, self.action_names)
         self.global_step, self.update_idx = 0, 0
         self._open_run_dir()
@@ -130,13 +138,13 @@ class Trainer:
         """T steps of every env. Returns (rollout, records t-major, episode stats, next values)."""
         cfg = self.cfg
         ro = Rollout.empty(cfg.num_steps, cfg.num_envs, self.image_shape, cfg.mission_max_len,
-                           len(self.action_names), cfg.embedding_dim if cfg.uses_heads else 0,
-                           self.net.feature_dim if cfg.uses_heads else 0)
+                           len(self.action_names), cfg.embedding_dim if self.method.policy_heads else 0,
+                           self.net.feature_dim)
         records: list[StateRecord] = []
         returns, lengths, successes = [], [], []
         obs = self.obs
+        images, missions = self._policy_inputs(obs)
         for t in range(cfg.num_steps):
-            images, missions = self._policy_inputs(obs)
             out = self.net(images, missions)
             logp_all = out.logits.log_softmax(-1)
             action = torch.multinomial(logp_all.exp(), 1, generator=self.generator).squeeze(-1)
@@ -149,18 +157,22 @@ class Trainer:
             ro.images[t], ro.missions[t], ro.actions[t] = images, missions, action
             ro.logprobs[t] = logp_all.gather(1, action[:, None]).squeeze(1)
             ro.values_ext[t], ro.values_int[t] = out.value_ext, out.value_int
-            if cfg.uses_heads:  # the bonus is computed before the update, with these same weights
-                ro.features[t] = out.features
+            ro.features[t] = out.features  # the bonus is computed before the update, with these same weights
             ro.rewards[t] = torch.as_tensor(step.rewards, dtype=torch.float32)
             ro.ends[t] = torch.as_tensor(ends, dtype=torch.float32)
+            next_images, next_missions = self._policy_inputs(step.obs)
+            ro.next_images[t], ro.next_missions[t] = next_images, next_missions
+            self.bonus.observe({"images": images, "missions": missions, "actions": action, "ends": ro.ends[t],
+                                "next_images": next_images, "next_missions": next_missions,
+                                "features": out.features})
             for _i, ret, length, success in step.episodes:
                 returns.append(float(ret))
                 lengths.append(int(length))
                 successes.append(float(success))
-            obs = step.obs
+            obs, images, missions = step.obs, next_images, next_missions
         self.obs = obs
         self.global_step += cfg.batch_size
-        last = self.net(*self._policy_inputs(obs))
+        last = self.net(images, missions)
         episodes = {"returns": returns, "lengths": lengths, "successes": successes}
         return ro, records, episodes, (last.value_ext, last.value_int)
 
@@ -187,23 +199,27 @@ class Trainer:
         return out
 
     # --- 3. intrinsic rewards ---------------------------------------------------------------
-    def _head_batch(self, features: torch.Tensor, ro: Rollout, idx: torch.Tensor | None = None) -> dict:
-        """The bonus's inputs for flat rows `idx` (all when None) of the rollout."""
-        action_logits, summary = self.net.heads(features)
-        batch = {"action_logits": action_logits, "summary": summary}
-        for name in ("target_probs", "target_emb", "target_mask"):
-            batch[name] = ro.flat(name) if idx is None else ro.flat(name)[idx]
+    def bonus_batch(self, ro: Rollout, rows: torch.Tensor | None = None,
+                    features: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """What the bonus reads (base.py): the whole rollout [T, N, ...], or flat rows `rows` [B, ...]
+        with `features` (the minibatch's, with gradient) in place of the stored ones. The LLM
+        targets and the heads' outputs are added when the bonus declares it needs them."""
+        batch = ro.bonus_batch(self.method.needs_targets, rows)
+        if features is not None:
+            batch["features"] = features
+        if self.method.policy_heads:
+            f = batch["features"]
+            action_logits, summary = self.net.heads(f.reshape(-1, f.shape[-1]))
+            batch["action_logits"] = action_logits.reshape(*f.shape[:-1], -1)
+            batch["summary"] = summary.reshape(*f.shape[:-1], -1)
         return batch
 
     @torch.no_grad()
-    def intrinsic_rewards(self, ro: Rollout) -> BonusRewards:
-        """The bonus for every step, from the heads' current outputs vs the stored targets. Called
-        between the rollout and the update, so the features stored while acting are current."""
-        t, n = ro.actions.shape
-        if not self.cfg.uses_heads:
-            return BonusRewards(torch.zeros(t, n), {"intrinsic_reward_a": 0.0, "intrinsic_reward_hc": 0.0})
-        batch = {k: v.reshape(t, n, *v.shape[1:]) for k, v in self._head_batch(ro.flat("features"), ro).items()}
-        return self.bonus.compute_rewards(batch)
+    def intrinsic_rewards(self, ro: Rollout, batch: dict[str, torch.Tensor] | None = None) -> BonusRewards:
+        """The bonus for every step of the rollout (iLLM: the heads' current outputs vs the stored
+        targets), from `batch` = `bonus_batch(ro)` when given. Called between the rollout and the
+        update, so the features stored while acting are current."""
+        return self.bonus.compute_rewards(self.bonus_batch(ro) if batch is None else batch)
 
     # --- 4. advantages ----------------------------------------------------------------------
     def advantages(self, ro: Rollout, int_rewards: torch.Tensor | None,
@@ -250,15 +266,15 @@ class Trainer:
                                     -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)).mean()
                 v_loss = self._value_loss(out.value_ext, b_v_ext[mb], b_ret_ext[mb])
                 v_loss_int = (self._value_loss(out.value_int, b_v_int[mb], b_ret_int[mb])
-                              if cfg.pays_bonus else torch.zeros(()))
+                              if self.bonus.pays_reward else torch.zeros(()))
                 loss = pg_loss - cfg.ent_coef * entropy + cfg.vf_coef * (v_loss + v_loss_int)
                 logs = {"policy_loss": pg_loss.item(), "value_loss": v_loss.item(),
                         "value_loss_int": v_loss_int.item(), "entropy": entropy.item(),
                         "approx_kl": approx_kl.item()}
-                if cfg.uses_heads and _epoch < cfg.distill_epochs:
-                    distill, distill_logs = self.bonus.aux_loss(self._head_batch(out.features, ro, mb))
-                    loss = loss + cfg.distill_coef * distill
-                    logs.update(distill_logs)
+                if self.bonus.uses_aux_loss and _epoch < cfg.distill_epochs:
+                    aux, aux_logs = self.bonus.aux_loss(self.bonus_batch(ro, mb, out.features))
+                    loss = loss + cfg.distill_coef * aux
+                    logs.update(aux_logs)
                 self.optimizer.zero_grad()
                 loss.backward()
                 nn.utils.clip_grad_norm_(self.net.parameters(), cfg.max_grad_norm)
@@ -288,9 +304,13 @@ class Trainer:
         t1 = time.perf_counter()
         target_logs = self.attach_targets(ro, records)
         t2 = time.perf_counter()
-        bonus = self.intrinsic_rewards(ro)
-        adv = self.advantages(ro, bonus.reward if cfg.pays_bonus else None, next_values)
+        with torch.no_grad():
+            batch = self.bonus_batch(ro)
+        bonus = self.intrinsic_rewards(ro, batch)
+        adv = self.advantages(ro, bonus.reward if self.bonus.pays_reward else None, next_values)
         loss_logs = self.update(ro, adv)
+        # the bonus's own model learns from the same batch (its head outputs: from before the update)
+        loss_logs.update({f"losses/{k}": v for k, v in self.bonus.update(batch).items()})
         t3 = time.perf_counter()
         metrics = {"global_step": self.global_step, "update": self.update_idx,
                    "charts/learning_rate": self.optimizer.param_groups[0]["lr"],

@@ -30,9 +30,9 @@ def torch_threads(n: int):
 
 
 def make_provider(cfg: TrainConfig, num_actions: int):
-    """The `CachedTargets` for an iLLM run, or None for plain PPO. Returns (provider, cfg) where
-    cfg carries the model's embedding dimension."""
-    if not cfg.uses_heads:
+    """The `CachedTargets` for a run whose bonus needs LLM targets (iLLM), or None. Returns
+    (provider, cfg) where cfg carries the model's embedding dimension."""
+    if not cfg.needs_targets:
         return None, cfg
     if cfg.cache is None:
         raise UsageError(f"--method {cfg.mode} reads LLM targets: pass --cache DIR (an annotation cache, "

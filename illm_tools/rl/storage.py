@@ -1,12 +1,16 @@
 """Rollout storage and advantage estimation for PPO.
 
-Owns `Rollout` (preallocated [T, N, ...] tensors of one rollout, LLM targets included),
+Owns `Rollout` (preallocated [T, N, ...] tensors of one rollout: what the loss reads and what
+every intrinsic bonus may read, `illm_tools.intrinsic.base`; LLM targets included),
 `gae` (generalised advantage estimation) and `two_stream_advantages` (RND-style extrinsic +
 intrinsic streams, each with its own value head and GAE, summed with coefficients).
 
 Convention: `ends[t]` is True when the transition taken at step t ended its episode
 (terminated or truncated; truncation is treated like termination, as in CleanRL, because the
-pool autoresets in the same step and does not return the final observation).
+pool autoresets in the same step and does not return the final observation). For the same
+reason `next_images[t]` / `next_missions[t]`, the observation after step t, is the first
+observation of the next episode where `ends[t]` is set (as CleanRL's next_obs is); for the last
+step it is the observation the next rollout starts from.
 """
 
 from __future__ import annotations
@@ -15,13 +19,20 @@ from dataclasses import dataclass
 
 import torch
 
+BONUS_FIELDS = ("images", "missions", "actions", "ends", "next_images", "next_missions", "features")
+"""The rollout fields every intrinsic bonus may read (illm_tools.intrinsic.base documents them)."""
+TARGET_FIELDS = ("target_probs", "target_emb", "target_mask")
+"""The LLM targets, added for bonuses that declare `needs_targets`."""
+
 
 @dataclass
 class Rollout:
     """One rollout of T steps from N envs. Targets are filled after the rollout."""
 
-    images: torch.Tensor       # uint8 [T, N, H, W, 3]
+    images: torch.Tensor       # uint8 [T, N, H, W, 3] the observation acted from
     missions: torch.Tensor     # int64 [T, N, L]
+    next_images: torch.Tensor  # uint8 [T, N, H, W, 3] the observation after the step (see module doc)
+    next_missions: torch.Tensor  # int64 [T, N, L]
     actions: torch.Tensor      # int64 [T, N]
     logprobs: torch.Tensor     # float [T, N]
     rewards: torch.Tensor      # float [T, N] extrinsic
@@ -31,7 +42,7 @@ class Rollout:
     target_probs: torch.Tensor  # float [T, N, A] LLM distribution over valid actions
     target_emb: torch.Tensor    # float [T, N, D] LLM summary embedding
     target_mask: torch.Tensor   # bool [T, N]
-    features: torch.Tensor      # float [T, N, F] policy features at acting time ([T, N, 0] without heads)
+    features: torch.Tensor      # float [T, N, F] policy features at acting time
 
     @classmethod
     def empty(cls, num_steps: int, num_envs: int, image_shape: tuple[int, ...], mission_len: int,
@@ -40,6 +51,7 @@ class Rollout:
         z = lambda *shape, dtype=torch.float32: torch.zeros((t, n, *shape), dtype=dtype)  # noqa: E731
         return cls(
             images=z(*image_shape, dtype=torch.uint8), missions=z(mission_len, dtype=torch.int64),
+            next_images=z(*image_shape, dtype=torch.uint8), next_missions=z(mission_len, dtype=torch.int64),
             actions=z(dtype=torch.int64), logprobs=z(), rewards=z(), ends=z(),
             values_ext=z(), values_int=z(), target_probs=z(num_actions),
             target_emb=z(embedding_dim), target_mask=z(dtype=torch.bool), features=z(feature_dim),
@@ -53,6 +65,14 @@ class Rollout:
         """Field `name` with the T and N axes merged: [T * N, ...]."""
         x = getattr(self, name)
         return x.reshape(-1, *x.shape[2:])
+
+    def bonus_batch(self, targets: bool, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """What a bonus reads: `BONUS_FIELDS` (+ `TARGET_FIELDS` when `targets`), [T, N, ...]
+        views, or the flat rows `rows` ([B, ...]) when given."""
+        names = BONUS_FIELDS + (TARGET_FIELDS if targets else ())
+        if rows is None:
+            return {name: getattr(self, name) for name in names}
+        return {name: self.flat(name)[rows] for name in names}
 
 
 def gae(rewards: torch.Tensor, values: torch.Tensor, next_value: torch.Tensor, ends: torch.Tensor,

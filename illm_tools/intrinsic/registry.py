@@ -1,0 +1,195 @@
+"""Training methods by name: `illm train --method NAME` -> an intrinsic bonus class and its config.
+
+Owns `METHODS` (the registry: a live name -> `Method` mapping, which `TrainConfig` validates
+against and `--method`'s help lists), `register` (adds a method; the trainer needs no change),
+`get_method` (a name, or one line saying which exist) and the conversion of a run's settings into
+a bonus's config dataclass.
+
+A method is a bonus class (an `IntrinsicBonus` subclass, given as the class or lazily as
+"module:Class", as gymnasium's `entry_point`s are: `illm --help` never imports torch) plus whether
+its reward is paid. `ppo` has no bonus. Built in:
+
+  illm           iLLM heads + bonus (illm.py)
+  illm-noreward  iLLM heads trained, no bonus paid (paper Table 3)
+  ppo            no bonus
+  rnd            Random Network Distillation (rnd.py); --bonus-preset rnd (advantage weights 2 / 1)
+
+A bonus's config is built from two sources: the fields its `config_class` lists in `RUN_SETTINGS`
+take the run's TrainConfig setting of the same name (iLLM's lambda_a, beta_hc, ... stay top-level
+options, as checkpoints and reports know them); every other field takes `TrainConfig.bonus_options`
+(`illm train --bonus-option KEY=VALUE`) or its default. An option a config does not have is refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import typing
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from functools import cached_property
+from typing import TYPE_CHECKING, Any
+
+from illm_tools.errors import UsageError
+
+if TYPE_CHECKING:
+    from illm_tools.intrinsic.base import BonusContext, IntrinsicBonus
+
+__all__ = ["METHODS", "Method", "get_method", "method_help", "register"]
+
+
+@dataclass(frozen=True)
+class Method:
+    """One `--method`: the bonus it trains with and whether that bonus's reward is paid."""
+
+    name: str
+    """What `--method` and `TrainConfig.mode` say."""
+    summary: str
+    """A few words for `--help`."""
+    entry_point: str | type | None = None
+    """The `IntrinsicBonus` subclass, or "module:Class" imported on first use; None: no bonus."""
+    pays_reward: bool = True
+    """False: the bonus's models train, its reward is not paid (only advantages change)."""
+    preset: str = "paper"
+    """The `--bonus-preset` (bonus and advantage weights, `illm_tools.rl.config.BONUS_PRESETS`)
+    `illm train` uses when none is given."""
+
+    @cached_property
+    def bonus_class(self) -> type[IntrinsicBonus]:
+        """The bonus class (`NoBonus` for a method without one)."""
+        from illm_tools.intrinsic.base import IntrinsicBonus, NoBonus
+
+        if self.entry_point is None:
+            return NoBonus
+        cls = self.entry_point
+        if isinstance(cls, str):
+            module, _, attr = cls.partition(":")
+            cls = getattr(importlib.import_module(module), attr)
+        if not (isinstance(cls, type) and issubclass(cls, IntrinsicBonus)):
+            raise TypeError(f"method {self.name}: {self.entry_point!r} is not an IntrinsicBonus subclass")
+        return cls
+
+    @property
+    def config_class(self) -> type | None:
+        """The bonus's config dataclass (None: it has no settings)."""
+        return self.bonus_class.config_class
+
+    @property
+    def needs_targets(self) -> bool:
+        """Whether the run must supply LLM targets (an annotation cache)."""
+        return self.bonus_class.needs_targets
+
+    @property
+    def policy_heads(self) -> bool:
+        """Whether the policy network carries the iLLM heads f^a / f^hc."""
+        return self.bonus_class.policy_heads
+
+    @property
+    def pays(self) -> bool:
+        """Whether an intrinsic reward reaches the advantages (a bonus that pays, paid)."""
+        return self.entry_point is not None and self.pays_reward
+
+    # --- settings ---------------------------------------------------------------------------
+    def option_names(self) -> list[str]:
+        """The names `bonus_options` may set (the config's fields not taken from the run)."""
+        cls = self.config_class
+        if cls is None:
+            return []
+        shared = set(getattr(cls, "RUN_SETTINGS", ()))
+        return [f.name for f in dataclasses.fields(cls) if f.name not in shared]
+
+    def parse_options(self, pairs: Iterable[str]) -> dict[str, Any]:
+        """`KEY=VALUE` strings (as `--bonus-option` gives them) -> typed bonus options."""
+        options: dict[str, Any] = {}
+        for pair in pairs:
+            key, sep, value = pair.partition("=")
+            if not sep or not key.strip():
+                raise UsageError(f"--bonus-option takes KEY=VALUE, got {pair!r}")
+            options[key.strip()] = value.strip()
+        return self._typed_options(options)
+
+    def _typed_options(self, options: Mapping[str, Any]) -> dict[str, Any]:
+        allowed = self.option_names()
+        unknown = sorted(set(options) - set(allowed))
+        if unknown:
+            takes = f"it takes {', '.join(allowed)}" if allowed else "it takes none"
+            raise UsageError(f"--method {self.name} has no bonus option {', '.join(unknown)}; {takes}")
+        hints = typing.get_type_hints(self.config_class) if options else {}
+        return {k: _typed(k, hints.get(k), v) for k, v in options.items()}
+
+    def make_config(self, run: Mapping[str, Any], options: Mapping[str, Any]) -> Any:
+        """The bonus's config: `RUN_SETTINGS` fields from `run` (a TrainConfig's `to_dict()`),
+        the others from `options` or their defaults. Refuses unknown or ill-typed options."""
+        options = self._typed_options(options)
+        cls = self.config_class
+        if cls is None:
+            return None
+        values = {k: run[k] for k in getattr(cls, "RUN_SETTINGS", ()) if k in run}
+        return cls(**values, **options)
+
+    def build(self, run: Mapping[str, Any], options: Mapping[str, Any], ctx: BonusContext) -> IntrinsicBonus:
+        """A new bonus for a run: its config from the run's settings, its sizes from `ctx`."""
+        bonus = self.bonus_class.from_config(self.make_config(run, options), ctx)
+        if not self.pays_reward:
+            bonus.pays_reward = False
+        return bonus
+
+
+def _typed(name: str, hint: Any, value: Any) -> Any:
+    """`value` as the field's type (bool, int, float or str); strings come from the command line."""
+    if hint in (bool, int, float, str) and isinstance(value, hint) and not (hint is int and isinstance(value, bool)):
+        return value
+    text = str(value).strip().lower()
+    try:
+        if hint is bool:
+            if text in ("1", "true", "yes", "on"):
+                return True
+            if text in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(value)
+        if hint is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError(value)
+            return int(value) if not isinstance(value, str) else int(text)
+        if hint is float:
+            if isinstance(value, bool):
+                raise ValueError(value)
+            return float(value)
+        if hint is str:
+            return str(value)
+    except ValueError:
+        raise UsageError(f"bonus option {name} must be {hint.__name__}, got {value!r}") from None
+    return value  # other types: the config's own validation decides
+
+
+METHODS: dict[str, Method] = {}
+"""Every method by name, in registration order (a live view: methods registered later count)."""
+
+
+def register(method: Method, *, replace: bool = False) -> Method:
+    """Add a method to `METHODS`; a taken name is refused unless `replace`."""
+    if method.name in METHODS and not replace:
+        raise UsageError(f"a method named {method.name!r} is already registered")
+    METHODS[method.name] = method
+    return method
+
+
+def get_method(name: str) -> Method:
+    """The method called `name`; one line listing the known ones otherwise."""
+    try:
+        return METHODS[name]
+    except (KeyError, TypeError):
+        raise UsageError(f"unknown method (mode) {name!r}; choose one of {', '.join(METHODS)}") from None
+
+
+def method_help() -> str:
+    """`--method`'s help: every method with its summary."""
+    return " | ".join(f"{m.name} ({m.summary})" for m in METHODS.values())
+
+
+register(Method("illm", "iLLM heads + bonus", "illm_tools.intrinsic.illm:ILLMBonus"))
+register(Method("illm-noreward", "iLLM heads only, no bonus: paper Table 3", "illm_tools.intrinsic.illm:ILLMBonus",
+                pays_reward=False))
+register(Method("ppo", "no bonus", None, pays_reward=False))
+register(Method("rnd", "Random Network Distillation; advantage weights 2 / 1", "illm_tools.intrinsic.rnd:RNDBonus",
+                preset="rnd"))

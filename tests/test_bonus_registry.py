@@ -1,0 +1,182 @@
+"""The bonus plug-in contract: methods come from the registry, bonus options are typed and checked,
+the rollout hands every bonus its next observations, and a bonus defined here (a count-based toy)
+trains through the unchanged Trainer with its rewards reaching the advantages."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from cli.main import app
+from illm_tools.errors import UsageError
+from illm_tools.intrinsic import BonusRewards, IntrinsicBonus, NoBonus
+from illm_tools.intrinsic.registry import METHODS, Method, get_method, register
+from illm_tools.rl import TrainConfig, Trainer, load_checkpoint, two_stream_advantages
+from illm_tools.rl.config import MODES
+from test_ppo import FakePool
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+# --- a bonus the trainer has never heard of ---------------------------------------------------
+@dataclass
+class CountConfig:
+    """The toy's settings."""
+
+    scale: float = 1.0
+    """Reward of a never-seen observation."""
+
+
+class CountBonus(IntrinsicBonus):
+    """Pays scale / sqrt(n) for reaching an observation seen n times (counted in `observe`)."""
+
+    config_class = CountConfig
+
+    def __init__(self, config: CountConfig, ctx):
+        self.scale, self.ctx = config.scale, ctx
+        self.counts: Counter[bytes] = Counter()
+        self.observed = self.updates = 0
+        self.last_reward: torch.Tensor | None = None
+
+    def observe(self, step):
+        n = self.ctx.num_envs
+        assert step["images"].shape == step["next_images"].shape == (n, *self.ctx.image_shape)
+        assert step["actions"].shape == step["ends"].shape == (n,)
+        assert step["features"].shape == (n, self.ctx.feature_dim)
+        self.observed += 1
+        for image in step["next_images"]:
+            self.counts[image.numpy().tobytes()] += 1
+
+    def compute_rewards(self, batch):
+        images = batch["next_images"]
+        t, n = images.shape[:2]
+        assert "target_mask" not in batch and "action_logits" not in batch  # declared neither
+        counts = torch.tensor([self.counts[x.numpy().tobytes()] for x in images.reshape(t * n, -1)],
+                              dtype=torch.float32)
+        self.last_reward = self.scale / counts.clamp_min(1.0).sqrt().view(t, n)
+        return BonusRewards(self.last_reward, {"count_unique": float(len(self.counts))})
+
+    def update(self, batch):
+        self.updates += 1
+        return {"count_updates": float(self.updates)}
+
+    def state_dict(self):
+        return {"observed": self.observed, "updates": self.updates, "unique": len(self.counts)}
+
+    def load_state_dict(self, state):
+        self.observed, self.updates = state["observed"], state["updates"]
+
+
+@pytest.fixture
+def count_method():
+    method = register(Method("count-toy", "a count-based toy", CountBonus))
+    yield method
+    METHODS.pop(method.name)
+
+
+def trainer_for(tmp_path, mode, updates=2, **kw):
+    cfg = TrainConfig(run_dir=tmp_path / "run", mode=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
+                      tensorboard=False, update_epochs=2, num_minibatches=2, **kw)
+    return Trainer(cfg, FakePool(cfg.num_envs))
+
+
+# --- the registry -----------------------------------------------------------------------------
+def test_methods_and_what_each_declares():
+    assert MODES is METHODS and list(METHODS)[:4] == ["illm", "illm-noreward", "ppo", "rnd"]
+    illm, noreward, ppo, rnd = (get_method(m) for m in ("illm", "illm-noreward", "ppo", "rnd"))
+    assert illm.needs_targets and illm.policy_heads and illm.pays
+    assert noreward.needs_targets and noreward.policy_heads and not noreward.pays
+    assert ppo.bonus_class is NoBonus and not (ppo.needs_targets or ppo.policy_heads or ppo.pays)
+    assert not (rnd.needs_targets or rnd.policy_heads) and rnd.pays and rnd.preset == "rnd"
+    assert TrainConfig(mode="rnd").uses_heads is False and TrainConfig(mode="rnd").pays_bonus
+
+
+def test_an_unknown_method_is_refused_in_one_line(tmp_path):
+    with pytest.raises(UsageError, match="unknown method") as err:
+        TrainConfig(mode="curiosity")
+    assert "\n" not in str(err.value) and "rnd" in str(err.value)
+    result = CliRunner().invoke(app, ["train", "--method", "curiosity", "--out", str(tmp_path / "r")])
+    assert result.exit_code == 1 and "unknown method" in result.output
+    assert len(result.output.strip().splitlines()) == 1
+
+
+def test_method_help_lists_the_registry(count_method):
+    from illm_tools.intrinsic.registry import method_help
+
+    assert all(name in method_help() for name in ("illm-noreward", "ppo", "rnd", "count-toy"))
+    with pytest.raises(UsageError, match="already registered"):
+        register(Method("rnd", "again", CountBonus))
+
+
+def test_bonus_options_are_typed_and_checked():
+    rnd = get_method("rnd")
+    assert rnd.parse_options(["update_proportion=0.5", "epochs = 2"]) == {"update_proportion": 0.5, "epochs": 2}
+    cfg = TrainConfig(mode="rnd", bonus_options={"update_proportion": 1})
+    assert rnd.make_config(cfg.to_dict(), cfg.bonus_options).update_proportion == 1.0
+    for bad, match in ((["epochs=two"], "epochs must be int"), (["bogus=1"], "no bonus option bogus"),
+                       (["update_proportion"], "KEY=VALUE"), (["update_proportion=1.5"], r"\(0, 1\]")):
+        with pytest.raises(UsageError, match=match):
+            TrainConfig(mode="rnd", bonus_options=rnd.parse_options(bad))
+    # iLLM's settings are the run's own (top-level options), not bonus options; ppo has none
+    with pytest.raises(UsageError, match="it takes none"):
+        TrainConfig(mode="illm", bonus_options={"lambda_a": 0.1})
+    with pytest.raises(UsageError, match="ppo has no bonus option"):
+        TrainConfig(mode="ppo", bonus_options={"scale": 1})
+    illm = get_method("illm").make_config(TrainConfig(lambda_a=0.3).to_dict(), {})
+    assert illm.lambda_a == 0.3 and illm.beta_hc == 0.5
+
+
+# --- the trainer side -------------------------------------------------------------------------
+def test_the_rollout_hands_bonuses_the_next_observations(tmp_path):
+    trainer = trainer_for(tmp_path, "ppo", updates=1)
+    ro, _, _, _ = trainer.collect_rollout()
+    assert torch.equal(ro.next_images[:-1], ro.images[1:]) and torch.equal(ro.next_missions[:-1], ro.missions[1:])
+    last_images, last_missions = trainer._policy_inputs(trainer.obs)  # where the next rollout starts
+    assert torch.equal(ro.next_images[-1], last_images) and torch.equal(ro.next_missions[-1], last_missions)
+    assert ro.ends.sum() > 0  # episodes ended in the rollout: their next observation is the reset one
+    batch = trainer.bonus_batch(ro)
+    assert set(batch) == {"images", "missions", "actions", "ends", "next_images", "next_missions", "features"}
+    assert batch["features"].shape == (32, 4, trainer.net.feature_dim) and batch["features"].abs().sum() > 0
+
+
+def test_a_bonus_defined_outside_plugs_in_and_reaches_the_advantages(tmp_path, monkeypatch, count_method):
+    trainer = trainer_for(tmp_path, "count-toy", updates=3, checkpoint_every=1, bonus_options={"scale": 2.0})
+    bonus = trainer.bonus
+    assert isinstance(bonus, CountBonus) and bonus.scale == 2.0 and not trainer.net.has_heads
+    assert trainer.provider is None and trainer.cfg.pays_bonus
+
+    seen = {}
+    real_update = trainer.update
+
+    def capture(ro, adv):
+        seen.update(ro=ro, adv=adv)
+        with torch.no_grad():  # the bootstrap values of this rollout (the network is not yet updated)
+            seen["next"] = trainer.net(*trainer._policy_inputs(trainer.obs))
+        return real_update(ro, adv)
+
+    monkeypatch.setattr(trainer, "update", capture)
+    metrics = trainer.train_one_update()
+    cfg, ro, adv, nxt = trainer.cfg, seen["ro"], seen["adv"], seen["next"]
+    assert bonus.observed == cfg.num_steps and bonus.updates == 1
+    assert (bonus.last_reward > 0).all() and (bonus.last_reward <= 2.0).all()
+    kw = dict(gamma=cfg.gamma, int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
+              int_coef=cfg.int_coef, int_episodic=cfg.int_episodic)
+    expected = two_stream_advantages(ro, bonus.last_reward, nxt.value_ext, nxt.value_int, **kw)
+    without = two_stream_advantages(ro, None, nxt.value_ext, nxt.value_int, **kw)
+    assert torch.allclose(adv.advantages, expected.advantages, atol=1e-6)  # the loss saw the bonus ...
+    assert (adv.advantages - without.advantages).abs().max() > 0.1      # ... and it changed them
+    assert metrics["charts/count_unique"] > 0 and metrics["losses/count_updates"] == 1
+    assert metrics["charts/adv_int_abs"] > 0 and metrics["losses/value_loss_int"] > 0
+
+    monkeypatch.undo()
+    trainer.train()
+    assert bonus.updates == 3 and bonus.observed == 3 * cfg.num_steps
+    assert load_checkpoint(cfg.run_dir)["bonus"] == bonus.state_dict()
+    resumed = trainer_for(tmp_path, "count-toy", updates=4, resume=True, bonus_options={"scale": 2.0})
+    assert resumed.bonus.updates == 3 and resumed.bonus.observed == 3 * cfg.num_steps
+    with pytest.raises(UsageError, match="bonus_options"):
+        trainer_for(tmp_path, "count-toy", updates=4, resume=True, bonus_options={"scale": 3.0})
