@@ -25,7 +25,7 @@ def register(app: typer.Typer) -> None:
 
         groups = summarise([r for r in runs if r.is_dir()], every)
         if as_json:
-            emit_json([{"env_id": env, "method": method, **g} for (env, method), g in groups.items()])
+            emit_json([{"env_id": env, "label": label, **g} for (env, label), g in groups.items()])
             return
         frames = max((g["frames"] for g in groups.values()), key=len, default=[])
         typer.echo("| env | method | seeds | " + " | ".join(f"{f / 1000:.4g}k" for f in frames)
@@ -35,7 +35,7 @@ def register(app: typer.Typer) -> None:
             by_frame = dict(zip(g["frames"], zip(g["mean"], g["std"])))
             cells = ["-" if f not in by_frame or by_frame[f][0] != by_frame[f][0]  # nan: no episode ended there
                      else f"{by_frame[f][0]:.2f} ± {by_frame[f][1]:.2f}" for f in frames]
-            cover = f"{g['coverage']:.1%}" if not method.startswith("ppo") else "-"
+            cover = f"{g['coverage']:.1%}" if g["reads_targets"] else "-"
             typer.echo(f"| {env} | {method} | {len(g['seeds'])} | " + " | ".join(cells) + f" | {cover} |")
         typer.echo("")
         for (env, method), g in groups.items():

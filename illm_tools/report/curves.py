@@ -124,6 +124,14 @@ def group_labels(configs: list[dict]) -> list[str]:
     return labels
 
 
+def _reads_targets(cfg: dict) -> bool:
+    """Whether the run's method reads LLM targets (so its target coverage means something)."""
+    from illm_tools.intrinsic.registry import METHODS
+
+    method = METHODS.get(cfg.get("mode", ""))
+    return method.needs_targets if method is not None else True
+
+
 def summarise(run_dirs: list[Path], every: int) -> dict:
     """{(env, label): {"frames", "mean", "std", "seeds", "runs", "coverage", "hit_rate"}}, one
     entry per configuration (see the module docstring), plus the runs shorter than `every` under
@@ -151,7 +159,8 @@ def summarise(run_dirs: list[Path], every: int) -> dict:
         with np.errstate(all="ignore"), warnings.catch_warnings():  # windows with no finished episode stay NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             mean, std = np.nanmean(table, 0), np.nanstd(table, 0)
-        out[key] = {"frames": frames, "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in long),
+        out[key] = {"method": members[0].config.get("mode", "?"), "reads_targets": _reads_targets(members[0].config),
+                    "frames": frames, "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in long),
                     "runs": [c.run for c in long], "short_runs": {c.run: c.last_step for c in members if not c.frames},
                     "coverage": float(np.mean([c.coverage for c in members])),
                     "hit_rate": float(np.mean([c.hit_rate for c in members]))}
