@@ -6,8 +6,43 @@ from pathlib import Path
 
 import typer
 
-from cli.common import emit_json, progress
+from cli.common import emit_json, progress, stop_on_signals
 from cli.errors import friendly
+
+# `illm train` option -> TrainConfig field, where the names differ
+FIELDS = {"env": "env_id", "out": "run_dir", "method": "mode", "frames": "total_steps", "history": "history_len",
+          "dtype": "model_dtype", "bonus_option": "bonus_options"}
+WEIGHTS = ("lambda_a", "beta_hc", "ext_coef", "int_coef")
+
+
+def _given(ctx: typer.Context) -> set[str]:
+    """The options the user typed (not left at their defaults)."""
+    # by name: Typer may carry its own copy of click, whose ParameterSource is another enum
+    return {name for name in ctx.params if getattr(ctx.get_parameter_source(name), "name", "") == "COMMANDLINE"}
+
+
+def resumed_config(ctx: typer.Context, out: Path, fields: dict):
+    """The TrainConfig of `illm train --out RUN --resume`: the run's own settings from its
+    config.json, with the options given now applied where a resumed run may change them
+    (RESUMABLE_CHANGES: --frames, --live-budget, threads, ...). Any other option that differs
+    from the run's setting is refused in one line naming it; the run folder may have moved."""
+    from illm_tools.errors import UsageError
+    from illm_tools.rl.checkpoint import RESUMABLE_CHANGES, read_config
+    from illm_tools.rl.config import TrainConfig
+
+    stored = read_config(out)
+    given = _given(ctx) - {"resume", "out"}
+    flag = {FIELDS.get(name, name): name for name in ctx.params}
+    if "bonus_preset" in given:  # a preset stands for its four weights
+        given |= {w for w in WEIGHTS if w not in given}
+    changes = {FIELDS.get(name, name): fields[FIELDS.get(name, name)] for name in given if name != "bonus_preset"}
+    refused = sorted(f"--{flag.get(k, k).replace('_', '-')} (the run has {stored.get(k)!r})"
+                     for k, v in changes.items() if stored.get(k) != v and k not in RESUMABLE_CHANGES)
+    if refused:
+        allowed = sorted(f"--{flag[k].replace('_', '-')}" for k in RESUMABLE_CHANGES if k in flag and k != "resume")
+        raise UsageError(f"--resume continues {out} with its own settings, and {', '.join(refused)} would change what "
+                         f"it learns: leave {'them' if len(refused) > 1 else 'it'} out, or train into a new --out (a resumed run may change {', '.join(allowed)})")
+    return TrainConfig.from_dict({**stored, **changes, "run_dir": str(out), "resume": True})
 
 
 def register(app: typer.Typer) -> None:
@@ -17,6 +52,7 @@ def register(app: typer.Typer) -> None:
                         "--frames 200000 --seed 0 --out runs/gotolocal-illm")
     @friendly
     def train(
+        ctx: typer.Context,
         env: str = typer.Option("BabyAI-GoToLocal-v0", "--env", help="Environment id."),
         out: Path = typer.Option(..., "--out", help="Run folder: config.json, checkpoint.pt, metrics.csv, TensorBoard events."),
         method: str = typer.Option("illm", "--method", help=method_help() + "."),
@@ -54,14 +90,18 @@ def register(app: typer.Typer) -> None:
 
         spec = get_method(method)
         weights = bonus_weights(bonus_preset or spec.preset, lambda_a=lambda_a, beta_hc=beta_hc, ext_coef=ext_coef, int_coef=int_coef)
-        cfg = TrainConfig(env_id=env, run_dir=out, mode=method, seed=seed, total_steps=frames, num_envs=num_envs,
-                          num_steps=num_steps, action_space=action_space, num_dists=num_dists, history_len=history,
-                          cache=cache, model=model, model_dtype=dtype, quant=quant, layout=layout, action_score=action_score,
-                          action_target=action_target, live_budget=live_budget, live_mode=live_mode, new_setup=new_setup, threads=threads, llm_threads=llm_threads,
-                          resume=resume, bonus_options=spec.parse_options(bonus_option or []), **weights)
+        fields = dict(env_id=env, run_dir=out, mode=method, seed=seed, total_steps=frames, num_envs=num_envs,
+                      num_steps=num_steps, action_space=action_space, num_dists=num_dists, history_len=history,
+                      cache=cache, model=model, model_dtype=dtype, quant=quant, layout=layout, action_score=action_score,
+                      action_target=action_target, live_budget=live_budget, live_mode=live_mode, new_setup=new_setup,
+                      threads=threads, llm_threads=llm_threads, resume=resume,
+                      bonus_options=spec.parse_options(bonus_option or []), **weights)
+        cfg = resumed_config(ctx, out, fields) if resume else TrainConfig(**fields)
+        method, env = cfg.mode, cfg.env_id
         last: dict = {}
         coverage: list[float] = []
-        with progress(cfg.num_updates * cfg.batch_size, f"train {method}", unit="steps") as advance:
+        with stop_on_signals("the current update, then writing a checkpoint") as stop, \
+                progress(cfg.num_updates * cfg.batch_size, f"train {method}", unit="steps") as advance:
             def on_metrics(m: dict) -> None:
                 last.update(m)
                 fields = {"success": f"{m.get('charts/success_rate', float('nan')):.2f}"}
@@ -72,8 +112,16 @@ def register(app: typer.Typer) -> None:
                         fields["live_queue"] = f"{m['charts/live_queue']:.0f}"
                 advance(cfg.batch_size, m.get("charts/sps"), **fields)
 
-            run(cfg, on_metrics)
+            result = run(cfg, on_metrics, should_stop=lambda: stop.requested)
+        if result.get("already_done"):
+            typer.echo(f"{out} is already at {result['global_step']:,} frames (--frames {cfg.total_steps:,}): nothing "
+                       "to do; pass a larger --frames with --resume to train on")
+            return
         targets = f"; steps with an LLM target {sum(coverage) / len(coverage):.0%} on average" if coverage else ""
+        if result.get("stopped"):
+            typer.echo(f"stopped at {result['global_step']:,} frames{targets}; resume with "
+                       f"`illm train --out {out} --resume`")
+            raise typer.Exit(stop.exit_code)
         typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames "
                    f"({last.get('charts/sps', 0):,.0f} steps/s); last success rate "
                    f"{last.get('charts/success_rate', float('nan')):.2f}{targets} -> {out}")

@@ -3,7 +3,6 @@ trajectory dataset (schema `trajectory` v1)."""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -85,10 +84,9 @@ def resolved_action_space(config: CollectConfig) -> str:
     (so the policy's actions fit the env); "auto" otherwise, resolved by the env pool."""
     if config.action_space != "auto" or config.policy == "random":
         return config.action_space
-    run_config = Path(config.policy) / "config.json"
-    if not run_config.is_file():
-        return "auto"  # load_policy says what is wrong with the folder
-    return json.loads(run_config.read_text()).get("action_space", "auto")
+    from illm_tools.rl.checkpoint import read_config
+
+    return read_config(Path(config.policy)).get("action_space", "auto")
 
 
 def check_append(config: CollectConfig, names: list[str]) -> None:

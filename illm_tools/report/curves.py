@@ -75,10 +75,11 @@ def read_metrics_csv(path: Path) -> list[dict]:
 
 
 def load_curve(run_dir: Path, every: int) -> Curve:
-    cfg_path, csv_path = run_dir / "config.json", run_dir / "metrics.csv"
-    if not cfg_path.is_file() or not csv_path.is_file():
-        raise UsageError(f"{run_dir} is not a training run (no config.json / metrics.csv): pass folders of `illm train`")
-    cfg = json.loads(cfg_path.read_text())
+    from illm_tools.rl.checkpoint import read_config
+
+    cfg, csv_path = read_config(run_dir), run_dir / "metrics.csv"
+    if not csv_path.is_file():
+        raise UsageError(f"{run_dir} is not a training run (no metrics.csv): pass folders of `illm train`")
     rows = read_metrics_csv(csv_path)
     steps = np.array([int(r["global_step"]) for r in rows])
     eps = np.array([float(r["episodes"] or 0) for r in rows])

@@ -1,26 +1,41 @@
 """The files of a training run directory, and loading a trained run's policy for other stages.
 
-Owns `run_dir/checkpoint.pt` (written atomically: temporary file, fsync, rename, so a crash
-leaves the previous checkpoint intact), `run_dir/metrics.jsonl` (one JSON object per update, every
-metric), `run_dir/metrics.csv` (the same rows, a fixed set of columns, for spreadsheets and
-`illm report`), TensorBoard events when asked and `load_policy`, which rebuilds the network from
-`run_dir/config.json` + the checkpoint for `collect` / `eval`.
+Owns `run_dir/checkpoint.pt` and `checkpoint.prev.pt`, `run_dir/config.json` (`write_config`,
+`read_config`), `run_dir/metrics.jsonl` (one JSON object per update, every metric),
+`run_dir/metrics.csv` (the same rows, a fixed set of columns, for spreadsheets and `illm report`),
+TensorBoard events when asked and `load_policy`, which rebuilds the network from config.json + the
+checkpoint for `collect` / `eval`.
+
+Checkpoints (format 2) hold the torch-saved state as bytes beside their sha256, so a damaged file
+is detected, never loaded as other weights. A new checkpoint is written to a temporary file,
+fsynced, and renamed over checkpoint.pt after the previous one was renamed to checkpoint.prev.pt
+(the directory fsynced after each): at every moment one of the two is whole. `load_checkpoint`
+falls back to the previous checkpoint, saying so, when the latest is missing or damaged. Format-1
+checkpoints (no digest) still load.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
+import io
 import json
+import logging
 import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from illm_tools.errors import UsageError
+from illm_tools.errors import DamagedFileError, UsageError
+
+log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "checkpoint.pt"
-CHECKPOINT_VERSION = 1
+PREVIOUS_NAME = "checkpoint.prev.pt"
+CONFIG_NAME = "config.json"
+CHECKPOINT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 METRICS_NAME = "metrics.jsonl"
 CSV_NAME = "metrics.csv"
 # metrics.csv columns: metric keys without their charts/ or losses/ group; empty when not logged
@@ -46,8 +61,8 @@ class MetricsLog:
         rows: list[str] = []
         if keep_until_update is not None and self.path.exists():
             # on resume, drop rows logged after the checkpoint: they are about to be redone
-            rows = [r for r in self.path.read_text().splitlines()
-                    if r.strip() and json.loads(r).get("update", 0) <= keep_until_update]
+            rows = [r for r in self._rows() if r["update"] <= keep_until_update]
+            rows = [json.dumps(r) for r in rows]
         self._rewrite(rows)
         self._fh = open(self.path, "a")
         self._csv_fh = open(self.csv_path, "a", newline="")
@@ -57,6 +72,25 @@ class MetricsLog:
             from torch.utils.tensorboard import SummaryWriter  # heavy import, only when asked
 
             self._tb = SummaryWriter(str(run_dir))
+
+    def _rows(self) -> list[dict]:
+        """metrics.jsonl's rows. A last line cut short (a process killed while writing it, after its
+        checkpoint) is dropped; a damaged line before it is refused in one line."""
+        lines = self.path.read_text(errors="replace").splitlines()
+        rows = []
+        for n, line in enumerate(lines, 1):
+            if not line.strip():
+                continue
+            try:
+                row = json.loads(line)
+                row["update"] = int(row.get("update", 0))
+            except (ValueError, TypeError, AttributeError):
+                if n == len(lines):
+                    break
+                raise DamagedFileError(f"{self.path} line {n} is damaged: restore the file from a copy, or train "
+                                       "into a new --out") from None
+            rows.append(row)
+        return rows
 
     def _rewrite(self, rows: list[str]) -> None:
         """Start both files afresh with the given JSON rows (atomically each)."""
@@ -85,33 +119,108 @@ class MetricsLog:
             self._tb.close()
 
 
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def save_checkpoint(run_dir: Path, state: dict) -> Path:
-    """Write `state` (plus a format version) to run_dir/checkpoint.pt atomically."""
-    path = Path(run_dir) / CHECKPOINT_NAME
-    tmp = path.with_suffix(".pt.tmp")
+    """Write `state` to run_dir/checkpoint.pt with its digest, keeping the one it replaces as
+    checkpoint.prev.pt (see the module docstring for the order of the renames)."""
+    run_dir = Path(run_dir)
+    path, previous, tmp = run_dir / CHECKPOINT_NAME, run_dir / PREVIOUS_NAME, run_dir / f".{CHECKPOINT_NAME}.tmp"
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    payload = buffer.getvalue()
     with open(tmp, "wb") as fh:
-        torch.save({"format_version": CHECKPOINT_VERSION, **state}, fh)
+        torch.save({"format_version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(payload).hexdigest(),
+                    "state": payload}, fh)
         fh.flush()
         os.fsync(fh.fileno())
+    if path.exists():
+        os.replace(path, previous)
+        _fsync_dir(run_dir)
     os.replace(tmp, path)
+    _fsync_dir(run_dir)
     return path
 
 
+def _read_checkpoint(path: Path) -> dict:
+    """One checkpoint file's state; DamagedFileError (or UsageError for another format) if not whole."""
+    try:
+        outer = torch.load(path, map_location="cpu", weights_only=True)
+        version = outer.get("format_version") if isinstance(outer, dict) else None
+    except Exception as e:  # noqa: BLE001 - torch.load raises many kinds on a damaged file
+        raise DamagedFileError(f"{path} is damaged ({type(e).__name__})") from None
+    if version not in READABLE_VERSIONS:
+        raise UsageError(f"{path} has checkpoint format {version!r}; this illm reads formats "
+                         f"{', '.join(map(str, READABLE_VERSIONS))}")
+    if version == 1:
+        return outer
+    payload = outer.get("state")
+    if not isinstance(payload, bytes) or hashlib.sha256(payload).hexdigest() != outer.get("sha256"):
+        raise DamagedFileError(f"{path} is damaged (its contents differ from their recorded sha256)")
+    try:
+        return torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001
+        raise DamagedFileError(f"{path} is damaged ({type(e).__name__})") from None
+
+
 def load_checkpoint(run_dir: Path) -> dict:
-    """The last checkpoint of a run; raises UsageError when there is none or it is foreign."""
-    path = Path(run_dir) / CHECKPOINT_NAME
-    if not path.exists():
+    """The last whole checkpoint of a run: checkpoint.pt, or checkpoint.prev.pt (saying so) when
+    the latest is missing or damaged. One line (UsageError / DamagedFileError) when neither is."""
+    run_dir = Path(run_dir)
+    path, previous = run_dir / CHECKPOINT_NAME, run_dir / PREVIOUS_NAME
+    if not path.exists() and not previous.exists():
         raise UsageError(f"no checkpoint at {path}; train first or drop --resume")
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if state.get("format_version") != CHECKPOINT_VERSION:
-        raise UsageError(f"{path} has checkpoint format {state.get('format_version')!r}; "
-                         f"this illm reads format {CHECKPOINT_VERSION}")
-    return state
+    try:
+        if not path.exists():
+            raise DamagedFileError(f"{path} is missing")
+        return _read_checkpoint(path)
+    except DamagedFileError as latest:
+        if not previous.exists():
+            raise DamagedFileError(f"{latest}, and there is no previous checkpoint: train into a new --out") from None
+        try:
+            state = _read_checkpoint(previous)
+        except DamagedFileError as prev:
+            raise DamagedFileError(f"{latest}, and so is the previous one ({prev}): train into a new --out") from None
+        log.warning("%s; using the previous checkpoint %s (update %s, %s frames)", latest, previous,
+                    state.get("update"), f"{int(state.get('global_step', 0)):,}")
+        return state
+
+
+def write_config(run_dir: Path, config: dict) -> None:
+    """Write run_dir/config.json atomically (temporary file, fsync, rename)."""
+    path = Path(run_dir) / CONFIG_NAME
+    tmp = path.with_name(f".{CONFIG_NAME}.tmp")
+    with open(tmp, "w") as fh:
+        fh.write(json.dumps(config, indent=2))
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def read_config(run_dir: Path) -> dict:
+    """run_dir/config.json as written by `illm train`; one line when it is absent or damaged."""
+    path = Path(run_dir) / CONFIG_NAME
+    if not path.is_file():
+        raise UsageError(f"{run_dir} is not a training run (no {CONFIG_NAME}): pass a folder written by `illm train`")
+    try:
+        config = json.loads(path.read_text())
+        if not isinstance(config, dict) or "mode" not in config or "env_id" not in config:
+            raise ValueError("not a run's settings")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise DamagedFileError(f"{path} is damaged ({type(e).__name__}): the checkpoint holds the same settings; "
+                               "restore the file from a copy") from None
+    return config
 
 
 # settings a resumed run may change; any other difference is refused
-RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "tensorboard", "live_budget", "threads",
-                               "llm_threads", "live_mode", "new_setup", "heads_bf16"})
+RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "checkpoint_minutes", "tensorboard", "live_budget", "threads",
+                               "llm_threads", "live_mode", "new_setup", "heads_bf16", "run_dir", "cache"})
 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:
@@ -151,10 +260,7 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     from illm_tools.rl.networks import GridMissionNet, MissionVocab
 
     run_dir = Path(run_dir)
-    config_path = run_dir / "config.json"
-    if not config_path.exists():
-        raise UsageError(f"{run_dir} is not a training run (no config.json)")
-    cfg = TrainConfig.from_dict(json.loads(config_path.read_text()))
+    cfg = TrainConfig.from_dict(read_config(run_dir))
     state = load_checkpoint(run_dir)
     names = list(pool.action_names)
     if state["action_names"] != names:

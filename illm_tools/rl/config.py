@@ -155,7 +155,10 @@ class TrainConfig:
 
     # --- bookkeeping -----------------------------------------------------------------------
     checkpoint_every: int = 10
-    """Save a checkpoint every this many updates (and after the last one); 0 only at the end."""
+    """Save a checkpoint every this many updates, after the first and the last one, and when a
+    signal stops the run; 0: only those."""
+    checkpoint_minutes: float = 5.0
+    """Also save a checkpoint when this many minutes have passed since the last one."""
     resume: bool = False
     """Continue from run_dir/checkpoint.pt instead of starting fresh."""
     tensorboard: bool = True

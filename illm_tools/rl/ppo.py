@@ -17,7 +17,6 @@ The trainer never prints: metrics go to run_dir/metrics.jsonl, TensorBoard, and 
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from collections.abc import Callable
 
@@ -28,7 +27,7 @@ from torch import nn
 from illm_tools.errors import OutputExistsError, UsageError
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, TargetProvider
 from illm_tools.intrinsic.registry import get_method
-from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint,
+from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint, write_config,
                                       save_checkpoint)
 from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.networks import GridMissionNet, MissionVocab
@@ -103,7 +102,7 @@ class Trainer:
         elif (run_dir / CHECKPOINT_NAME).exists():
             raise OutputExistsError(f"{run_dir} already holds a run; pass --resume to continue it "
                                     "or choose another run dir")
-        (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        write_config(run_dir, cfg.to_dict())
         self.log = MetricsLog(run_dir, tensorboard=cfg.tensorboard,
                               keep_until_update=self.update_idx if cfg.resume else 0)
 
@@ -325,20 +324,34 @@ class Trainer:
         metrics.update({f"charts/{k}": v for k, v in adv.scale_logs().items()})
         return metrics
 
-    def train(self) -> dict:
-        """Run the remaining updates; returns the last update's metrics."""
+    def train(self, should_stop: Callable[[], bool] | None = None) -> dict:
+        """Run the remaining updates; returns the last update's metrics. When `should_stop()` says
+        so after an update (a signal: SIGINT, SIGTERM), a checkpoint is written and the run
+        returns early, its metrics marked `stopped`; `--resume` continues it."""
         cfg, metrics = self.cfg, {}
         start_step, start_time = self.global_step, time.perf_counter()
+        if self.update_idx >= cfg.num_updates:
+            self.log.close()
+            return {"global_step": self.global_step, "already_done": True}
+        saved_at = time.monotonic()
         try:
             while self.update_idx < cfg.num_updates:
+                if should_stop is not None and should_stop():
+                    if self.update_idx:
+                        self.save()
+                    metrics = {**metrics, "stopped": True, "global_step": self.global_step}
+                    break
                 metrics = self.train_one_update()
                 metrics["charts/sps"] = (self.global_step - start_step) / (time.perf_counter() - start_time)
                 self.log.write(metrics)
                 if self.on_metrics is not None:
                     self.on_metrics(metrics)
                 last = self.update_idx == cfg.num_updates
-                if last or (cfg.checkpoint_every and self.update_idx % cfg.checkpoint_every == 0):
+                due = (cfg.checkpoint_every and self.update_idx % cfg.checkpoint_every == 0) or \
+                    time.monotonic() - saved_at >= 60 * cfg.checkpoint_minutes
+                if last or due or self.update_idx == 1:  # the first too: a run killed early can resume
                     self.save()
+                    saved_at = time.monotonic()
         finally:
             self.log.close()
         return metrics

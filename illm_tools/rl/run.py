@@ -4,7 +4,6 @@ live model when a budget is given), and the trainer; plus evaluation of a finish
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
@@ -83,8 +82,10 @@ def make_live(cfg: TrainConfig, builder, cache):
     return SyncLive(annotator, builder.env_id, builder.renderer, cfg.live_budget, threads=cfg.live_threads)
 
 
-def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None) -> dict:
-    """Build and run a training run to cfg.total_steps; returns the last update's metrics."""
+def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
+          should_stop: Callable[[], bool] | None = None) -> dict:
+    """Build and run a training run to cfg.total_steps; returns the last update's metrics
+    (`Trainer.train`: `should_stop` ends it early with a checkpoint)."""
     from illm_tools.rl.ppo import Trainer, make_pool
 
     with torch_threads(cfg.threads):
@@ -92,7 +93,7 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None) ->
         provider, cfg = make_provider(cfg, len(pool.action_names))
         try:
             trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
-            return trainer.train()
+            return trainer.train(should_stop)
         finally:
             pool.close()
             if provider is not None:
@@ -105,12 +106,12 @@ def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy:
     from illm_tools.envs.pool import EnvPool
     from illm_tools.rl.checkpoint import load_policy
 
+    from illm_tools.rl.checkpoint import read_config
+
     run_dir = Path(run_dir)
-    if not (run_dir / "config.json").is_file():
-        raise UsageError(f"{run_dir} is not a training run (no config.json): pass a folder written by `illm train`")
     if episodes <= 0:
         raise UsageError(f"--episodes must be positive, got {episodes}")
-    cfg = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+    cfg = TrainConfig.from_dict(read_config(run_dir))
     num_envs = min(num_envs, episodes)
     pool = EnvPool(cfg.env_id, num_envs, EVAL_SEED_OFFSET + seed, render=False, action_space=cfg.action_space,
                    num_dists=cfg.num_dists, **cfg.env_options)
