@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import os
 import sys
@@ -15,6 +16,7 @@ EXIT_CODES: dict[type[BaseException], tuple[int, str]] = {
     FileNotFoundError: (1, "error: file not found"),
     PermissionError: (1, "error: permission denied"),
     KeyboardInterrupt: (130, "interrupted"),
+    OSError: (1, "error"),  # after its subclasses above: a full disk, an unreadable folder
 }
 
 
@@ -23,6 +25,8 @@ def report(exc: BaseException) -> int:
     for kind, (code, prefix) in EXIT_CODES.items():
         if isinstance(exc, kind):
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else kind.__name__
+            if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+                msg += " (free some space and run again: what was written before is whole)"
             print(f"{prefix}: {msg}", file=sys.stderr)
             if os.environ.get("ILLM_TRACEBACK"):
                 raise exc

@@ -241,3 +241,52 @@ def test_repair_rebuilds_an_unreadable_manifest_from_the_shards(tmp_path):
     assert "manifest was unreadable" in out.output and "adopted 2" in out.output
     assert np.array_equal(AnnotationCache(root).get_columns(keys, ["embedding"])["embedding"], intact)
     assert list((root / "damaged").iterdir())[0].name.startswith("manifest.json.")
+
+
+def _disk_full_after(half: bool):
+    """A `_write_durable` that writes part of the data, then fails as a full disk does."""
+    import errno
+
+    def write(path, data):
+        path.write_bytes(data[:len(data) // 2] if half else b"")
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    return write
+
+
+def test_a_full_disk_midway_leaves_the_cache_and_the_run_folder_readable(tmp_path, monkeypatch):
+    import errno
+
+    from cli.errors import report
+    from illm_tools.cache import layout
+    from illm_tools.cache.verify import verify
+    from illm_tools.rl.checkpoint import load_checkpoint, save_checkpoint
+
+    root = _cache(tmp_path)
+    before = sorted(p.name for p in root.iterdir())
+    row = AnnotationCache(root).lookup(["%064x" % 0])["%064x" % 0]
+    monkeypatch.setattr(layout, "_write_durable", _disk_full_after(half=True))
+    with pytest.raises(OSError) as err:
+        AnnotationCache(root).write([{**row, "key": "%064x" % 99}])
+    monkeypatch.undo()
+    assert err.value.errno == errno.ENOSPC and report(err.value) == 1
+    assert sorted(p.name for p in root.iterdir()) == before and verify(root).ok and len(AnnotationCache(root)) == 8
+
+    save_checkpoint(tmp_path, {"update": 1})
+    save_checkpoint(tmp_path, {"update": 2})
+
+    def full(obj, fh):
+        fh.write(b"\x80\x02partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    import io
+
+    import torch
+
+    real_save = torch.save  # the state is serialised in memory first; the file write fails
+    monkeypatch.setattr(torch, "save", lambda obj, f: real_save(obj, f) if isinstance(f, io.BytesIO) else full(obj, f))
+    with pytest.raises(OSError):
+        save_checkpoint(tmp_path, {"update": 3})
+    monkeypatch.undo()
+    assert load_checkpoint(tmp_path)["update"] == 2 and not list(tmp_path.glob(".checkpoint.pt.tmp"))
+

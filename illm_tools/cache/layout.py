@@ -152,10 +152,19 @@ def _write_durable(path: Path, data: bytes) -> None:
         os.fsync(f.fileno())
 
 
+def _write_or_remove(path: Path, data: bytes) -> None:
+    """`_write_durable`, removing the partial file when the write fails (e.g. a full disk)."""
+    try:
+        _write_durable(path, data)
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+
+
 def write_manifest(root: Path, manifest: dict, checkpoint: Checkpoint | None = None) -> None:
     """Replace the manifest atomically: temp file, fsync, rename, fsync the directory."""
     tmp = root / f"{TMP_PREFIX}{MANIFEST}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    _write_durable(tmp, (json.dumps(manifest, indent=1) + "\n").encode())
+    _write_or_remove(tmp, (json.dumps(manifest, indent=1) + "\n").encode())
     if checkpoint:
         checkpoint("manifest-temp-written")
     os.replace(tmp, root / MANIFEST)
@@ -188,7 +197,7 @@ def write_shard(root: Path, table: pa.Table, checkpoint: Checkpoint | None = Non
     name = f"{SHARD_PREFIX}{stamp}-{os.getpid()}-{uuid.uuid4().hex[:8]}{SHARD_SUFFIX}"
     data = shard_bytes(table)
     tmp = root / f"{TMP_PREFIX}{name}"
-    _write_durable(tmp, data)
+    _write_or_remove(tmp, data)
     if checkpoint:
         checkpoint("shard-temp-written")
     os.replace(tmp, root / name)

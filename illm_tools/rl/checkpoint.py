@@ -135,11 +135,15 @@ def save_checkpoint(run_dir: Path, state: dict) -> Path:
     buffer = io.BytesIO()
     torch.save(state, buffer)
     payload = buffer.getvalue()
-    with open(tmp, "wb") as fh:
-        torch.save({"format_version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(payload).hexdigest(),
-                    "state": payload}, fh)
-        fh.flush()
-        os.fsync(fh.fileno())
+    try:
+        with open(tmp, "wb") as fh:
+            torch.save({"format_version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(payload).hexdigest(),
+                        "state": payload}, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+    except BaseException:  # e.g. a full disk: the checkpoints in place stay as they were
+        tmp.unlink(missing_ok=True)
+        raise
     if path.exists():
         os.replace(path, previous)
         _fsync_dir(run_dir)
