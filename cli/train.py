@@ -135,15 +135,21 @@ def register(app: typer.Typer) -> None:
         greedy: bool = typer.Option(False, "--greedy", help="Take the most likely action instead of sampling."),
         as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
     ) -> None:
-        """Success rate and mean return of trained policies on the same fresh episodes."""
+        """Success rate and mean return of trained policies on the same fresh episodes (a markdown
+        table; --json: a list with one object per run)."""
+        from illm_tools.errors import UsageError
         from illm_tools.rl.run import evaluate as run
 
+        if episodes <= 0:
+            raise UsageError(f"--episodes must be positive, got {episodes}")
         results = [run(r, episodes=episodes, seed=seed, greedy=greedy) for r in runs]
         if as_json:
-            emit_json(results[0] if len(results) == 1 else results)
+            emit_json(results)
             return
-        typer.echo(f"| run | method | env | success rate | mean return | mean length |  ({episodes} episodes each)")
-        typer.echo("|---|---|---|---|---|---|")
+        typer.echo("| run | method | env | trained frames | success rate | mean return | mean length |")
+        typer.echo("|---|---|---|---|---|---|---|")
         for r in results:
-            typer.echo(f"| {r['run']} | {r['method']} | {r['env_id']} | {r['success_rate']:.3f} | "
+            typer.echo(f"| {r['run']} | {r['method']} | {r['env_id']} | {r['frames']:,} | {r['success_rate']:.3f} | "
                        f"{r['mean_return']:.3f} | {r['mean_length']:.1f} |")
+        typer.echo(f"\n{episodes} episodes per run (evaluation seed {seed}, the same episodes for every run), actions "
+                   + ("greedy (the most likely)" if greedy else "sampled from the policy"))

@@ -56,6 +56,6 @@ for level in $LEVELS; do
   "$ILLM" report "$OUT"/runs/$level-* --every 25000
   for run in "$OUT"/runs/$level-*-s*; do
     [ -d "$run" ] && echo "$(basename "$run"): eval $("$ILLM" eval "$run" --episodes 100 --json \
-        | python3 -c 'import json,sys; print(json.load(sys.stdin)["success_rate"])')"
+        | python3 -c 'import json,sys; print(json.load(sys.stdin)[0]["success_rate"])')"
   done
 done

@@ -54,9 +54,12 @@ def test_collect_annotate_train_eval_report(tmp_path, tiny_lm):
               "--out", tmp_path / "traj-ppo"])
     assert "with policy run:ppo@256" in out
 
-    result = json.loads(ok(["eval", runs / "illm", "--episodes", 4, "--json"]))
+    (result,) = json.loads(ok(["eval", runs / "illm", "--episodes", 4, "--json"]))
     assert result["episodes"] == 4 and 0.0 <= result["success_rate"] <= 1.0
-    assert "| ppo |" in ok(["eval", runs / "illm", runs / "ppo", "--episodes", 2])
+    table = ok(["eval", runs / "illm", runs / "ppo", "--episodes", 2])
+    assert "| ppo | BabyAI-GoToLocal-v0 | 256 |" in table and "actions sampled" in table
+    assert len({line.count("|") for line in table.splitlines() if line.startswith("|")}) == 1
+    assert len(json.loads(ok(["eval", runs / "ppo", runs / "illm", "--episodes", 2, "--json", "--greedy"]))) == 2
     table = ok(["report", runs / "illm", runs / "ppo", "--every", 128])
     assert "| illm |" in table and "| ppo |" in table
 

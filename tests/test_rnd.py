@@ -125,4 +125,5 @@ def test_illm_train_method_rnd_end_to_end(tmp_path):
     assert "predictor" in load_checkpoint(run)["bonus"]
     result = runner.invoke(app, ["eval", str(run), "--episodes", "2", "--json"])
     assert result.exit_code == 0, result.output
-    assert json.loads(result.output)["method"] == "rnd"
+    (row,) = json.loads(result.output)
+    assert row["method"] == "rnd" and row["frames"] == 4096

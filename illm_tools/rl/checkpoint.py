@@ -244,8 +244,10 @@ def check_resumable(state: dict, cfg, action_names: list[str]) -> None:
 class TrainedPolicy:
     """A trained run's actor, acting on the pool's `PoolObs` (sampled, or greedy)."""
 
-    def __init__(self, net, vocab, *, name: str, greedy: bool = False, seed: int = 0):
+    def __init__(self, net, vocab, *, name: str, greedy: bool = False, seed: int = 0, frames: int = 0):
         self.net, self.vocab, self.name, self.greedy = net.eval(), vocab, name, greedy
+        self.frames = frames
+        """Frames the policy was trained for."""
         self.generator = torch.Generator().manual_seed(seed)
 
     @torch.no_grad()
@@ -277,4 +279,4 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
                          head_hidden=cfg.head_hidden, image_shape=tuple(state["image_shape"][:2]))
     net.load_state_dict(state["model"])
     return TrainedPolicy(net, vocab, name=f"run:{run_dir.name}@{state['global_step']}",
-                         greedy=greedy, seed=seed)
+                         greedy=greedy, seed=seed, frames=int(state["global_step"]))

@@ -133,4 +133,5 @@ def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy:
     pool.close()
     return {"run": str(run_dir), "env_id": cfg.env_id, "method": cfg.mode, "episodes": episodes,
             "success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns)),
-            "mean_length": float(np.mean(lengths)), "greedy": greedy, "policy": policy.name}
+            "mean_length": float(np.mean(lengths)), "greedy": greedy, "policy": policy.name,
+            "frames": policy.frames}
