@@ -95,3 +95,25 @@ def test_boolean_flags_show_as_flags_in_help():
     for command in (["collect"], ["annotate"], ["train"], ["cache", "repair"], ["data", "coverage"]):
         out = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "160"})
         assert out.exit_code == 0 and "<bool>" not in out.output and "--help" in out.output, command
+
+
+def test_no_stage_writes_into_a_folder_another_stage_owns(tmp_path):
+    traj, cache, run = tmp_path / "traj", tmp_path / "ann", tmp_path / "run"
+    assert runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", "32", "--num-envs", "2",
+                               "--out", str(traj)]).exit_code == 0
+    assert runner.invoke(app, ["train", "--method", "ppo", "--frames", "64", "--num-envs", "2", "--num-steps", "32",
+                               "--out", str(run)]).exit_code == 0
+    cache.mkdir()
+    (cache / "manifest.json").write_text(json.dumps({"format": "illm.annotation-cache", "kind": "annotation",
+                                                     "version": 1, "shards": []}))
+    before = {p: sorted(q.name for q in p.iterdir()) for p in (traj, cache, run)}
+    for folder, kind in ((traj, "trajectory dataset"), (cache, "annotation cache")):
+        out = runner.invoke(app, ["train", "--method", "ppo", "--frames", "64", "--out", str(folder)])
+        assert out.exit_code == 1 and f"holds an {kind}" in out.output or f"holds a {kind}" in out.output
+    out = runner.invoke(app, ["annotate", str(traj), "--cache", str(run)])
+    assert out.exit_code == 1 and "holds a training run" in out.output
+    for folder in (cache, run):
+        out = runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", "8", "--out", str(folder),
+                                  "--overwrite"])
+        assert out.exit_code == 1
+    assert before == {p: sorted(q.name for q in p.iterdir()) for p in (traj, cache, run)}

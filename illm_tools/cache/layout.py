@@ -73,6 +73,9 @@ def temp_files(root: Path) -> list[str]:
 
 def check_root(root: Path) -> None:
     """Refuse a path that exists but is not a cache: never write into someone else's folder."""
+    from illm_tools.folders import refuse_foreign
+
+    refuse_foreign(root, "annotation cache", "--cache")
     if not root.exists() or (root / MANIFEST).exists():
         return
     if not root.is_dir():

@@ -25,6 +25,7 @@ import torch
 from torch import nn
 
 from illm_tools.errors import OutputExistsError, UsageError
+from illm_tools.folders import refuse_foreign
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, TargetProvider
 from illm_tools.intrinsic.registry import get_method
 from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint, write_config,
@@ -96,6 +97,7 @@ class Trainer:
     # --- run directory ----------------------------------------------------------------------
     def _open_run_dir(self) -> None:
         cfg, run_dir = self.cfg, self.cfg.run_dir
+        refuse_foreign(run_dir, "training run", "--out")
         run_dir.mkdir(parents=True, exist_ok=True)
         if cfg.resume:
             self._restore(load_checkpoint(run_dir))

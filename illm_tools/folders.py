@@ -1,0 +1,42 @@
+"""Which stage owns a folder: a trajectory dataset (`illm collect`), an annotation cache (`illm
+annotate`) or a training run (`illm train`). Each stage refuses to write into a folder another
+stage owns, so a mistyped `--out` never mixes or deletes another stage's files.
+
+Recognised by the file each stage writes last and always: `state.json` (trajectories, the
+`datasets` layout), `manifest.json` with the cache's format name, `config.json` with a run's
+settings.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from illm_tools.errors import OutputExistsError
+
+
+def owner(folder: str | Path) -> str | None:
+    """"trajectory dataset", "annotation cache", "training run", or None (absent, empty, other)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return None
+    if (folder / "state.json").is_file():
+        return "trajectory dataset"
+    if (folder / "manifest.json").is_file():
+        try:
+            if json.loads((folder / "manifest.json").read_text()).get("format") == "illm.annotation-cache":
+                return "annotation cache"
+        except (OSError, ValueError, AttributeError):
+            return "annotation cache"  # damaged, still the cache's: `illm cache repair` is its tool
+    if (folder / "config.json").is_file() and ((folder / "metrics.jsonl").exists() or
+                                              any(folder.glob("checkpoint*.pt"))):
+        return "training run"
+    return None
+
+
+def refuse_foreign(folder: str | Path, own: str, option: str) -> None:
+    """Refuse `folder` when another stage than `own` owns it (one line naming both)."""
+    kind = owner(folder)
+    if kind is not None and kind != own:
+        raise OutputExistsError(f"{folder} holds {'an' if kind[0] in 'aeiou' else 'a'} {kind}, which this command "
+                                f"would mix with its {own}: choose another {option}")
