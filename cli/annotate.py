@@ -60,6 +60,10 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"the cache now answers {result.covered_states:,} of the {result.dataset_states:,} distinct states "
                    f"(history {config.history}), covering {result.covered_step_share:.0%} of the "
                    f"{result.dataset_steps:,} steps -> {cache}")
+        left = result.dataset_states - result.covered_states
+        if left:
+            typer.echo(f"left to annotate in this dataset: {left:,} states ({1 - result.covered_step_share:.0%} of its "
+                       f"steps); {'run again to go on' if stats.stopped_early else 'a larger --limit takes the next ones'}")
         typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
                    f"{config.data} --cache {cache} --history {config.history}` estimates how many")
         if stop.requested and stats.stopped_early:

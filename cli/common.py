@@ -21,11 +21,19 @@ def emit_json(obj) -> None:
     typer.echo(json.dumps(obj, indent=2, sort_keys=True))
 
 
+PLAIN_EVERY_S = 30.0
+"""Without a terminal (a log file, a batch job), progress is one plain line this often."""
+
+
 @contextmanager
 def progress(total: int, description: str, unit: str = "steps"):
-    """A rich progress bar on stderr; yields `advance(n, **fields)`."""
+    """A rich progress bar on stderr (with the time left), or without a terminal a plain line on
+    stderr every PLAIN_EVERY_S seconds; yields `advance(n, rate=None, total=None, **fields)`."""
+    import time
+
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
 
     console = Console(stderr=True)
     columns = [
@@ -35,8 +43,12 @@ def progress(total: int, description: str, unit: str = "steps"):
         TextColumn("{task.fields[rate]}"),
         TextColumn("{task.fields[extra]}"),
         TimeElapsedColumn(),
+        TextColumn("left"),
+        TimeRemainingColumn(),
     ]
-    with Progress(*columns, console=console, transient=not sys.stderr.isatty(), disable=not console.is_terminal) as bar:
+    plain = not console.is_terminal
+    state = {"done": 0, "total": total, "start": time.monotonic(), "said": time.monotonic()}
+    with Progress(*columns, console=console, transient=not sys.stderr.isatty(), disable=plain) as bar:
         task = bar.add_task(description, total=total or None, rate="", extra="")
 
         def advance(n: int, rate: float | None = None, total: int | None = None, **fields) -> None:
@@ -44,9 +56,27 @@ def progress(total: int, description: str, unit: str = "steps"):
             extra = "  ".join(f"{k}={v}" for k, v in fields.items())
             if total is not None:
                 bar.update(task, total=total)
+                state["total"] = total
             bar.update(task, advance=n, rate=f"{rate:,.2f} {unit}/s" if rate is not None else "", extra=extra)
+            state["done"] += n
+            now = time.monotonic()
+            if plain and n and now - state["said"] >= PLAIN_EVERY_S:
+                state["said"] = now
+                speed = state["done"] / max(now - state["start"], 1e-9)
+                left = (state["total"] - state["done"]) / speed if state["total"] and speed else None
+                of = f"{state['total']:,}" if state["total"] else "?"
+                print(f"{description}: {state['done']:,}/{of} {unit}"
+                      + (f", {rate:,.2f} {unit}/s" if rate is not None else "")
+                      + (f", about {_duration(left)} left" if left is not None else "")
+                      + (f", {extra}" if extra else ""), file=sys.stderr, flush=True)
 
         yield advance
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else \
+        f"{seconds // 60}m{seconds % 60:02d}s" if seconds >= 60 else f"{seconds}s"
 
 
 class Stop:

@@ -40,6 +40,29 @@ def _flags_as_flags() -> None:
 _flags_as_flags()
 
 
+class _IllmFormat(logging.Formatter):
+    """illm's own log lines read as its other output: the message, with "warning:" before warnings."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        return f"{record.levelname.lower()}: {text}" if record.levelno >= logging.WARNING else text
+
+
+def _logging(verbose: bool) -> None:
+    """illm's messages (what a first model load is doing, a worker restart, a checkpoint fallback)
+    reach stderr as plain lines; other libraries' only as warnings (all of it with --verbose)."""
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    ours = logging.getLogger("illm_tools")
+    if not any(isinstance(h.formatter, _IllmFormat) for h in ours.handlers):
+        handler = logging.StreamHandler()
+        handler.setFormatter(_IllmFormat("%(message)s"))
+        ours.addHandler(handler)
+        for other in logging.getLogger().handlers:  # printed once, by our handler (basicConfig's is a plain one)
+            if type(other) is logging.StreamHandler:
+                other.addFilter(lambda record: not record.name.startswith("illm_tools."))
+    ours.setLevel(logging.DEBUG if verbose else logging.INFO)
+
+
 def _version(value: bool) -> None:
     if value:
         typer.echo(f"illm {__version__}")
@@ -51,7 +74,7 @@ def root(
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details."),
 ) -> None:
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    _logging(verbose)
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 
 

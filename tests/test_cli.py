@@ -117,3 +117,23 @@ def test_no_stage_writes_into_a_folder_another_stage_owns(tmp_path):
                                   "--overwrite"])
         assert out.exit_code == 1
     assert before == {p: sorted(q.name for q in p.iterdir()) for p in (traj, cache, run)}
+
+
+def test_without_a_terminal_progress_is_plain_periodic_lines(tmp_path, monkeypatch):
+    import cli.common
+
+    monkeypatch.setattr(cli.common, "PLAIN_EVERY_S", 0.0)
+    out = runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", "64", "--num-envs", "2",
+                              "--out", str(tmp_path / "t")])
+    assert out.exit_code == 0, out.output
+    lines = [line for line in out.output.splitlines() if line.startswith("collect BabyAI-GoToLocal-v0: ")]
+    assert lines and "/64 steps" in lines[-1] and "left" in lines[-1] and "\x1b[" not in out.output
+
+
+def test_illm_warnings_are_plain_lines(tmp_path):
+    import logging
+
+    runner.invoke(app, ["data", "info", str(tmp_path / "none")])  # sets up illm's logging
+    handler = next(h for h in logging.getLogger("illm_tools").handlers if type(h).__name__ == "StreamHandler")
+    record = logging.LogRecord("illm_tools.rl.live", logging.WARNING, __file__, 1, "worker stopped", None, None)
+    assert handler.format(record) == "warning: worker stopped"

@@ -23,6 +23,7 @@ import json
 import logging
 import os
 import shutil
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -203,7 +204,9 @@ def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
 
             gguf_folder = tmp / "gguf"
             gemma.assemble(output_path=gguf_folder / spec.gguf_file)
-        log.info("de-quantising %s once into %s (tens of seconds)", spec.gguf_file, target)
+        log.info("de-quantising %s once (about 20 s; later loads take about a second) into %s",
+                 spec.gguf_file, target)
+        started = time.monotonic()
         with _quiet_transformers():
             model = AutoModelForCausalLM.from_pretrained(gguf_folder, gguf_file=spec.gguf_file, dtype=torch.float32)
             tokenizer = AutoTokenizer.from_pretrained(gguf_folder, gguf_file=spec.gguf_file)
@@ -217,6 +220,7 @@ def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
         _write_json_atomic(tmp / SOURCE, {"model_id": spec.model_id, "gguf_sha256": sha, "gguf_file": spec.gguf_file,
                                           "files": files})
         _fsync_tree(tmp)
+        log.info("de-quantised %s in %.0f s", spec.alias, time.monotonic() - started)
         try:
             os.rename(tmp, target)
             for name, digest in files.items():  # a rename keeps size and mtime: the hashes stay valid

@@ -173,6 +173,9 @@ def _read_checkpoint(path: Path) -> dict:
         raise DamagedFileError(f"{path} is damaged ({type(e).__name__})") from None
 
 
+_FALLBACKS_SAID: set[tuple] = set()
+
+
 def load_checkpoint(run_dir: Path) -> dict:
     """The last whole checkpoint of a run: checkpoint.pt, or checkpoint.prev.pt (saying so) when
     the latest is missing or damaged. One line (UsageError / DamagedFileError) when neither is."""
@@ -191,8 +194,11 @@ def load_checkpoint(run_dir: Path) -> dict:
             state = _read_checkpoint(previous)
         except DamagedFileError as prev:
             raise DamagedFileError(f"{latest}, and so is the previous one ({prev}): train into a new --out") from None
-        log.warning("%s; using the previous checkpoint %s (update %s, %s frames)", latest, previous,
-                    state.get("update"), f"{int(state.get('global_step', 0)):,}")
+        said = (str(path), path.stat().st_mtime_ns if path.exists() else None)
+        if said not in _FALLBACKS_SAID:  # a run reads its checkpoint more than once: say it once
+            _FALLBACKS_SAID.add(said)
+            log.warning("%s; using the previous checkpoint %s (update %s, %s frames)", latest, previous,
+                        state.get("update"), f"{int(state.get('global_step', 0)):,}")
         return state
 
 
