@@ -86,7 +86,7 @@ def verify(
         raise typer.Exit(1)
 
 
-@app.command("merge", epilog="Example: illm cache merge runs/a/ann runs/b/ann --into data/ann")
+@app.command("merge", epilog="Example: illm cache merge data/ann --into data/ann-merged")
 @friendly
 def merge(
     sources: list[Path] = typer.Argument(..., help="Caches to copy from (left untouched)."),

@@ -98,6 +98,10 @@ def register(app: typer.Typer) -> None:
                       bonus_options=spec.parse_options(bonus_option or []), **weights)
         cfg = resumed_config(ctx, out, fields) if resume else TrainConfig(**fields)
         method, env = cfg.mode, cfg.env_id
+        if cfg.num_updates * cfg.batch_size != cfg.total_steps:
+            typer.echo(f"--frames {cfg.total_steps:,} is not a whole number of rollouts ({cfg.num_envs} envs × "
+                       f"{cfg.num_steps} steps = {cfg.batch_size:,} frames each): the run trains "
+                       f"{cfg.num_updates * cfg.batch_size:,} frames", err=True)
         last: dict = {}
         coverage: list[float] = []
         with stop_on_signals("the current update, then writing a checkpoint") as stop, \
@@ -126,7 +130,7 @@ def register(app: typer.Typer) -> None:
                    f"({last.get('charts/sps', 0):,.0f} steps/s); last success rate "
                    f"{last.get('charts/success_rate', float('nan')):.2f}{targets} -> {out}")
 
-    @app.command("eval", epilog="Example: illm eval runs/gotolocal-illm runs/gotolocal-ppo --episodes 100")
+    @app.command("eval", epilog="Example: illm eval runs/gotolocal-illm --episodes 100")
     @friendly
     def evaluate(
         runs: list[Path] = typer.Argument(..., help="Run folders written by `illm train` (several give a table)."),

@@ -137,3 +137,23 @@ def test_illm_warnings_are_plain_lines(tmp_path):
     handler = next(h for h in logging.getLogger("illm_tools").handlers if type(h).__name__ == "StreamHandler")
     record = logging.LogRecord("illm_tools.rl.live", logging.WARNING, __file__, 1, "worker stopped", None, None)
     assert handler.format(record) == "warning: worker stopped"
+
+
+def test_readme_model_table_and_illm_models_list_the_same_aliases():
+    import re
+    from pathlib import Path
+
+    from illm_tools.llm.registry import list_models
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    table = readme[readme.index("| alias | model | notes |"):].split("\n\n")[0]
+    in_readme = {a for line in table.splitlines()[2:] for a in re.findall(r"`([a-z0-9.\-]+)`", line.split("|")[1])}
+    assert in_readme == {m.alias for m in list_models()}
+
+
+def test_frames_rounded_to_whole_rollouts_is_said(tmp_path, monkeypatch):
+    import illm_tools.rl.run as run_module
+
+    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None: {"global_step": 0})
+    out = runner.invoke(app, ["train", "--method", "ppo", "--frames", "1000", "--out", str(tmp_path / "r")])
+    assert "--frames 1,000 is not a whole number of rollouts" in out.output and "the run trains 2,048 frames" in out.output

@@ -52,8 +52,9 @@ def test_bad_names_and_folders(tmp_path):
 
 def test_list_models_reports_offline_availability():
     rows = {r.alias: r for r in list_models()}
-    assert set(rows) == {s.alias for s in registry.aliases()}
+    assert set(rows) == {s.alias for s in registry.aliases()} | {"transfo-xl"}
     assert rows["smollm2-135m"].available  # installed with the project
+    assert not rows["transfo-xl"].available and "gemma3-270m" in rows["transfo-xl"].where
     assert not rows["llama3"].available and "hf download" in rows["llama3"].where
 
 

@@ -189,4 +189,9 @@ def list_models() -> list[ModelInfo]:
         except ModelNotFoundError as exc:
             where, ok = str(exc), False
         rows.append(ModelInfo(spec.alias, spec.source, spec.model_id, ok, where, spec.notes))
+    try:
+        resolve("transfo-xl")
+    except ModelNotFoundError as exc:  # listed so that a user looking for the paper's model reads why
+        rows.append(ModelInfo("transfo-xl", "hub", "transfo-xl/transfo-xl-wt103", False, str(exc),
+                              "the paper's model (Transformer-XL, 280M)"))
     return rows
