@@ -33,6 +33,14 @@ def info(
     typer.echo(f"  env ids     {', '.join(stats['env_ids'])}")
     typer.echo(f"  policies    {', '.join(stats['policies'])}")
     typer.echo(f"  shards      {stats['shards']} ({stats['bytes'] / 1e6:.1f} MB)")
+    for part in stats["parts"]:
+        if "env_id" not in part:
+            typer.echo(f"  part        {part['rows']:,} rows: settings {part['settings']}")
+            continue
+        dists = "the level's default" if part["num_dists"] is None else part["num_dists"]
+        typer.echo(f"  part        {part['rows']:,} rows of {part['env_id']}: {part['action_space']} actions "
+                   f"({part['actions']}), distractors {dists}, episode seeds from {part['seed']:,}, "
+                   f"policy {part['policy']}")
 
 
 @app.command("coverage", epilog="Example: illm data coverage data/traj/gotolocal --cache data/ann --history 0 --history 3")

@@ -141,7 +141,9 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
     policy = make_policy(config, pool)
     renderer = renderer_of(config.env_id)
     n = pool.num_envs
-    writer = TrajectoryWriter(config.out, mode=config.mode, shard_rows=config.shard_rows)
+    part = {"env_id": config.env_id, "action_space": pool.action_space_name, "actions": len(names),
+            "num_dists": config.num_dists, "seed": config.seed, "num_envs": n, "policy": policy.name}
+    writer = TrajectoryWriter(config.out, mode=config.mode, shard_rows=config.shard_rows, part=part)
     next_episode = writer.first_episode_id
     episode_ids = np.arange(next_episode, next_episode + n)
     next_episode += n

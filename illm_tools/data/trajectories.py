@@ -100,7 +100,7 @@ class TrajectoryWriter:
     trajectory dataset; "overwrite" replaces it, but only once the new one is complete.
     """
 
-    def __init__(self, out: str | Path, *, mode: str = "new", shard_rows: int = 50_000):
+    def __init__(self, out: str | Path, *, mode: str = "new", shard_rows: int = 50_000, part: dict | None = None):
         if mode not in ("new", "append", "overwrite"):
             raise UsageError(f"unknown write mode {mode!r}: use new, append or overwrite")
         self.out = Path(out)
@@ -111,6 +111,9 @@ class TrajectoryWriter:
         self._buffer: dict[str, list] = {name: [] for name in self.definition.names}
         self._new_files: list[str] = []
         self._entries: dict[str, dict] = {}  # shard name -> its state.json entry
+        self.part = part
+        """The settings of the collection writing these shards (env, action space, distractors, seeds,
+        policy), recorded with each of them so `data info` can show each part of a dataset."""
         self.rows_written = 0
         self.first_episode_id = 0
 
@@ -179,7 +182,7 @@ class TrajectoryWriter:
         from illm_tools.cache.layout import sha256_file
 
         self._entries[name] = {"filename": name, "illm_bytes": tmp.stat().st_size, "illm_sha256": sha256_file(tmp),
-                               "illm_rows": n}
+                               "illm_rows": n, **({"illm_part": self.part} if self.part else {})}
         os.replace(tmp, self.workdir / name)
         self._new_files.append(name)
         self.rows_written += n
@@ -252,6 +255,18 @@ def open_table(path: str | Path, columns: list[str] | None = None) -> pa.Table:
     return pa.concat_tables(tables)
 
 
+def _parts(entries: list[dict]) -> list[dict]:
+    """The collections a dataset was written by, in order, each with its settings and rows."""
+    parts: dict[str, dict] = {}
+    for e in entries:
+        part = e.get("illm_part") or {"settings": "not recorded (written before illm recorded them)"}
+        key = json.dumps(part, sort_keys=True)
+        parts.setdefault(key, {**part, "rows": 0, "shards": 0})
+        parts[key]["rows"] += int(e.get("illm_rows", 0))
+        parts[key]["shards"] += 1
+    return list(parts.values())
+
+
 def info(path: str | Path) -> dict:
     """Rows, episodes, env ids, schema version and size of a trajectory dataset. Also checks
     dataset_info.json, which illm does not need but `datasets.load_from_disk` does."""
@@ -281,5 +296,6 @@ def info(path: str | Path) -> dict:
         "env_ids": sorted(pc.unique(table["env_id"]).to_pylist()),
         "policies": sorted(pc.unique(table["policy"]).to_pylist()),
         "shards": len(files),
+        "parts": _parts(_shard_entries(root)),
         "bytes": sum((root / f).stat().st_size for f in files),
     }
