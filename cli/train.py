@@ -11,8 +11,21 @@ from cli.errors import friendly
 
 # `illm train` option -> TrainConfig field, where the names differ
 FIELDS = {"env": "env_id", "out": "run_dir", "method": "mode", "frames": "total_steps", "history": "history_len",
-          "dtype": "model_dtype", "bonus_option": "bonus_options"}
+          "dtype": "model_dtype", "bonus_option": "bonus_options", "network_option": "network_options"}
 WEIGHTS = ("lambda_a", "beta_hc", "ext_coef", "int_coef")
+
+
+def _pairs(values: list[str], flag: str) -> dict[str, str]:
+    """KEY=VALUE strings as a dict (typed and checked later by the option's owner)."""
+    from illm_tools.errors import UsageError
+
+    out = {}
+    for value in values:
+        key, sep, rest = value.partition("=")
+        if not sep or not key.strip():
+            raise UsageError(f"{flag} takes KEY=VALUE, got {value!r}")
+        out[key.strip()] = rest.strip()
+    return out
 
 
 def _given(ctx: typer.Context) -> set[str]:
@@ -70,6 +83,7 @@ def register(app: typer.Typer) -> None:
         dtype: str = typer.Option("bfloat16", "--dtype", help="LLM compute dtype (must match the annotation)."),
         quant: str = typer.Option("none", "--quant", help="LLM quantisation (must match the annotation): none | 4bit | 8bit."),
         bonus_preset: str = typer.Option(None, "--bonus-preset", help="paper (lambda 0.8, beta 0.5, ext/int advantage weights 1, 1) | rnd (CleanRL RND's weights 2, 1); default: the method's own (rnd: rnd, others: paper); explicit flags win."),
+        network_option: list[str] = typer.Option(None, "--network-option", help="KEY=VALUE setting of the method's policy network, repeatable (chibit: blocks=1, model=smollm2-135m)."),
         bonus_option: list[str] = typer.Option(None, "--bonus-option", help="KEY=VALUE setting of the method's bonus, repeatable (e.g. rnd: update_proportion=0.5); see illm_tools.intrinsic.registry."),
         lambda_a: float = typer.Option(None, "--lambda-a", help="Weight of the action bonus r^a (from --bonus-preset: 0.8)."),
         beta_hc: float = typer.Option(None, "--beta-hc", help="Weight of the summary bonus r^hc (from --bonus-preset: 0.5)."),
@@ -95,7 +109,8 @@ def register(app: typer.Typer) -> None:
                       cache=cache, model=model, model_dtype=dtype, quant=quant, layout=layout, action_score=action_score,
                       action_target=action_target, live_budget=live_budget, live_mode=live_mode, new_setup=new_setup,
                       threads=threads, llm_threads=llm_threads, resume=resume,
-                      bonus_options=spec.parse_options(bonus_option or []), **weights)
+                      bonus_options=spec.parse_options(bonus_option or []),
+                      network_options=_pairs(network_option or [], "--network-option"), **weights)
         cfg = resumed_config(ctx, out, fields) if resume else TrainConfig(**fields)
         method, env = cfg.mode, cfg.env_id
         if cfg.num_updates * cfg.batch_size != cfg.total_steps:

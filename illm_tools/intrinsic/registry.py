@@ -13,6 +13,7 @@ its reward is paid. `ppo` has no bonus. Built in:
   illm-noreward  iLLM heads trained, no bonus paid (paper Table 3)
   ppo            no bonus
   rnd            Random Network Distillation (rnd.py); --bonus-preset rnd (advantage weights 2 / 1)
+  chibit         no bonus; the policy's torso is the LLM's first blocks (illm_tools/rl/chibit.py)
 
 A bonus's config is built from two sources: the fields its `config_class` lists in `RUN_SETTINGS`
 take the run's TrainConfig setting of the same name (iLLM's lambda_a, beta_hc, ... stay top-level
@@ -53,6 +54,38 @@ class Method:
     preset: str = "paper"
     """The `--bonus-preset` (bonus and advantage weights, `illm_tools.rl.config.BONUS_PRESETS`)
     `illm train` uses when none is given."""
+    network: str | type | None = None
+    """The policy network class ("module:Class", a `GridMissionNet` subclass), None: the grid
+    policy. Its `Options` dataclass lists the `--network-option`s it takes."""
+
+    @cached_property
+    def network_class(self) -> type:
+        """The policy network class of this method."""
+        from illm_tools.rl.networks import GridMissionNet
+
+        cls = self.network or GridMissionNet
+        if isinstance(cls, str):
+            module, _, attr = cls.partition(":")
+            cls = getattr(importlib.import_module(module), attr)
+        if not (isinstance(cls, type) and issubclass(cls, GridMissionNet)):
+            raise TypeError(f"method {self.name}: network {self.network!r} is not a GridMissionNet subclass")
+        return cls
+
+    def network_options(self, options: Mapping[str, Any]):
+        """The network's options dataclass from `--network-option` values (None: it takes none);
+        unknown or ill-typed options are refused in one line."""
+        cls = self.network_class.Options
+        if cls is None:
+            if options:
+                raise UsageError(f"--method {self.name} takes no network option ({', '.join(options)})")
+            return None
+        allowed = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(options) - set(allowed))
+        if unknown:
+            raise UsageError(f"--method {self.name} has no network option {', '.join(unknown)}; it takes "
+                             f"{', '.join(allowed)}")
+        hints = typing.get_type_hints(cls)
+        return cls(**{k: _typed(k, hints.get(k), v) for k, v in options.items()})
 
     @cached_property
     def bonus_class(self) -> type[IntrinsicBonus]:
@@ -193,3 +226,5 @@ register(Method("illm-noreward", "iLLM heads only, no bonus: paper Table 3", "il
 register(Method("ppo", "no bonus", None, pays_reward=False))
 register(Method("rnd", "Random Network Distillation; advantage weights 2 / 1", "illm_tools.intrinsic.rnd:RNDBonus",
                 preset="rnd"))
+register(Method("chibit", "policy torso from the LLM's pretrained blocks, no bonus", None, pays_reward=False,
+                network="illm_tools.rl.chibit:ChibiTNet"))

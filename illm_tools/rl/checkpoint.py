@@ -268,8 +268,9 @@ class TrainedPolicy:
 
 def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 0) -> TrainedPolicy:
     """Rebuild a run's network for `pool` (whose action list must match) and load its weights."""
+    from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.config import TrainConfig
-    from illm_tools.rl.networks import GridMissionNet, MissionVocab
+    from illm_tools.rl.networks import MissionVocab
 
     run_dir = Path(run_dir)
     cfg = TrainConfig.from_dict(read_config(run_dir))
@@ -280,7 +281,8 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
                          f"the environment offers {names}; use the same --action-space")
     vocab = MissionVocab(cfg.mission_max_len)
     heads = "f_hc.2.weight" in state["model"]  # the method's bonus put the iLLM heads on the network
-    net = GridMissionNet(len(names), vocab_size=len(vocab),
+    method = get_method(cfg.mode)
+    net = method.network_class(len(names), vocab_size=len(vocab), options=method.network_options(cfg.network_options),
                          embedding_dim=state["model"]["f_hc.2.weight"].shape[0] if heads else None,
                          head_hidden=cfg.head_hidden, image_shape=tuple(state["image_shape"][:2]))
     net.load_state_dict(state["model"])

@@ -40,6 +40,9 @@ class TrainConfig:
     mode: str = "illm"
     """The method (`--method`), a name in `illm_tools.intrinsic.registry`: illm: heads + bonus;
     illm-noreward: heads only, no bonus (paper Table 3); ppo: neither; rnd: RND's bonus."""
+    network_options: dict = field(default_factory=dict)
+    """Settings of the method's policy network by name (e.g. chibit's blocks; `--network-option
+    KEY=VALUE`); unset ones keep their defaults."""
     bonus_options: dict = field(default_factory=dict)
     """Settings of the method's bonus by name (the fields of its config dataclass, e.g. rnd's
     update_proportion; `--bonus-option KEY=VALUE`); unset ones keep their defaults."""
@@ -178,6 +181,7 @@ class TrainConfig:
         if self.live_budget < 0 or self.threads <= 0 or self.llm_threads < 0:
             raise UsageError("--live-budget and --llm-threads must be >= 0 and --threads positive")
         get_method(self.mode).make_config(self.to_dict(), self.bonus_options)  # refuses unknown methods, options
+        get_method(self.mode).network_options(self.network_options)
         for name in ("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",
                      "mission_max_len", "head_hidden", "embedding_dim"):
             if getattr(self, name) <= 0:

@@ -79,27 +79,21 @@ class GridMissionNet(nn.Module):
     """Actor-critic over (symbolic grid, mission) with optional iLLM heads.
 
     images: uint8/int [B, H, W, 3] MiniGrid encoding; missions: int64 [B, L] from `MissionVocab`.
-    `embedding_dim=None` builds no heads (plain PPO).
+    `embedding_dim=None` builds no heads (plain PPO). Subclasses replace the torso
+    (`build_torso`, `features`); `Options` lists the settings a torso takes (`--network-option`).
     """
+
+    Options = None
+    """The dataclass of this network's settings (None: it has none)."""
 
     def __init__(self, num_actions: int, *, vocab_size: int, embedding_dim: int | None = None,
                  head_hidden: int = 1024, image_shape: tuple[int, int] = (7, 7), heads_bf16: bool | None = None,
-                 word_embed: int = 32, text_hidden: int = 128, hidden: int = 64):
+                 hidden: int = 64, options=None):
         super().__init__()
         self.register_buffer("cell_sizes", torch.tensor(GRID_CHANNEL_SIZES), persistent=False)
         self.register_buffer("cell_offsets", torch.tensor(np.cumsum((0, *GRID_CHANNEL_SIZES[:-1]))),
                              persistent=False)
-        channels = sum(GRID_CHANNEL_SIZES)
-        self.image_conv = nn.Sequential(
-            nn.Conv2d(channels, 16, (2, 2)), nn.ReLU(), nn.MaxPool2d((2, 2)),
-            nn.Conv2d(16, 32, (2, 2)), nn.ReLU(),
-            nn.Conv2d(32, 64, (2, 2)), nn.ReLU(), nn.Flatten(),
-        )
-        with torch.no_grad():
-            image_dim = self.image_conv(torch.zeros(1, channels, *image_shape)).shape[1]
-        self.word_embedding = nn.Embedding(vocab_size, word_embed, padding_idx=PAD)
-        self.text_rnn = nn.GRU(word_embed, text_hidden, batch_first=True)
-        self.feature_dim = image_dim + text_hidden
+        self.feature_dim = self.build_torso(vocab_size=vocab_size, image_shape=image_shape, options=options)
         self.actor = mlp_head(self.feature_dim, hidden, num_actions, std=0.01)
         self.critic_ext = mlp_head(self.feature_dim, hidden, 1, std=1.0)
         self.critic_int = mlp_head(self.feature_dim, hidden, 1, std=1.0)
@@ -113,6 +107,32 @@ class GridMissionNet(nn.Module):
     def has_heads(self) -> bool:
         return self.f_a is not None
 
+    def build_torso(self, *, vocab_size: int, image_shape: tuple[int, int], options=None,
+                    word_embed: int = 32, text_hidden: int = 128) -> int:
+        """The grid CNN and the mission encoder; returns the feature dimension."""
+        channels = sum(GRID_CHANNEL_SIZES)
+        self.image_conv = nn.Sequential(
+            nn.Conv2d(channels, 16, (2, 2)), nn.ReLU(), nn.MaxPool2d((2, 2)),
+            nn.Conv2d(16, 32, (2, 2)), nn.ReLU(),
+            nn.Conv2d(32, 64, (2, 2)), nn.ReLU(), nn.Flatten(),
+        )
+        with torch.no_grad():
+            image_dim = self.image_conv(torch.zeros(1, channels, *image_shape)).shape[1]
+        return image_dim + self.build_mission_encoder(vocab_size, word_embed, text_hidden)
+
+    def build_mission_encoder(self, vocab_size: int, word_embed: int = 32, text_hidden: int = 128) -> int:
+        self.word_embedding = nn.Embedding(vocab_size, word_embed, padding_idx=PAD)
+        self.text_rnn = nn.GRU(word_embed, text_hidden, batch_first=True)
+        return text_hidden
+
+    def one_hot_grid(self, images: torch.Tensor) -> torch.Tensor:
+        """[B, C, H, W] one-hot of object, colour and state (out-of-range indices clamped)."""
+        idx = torch.minimum(images.long(), self.cell_sizes - 1) + self.cell_offsets  # [B, H, W, 3]
+        b, h, w, _ = idx.shape
+        x = torch.zeros(b, h, w, int(sum(GRID_CHANNEL_SIZES)), device=idx.device)
+        x.scatter_(-1, idx, 1.0)
+        return x.permute(0, 3, 1, 2)
+
     def encode_mission(self, missions: torch.Tensor) -> torch.Tensor:
         """GRU state after the last word. A batch repeats few missions, so only the distinct ones
         go through the GRU (same result, several times faster forward and backward)."""
@@ -123,13 +143,8 @@ class GridMissionNet(nn.Module):
         return out[torch.arange(len(out)), lengths - 1][inverse]
 
     def features(self, images: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
-        # one-hot of object, colour and state (a learned embedding followed by the first conv
-        # would be the same linear map); out-of-range indices are clamped
-        idx = torch.minimum(images.long(), self.cell_sizes - 1) + self.cell_offsets  # [B, H, W, 3]
-        b, h, w, _ = idx.shape
-        x = torch.zeros(b, h, w, int(sum(GRID_CHANNEL_SIZES)), device=idx.device)
-        x.scatter_(-1, idx, 1.0)
-        return torch.cat([self.image_conv(x.permute(0, 3, 1, 2)), self.encode_mission(missions)], dim=1)
+        # the one-hot grid (a learned embedding followed by the first conv would be the same linear map)
+        return torch.cat([self.image_conv(self.one_hot_grid(images)), self.encode_mission(missions)], dim=1)
 
     def forward(self, images: torch.Tensor, missions: torch.Tensor) -> PolicyOutput:
         f = self.features(images, missions)

@@ -31,7 +31,7 @@ from illm_tools.intrinsic.registry import get_method
 from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint, write_config,
                                       save_checkpoint)
 from illm_tools.rl.config import TrainConfig
-from illm_tools.rl.networks import GridMissionNet, MissionVocab
+from illm_tools.rl.networks import MissionVocab
 from illm_tools.rl.storage import Advantages, Rollout, two_stream_advantages
 from illm_tools.tasks.state import HistoryTracker, StateRecord
 
@@ -76,7 +76,8 @@ class Trainer:
             torch.manual_seed(cfg.seed)
             self.obs = pool.reset()
             self.image_shape = tuple(self.obs.images.shape[1:])
-            self.net = GridMissionNet(len(self.action_names), vocab_size=len(self.vocab),
+            self.net = method.network_class(len(self.action_names), vocab_size=len(self.vocab),
+                                            options=method.network_options(cfg.network_options),
                                       embedding_dim=cfg.embedding_dim if method.policy_heads else None,
                                       head_hidden=cfg.head_hidden, image_shape=self.image_shape[:2],
                                       heads_bf16=cfg.heads_bf16)
