@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+import typing
 from pathlib import Path
 
 import typer
@@ -9,29 +11,24 @@ import typer
 from cli.common import emit_json, progress, stop_on_signals
 from cli.errors import friendly
 
-# `illm train` option -> TrainConfig field, where the names differ
-FIELDS = {"env": "env_id", "out": "run_dir", "method": "mode", "frames": "total_steps", "history": "history_len",
-          "dtype": "model_dtype", "bonus_option": "bonus_options", "network_option": "network_options"}
+# flags kept from the documented command line beside each field's own (`--frames` = `--total-steps`)
+ALIASES = {"env_id": "--env", "run_dir": "--out", "mode": "--method", "total_steps": "--frames",
+           "history_len": "--history", "model_dtype": "--dtype"}
+DICT_FLAGS = {"bonus_options": "--bonus-option", "network_options": "--network-option", "env_options": "--env-option"}
 WEIGHTS = ("lambda_a", "beta_hc", "ext_coef", "int_coef")
-
-
-def _pairs(values: list[str], flag: str) -> dict[str, str]:
-    """KEY=VALUE strings as a dict (typed and checked later by the option's owner)."""
-    from illm_tools.errors import UsageError
-
-    out = {}
-    for value in values:
-        key, sep, rest = value.partition("=")
-        if not sep or not key.strip():
-            raise UsageError(f"{flag} takes KEY=VALUE, got {value!r}")
-        out[key.strip()] = rest.strip()
-    return out
+NOT_OPTIONS = {"embedding_dim"}  # set from the model's hidden size when the run starts
+EXAMPLE = ("Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm --frames 200000 --seed 0 "
+           "--out runs/gotolocal-illm")
 
 
 def _given(ctx: typer.Context) -> set[str]:
     """The options the user typed (not left at their defaults)."""
     # by name: Typer may carry its own copy of click, whose ParameterSource is another enum
     return {name for name in ctx.params if getattr(ctx.get_parameter_source(name), "name", "") == "COMMANDLINE"}
+
+
+def _flag(name: str) -> str:
+    return ALIASES.get(name, DICT_FLAGS.get(name, "--" + name.replace("_", "-")))
 
 
 def resumed_config(ctx: typer.Context, out: Path, fields: dict):
@@ -44,75 +41,70 @@ def resumed_config(ctx: typer.Context, out: Path, fields: dict):
     from illm_tools.rl.config import TrainConfig
 
     stored = read_config(out)
-    given = _given(ctx) - {"resume", "out"}
-    flag = {FIELDS.get(name, name): name for name in ctx.params}
+    given = _given(ctx) - {"resume", "run_dir"}
     if "bonus_preset" in given:  # a preset stands for its four weights
         given |= {w for w in WEIGHTS if w not in given}
-    changes = {FIELDS.get(name, name): fields[FIELDS.get(name, name)] for name in given if name != "bonus_preset"}
-    refused = sorted(f"--{flag.get(k, k).replace('_', '-')} (the run has {stored.get(k)!r})"
+    changes = {name: fields[name] for name in given if name in fields}
+    refused = sorted(f"{_flag(k)} (the run has {stored.get(k)!r})"
                      for k, v in changes.items() if stored.get(k) != v and k not in RESUMABLE_CHANGES)
     if refused:
-        allowed = sorted(f"--{flag[k].replace('_', '-')}" for k in RESUMABLE_CHANGES if k in flag and k != "resume")
+        allowed = sorted(_flag(k) for k in RESUMABLE_CHANGES if k in fields and k != "resume")
         raise UsageError(f"--resume continues {out} with its own settings, and {', '.join(refused)} would change what "
-                         f"it learns: leave {'them' if len(refused) > 1 else 'it'} out, or train into a new --out (a resumed run may change {', '.join(allowed)})")
+                         f"it learns: leave {'them' if len(refused) > 1 else 'it'} out, or train into a new --out "
+                         f"(a resumed run may change {', '.join(allowed)})")
     return TrainConfig.from_dict({**stored, **changes, "run_dir": str(out), "resume": True})
 
 
-def register(app: typer.Typer) -> None:
-    from illm_tools.intrinsic.registry import method_help  # light: names only, no torch
+def train_config(ctx: typer.Context, options: dict):
+    """The run's TrainConfig from the generated options (presets expanded, KEY=VALUE parsed)."""
+    from illm_tools.intrinsic.registry import get_method
+    from illm_tools.rl.config import TrainConfig, bonus_weights
+    from illm_tools.settings import parse_pairs
 
-    @app.command(epilog="Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm "
-                        "--frames 200000 --seed 0 --out runs/gotolocal-illm")
-    @friendly
-    def train(
-        ctx: typer.Context,
-        env: str = typer.Option("BabyAI-GoToLocal-v0", "--env", help="Environment id."),
-        out: Path = typer.Option(..., "--out", help="Run folder: config.json, checkpoint.pt, metrics.csv, TensorBoard events."),
-        method: str = typer.Option("illm", "--method", help=method_help() + "."),
-        cache: Path = typer.Option(None, "--cache", help="Annotation cache with the LLM targets (needed by illm methods)."),
-        model: str = typer.Option("smollm2-135m", "--model", help="LLM whose annotations are the targets (as in `illm annotate`)."),
-        frames: int = typer.Option(200_000, "--frames", help="Environment steps to train for."),
-        seed: int = typer.Option(0, "--seed", help="Seed of the network, sampling and episodes."),
-        live_budget: int = typer.Option(16, "--live-budget", help="Missed states handed to the live LLM after each rollout, most visited first (sync: about 1 s each on 2 CPU cores); 0: cache only."),
-        live_mode: str = typer.Option("async", "--live-mode", help="async: the LLM annotates in a worker process beside the rollouts, later rollouts use its answers | sync: the trainer waits for them."),
-        new_setup: bool = typer.Option(False, "--new-setup", help="Accept a cache whose annotations are all of another setup (model, dtype, quant, history, layout): live annotation starts this one."),
-        action_score: str = typer.Option("sum", "--action-score", help="Calibration of the action log-probs: sum | mean | pmi."),
-        action_target: str = typer.Option("distribution", "--action-target", help="f^a's target: distribution (softmax of the scores) | argmax (one-hot of the best: the paper's Alg. 1 line 7)."),
-        history: int = typer.Option(3, "--history", help="History pairs in the prompts (must match the annotation)."),
-        layout: str = typer.Option("shared", "--layout", help="Prompt layout (must match the annotation): shared | paper."),
-        dtype: str = typer.Option("bfloat16", "--dtype", help="LLM compute dtype (must match the annotation)."),
-        quant: str = typer.Option("none", "--quant", help="LLM quantisation (must match the annotation): none | 4bit | 8bit."),
-        bonus_preset: str = typer.Option(None, "--bonus-preset", help="paper (lambda 0.8, beta 0.5, ext/int advantage weights 1, 1) | rnd (CleanRL RND's weights 2, 1); default: the method's own (rnd: rnd, others: paper); explicit flags win."),
-        network_option: list[str] = typer.Option(None, "--network-option", help="KEY=VALUE setting of the method's policy network, repeatable (chibit: blocks=1, model=smollm2-135m)."),
-        bonus_option: list[str] = typer.Option(None, "--bonus-option", help="KEY=VALUE setting of the method's bonus, repeatable (e.g. rnd: update_proportion=0.5); see illm_tools.intrinsic.registry."),
-        lambda_a: float = typer.Option(None, "--lambda-a", help="Weight of the action bonus r^a (from --bonus-preset: 0.8)."),
-        beta_hc: float = typer.Option(None, "--beta-hc", help="Weight of the summary bonus r^hc (from --bonus-preset: 0.5)."),
-        ext_coef: float = typer.Option(None, "--ext-coef", help="Weight of the extrinsic advantage (from --bonus-preset: paper 1, rnd 2)."),
-        int_coef: float = typer.Option(None, "--int-coef", help="Weight of the intrinsic advantage (from --bonus-preset: 1)."),
-        num_envs: int = typer.Option(16, "--num-envs", help="Parallel environments."),
-        num_steps: int = typer.Option(128, "--num-steps", help="Steps per env per rollout."),
-        action_space: str = typer.Option("auto", "--action-space", help="original | augmented | irrelevant | auto: original for GoTo levels (paper Tables 1, 5), augmented otherwise."),
-        num_dists: int = typer.Option(None, "--num-dists", help="Distractors, for levels that take it."),
-        threads: int = typer.Option(1, "--threads", help="Torch threads for the policy."),
-        llm_threads: int = typer.Option(0, "--llm-threads", help="Torch threads for live annotation; 0: sync all cores, async the cores --threads leaves."),
-        resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its last checkpoint."),
-    ) -> None:
-        """Train PPO with the method's intrinsic bonus (iLLM: heads and rewards on LLM targets read from the cache)."""
-        from illm_tools.intrinsic.registry import get_method
-        from illm_tools.rl.config import TrainConfig, bonus_weights
+    options = dict(options)
+    preset = options.pop("bonus_preset")
+    spec = get_method(options["mode"])
+    weights = bonus_weights(preset or spec.preset, **{w: options.pop(w) for w in WEIGHTS})
+    fields = {**options, **weights, "run_dir": Path(options["run_dir"]),
+              "cache": Path(options["cache"]) if options.get("cache") else None}
+    for name, option in DICT_FLAGS.items():
+        fields[name] = parse_pairs(options.get(name), option)
+    fields["bonus_options"] = spec.typed_options(fields["bonus_options"])
+    if options["resume"]:
+        return resumed_config(ctx, fields["run_dir"], fields)
+    return TrainConfig(**fields)
+
+
+def _train_parameters() -> list[inspect.Parameter]:
+    from cli.options import dataclass_parameters
+    from illm_tools.intrinsic.registry import method_help  # light: names only, no torch
+    from illm_tools.rl.config import BONUS_PRESETS, TrainConfig
+
+    params = dataclass_parameters(
+        TrainConfig, aliases=ALIASES, dict_flags=DICT_FLAGS, exclude=NOT_OPTIONS, required={"run_dir"},
+        defaults={w: None for w in WEIGHTS},
+        extra_help={"mode": "One of: " + method_help() + ".",
+                    **{w: "Default: from --bonus-preset." for w in WEIGHTS},
+                    "bonus_options": "See illm_tools.intrinsic.registry (e.g. rnd: update_proportion=0.5).",
+                    "network_options": "chibit: blocks=1, model=smollm2-135m."})
+    preset = inspect.Parameter("bonus_preset", inspect.Parameter.KEYWORD_ONLY, annotation=typing.Optional[str],
+                               default=typer.Option(None, "--bonus-preset", help=(
+                                   " | ".join(f"{k} ({', '.join(f'{n} {v:g}' for n, v in w.items())})"
+                                              for k, w in BONUS_PRESETS.items())
+                                   + "; default: the method's own (rnd: rnd, others: paper); explicit weights win.")))
+    ctx = inspect.Parameter("ctx", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=typer.Context)
+    return [ctx, *params, preset]
+
+
+def register(app: typer.Typer) -> None:
+    def train(ctx: typer.Context, **options) -> None:
+        """Train PPO with the method's intrinsic bonus (iLLM: heads and rewards on LLM targets read from
+        the cache). Every setting of a run is an option named as its field; --resume reads them
+        from the run folder."""
         from illm_tools.rl.run import train as run
 
-        spec = get_method(method)
-        weights = bonus_weights(bonus_preset or spec.preset, lambda_a=lambda_a, beta_hc=beta_hc, ext_coef=ext_coef, int_coef=int_coef)
-        fields = dict(env_id=env, run_dir=out, mode=method, seed=seed, total_steps=frames, num_envs=num_envs,
-                      num_steps=num_steps, action_space=action_space, num_dists=num_dists, history_len=history,
-                      cache=cache, model=model, model_dtype=dtype, quant=quant, layout=layout, action_score=action_score,
-                      action_target=action_target, live_budget=live_budget, live_mode=live_mode, new_setup=new_setup,
-                      threads=threads, llm_threads=llm_threads, resume=resume,
-                      bonus_options=spec.parse_options(bonus_option or []),
-                      network_options=_pairs(network_option or [], "--network-option"), **weights)
-        cfg = resumed_config(ctx, out, fields) if resume else TrainConfig(**fields)
-        method, env = cfg.mode, cfg.env_id
+        cfg = train_config(ctx, options)
+        out, method, env = cfg.run_dir, cfg.mode, cfg.env_id
         if cfg.num_updates * cfg.batch_size != cfg.total_steps:
             typer.echo(f"--frames {cfg.total_steps:,} is not a whole number of rollouts ({cfg.num_envs} envs × "
                        f"{cfg.num_steps} steps = {cfg.batch_size:,} frames each): the run trains "
@@ -144,6 +136,9 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames "
                    f"({last.get('charts/sps', 0):,.0f} steps/s); last success rate "
                    f"{last.get('charts/success_rate', float('nan')):.2f}{targets} -> {out}")
+
+    train.__signature__ = inspect.Signature(_train_parameters())
+    app.command(epilog=EXAMPLE)(friendly(train))
 
     @app.command("eval", epilog="Example: illm eval runs/gotolocal-illm --episodes 100")
     @friendly

@@ -160,3 +160,30 @@ def test_frames_rounded_to_whole_rollouts_is_said(tmp_path, monkeypatch):
     monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None: {"global_step": 0})
     out = runner.invoke(app, ["train", "--method", "ppo", "--frames", "1000", "--out", str(tmp_path / "r")])
     assert "--frames 1,000 is not a whole number of rollouts" in out.output and "the run trains 2,048 frames" in out.output
+
+
+def test_every_train_setting_is_an_option_named_as_its_field_with_its_default(tmp_path, monkeypatch):
+    import dataclasses
+
+    import typer.main
+
+    import illm_tools.rl.run as run_module
+    from cli.train import NOT_OPTIONS
+    from illm_tools.rl.config import TrainConfig
+
+    command = typer.main.get_command(app).commands["train"]
+    opts = {o for p in command.params for o in p.opts}
+    fields = [f for f in dataclasses.fields(TrainConfig) if f.name not in NOT_OPTIONS]
+    dict_fields = {"bonus_options", "network_options", "env_options"}
+    assert all("--" + f.name.replace("_", "-") in opts for f in fields if f.name not in dict_fields)
+    assert {"--frames", "--out", "--method", "--env", "--history", "--dtype", "--bonus-option"} <= opts
+    seen = []
+    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None: seen.append(cfg) or {})
+    out = runner.invoke(app, ["train", "--out", str(tmp_path / "r"), "--method", "ppo", "--no-anneal-lr",
+                              "--clip-coef", "0.1", "--env-option", "num_dists=4", "--target-kl", "0.02"])
+    assert out.exit_code == 0, out.output
+    (cfg,) = seen
+    default = TrainConfig(run_dir=tmp_path / "r", mode="ppo")
+    changed = {f.name for f in dataclasses.fields(TrainConfig) if getattr(cfg, f.name) != getattr(default, f.name)}
+    assert changed == {"anneal_lr", "clip_coef", "env_options", "target_kl"}  # every other default is the field's
+    assert cfg.env_options == {"num_dists": 4} and cfg.total_steps == 200_000

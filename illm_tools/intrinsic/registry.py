@@ -133,15 +133,12 @@ class Method:
 
     def parse_options(self, pairs: Iterable[str]) -> dict[str, Any]:
         """`KEY=VALUE` strings (as `--bonus-option` gives them) -> typed bonus options."""
-        options: dict[str, Any] = {}
-        for pair in pairs:
-            key, sep, value = pair.partition("=")
-            if not sep or not key.strip():
-                raise UsageError(f"--bonus-option takes KEY=VALUE, got {pair!r}")
-            options[key.strip()] = value.strip()
-        return self._typed_options(options)
+        from illm_tools.settings import parse_pairs
 
-    def _typed_options(self, options: Mapping[str, Any]) -> dict[str, Any]:
+        return self.typed_options(parse_pairs(pairs, "--bonus-option"))
+
+    def typed_options(self, options: Mapping[str, Any]) -> dict[str, Any]:
+        """Bonus options by name, typed as the config's fields; unknown names are refused."""
         allowed = self.option_names()
         unknown = sorted(set(options) - set(allowed))
         if unknown:
@@ -153,7 +150,7 @@ class Method:
     def make_config(self, run: Mapping[str, Any], options: Mapping[str, Any]) -> Any:
         """The bonus's config: `RUN_SETTINGS` fields from `run` (a TrainConfig's `to_dict()`),
         the others from `options` or their defaults. Refuses unknown or ill-typed options."""
-        options = self._typed_options(options)
+        options = self.typed_options(options)
         cls = self.config_class
         if cls is None:
             return None
@@ -191,7 +188,7 @@ def _typed(name: str, hint: Any, value: Any) -> Any:
         if hint is str:
             return str(value)
     except ValueError:
-        raise UsageError(f"bonus option {name} must be {hint.__name__}, got {value!r}") from None
+        raise UsageError(f"option {name} must be {hint.__name__}, got {value!r}") from None
     return value  # other types: the config's own validation decides
 
 

@@ -1,12 +1,23 @@
-"""PPO for iLLM: configuration, networks, rollout storage, the trainer and run-dir checkpoints."""
+"""PPO for iLLM: configuration, networks, rollout storage, the trainer and run-dir checkpoints.
 
-from illm_tools.rl.checkpoint import load_checkpoint, load_policy
-from illm_tools.rl.config import TrainConfig
-from illm_tools.rl.networks import GridMissionNet, MissionVocab
-from illm_tools.rl.ppo import Trainer, make_pool
-from illm_tools.rl.storage import Rollout, gae, two_stream_advantages
+Names are imported on first use (PEP 562), so that `illm_tools.rl.config` (read by the command
+line to build `illm train`'s options) does not import torch.
+"""
 
-__all__ = [
-    "GridMissionNet", "MissionVocab", "Rollout", "TrainConfig", "Trainer", "gae", "load_checkpoint",
-    "load_policy", "make_pool", "two_stream_advantages",
-]
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "load_checkpoint": "checkpoint", "load_policy": "checkpoint", "TrainConfig": "config",
+    "GridMissionNet": "networks", "MissionVocab": "networks", "Trainer": "ppo", "make_pool": "ppo",
+    "Rollout": "storage", "gae": "storage", "two_stream_advantages": "storage",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -38,8 +38,7 @@ class TrainConfig:
     run_dir: Path = Path("data/runs/default")
     """Folder for config.json, metrics.jsonl, TensorBoard events and checkpoint.pt."""
     mode: str = "illm"
-    """The method (`--method`), a name in `illm_tools.intrinsic.registry`: illm: heads + bonus;
-    illm-noreward: heads only, no bonus (paper Table 3); ppo: neither; rnd: RND's bonus."""
+    """The method, a name in the registry `illm_tools.intrinsic.registry` (its bonus and network)."""
     network_options: dict = field(default_factory=dict)
     """Settings of the method's policy network by name (e.g. chibit's blocks; `--network-option
     KEY=VALUE`); unset ones keep their defaults."""
@@ -48,7 +47,7 @@ class TrainConfig:
     update_proportion; `--bonus-option KEY=VALUE`); unset ones keep their defaults."""
     seed: int = 0
     """Seed of the network initialisation, action sampling, minibatch order and env pool."""
-    total_steps: int = 1_000_000
+    total_steps: int = 200_000
     """Environment steps to train for, summed over the parallel envs."""
     num_envs: int = 16
     """Environments stepped side by side."""

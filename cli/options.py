@@ -1,0 +1,87 @@
+"""Typer options generated from a config dataclass: one option per field, named as the field
+(`num_envs` -> `--num-envs`), its default the field's default and its help the field's docstring,
+so that every documented setting is settable and defaults live in one place.
+
+Hand-written on Typer because tyro would replace the Typer app (and its one-line errors, help
+layout and the other commands); Typer reads a command's `inspect.Signature`, so the generated
+parameters are given to it as one. A field may carry a short alias kept from the documented
+command line (`--frames` for `total_steps`); dict fields are repeatable `--x-option KEY=VALUE`
+options; bool fields are `--x/--no-x` flags.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import textwrap
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+import typer
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Each field's docstring (the string literal after its annotation in the class body)."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs = {}
+    for node, after in zip(body, body[1:]):
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and \
+                isinstance(after, ast.Expr) and isinstance(getattr(after, "value", None), ast.Constant) and \
+                isinstance(after.value.value, str):
+            docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _optional(hint: Any) -> tuple[Any, bool]:
+    """(the type inside `X | None`, whether None is allowed)."""
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(args) == 1:
+            return args[0], True
+    return hint, False
+
+
+def dataclass_parameters(cls: type, *, aliases: dict[str, str], dict_flags: dict[str, str],
+                         exclude: set[str], defaults: dict[str, Any], required: set[str],
+                         extra_help: dict[str, str]) -> list[inspect.Parameter]:
+    """One keyword parameter per field of `cls` (minus `exclude`) with a `typer.Option` default.
+
+    aliases: field -> an extra flag kept from the documented CLI; dict_flags: dict field -> its
+    repeatable KEY=VALUE flag; defaults: CLI defaults that differ from the field's (e.g. None for
+    "take it from a preset"); required: fields the command needs; extra_help: appended to help."""
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    params = []
+    for f in dataclasses.fields(cls):
+        if f.name in exclude:
+            continue
+        hint, nullable = _optional(hints[f.name])
+        help_text = " ".join(filter(None, [docs.get(f.name, ""), extra_help.get(f.name, "")]))
+        if f.name in dict_flags:
+            decls, annotation, default = [dict_flags[f.name]], list[str], None
+            help_text += " Repeatable KEY=VALUE."
+        else:
+            names = ([aliases[f.name]] if f.name in aliases else []) + [flag(f.name)]  # the documented one first
+            if hint is bool:
+                decls = [f"{names[0]}/--no-{names[0][2:]}"] + names[1:]
+            else:
+                decls = names
+            annotation = hint if not nullable else typing.Optional[hint]  # noqa: UP007 - Typer reads Optional
+            if hint is bool and nullable:
+                annotation = typing.Optional[bool]  # noqa: UP007
+            default = ... if f.name in required else defaults.get(
+                f.name, f.default if f.default is not dataclasses.MISSING else None)
+            if isinstance(default, Path):
+                default = str(default)
+        params.append(inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
+                                        default=typer.Option(default, *decls, help=help_text,
+                                                             show_default=default is not None)))
+    return params
