@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from illm_tools.cache.layout import fsync_dir
 from illm_tools.errors import DamagedFileError, UsageError
 
 log = logging.getLogger(__name__)
@@ -119,14 +120,6 @@ class MetricsLog:
             self._tb.close()
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def save_checkpoint(run_dir: Path, state: dict) -> Path:
     """Write `state` to run_dir/checkpoint.pt with its digest, keeping the one it replaces as
     checkpoint.prev.pt (see the module docstring for the order of the renames)."""
@@ -146,9 +139,9 @@ def save_checkpoint(run_dir: Path, state: dict) -> Path:
         raise
     if path.exists():
         os.replace(path, previous)
-        _fsync_dir(run_dir)
+        fsync_dir(run_dir)
     os.replace(tmp, path)
-    _fsync_dir(run_dir)
+    fsync_dir(run_dir)
     return path
 
 
