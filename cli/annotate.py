@@ -18,7 +18,7 @@ def register(app: typer.Typer) -> None:
         data: Path = typer.Argument(..., help="Trajectory dataset written by `illm collect`."),
         cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache folder (shared across runs)."),
         model: str = typer.Option("smollm2-135m", "--model", help="Alias (see `illm models`), hub id or local folder."),
-        tasks: str = typer.Option("action,summary", "--tasks", help="Comma-separated: action, summary."),
+        tasks: str = typer.Option("action,summary", "--tasks", help="Comma-separated: action, summary, goal (ELLM's suggested goals, for --method ellm)."),
         history: int = typer.Option(3, "--history", help="Observation/action pairs of history in the prompts."),
         layout: str = typer.Option("shared", "--layout", help="Templates: shared (history first, prefix computed once) or paper (as printed)."),
         batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
@@ -27,7 +27,8 @@ def register(app: typer.Typer) -> None:
         dtype: str = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16."),
         quant: str = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit."),
     ) -> None:
-        """Annotate every distinct state once: next-action log-prob ranking and 64-token summary with embedding."""
+        """Annotate every distinct state once: next-action log-prob ranking and 64-token summary with embedding
+        (and, with --tasks goal, the goals the LLM suggests: ELLM's)."""
         from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()),

@@ -17,6 +17,7 @@ PINNED = {
     ("action.paper", 1): "6bb4e298db731814",
     ("action.shared", 1): "e26ba63753ebba15",
     ("summary", 1): "176b9227a05ae00e",
+    ("goal", 1): "237d50b4c0e62685",
 }
 
 ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from illm_tools.annotate.engine import Annotator, Stats
 from illm_tools.errors import UsageError
-from illm_tools.tasks.prompts import LAYOUTS, TASKS
+from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS, TASKS
 
 
 @dataclass
@@ -21,8 +21,9 @@ class AnnotateConfig:
     """Annotation cache folder (created if absent; shared by every run that reads it)."""
     model: str = "smollm2-135m"
     """Model alias (see `illm models`), hub id or local folder."""
-    tasks: tuple[str, ...] = TASKS
-    """Language tasks: action (next-action ranking), summary (64-token history compression)."""
+    tasks: tuple[str, ...] = DEFAULT_TASKS
+    """Language tasks: action (next-action ranking), summary (64-token history compression), goal
+    (ELLM's suggested goals; only when named)."""
     history: int = 3
     """Observation/action pairs of history in the prompts (paper B.1 uses 3)."""
     layout: str = "shared"

@@ -5,7 +5,9 @@ write identical rows under identical keys.
 For each distinct state it renders the language tasks' prompts (illm_tools.tasks), drops keys the
 cache already holds, and runs the LLM on the rest in length-sorted batches: candidate scoring for
 `action` (context KV computed once per state and shared by all candidates), greedy generation of
-at most 64 tokens plus the summary embedding for `summary`. Rows are written in chunks, so a run
+at most 64 tokens plus the summary embedding for `summary`, greedy generation of at most 32 tokens
+for `goal` (ELLM's suggested goals: the raw text in `text`, the parsed goals in `candidates`,
+`illm_tools.tasks.prompts.parse_goals`). Rows are written in chunks, so a run
 killed at any point keeps every finished chunk and a restart does only what is missing.
 """
 
@@ -22,7 +24,8 @@ from illm_tools.annotate.coverage import VisitedStates
 from illm_tools.cache.keys import canonical_json, fingerprint_hash
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
-from illm_tools.tasks.prompts import SUMMARY_TOKENS, TASKS, Prompt, PromptBuilder, format_history, neutral_prompt
+from illm_tools.tasks.prompts import (DEFAULT_TASKS, GOAL_TOKENS, SUMMARY_TOKENS, TASKS, Prompt, PromptBuilder,
+                                      format_history, neutral_prompt, parse_goals)
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
@@ -74,7 +77,7 @@ class Stats:
 class Annotator:
     """Owns a loaded model, a cache and the prompt builders of the envs it has seen."""
 
-    def __init__(self, lm, cache: AnnotationCache, *, model: str, tasks: Sequence[str] = TASKS,
+    def __init__(self, lm, cache: AnnotationCache, *, model: str, tasks: Sequence[str] = DEFAULT_TASKS,
                  history_len: int = 3, layout: str = "shared", batch_size: int = 8, chunk: int = 64):
         unknown = sorted(set(tasks) - set(TASKS))
         if unknown or not tasks:
@@ -178,11 +181,13 @@ class Annotator:
         rows: list[dict] = []
         action: list[Job] = []
         summary: list[Job] = []
+        goal: list[Job] = []
         pairs: list[tuple[Job, Job]] = []
         share = self.layout == "shared" and can_share_prefix(self.lm)
         for jobs in states:
             by_task = {j.prompt.task: j for j in jobs}
-            if share and len(by_task) == 2:
+            goal += [j for j in jobs if j.prompt.task == "goal"]
+            if share and "action" in by_task and "summary" in by_task:
                 pairs.append((by_task["action"], by_task["summary"]))
                 continue
             action += [j for j in jobs if j.prompt.task == "action"]
@@ -201,6 +206,10 @@ class Annotator:
             gens = generate(self.lm, [j.prompt.text for j in summary], max_new_tokens=SUMMARY_TOKENS,
                             batch_size=self.batch_size)
             rows += [self._summary_row(j, g) for j, g in zip(summary, gens)]
+        if goal:
+            gens = generate(self.lm, [j.prompt.text for j in goal], max_new_tokens=GOAL_TOKENS,
+                            batch_size=self.batch_size)
+            rows += [self._goal_row(j, g) for j, g in zip(goal, gens)]
         return rows
 
     def neutral_scores(self, candidates: tuple[str, ...]) -> list[float]:
@@ -242,4 +251,10 @@ class Annotator:
         emb = np.asarray(gen.embedding, dtype=np.float32)
         row.update(text=gen.text, embedding=emb.tolist(), embedding_dim=int(emb.shape[0]),
                    _tokens=len(gen.token_ids))
+        return row
+
+    def _goal_row(self, job: Job, gen) -> dict:
+        """The raw generation in `text`, its goals (`parse_goals`, possibly none) in `candidates`."""
+        row = self._base_row(job)
+        row.update(text=gen.text, candidates=parse_goals(gen.text, truncated=not gen.finished))
         return row

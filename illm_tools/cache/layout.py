@@ -34,7 +34,9 @@ from illm_tools.cache.index import parse_keys
 from illm_tools.errors import CacheError, SchemaError
 
 KIND = "annotation"
-TASKS = ("action", "summary")
+TASKS = ("action", "summary", "goal")
+"""The `task` values a row may hold (illm_tools.tasks.prompts.TASKS; `goal` rows use the v1
+columns as they are: `text` the raw generation, `candidates` the parsed goals)."""
 FORMAT = "illm.annotation-cache"
 MANIFEST = "manifest.json"
 LOCK = ".lock"

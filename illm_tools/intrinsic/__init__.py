@@ -13,6 +13,8 @@ _EXPORTS = {
     "BonusContext": "base", "BonusRewards": "base", "IntrinsicBonus": "base", "NoBonus": "base",
     "StateRecord": "base", "TargetProvider": "base", "Targets": "base",
     "ILLMBonus": "illm", "ILLMConfig": "illm", "RNDBonus": "rnd", "RNDConfig": "rnd",
+    "NGUBonus": "ngu", "NGUConfig": "ngu", "APTBonus": "apt", "APTConfig": "apt", "ELLMBonus": "ellm",
+    "ELLMConfig": "ellm",
     "DiscountedReturnNormalizer": "normalize", "RunningMeanStd": "normalize",
     "METHODS": "registry", "Method": "registry", "get_method": "registry", "register": "registry",
 }

@@ -32,6 +32,10 @@ and, when the bonus's class declares them:
   target_probs   float [.., A]        the LLM's distribution over the valid actions
   target_emb     float [.., D]        the LLM's summary embedding
   target_mask    bool  [..]           True where a target exists (other rows hold anything)
+  (`target_tasks` names the language tasks whose cache rows the provider reads: iLLM's action and
+  summary by default; ELLM's ("goal",) makes the run's provider a goal provider, whose targets
+  carry only the mask, D = 0, and whose per-step goals the bonus reads from the provider itself,
+  handed to it through `use_provider`.)
   policy_heads = True (the policy network carries iLLM's heads f^a / f^hc on its features):
   action_logits  float [.., A]        f^a's logits on `features`
   summary        float [.., D]        f^hc's predicted embedding on `features`
@@ -44,7 +48,9 @@ Hooks, in the order the trainer calls them per update: `observe` after every env
 update, and reaches the advantages through the intrinsic value stream); `aux_loss` on each
 minibatch of the first `distill_epochs` epochs (its gradient reaches the policy network: iLLM's
 distillation); `update` once after the policy update (a bonus's own model, own optimiser: RND's
-predictor); `state_dict` / `load_state_dict` with every checkpoint.
+predictor); `state_dict` / `load_state_dict` with every checkpoint. `use_provider` is not the
+trainer's: whoever assembles a run (`illm_tools.rl.run.train`) calls it once, after building the
+trainer, with the run's `TargetProvider` (a bonus that reads more of it than the stored targets).
 """
 
 from __future__ import annotations
@@ -136,6 +142,9 @@ class IntrinsicBonus(ABC):
     policy_heads: ClassVar[bool] = False
     """The policy network carries the iLLM heads f^a / f^hc (trained by `aux_loss` through the
     policy's optimiser); the batches then carry action_logits and summary."""
+    target_tasks: ClassVar[tuple[str, ...]] = ("action", "summary")
+    """With `needs_targets`: the language tasks (illm_tools.tasks.prompts.TASKS) whose cache rows
+    the run's provider reads and the live fallback annotates."""
     pays_reward: bool = True
     """Whether the rewards reach the advantages; False trains the bonus's models and pays nothing
     (e.g. `illm-noreward`, paper Table 3). Set by the registry entry, read by the trainer."""
@@ -144,6 +153,11 @@ class IntrinsicBonus(ABC):
     def from_config(cls, config: Any, ctx: BonusContext) -> "IntrinsicBonus":
         """Build the bonus for a run (default: `cls(config, ctx)`)."""
         return cls(config, ctx)  # type: ignore[call-arg]
+
+    def use_provider(self, provider: TargetProvider) -> None:
+        """Called once with the run's `TargetProvider` after the bonus is built, by whoever
+        assembles the run (`illm_tools.rl.run.train`), for a bonus that reads more of the
+        provider than the targets the trainer stores (ELLM: each step's goals). Default: nothing."""
 
     def observe(self, step: Mapping[str, torch.Tensor]) -> None:
         """Called after every env step with that step's [N, ...] tensors (default: nothing).

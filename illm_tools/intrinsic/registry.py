@@ -14,6 +14,12 @@ its reward is paid. `ppo` has no bonus. Built in:
   ppo            no bonus
   rnd            Random Network Distillation (rnd.py); --bonus-preset rnd (advantage weights 2 / 1)
   chibit         no bonus; the policy's torso is the LLM's first blocks (illm_tools/rl/chibit.py)
+  ellm           ELLM (ellm.py): paid for transitions whose caption matches a goal the LLM suggested
+                 (the cache's `goal` rows, `illm annotate --tasks goal`)
+  ngu            Never Give Up (ngu.py): episodic kNN novelty x RND's life-long factor
+  apt            Active Pre-Training (apt.py): particle-based entropy, kNN within the rollout
+  illm-shuffled  iLLM, each state's targets another cached state's (a fixed permutation): the
+                 control that tells the LLM's knowledge from curiosity
 
 A bonus's config is built from two sources: the fields its `config_class` lists in `RUN_SETTINGS`
 take the run's TrainConfig setting of the same name (iLLM's lambda_a, beta_hc, ... stay top-level
@@ -57,19 +63,17 @@ class Method:
     network: str | type | None = None
     """The policy network class ("module:Class", a `GridMissionNet` subclass), None: the grid
     policy. Its `Options` dataclass lists the `--network-option`s it takes."""
+    target_shuffle: int | None = None
+    """With `needs_targets`: None, each state's own LLM targets; an int, the seed of the fixed
+    permutation that hands each state another cached state's targets instead (`CachedTargets`'s
+    `shuffle_seed`, `illm_tools.rl.targets.ShuffledKeys`: the `illm-shuffled` control)."""
 
     @cached_property
     def network_class(self) -> type:
         """The policy network class of this method."""
         from illm_tools.rl.networks import GridMissionNet
 
-        cls = self.network or GridMissionNet
-        if isinstance(cls, str):
-            module, _, attr = cls.partition(":")
-            cls = getattr(importlib.import_module(module), attr)
-        if not (isinstance(cls, type) and issubclass(cls, GridMissionNet)):
-            raise TypeError(f"method {self.name}: network {self.network!r} is not a GridMissionNet subclass")
-        return cls
+        return _entry_point(self.network or GridMissionNet, GridMissionNet, f"method {self.name}: network")
 
     def network_options(self, options: Mapping[str, Any]):
         """The network's options dataclass from `--network-option` values (None: it takes none);
@@ -94,13 +98,7 @@ class Method:
 
         if self.entry_point is None:
             return NoBonus
-        cls = self.entry_point
-        if isinstance(cls, str):
-            module, _, attr = cls.partition(":")
-            cls = getattr(importlib.import_module(module), attr)
-        if not (isinstance(cls, type) and issubclass(cls, IntrinsicBonus)):
-            raise TypeError(f"method {self.name}: {self.entry_point!r} is not an IntrinsicBonus subclass")
-        return cls
+        return _entry_point(self.entry_point, IntrinsicBonus, f"method {self.name}: bonus")
 
     @property
     def config_class(self) -> type | None:
@@ -116,6 +114,11 @@ class Method:
     def policy_heads(self) -> bool:
         """Whether the policy network carries the iLLM heads f^a / f^hc."""
         return self.bonus_class.policy_heads
+
+    @property
+    def target_tasks(self) -> tuple[str, ...]:
+        """The language tasks whose cache rows the run reads (with `needs_targets`)."""
+        return tuple(self.bonus_class.target_tasks)
 
     @property
     def pays(self) -> bool:
@@ -163,6 +166,17 @@ class Method:
         if not self.pays_reward:
             bonus.pays_reward = False
         return bonus
+
+
+def _entry_point(ref: str | type, base: type, what: str) -> type:
+    """The class `ref` names ("module:Class", imported now) or is, checked to subclass `base`."""
+    cls = ref
+    if isinstance(cls, str):
+        module, _, attr = cls.partition(":")
+        cls = getattr(importlib.import_module(module), attr)
+    if not (isinstance(cls, type) and issubclass(cls, base)):
+        raise TypeError(f"{what} {ref!r} is not a {base.__name__} subclass")
+    return cls
 
 
 def _typed(name: str, hint: Any, value: Any) -> Any:
@@ -225,3 +239,10 @@ register(Method("rnd", "Random Network Distillation; advantage weights 2 / 1", "
                 preset="rnd"))
 register(Method("chibit", "policy torso from the LLM's pretrained blocks, no bonus", None, pays_reward=False,
                 network="illm_tools.rl.chibit:ChibiTNet"))
+register(Method("ellm", "ELLM: reward for reaching a goal the LLM suggested (cache task goal)",
+                "illm_tools.intrinsic.ellm:ELLMBonus"))
+register(Method("ngu", "Never Give Up: episodic kNN novelty x RND life-long factor",
+                "illm_tools.intrinsic.ngu:NGUBonus"))
+register(Method("apt", "Active Pre-Training: kNN particle entropy in the rollout", "illm_tools.intrinsic.apt:APTBonus"))
+register(Method("illm-shuffled", "iLLM on another cached state's targets (fixed permutation): control",
+                "illm_tools.intrinsic.illm:ILLMBonus", target_shuffle=0))

@@ -80,6 +80,8 @@ class WorkerSpec:
     chunk: int = 8
     """States per written shard: small, so answers reach the trainer soon after they exist."""
     model_cache_dir: str | None = None
+    tasks: tuple[str, ...] = ("action", "summary")
+    """The language tasks the worker annotates (the run's: iLLM's two, or ELLM's `goal`)."""
 
 
 def _worker_main(spec: WorkerSpec, inbox, stop, queued, done, errors) -> None:  # pragma: no cover - child
@@ -105,8 +107,9 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done) -> None:  # pragma: no co
 
     torch.set_num_threads(spec.threads)
     lm = load_model(spec.model, dtype=spec.dtype, quant=spec.quant, cache_dir=spec.model_cache_dir)
-    annotator = Annotator(lm, AnnotationCache(spec.cache), model=spec.model, history_len=spec.history_len,
-                          layout=spec.layout, batch_size=spec.batch_size, chunk=spec.chunk)
+    annotator = Annotator(lm, AnnotationCache(spec.cache), model=spec.model, tasks=spec.tasks,
+                          history_len=spec.history_len, layout=spec.layout, batch_size=spec.batch_size,
+                          chunk=spec.chunk)
     pending: list[StateRecord] = []
     while not stop.is_set():
         try:  # the newest list replaces the old one; wait for one when idle

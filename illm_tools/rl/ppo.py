@@ -91,6 +91,8 @@ class Trainer:
         with torch.random.fork_rng(devices=[]):  # the bonus's own models: their own seeded stream
             torch.manual_seed(ctx.seed)
             self.bonus = method.build(cfg.to_dict(), cfg.bonus_options, ctx)
+        if self.provider is not None:  # a bonus may read more of its provider than the stored targets (ELLM's goals)
+            self.bonus.use_provider(self.provider)
         self.history = HistoryTracker(cfg.num_envs, cfg.history_len, self.action_names)
         self.global_step, self.update_idx = 0, 0
         self._open_run_dir()

@@ -29,8 +29,10 @@ def torch_threads(n: int):
 
 
 def make_provider(cfg: TrainConfig, num_actions: int):
-    """The `CachedTargets` for a run whose bonus needs LLM targets (iLLM), or None. Returns
-    (provider, cfg) where cfg carries the model's embedding dimension."""
+    """The target provider of a run whose bonus needs LLM targets, or None: `CachedTargets` (iLLM's
+    action and summary rows) or, for a bonus whose `target_tasks` are ("goal",), `GoalTargets`
+    (ELLM's suggested goals). Returns (provider, cfg) where cfg carries the model's embedding
+    dimension (iLLM's heads predict it)."""
     if not cfg.needs_targets:
         return None, cfg
     if cfg.cache is None:
@@ -40,8 +42,11 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.envs import renderer_of
     from illm_tools.llm.loading import model_fingerprint, model_hidden_size
-    from illm_tools.rl.targets import CachedTargets, check_setup
+    from illm_tools.intrinsic.registry import get_method
+    from illm_tools.rl.targets import CachedTargets, GoalTargets, check_setup
     from illm_tools.tasks.prompts import PromptBuilder
+
+    tasks = get_method(cfg.mode).target_tasks
 
     cache = AnnotationCache(cfg.cache)
     renderer = renderer_of(cfg.env_id)
@@ -52,18 +57,21 @@ def make_provider(cfg: TrainConfig, num_actions: int):
         raise CacheError(f"the cache {cfg.cache} is empty and --live-budget is 0: nothing would give targets; "
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
-        check_setup(cache, builder, model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+        check_setup(cache, builder, model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant, tasks=tasks)
+    if tasks == ("goal",):
+        return GoalTargets(cache, builder, num_actions=num_actions, live=make_live(cfg, builder, cache, tasks)), cfg
     dim = model_hidden_size(cfg.model)
     if dim != cfg.embedding_dim:
         cfg = dataclasses.replace(cfg, embedding_dim=dim)
     provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
-                             embedding_dim=dim, action_target=cfg.action_target, live=make_live(cfg, builder, cache))
+                             embedding_dim=dim, action_target=cfg.action_target, live=make_live(cfg, builder, cache),
+                             shuffle_seed=get_method(cfg.mode).target_shuffle)  # illm-shuffled: another state's
     return provider, cfg
 
 
-def make_live(cfg: TrainConfig, builder, cache):
-    """The live annotator of a run (`illm_tools.rl.live`), or None with no live budget; sync
-    writes through `cache`, the object the targets are read from."""
+def make_live(cfg: TrainConfig, builder, cache, tasks: tuple[str, ...] = ("action", "summary")):
+    """The live annotator of a run (`illm_tools.rl.live`) for the language tasks it reads, or None
+    with no live budget; sync writes through `cache`, the object the targets are read from."""
     if cfg.live_budget == 0:
         return None
     from illm_tools.rl.live import AsyncLive, SyncLive, WorkerSpec
@@ -71,13 +79,13 @@ def make_live(cfg: TrainConfig, builder, cache):
     if cfg.live_mode == "async":
         spec = WorkerSpec(cache=str(cfg.cache), model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant,
                           env_id=builder.env_id, renderer=builder.renderer, history_len=cfg.history_len,
-                          layout=cfg.layout, threads=cfg.live_threads)
+                          layout=cfg.layout, threads=cfg.live_threads, tasks=tuple(tasks))
         return AsyncLive(spec, budget=cfg.live_budget)
     from illm_tools.annotate.engine import Annotator
     from illm_tools.llm.loading import load_model
 
     lm = load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
-    annotator = Annotator(lm, cache, model=cfg.model, history_len=cfg.history_len,
+    annotator = Annotator(lm, cache, model=cfg.model, tasks=tasks, history_len=cfg.history_len,
                           layout=cfg.layout)
     return SyncLive(annotator, builder.env_id, builder.renderer, cfg.live_budget, threads=cfg.live_threads)
 

@@ -8,19 +8,27 @@ first `live_budget` of them now and this rollout uses them; `async` hands them t
 process and a later rollout finds its answers in the shared cache. States still missing get no
 target (and so no bonus) and are counted. `check_setup` refuses a cache that holds annotations
 but none for this run's setup.
+
+`CachedTargets` serves iLLM (the `action` and `summary` rows); `GoalTargets` serves ELLM (the
+`goal` rows: each state's suggested goals), with the same keys, look-up and live fallback.
+`CachedTargets(shuffle_seed=...)` serves the `illm-shuffled` control: each state gets the targets
+of another cached state, chosen by a fixed permutation (`ShuffledKeys`).
 """
 
 from __future__ import annotations
 
+import bisect
+import hashlib
 from collections import Counter
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from illm_tools.cache import layout
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.intrinsic.base import Targets
 from illm_tools.tasks.calibration import ACTION_TARGETS, action_target
-from illm_tools.tasks.prompts import PromptBuilder
+from illm_tools.tasks.prompts import Prompt, PromptBuilder
 from illm_tools.tasks.state import StateRecord
 
 ACTION_COLUMNS = ["cand_logprob_sum", "cand_token_count", "neutral_logprob_sum"]
@@ -31,10 +39,14 @@ class CachedTargets:
     """`TargetProvider` over an `AnnotationCache`; `live` (`illm_tools.rl.live.SyncLive` or
     `AsyncLive`, writing to the same cache) enables the live fallback. `action_target`: f^a's target is the
     softmax of the calibrated scores (`distribution`) or the one-hot of their argmax (`argmax`,
-    the paper's choice)."""
+    the paper's choice). `shuffle_seed` (None: off) hands each state the targets of another cached
+    state of the same task and setup, its partner under the fixed permutation `ShuffledKeys` with
+    that seed; the mask stays the state's own (True where its own entries exist, as without the
+    shuffle, and its partner's too), so coverage and the live fallback are unchanged."""
 
     def __init__(self, cache: AnnotationCache, builder: PromptBuilder, *, calibration: str,
-                 num_actions: int, embedding_dim: int, action_target: str = "distribution", live=None):
+                 num_actions: int, embedding_dim: int, action_target: str = "distribution", live=None,
+                 shuffle_seed: int | None = None):
         self.cache = cache
         self.builder = builder
         self.calibration = calibration
@@ -44,6 +56,7 @@ class CachedTargets:
         self.num_actions = num_actions
         self.embedding_dim = embedding_dim
         self.live = live
+        self.shuffle = ShuffledKeys(cache, builder, shuffle_seed) if shuffle_seed is not None else None
         self._keys: dict[StateRecord, tuple[str, str]] = {}
         self._visits: Counter[StateRecord] = Counter()
         self._last: dict[str, float] = {"cache_hit_rate": 0.0, "target_coverage": 0.0, "live_annotations": 0.0}
@@ -62,10 +75,16 @@ class CachedTargets:
         return out_a, out_s
 
     def _lookup(self, keys_a: list[str], keys_s: list[str]) -> tuple[dict, dict, np.ndarray]:
-        """One cache look-up per task: (action columns, summary columns, mask with both)."""
+        """One cache look-up per task: (action columns, summary columns, mask with both). With
+        the shuffle, the columns are the partners' and the mask also asks for the state's own."""
+        own = None
+        if self.shuffle is not None:
+            own = self.cache.contains(keys_a) & self.cache.contains(keys_s)
+            keys_a, keys_s = self.shuffle.partners("action", keys_a), self.shuffle.partners("summary", keys_s)
         a = self.cache.get_columns(keys_a, ACTION_COLUMNS, task="action")
         s = self.cache.get_columns(keys_s, ["embedding"], task="summary")
-        return a, s, a["found"] & s["found"]
+        found = a["found"] & s["found"]
+        return a, s, found if own is None else found & own
 
     def _annotate_missing(self, records: Sequence[StateRecord], found: np.ndarray) -> int:
         """Live fallback: the distinct missing states, most visited over the run so far first,
@@ -116,6 +135,151 @@ class CachedTargets:
             self.live.close()
 
 
+class GoalTargets(CachedTargets):
+    """`TargetProvider` of the `goal` task (ELLM, `illm_tools.intrinsic.ellm`) over an
+    `AnnotationCache`, with the same live fallback as `CachedTargets` (`live` annotating `goal`).
+
+    `targets` answers only the mask (the state has a goal row; its action distribution and
+    embedding are empty: [B, A] zeros and [B, 0]); the goals themselves, parsed at annotation time
+    (`illm_tools.tasks.prompts.parse_goals`, the row's `candidates`), are in `goals` after each
+    call, aligned with the records (t-major), None where the state has no row yet."""
+
+    def __init__(self, cache: AnnotationCache, builder: PromptBuilder, *, num_actions: int, live=None):
+        super().__init__(cache, builder, calibration="sum", num_actions=num_actions, embedding_dim=0, live=live)
+        self._goal_keys: dict[StateRecord, str] = {}
+        self.goals: list[tuple[str, ...] | None] = []
+        """Per record of the last `targets` call: the state's goals (possibly none), or None."""
+
+    def goal_keys(self, records: Sequence[StateRecord]) -> list[str]:
+        """The `goal` keys of the records, memoised per distinct record."""
+        if len(self._goal_keys) > _MEMO_LIMIT:
+            self._goal_keys.clear()
+        out = []
+        for r in records:
+            key = self._goal_keys.get(r)
+            if key is None:
+                key = self._goal_keys[r] = self.builder.task_key("goal", r)
+            out.append(key)
+        return out
+
+    def targets(self, records: Sequence[StateRecord]) -> Targets:
+        self.cache.refresh()
+        keys = self.goal_keys(records)
+        rows = self.cache.get_columns(keys, ["candidates"], task="goal")
+        hits, live = int(rows["found"].sum()), 0
+        if self.live is not None:
+            self._count_visits(records)
+            if not rows["found"].all():
+                live = self._annotate_missing(records, rows["found"])
+                if self.live.waits:
+                    rows = self.cache.get_columns(keys, ["candidates"], task="goal")
+            live += self.live.landed()
+        found = np.asarray(rows["found"], bool)
+        self.goals = [tuple(g or ()) if f else None for g, f in zip(rows["candidates"], found)]
+        b, n = len(records), max(len(records), 1)
+        self._last = {"cache_hit_rate": hits / n, "target_coverage": float(found.sum()) / n,
+                      "live_annotations": float(live), **(self.live.stats() if self.live is not None else {})}
+        return Targets(np.zeros((b, self.num_actions), np.float32), np.zeros((b, 0), np.float32), found)
+
+
+class ShuffledKeys:
+    """The `illm-shuffled` control's fixed permutation of the cached states of one run's setup:
+    `partners` maps each looked-up key to the key of another cached entry of the same task and
+    setup, whose targets carry nothing of what the LLM said about the looked-up state.
+
+    The pool of a task is the cache's entries this run's `PromptBuilder` keys as they are keyed
+    (the key recomputed from the row's prompt and candidates equals the row's key: same task,
+    template and version, layout, renderer, model fingerprint and decoding); action entries are
+    grouped by their candidate list, so a partner's distribution covers the same valid actions.
+    Every entry is ranked by a keyed hash (blake2b, 64 bits, keyed with the seed) of its state's
+    rendered inputs (mission, history, observation), ties broken by key; a key's partner is the
+    entry after it in rank order within its group, the last one's the first. So:
+    - the permutation is one cycle through each group: no state is its own partner once its group
+      holds two entries (a lone entry has no partner, and its state no target);
+    - it depends only on the cache's content (the ranks come from the rows, not from shard order,
+      from when a shard was read or from the look-ups), so it is the same across calls, runs and
+      copies of the cache;
+    - as the cache grows it stays fixed but for the new entries: each new entry takes its place
+      after its predecessor in rank order, changing the partner of that one state and no other;
+    - the action and summary entries of one state share their rank, so when both pools hold the
+      same states (as `illm annotate` and the live fallback write them) a state takes both targets
+      from the same other state.
+    The pool is read from the cache's shards as the manifest lists them, each shard once."""
+
+    TASKS = ("action", "summary")
+    COLUMNS = ["key", "task", "prompt", "candidates", "goal", "history", "observation"]
+
+    def __init__(self, cache: AnnotationCache, builder: PromptBuilder, seed: int):
+        self.cache, self.builder, self.seed = cache, builder, int(seed)
+        self._salt = hashlib.sha256(f"illm-shuffled:{self.seed}".encode()).digest()[:16]
+        self._reset()
+
+    def _reset(self) -> None:
+        self._shards: list[str] = []  # shards read, in manifest order
+        self._where: dict[str, dict[str, tuple]] = {t: {} for t in self.TASKS}  # key -> (group, rank)
+        self._groups: dict[tuple, list[tuple[int, str]]] = {}  # (task, group) -> sorted (rank, key)
+        self._unsorted: set[tuple] = set()
+
+    def rank(self, goal: str, history: str, observation: str) -> int:
+        """The keyed 64-bit hash of a state's rendered inputs."""
+        text = "\x1f".join((goal or "", history or "", observation or "")).encode()
+        return int.from_bytes(hashlib.blake2b(text, digest_size=8, key=self._salt).digest(), "big")
+
+    def sync(self) -> int:
+        """Add the entries of the shards the manifest gained since the last call; returns how many
+        (a rewritten manifest, e.g. a copy merged in place, is read again from the start)."""
+        listed = [entry["name"] for entry in layout.read_manifest(self.cache.root)["shards"]]
+        if listed[:len(self._shards)] != self._shards:
+            self._reset()
+        added = 0
+        for name in listed[len(self._shards):]:
+            added += self._add(layout.read_shard(self.cache.root / name).select(self.COLUMNS).to_pylist())
+            self._shards.append(name)
+        return added
+
+    def _add(self, rows: list[dict]) -> int:
+        added = 0
+        for row in rows:
+            task, key = row["task"], row["key"]
+            if task not in self._where or key in self._where[task]:
+                continue
+            cands = row["candidates"]
+            if task == "action":  # PromptBuilder.render's candidates: " " + each valid action (rows keep them stripped)
+                cands = [" " + c for c in cands or ()]
+            prompt = Prompt(task, row["prompt"], row["goal"], row["history"], row["observation"],
+                            tuple(cands) if task == "action" else None)
+            if self.builder.key(prompt) != key:  # another setup's entry (or another layout's)
+                continue
+            group = (task, tuple(row["candidates"] or ()))
+            rank = self.rank(row["goal"], row["history"], row["observation"])
+            self._where[task][key] = (group, rank)
+            self._groups.setdefault(group, []).append((rank, key))
+            self._unsorted.add(group)
+            added += 1
+        return added
+
+    def partners(self, task: str, keys: Sequence[str]) -> list[str]:
+        """Each key's partner ("" where the key is not in the pool or its group has one entry)."""
+        self.sync()
+        for group in self._unsorted:
+            self._groups[group].sort()
+        self._unsorted.clear()
+        where, out = self._where[task], []
+        for key in keys:
+            found = where.get(key)
+            if found is None:
+                out.append("")
+                continue
+            group, rank = found
+            order = self._groups[group]
+            out.append(order[bisect.bisect_right(order, (rank, key)) % len(order)][1] if len(order) > 1 else "")
+        return out
+
+    def __len__(self) -> int:
+        """Entries in the pools."""
+        return sum(len(w) for w in self._where.values())
+
+
 _FLAGS = {"history_len": "--history", "layout": "--layout", "renderer": "renderer", "template_version": "template version",
           "decoding": "decoding"}
 
@@ -152,8 +316,8 @@ def check_setup(cache: AnnotationCache, builder: PromptBuilder, *, model: str, d
             continue
         if not rows:
             raise CacheError(f"the cache {cache.root} holds no {task} annotations, which this run needs: run "
-                             f"`illm annotate DATA --cache {cache.root} --tasks action,summary`, or pass --new-setup "
-                             "to let live annotation start them")
+                             f"`illm annotate DATA --cache {cache.root} --tasks {','.join(tasks)}`, or pass "
+                             "--new-setup to let live annotation start them")
         closest = max(rows, key=lambda r: (-len(differs(r)), r["entries"]))
         fields = differs(closest)
         theirs = dict(closest, layout=closest["layouts"][0] if closest["layouts"] else "unknown")

@@ -9,6 +9,12 @@ Two template layouts:
   "You are an expert player playing ... Recent player's history: ..." is computed once for both
   tasks (see illm_tools.annotate).
 Changing a template's text must bump its version (tests pin each version's text hash).
+
+Three tasks: `action` (score the valid actions) and `summary` (64-token history compression) are
+iLLM's and the default everywhere; `goal` is ELLM's (Du et al. 2023, "Guiding Pretraining in
+Reinforcement Learning with Large Language Models"): the LLM suggests goals for the state, with the
+goal-generation prompt of the paper's Appendix D.2, generated greedily like the summary and parsed
+into a list of goal strings by `parse_goals` (see there; the raw text is kept beside the list).
 """
 
 from __future__ import annotations
@@ -24,18 +30,37 @@ from illm_tools.errors import UsageError
 from illm_tools.tasks.state import StateRecord
 
 TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
-TASKS = ("action", "summary")
+TASKS = ("action", "summary", "goal")
+"""Every language task (what `--tasks` accepts)."""
+DEFAULT_TASKS = ("action", "summary")
+"""The tasks annotated when none are named: iLLM's two (the `goal` task is asked for by name)."""
 LAYOUTS = ("shared", "paper")
 # (task, layout) -> (template file, version). Bump the version when the file's text changes.
-# Both layouts use the same summary prompt, so their summary keys (and cache rows) coincide.
+# Both layouts use the same summary prompt, so their summary keys (and cache rows) coincide; so
+# do their goal prompts. goal.txt is the goal-generation prompt of the paper's Appendix D.2 as
+# printed (its instruction joined into one line, as the other templates are), plus a last line
+# "Goals:" that the paper does not print: the cue after which the model writes its list (as
+# "Answer:" ends the action prompt).
 TEMPLATES = {
     ("action", "paper"): ("action.paper", 1),
     ("action", "shared"): ("action.shared", 1),
     ("summary", "paper"): ("summary", 1),
     ("summary", "shared"): ("summary", 1),
+    ("goal", "paper"): ("goal", 1),
+    ("goal", "shared"): ("goal", 1),
 }
 NEUTRAL_VERSION = 1
 SUMMARY_TOKENS = 64
+GOAL_TOKENS = 32
+"""New tokens generated for a goal list: a few short phrases (the summary's 64 cost twice as much,
+and greedy decoding dominates annotation time)."""
+GOAL_PARSER_VERSION = 1
+"""Version of `parse_goals`: part of the goal task's decoding parameters, so of every goal key
+(the parsed list is stored in the row). Bump it when the parsing changes."""
+MAX_GOALS = 8
+"""Goals kept per state (the first ones the model wrote)."""
+MAX_GOAL_WORDS = 8
+"""Longer items are not "a single valid word or a phrase" (the prompt's words) and are dropped."""
 
 
 @lru_cache(maxsize=None)
@@ -109,6 +134,8 @@ class PromptBuilder:
     def decoding(self, task: str) -> dict:
         if task == "action":
             return {"method": "candidate-logprob", "neutral": f"neutral@{NEUTRAL_VERSION}"}
+        if task == "goal":
+            return {"method": "greedy", "max_new_tokens": GOAL_TOKENS, "parse": f"goals@{GOAL_PARSER_VERSION}"}
         return {"method": "greedy", "max_new_tokens": SUMMARY_TOKENS}
 
     def task_line(self, record: StateRecord) -> str:
@@ -150,6 +177,10 @@ class PromptBuilder:
         return make_key(setup=self.setup_key(prompt.task), prompt=prompt.text,
                         candidates=list(prompt.candidates) if prompt.candidates is not None else None)
 
+    def task_key(self, task: str, record: StateRecord, history: str | None = None) -> str:
+        """The cache key of one task of one state (e.g. the `goal` row the ELLM bonus reads)."""
+        return self.key(self.render(task, record, history))
+
     def state_keys(self, record: StateRecord) -> tuple[str, str]:
         """(action key, summary key) of one state, its history rendered once."""
         history = format_history(record)
@@ -171,3 +202,67 @@ def layouts_of(task: str, prompt: str) -> list[str]:
 def neutral_prompt() -> str:
     """The context for PMI calibration: each candidate's log-prob after it is subtracted later."""
     return template_text("neutral")
+
+
+# ---- the goal task's answer ---------------------------------------------------------------------
+
+_PROMPT_LINE = re.compile(r"(you are an expert player|recent player's history|valid actions|suggest the next goal"
+                          r"|observation \d+\s*:|action \d+\s*:)", re.IGNORECASE)
+_INLINE_NUMBER = re.compile(r"\s(?=\d{1,2}[.)]\s)")
+_MARKER = re.compile(r"^(?:[-*\u2022]+|\(?\d{1,2}[.):])\s*")
+_LABEL = re.compile(r"^(?:next\s+)?goals?(?:\s*\d+)?\s*[:\-]\s*", re.IGNORECASE)
+_QUOTES = "\"'`\u201c\u201d\u2018\u2019()[]{}<> "
+_COPIES = ("you see ", "you carry ")
+
+
+def parse_goals(text: str, truncated: bool = False) -> list[str]:
+    """The goal strings of a generated answer to the `goal` prompt (version `GOAL_PARSER_VERSION`);
+    `truncated`: the generation was cut at `GOAL_TOKENS` (not ended by the model).
+
+    1. Lines are read in order; a blank line after the first goal, or a line that starts a prompt
+       of its own ("You are an expert player", "Recent player's history", "Observation N:",
+       "Action N:", "Valid actions", "Suggest the next goal"), ends the list: small models go on
+       writing the prompt again.
+    2. Each line is split into items at commas, semicolons and inline numbering ("1. a 2. b").
+    3. Each item loses a leading list marker ("-", "*", "\u2022", "1.", "2)"), a label ("Goal:",
+       "Goals:", "Goal 1:"), quotes and brackets around it, and trailing ".", "!", "?", ":"; its
+       whitespace is collapsed and it is lower-cased.
+    4. Dropped: empty items, items without a letter, items longer than `MAX_GOAL_WORDS` words (not
+       "a single valid word or a phrase", the prompt's words), and copies of the observation
+       ("you see ...", "you carry ...").
+    5. In a truncated generation whose list did not end before the cut (by 1.), the last item is
+       dropped: it may be cut mid-phrase ("- Open door\n- Open").
+    6. Duplicates are dropped (first kept) and at most `MAX_GOALS` goals are returned.
+    """
+    items: list[str] = []
+    ended = False
+    for line in text.splitlines():
+        if not line.strip():
+            if items:
+                ended = True
+                break
+            continue
+        if _PROMPT_LINE.match(_MARKER.sub("", line.strip())):
+            ended = True
+            break
+        items += re.split(r"[,;]", _INLINE_NUMBER.sub(";", line))
+    if truncated and not ended:
+        items = items[:-1]
+    goals: list[str] = []
+    for item in items:
+        goal = _clean_goal(item)
+        if goal and goal not in goals:
+            goals.append(goal)
+    return goals[:MAX_GOALS]
+
+
+def _clean_goal(item: str) -> str | None:
+    """One list item as a goal (steps 3 and 4 of `parse_goals`), None when it is not one."""
+    goal = _MARKER.sub("", item.strip())
+    goal = _LABEL.sub("", goal)
+    goal = " ".join(goal.strip(_QUOTES).rstrip(".!?:").strip(_QUOTES).split()).lower()
+    if not goal or not re.search(r"[a-z]", goal) or len(goal.split()) > MAX_GOAL_WORDS:
+        return None
+    if goal.startswith(_COPIES):
+        return None
+    return goal

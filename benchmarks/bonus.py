@@ -1,0 +1,137 @@
+"""Training throughput of every registered method (`illm_tools.intrinsic.registry.METHODS`) against
+`--method ppo`, in the same run, with the same env, frames, envs x steps and threads: each printed
+as steps/s, its time per update by phase, and its ratio to ppo's steps/s.
+
+Methods whose bonus reads LLM targets (illm, illm-noreward, illm-shuffled, ellm) train on a cache
+filled without an LLM, as benchmarks/train.py does: a first pass of the same method and seed fills
+an empty cache through the live fallback with rows of deterministic pseudo-random scores,
+embeddings and goals (the trainer's speed does not depend on what the LLM said); the second pass,
+the one timed, reads the cache only, and its cache hit rate is printed. (A pass that leaves the
+first's path, as illm-shuffled's can, whose partners move while the first pass fills the cache,
+misses a few states: they get no target, which is what a run on that cache would see.) A method
+that cannot run here (chibit without its model files, say) is skipped, with the reason printed.
+
+    .venv/bin/python benchmarks/bonus.py [--env BabyAI-GoToLocal-v0] [--frames 20480]
+                                         [--methods ngu,apt] [--skip chibit]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from train import DIM, SyntheticAnnotator, SyntheticLM  # noqa: E402  (benchmarks/train.py's stubs)
+
+from illm_tools.cache.store import AnnotationCache  # noqa: E402
+from illm_tools.envs import renderer_of  # noqa: E402
+from illm_tools.intrinsic.registry import METHODS, get_method  # noqa: E402
+from illm_tools.rl.config import TrainConfig  # noqa: E402
+from illm_tools.rl.live import SyncLive  # noqa: E402
+from illm_tools.rl.ppo import Trainer, make_pool  # noqa: E402
+from illm_tools.rl.run import torch_threads  # noqa: E402
+
+PHASES = ("time/rollout_s", "time/targets_s", "time/update_s")
+
+
+class GoalAwareAnnotator(SyntheticAnnotator):
+    """benchmarks/train.py's synthetic annotator, plus `goal` rows (a fixed short goal list)."""
+
+    def annotate(self, states):
+        goal_jobs = [[j for j in jobs if j.prompt.task == "goal"] for jobs in states]
+        rows = super().annotate([[j for j in jobs if j.prompt.task != "goal"] for jobs in states])
+        gen = type("G", (), {"text": "1. go to the red ball\n2. pick up the key", "token_ids": [0] * 8,
+                             "finished": True})
+        return rows + [self._goal_row(job, gen) for jobs in goal_jobs for job in jobs]
+
+
+def provider_for(method, cfg: TrainConfig, cache_dir: Path, num_actions: int, fill: bool):
+    """The run's target provider over a synthetic cache (None for a method without targets)."""
+    if not method.needs_targets:
+        return None
+    from illm_tools.rl.targets import CachedTargets
+
+    tasks = tuple(getattr(method, "target_tasks", ("action", "summary")))
+    cache = AnnotationCache(cache_dir)
+    annotator = GoalAwareAnnotator(SyntheticLM(), cache, model="synthetic", tasks=tasks,
+                                   history_len=cfg.history_len, chunk=10_000)
+    builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
+    live = SyncLive(annotator, cfg.env_id, builder.renderer, 10**9) if fill else None
+    if tasks == ("goal",):
+        from illm_tools.rl.targets import GoalTargets
+
+        return GoalTargets(cache, builder, num_actions=num_actions, live=live)
+    return CachedTargets(cache, builder, calibration="sum", num_actions=num_actions, embedding_dim=DIM,
+                         live=live, shuffle_seed=getattr(method, "target_shuffle", None))
+
+
+def run(cfg: TrainConfig, cache_dir: Path, fill: bool = False) -> tuple[float, dict]:
+    """Train `cfg`; returns (steps/s over the whole run, last metrics with the mean phase times)."""
+    method = get_method(cfg.mode)
+    pool = make_pool(cfg)
+    phases = dict.fromkeys(PHASES, 0.0)
+
+    def on_metrics(m: dict) -> None:
+        for k in PHASES:
+            phases[k] += m[k] / cfg.num_updates
+
+    try:
+        provider = provider_for(method, cfg, cache_dir, len(pool.action_names), fill)
+        trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
+        start = time.perf_counter()
+        last = trainer.train()
+        elapsed = time.perf_counter() - start
+    finally:
+        pool.close()
+    last["phases"] = "  ".join(f"{k[5:-2]} {v:.3f}s" for k, v in phases.items())
+    return cfg.num_updates * cfg.batch_size / elapsed, last
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="BabyAI-GoToLocal-v0")
+    parser.add_argument("--frames", type=int, default=20_480)
+    parser.add_argument("--num-envs", type=int, default=16)
+    parser.add_argument("--num-steps", type=int, default=128)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--methods", default="", help="Comma-separated methods to time (default: all registered).")
+    parser.add_argument("--skip", default="", help="Comma-separated methods not to time.")
+    args = parser.parse_args()
+    chosen = [m for m in (args.methods.split(",") if args.methods else METHODS) if m and m != "ppo"]
+    skip = set(filter(None, args.skip.split(",")))
+
+    with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
+        def config(mode: str, name: str) -> TrainConfig:
+            return TrainConfig(env_id=args.env, run_dir=Path(tmp) / name, mode=mode, seed=0, total_steps=args.frames,
+                               num_envs=args.num_envs, num_steps=args.num_steps, embedding_dim=DIM,
+                               cache=Path(tmp) / f"ann-{mode}", live_budget=0, tensorboard=False,
+                               checkpoint_every=0, threads=args.threads)
+
+        print(f"env {args.env}, {args.frames} frames, {args.num_envs} envs x {args.num_steps} steps, "
+              f"{args.threads} thread(s)", flush=True)
+        sps_ppo, last = run(config("ppo", "ppo"), Path(tmp) / "unused")
+        print(f"{'ppo':<14} {sps_ppo:8,.0f} steps/s  ratio  1.00  per update: {last['phases']}", flush=True)
+        for mode in chosen:
+            if mode in skip:
+                print(f"{mode:<14} skipped: --skip", flush=True)
+                continue
+            try:
+                method = get_method(mode)
+                if method.needs_targets:  # pass 1 fills the cache (untimed)
+                    run(config(mode, f"{mode}-fill"), Path(tmp) / f"ann-{mode}", fill=True)
+                sps, last = run(config(mode, mode), Path(tmp) / f"ann-{mode}")
+            except Exception as e:  # noqa: BLE001 - a method that cannot run here is reported, not fatal
+                reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+                print(f"{mode:<14} skipped: {type(e).__name__}: {reason}", flush=True)
+                continue
+            hit = f"  (cache hit rate {last['charts/cache_hit_rate']:.3f})" if method.needs_targets else ""
+            print(f"{mode:<14} {sps:8,.0f} steps/s  ratio {sps / sps_ppo:5.2f}  per update: {last['phases']}{hit}",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()
