@@ -25,7 +25,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from train import DIM, SyntheticAnnotator, SyntheticLM  # noqa: E402  (benchmarks/train.py's stubs)
+from train import DIM  # noqa: E402  (benchmarks/train.py's summary size)
+
+from illm_tools.annotate.synthetic import SyntheticAnnotator, SyntheticLM  # noqa: E402
 
 from illm_tools.cache.store import AnnotationCache  # noqa: E402
 from illm_tools.envs import renderer_of  # noqa: E402
@@ -57,7 +59,7 @@ def provider_for(method, cfg: TrainConfig, cache_dir: Path, num_actions: int, fi
 
     tasks = tuple(getattr(method, "target_tasks", ("action", "summary")))
     cache = AnnotationCache(cache_dir)
-    annotator = GoalAwareAnnotator(SyntheticLM(), cache, model="synthetic", tasks=tasks,
+    annotator = GoalAwareAnnotator(SyntheticLM("synthetic-benchmark", DIM), cache, model="synthetic", tasks=tasks,
                                    history_len=cfg.history_len, chunk=10_000)
     builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
     live = SyncLive(annotator, cfg.env_id, builder.renderer, 10**9) if fill else None

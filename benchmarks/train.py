@@ -18,14 +18,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
-from illm_tools.annotate.engine import Annotator
+from illm_tools.annotate.synthetic import SyntheticAnnotator, SyntheticLM
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.envs import renderer_of
 from illm_tools.rl.config import TrainConfig
@@ -37,38 +35,6 @@ from illm_tools.rl.targets import CachedTargets
 DIM = 576  # SmolLM2-135M's hidden size: the f^hc head is as large as with the embedded model
 
 
-class SyntheticLM:
-    """Stands in for a loaded model where only its identity is read (fingerprint, size)."""
-
-    fingerprint = {"model_id": "synthetic-benchmark", "source": "local", "sha256": None, "revision": None,
-                   "dtype": "bfloat16", "quant": "none"}
-    hidden_size = DIM
-
-
-class SyntheticAnnotator(Annotator):
-    """Writes rows of the real schema whose numbers derive from the key (no LLM)."""
-
-    def neutral_scores(self, candidates):
-        return [-float(len(c)) for c in candidates]
-
-    def annotate(self, states):
-        rows = []
-        for jobs in states:
-            for job in jobs:
-                rng = np.random.default_rng(int(hashlib.sha256(job.key.encode()).hexdigest()[:8], 16))
-                if job.prompt.task == "action":
-                    n = len(job.prompt.candidates)
-                    tokens = [list(rng.normal(-2, 1, size=2)) for _ in range(n)]
-                    scores = type("S", (), {"token_logprobs": tokens, "token_counts": [2] * n,
-                                            "sums": [float(sum(t)) for t in tokens]})
-                    rows.append(self._action_row(job, scores))
-                else:
-                    gen = type("G", (), {"text": "synthetic", "token_ids": [0] * 8,
-                                         "embedding": rng.normal(size=DIM).astype(np.float32)})
-                    rows.append(self._summary_row(job, gen))
-        return rows
-
-
 def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> tuple[float, dict]:
     pool = make_pool(cfg)
     provider = None
@@ -76,7 +42,7 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
         provider, cfg = make_provider(cfg, len(pool.action_names))
     elif cfg.uses_heads:
         cache = AnnotationCache(cache_dir)
-        annotator = SyntheticAnnotator(SyntheticLM(), cache, model="synthetic", history_len=cfg.history_len,
+        annotator = SyntheticAnnotator(SyntheticLM("synthetic-benchmark", DIM), cache, model="synthetic", history_len=cfg.history_len,
                                        chunk=10_000)
         builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
         live = SyncLive(annotator, cfg.env_id, builder.renderer, cfg.live_budget) if cfg.live_budget else None

@@ -9,7 +9,6 @@ cached state's, fixed across calls and copies of the cache, never its own."""
 from __future__ import annotations
 
 import csv
-import hashlib
 import json
 import shutil
 
@@ -19,7 +18,7 @@ import torch
 from typer.testing import CliRunner
 
 from cli.main import app
-from illm_tools.annotate.engine import Annotator
+from illm_tools.annotate.synthetic import SyntheticAnnotator, SyntheticLM
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic import BonusContext, ILLMBonus, RNDBonus
@@ -251,46 +250,13 @@ def test_illm_train_method_end_to_end(tmp_path, mode, option):
 ENV, RENDERER, DIM = "BabyAI-GoToLocal-v0", "babyai-text@1", 16
 
 
-class SyntheticLM:
-    """Stands in for a loaded model where only its identity is read (fingerprint, size)."""
-
-    def __init__(self, name: str = "synthetic-test"):
-        self.fingerprint = {"model_id": name, "source": "local", "sha256": None, "revision": None,
-                            "dtype": "bfloat16", "quant": "none"}
-        self.hidden_size = DIM
-
-
-class SyntheticAnnotator(Annotator):
-    """Writes rows of the real schema whose numbers derive from the key (no LLM)."""
-
-    def neutral_scores(self, candidates):
-        return [-float(len(c)) for c in candidates]
-
-    def annotate(self, states):
-        rows = []
-        for jobs in states:
-            for job in jobs:
-                rng = np.random.default_rng(int(hashlib.sha256(job.key.encode()).hexdigest()[:8], 16))
-                if job.prompt.task == "action":
-                    n = len(job.prompt.candidates)
-                    tokens = [list(rng.normal(-2, 1, size=2)) for _ in range(n)]
-                    scores = type("S", (), {"token_logprobs": tokens, "token_counts": [2] * n,
-                                            "sums": [float(sum(t)) for t in tokens]})
-                    rows.append(self._action_row(job, scores))
-                else:
-                    gen = type("G", (), {"text": "synthetic", "token_ids": [0] * 8,
-                                         "embedding": rng.normal(size=DIM).astype(np.float32)})
-                    rows.append(self._summary_row(job, gen))
-        return rows
-
-
 def states(count: int, start: int = 0, actions=ACTIONS) -> list[StateRecord]:
     return [StateRecord("go to the red ball", (("You see a wall 3 steps forward", "turn left"),),
                         f"You see a red ball {k} steps forward", tuple(actions)) for k in range(start, start + count)]
 
 
 def annotate(cache: AnnotationCache, records, *, chunk: int = 4, lm=None) -> Annotator:
-    annotator = SyntheticAnnotator(lm or SyntheticLM(), cache, model="synthetic", history_len=3, chunk=chunk)
+    annotator = SyntheticAnnotator(lm or SyntheticLM(hidden_size=DIM), cache, model="synthetic", history_len=3, chunk=chunk)
     annotator.annotate_states(records, ENV, RENDERER)
     return annotator
 
@@ -343,7 +309,7 @@ def test_shuffled_pool_is_one_setup_and_grows_without_moving_other_states(tmp_pa
     records = states(12)
     cache = AnnotationCache(tmp_path / "ann")
     annotator = annotate(cache, records)
-    annotate(cache, states(6, start=100), lm=SyntheticLM("another-model"))  # another setup: never a partner
+    annotate(cache, states(6, start=100), lm=SyntheticLM("another-model", DIM))  # another setup: never a partner
     plain, shuffled = providers(cache, annotator)
     before = partners(plain, shuffled, records)
     assert sorted(before) == list(range(12))
@@ -381,14 +347,14 @@ def test_illm_shuffled_is_illm_on_shuffled_targets_end_to_end(tmp_path, monkeypa
     # pass 1 (illm, live annotation by the synthetic annotator) fills the cache with the states a
     # run of this seed meets first; pass 2 (illm-shuffled, cache only) meets them again
     cache = AnnotationCache(tmp_path / "ann")
-    annotator = SyntheticAnnotator(SyntheticLM(), cache, model="synthetic", history_len=3, chunk=64)
+    annotator = SyntheticAnnotator(SyntheticLM(hidden_size=DIM), cache, model="synthetic", history_len=3, chunk=64)
     plain = CachedTargets(cache, annotator.builder(ENV, RENDERER), calibration="sum", num_actions=6,
                           embedding_dim=DIM, live=SyncLive(annotator, ENV, RENDERER, budget=10**6))
     common = dict(num_envs=4, num_steps=32, total_steps=128, tensorboard=False, update_epochs=1, num_minibatches=2,
                   embedding_dim=DIM, head_hidden=32, cache=tmp_path / "ann", model="synthetic", live_budget=0)
     Trainer(TrainConfig(run_dir=tmp_path / "fill", mode="illm", **common), FakePool(4), plain).train()
 
-    monkeypatch.setattr(loading, "model_fingerprint", lambda name, **kw: SyntheticLM().fingerprint)
+    monkeypatch.setattr(loading, "model_fingerprint", lambda name, **kw: SyntheticLM(hidden_size=DIM).fingerprint)
     monkeypatch.setattr(loading, "model_hidden_size", lambda name, **kw: DIM)
     cfg = TrainConfig(run_dir=tmp_path / "shuffled", mode="illm-shuffled", **common)
     provider, cfg = make_provider(cfg, len(ACTIONS))

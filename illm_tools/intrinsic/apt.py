@@ -98,11 +98,7 @@ class APTBonus(IntrinsicBonus):
     def compute_rewards(self, batch: Mapping[str, torch.Tensor]) -> BonusRewards:
         raw = self.entropy_rewards(self.embedding(batch["next_images"]))
         logs = {"apt_entropy": float(raw.mean()), "apt_dist_mean": float(self.dist_rms.mean)}
-        if not self.pays_reward:
-            return BonusRewards(torch.zeros_like(raw), logs)
-        reward = self.reward_norm(raw)
-        logs.update(intrinsic_reward=float(reward.mean()), intrinsic_std=self.reward_norm.rms.std)
-        return BonusRewards(reward, logs)
+        return self.normalised(raw, self.reward_norm, logs)
 
     def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
         """Train the representation by inverse dynamics on the rollout (ngu.py)."""

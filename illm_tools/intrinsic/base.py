@@ -167,6 +167,16 @@ class IntrinsicBonus(ABC):
     def compute_rewards(self, batch: Mapping[str, torch.Tensor]) -> BonusRewards:
         """Intrinsic rewards [T, N] for a whole rollout (no gradient); updates normalisers."""
 
+    def normalised(self, raw: torch.Tensor, norm, logs: dict[str, float]) -> BonusRewards:
+        """The rollout's rewards of a bonus paid as `raw` divided by the running std of its
+        discounted return (`norm`, a `DiscountedReturnNormalizer`): zeros when the method does not
+        pay it (its models still train), else the normalised reward, with both logged."""
+        if not self.pays_reward:
+            return BonusRewards(torch.zeros_like(raw), logs)
+        reward = norm(raw)
+        logs.update(intrinsic_reward=float(reward.mean()), intrinsic_std=norm.rms.std)
+        return BonusRewards(reward, logs)
+
     def aux_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         """Loss added to the PPO loss for one minibatch (default: none)."""
         return torch.zeros(()), {}

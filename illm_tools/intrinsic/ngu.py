@@ -282,11 +282,7 @@ class NGUBonus(IntrinsicBonus):
             factor, error = self.lifelong_factor(reached)
             raw = episodic * factor
             logs.update(ngu_lifelong=float(factor.mean()), rnd_error=float(error.mean()))
-        if not self.pays_reward:
-            return BonusRewards(torch.zeros_like(raw), logs)
-        reward = self.reward_norm(raw)
-        logs.update(intrinsic_reward=float(reward.mean()), intrinsic_std=self.reward_norm.rms.std)
-        return BonusRewards(reward, logs)
+        return self.normalised(raw, self.reward_norm, logs)
 
     def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
         """Train the embedding by inverse dynamics, and RND's predictor (rnd.py), on the rollout."""

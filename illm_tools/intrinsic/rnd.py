@@ -145,11 +145,7 @@ class RNDBonus(IntrinsicBonus):
         if not first:  # rewarded with the statistics as they were, then merged in (CleanRL's order)
             self.obs_rms.update(images.numpy())
         logs = {"rnd_error": float(error.mean())}
-        if not self.pays_reward:
-            return BonusRewards(torch.zeros_like(error), logs)
-        reward = self.reward_norm(error)
-        logs.update(intrinsic_reward=float(reward.mean()), intrinsic_std=self.reward_norm.rms.std)
-        return BonusRewards(reward, logs)
+        return self.normalised(error, self.reward_norm, logs)
 
     def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
         """Train the predictor on the rollout's next observations (see the module docstring)."""
