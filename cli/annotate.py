@@ -49,7 +49,8 @@ def register(app: typer.Typer) -> None:
         stats = result.stats
         summary = f", summaries {stats.mean_summary_tokens:.1f} tokens on average" if stats.summaries else ""
         typer.echo(
-            f"annotated {stats.annotated_states:,} states ({stats.rows:,} rows: "
+            "nothing to annotate: the cache holds every selected state" if not stats.rows and not stats.stopped_early
+            else f"annotated {stats.annotated_states:,} states ({stats.rows:,} rows: "
             + ", ".join(f"{k} {v:,}" for k, v in sorted(stats.per_task.items()))
             + f") in {stats.seconds:.1f}s, {stats.states_per_s:.2f} states/s{summary}"
             + ("" if not stats.stopped_early else "; stopped by a signal, run again to go on" if stop.requested

@@ -23,7 +23,12 @@ def register(app: typer.Typer) -> None:
         everything that changes what is learned."""
         from illm_tools.report.curves import summarise
 
-        groups = summarise([r for r in runs if r.is_dir()], every)
+        from illm_tools.errors import UsageError
+
+        missing = [str(r) for r in runs if not r.is_dir()]
+        if missing:
+            raise UsageError(f"no run folder at {', '.join(missing[:3])}: pass folders written by `illm train`")
+        groups = summarise(list(runs), every)
         if as_json:
             emit_json([{"env_id": env, "label": label, **g} for (env, label), g in groups.items()])
             return
@@ -41,4 +46,5 @@ def register(app: typer.Typer) -> None:
         for (env, method), g in groups.items():
             typer.echo(f"{env}, {method}: seeds {', '.join(map(str, g['seeds'])) or '-'} ({', '.join(g['runs']) or 'no run'})")
             for run, last in g["short_runs"].items():
-                typer.echo(f"  {run} left out: trained for {last:,} frames, shorter than --every {every:,}")
+                typer.echo(f"  {run} left out: trained for {last:,} frames, too short for a point at --every "
+                           f"{every:,} (a run gives a last, shorter window once it passes half of it)")

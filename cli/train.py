@@ -21,6 +21,11 @@ EXAMPLE = ("Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --met
            "--out runs/gotolocal-illm")
 
 
+def _rate(value) -> str:
+    """A success rate for people: "no episode ended yet" where the metrics hold NaN (none ended)."""
+    return "no episode ended yet" if value is None or value != value else f"{value:.2f}"
+
+
 def _given(ctx: typer.Context) -> set[str]:
     """The options the user typed (not left at their defaults)."""
     # by name: Typer may carry its own copy of click, whose ParameterSource is another enum
@@ -115,7 +120,7 @@ def register(app: typer.Typer) -> None:
                 progress(cfg.num_updates * cfg.batch_size, f"train {method}", unit="steps") as advance:
             def on_metrics(m: dict) -> None:
                 last.update(m)
-                fields = {"success": f"{m.get('charts/success_rate', float('nan')):.2f}"}
+                fields = {"success": _rate(m.get("charts/success_rate"))}
                 if cfg.needs_targets:
                     coverage.append(m.get("charts/target_coverage", 0.0))
                     fields["targets"] = f"{coverage[-1]:.2f}"
@@ -135,7 +140,7 @@ def register(app: typer.Typer) -> None:
             raise typer.Exit(stop.exit_code)
         typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames "
                    f"({last.get('charts/sps', 0):,.0f} steps/s); last success rate "
-                   f"{last.get('charts/success_rate', float('nan')):.2f}{targets} -> {out}")
+                   f"{_rate(last.get('charts/success_rate'))}{targets} -> {out}")
 
     train.__signature__ = inspect.Signature(_train_parameters())
     app.command(epilog=EXAMPLE)(friendly(train))

@@ -61,7 +61,11 @@ def test_duplicate_seeds_are_refused_and_short_runs_are_named(tmp_path):
     fake_run(tmp_path / "short", 1, [(50, 1.0, 1)])
     out = CliRunner().invoke(app, ["report", str(tmp_path / "a"), str(tmp_path / "short"), "--every", "100"])
     assert out.exit_code == 0, out.output
-    assert "short left out: trained for 50 frames, shorter than --every 100" in out.output
+    assert "short left out: trained for 50 frames, too short for a point at --every 100" in out.output
+    alone = CliRunner().invoke(app, ["report", str(tmp_path / "short"), "--every", "1000"])  # no run has a point
+    assert alone.exit_code == 0 and "short left out" in alone.output, alone.output
+    missing = CliRunner().invoke(app, ["report", str(tmp_path / "runs-*"), "--every", "100"])
+    assert missing.exit_code == 1 and "no run folder at" in missing.output
     table = [line for line in out.output.splitlines() if line.startswith("|")]
     assert len({line.count("|") for line in table}) == 1  # every row has the header's columns
     assert "| 1 | 1.00 ± 0.00 | 50.0% |" in out.output

@@ -22,6 +22,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -136,6 +137,8 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
     if not histories or min(histories) < 0:
         raise UsageError("--history must be 0 or more (repeat the option for several lengths)")
     table = open_table(data, columns=TABLE_COLUMNS + ["renderer"])
+    if cache is not None and not (Path(cache) / "manifest.json").is_file():
+        raise UsageError(f"no annotation cache at {cache}: check the path, or leave --cache out to see only the costs")
     ann = AnnotationCache(cache) if cache is not None else None
     fp = fingerprint_hash(model_fingerprint(model, dtype=dtype, quant=quant))
     renderers = table.column("renderer").to_pylist()

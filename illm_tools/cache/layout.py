@@ -105,7 +105,8 @@ def read_manifest(root: Path) -> dict:
     try:
         manifest = json.loads(path.read_text())
     except (OSError, ValueError) as e:
-        raise CacheError(f"{path} cannot be read ({e}); {verify_hint(root)}") from e
+        raise CacheError(f"{path} cannot be read ({type(e).__name__}): run `illm cache repair {root} --drop-damaged` "
+                         "to list the whole shards again") from e
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise CacheError(f"{path} is not an illm annotation-cache manifest")
     check_kind_version(manifest.get("kind"), manifest.get("version"), str(path))

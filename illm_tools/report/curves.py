@@ -156,10 +156,11 @@ def summarise(run_dirs: list[Path], every: int) -> dict:
                                  "copy?): pass one of them")
         long = [c for c in members if c.frames]
         frames = sorted(set.intersection(*(set(c.frames) for c in long))) if long else []  # points every seed has
-        table = np.array([[dict(zip(c.frames, c.success))[f] for f in frames] for c in long]).reshape(len(long), -1)
+        table = np.array([[dict(zip(c.frames, c.success))[f] for f in frames] for c in long],
+                         dtype=float).reshape(len(long), len(frames))
         with np.errstate(all="ignore"), warnings.catch_warnings():  # windows with no finished episode stay NaN
             warnings.simplefilter("ignore", RuntimeWarning)
-            mean, std = np.nanmean(table, 0), np.nanstd(table, 0)
+            mean, std = (np.nanmean(table, 0), np.nanstd(table, 0)) if long else (np.zeros(0), np.zeros(0))
         out[key] = {"method": members[0].config.get("mode", "?"), "reads_targets": _reads_targets(members[0].config),
                     "frames": frames, "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in long),
                     "runs": [c.run for c in long], "short_runs": {c.run: c.last_step for c in members if not c.frames},
