@@ -107,6 +107,7 @@ def _annotate_in_process(args):
     return stats.keys
 
 
+@pytest.mark.slow  # two spawned processes each import torch and transformers: 30-40 s here
 def test_two_annotate_processes_share_a_cache(trajectories, tmp_path, tiny_lm):
     cache = tmp_path / "ann"
     args = (str(trajectories), str(cache), tiny_lm.spec.path, str(tmp_path / "illm-cache"))

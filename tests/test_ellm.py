@@ -337,7 +337,7 @@ def test_annotate_goal_then_train_ellm(tmp_path, tiny_lm, monkeypatch):
     assert all(r["prompt"].endswith("\nGoals:") and json.loads(r["decoding"])["parse"] == "goals@1" for r in rows)
     assert all(r["embedding"] is None and r["cand_logprob_sum"] is None for r in rows)
     again = runner.invoke(app, annotate)
-    assert again.exit_code == 0 and "annotated 0 states" in again.output, again.output
+    assert again.exit_code == 0 and "nothing to annotate" in again.output, again.output
     assert len(AnnotationCache(cache)) == len(ann)
 
     run = tmp_path / "run"
