@@ -96,7 +96,7 @@ def merge(
     from illm_tools.cache.verify import merge as run
 
     report = run(sources, into)
-    typer.echo(f"merged {len(sources)} caches into {into}: {report.rows_copied:,} rows copied, "
+    typer.echo(f"merged {len(sources)} cache{'s' if len(sources) > 1 else ''} into {into}: {report.rows_copied:,} rows copied, "
                f"{report.rows_skipped:,} already present, {len(report.shards_written)} new shards")
 
 
