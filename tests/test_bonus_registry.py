@@ -17,6 +17,7 @@ from illm_tools.intrinsic import BonusRewards, IntrinsicBonus, NoBonus
 from illm_tools.intrinsic.registry import METHODS, Method, get_method, register
 from illm_tools.rl import TrainConfig, Trainer, load_checkpoint, two_stream_advantages
 from illm_tools.rl.config import MODES
+from illm_tools.rl.networks import GRID_CHANNEL_SIZES, GridMissionNet
 from test_ppo import FakePool
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -180,3 +181,38 @@ def test_a_bonus_defined_outside_plugs_in_and_reaches_the_advantages(tmp_path, m
     assert resumed.bonus.updates == 3 and resumed.bonus.observed == 3 * cfg.num_steps
     with pytest.raises(UsageError, match="bonus_options"):
         trainer_for(tmp_path, "count-toy", updates=4, resume=True, bonus_options={"scale": 3.0})
+
+
+# --- a policy network plugged in from this file ------------------------------------------------
+@dataclass
+class TinyOptions:
+    width: int = 8
+
+
+class TinyNet(GridMissionNet):
+    """A torso of one linear layer over the flattened one-hot grid and the mission encoder."""
+
+    Options = TinyOptions
+
+    def build_torso(self, *, vocab_size, image_shape, options=None, **_):
+        options = options or TinyOptions()
+        cells = image_shape[0] * image_shape[1] * sum(GRID_CHANNEL_SIZES)
+        self.flat = torch.nn.Linear(cells, options.width)
+        return options.width + self.build_mission_encoder(vocab_size, 4, 4)
+
+    def features(self, images, missions):
+        return torch.cat([self.flat(self.one_hot_grid(images).flatten(1)), self.encode_mission(missions)], dim=1)
+
+
+def test_a_network_registered_from_a_test_file_trains_without_trainer_changes(tmp_path):
+    method = register(Method("tiny-net", "a tiny torso", None, pays_reward=False, network=TinyNet))
+    try:
+        trainer = trainer_for(tmp_path, "tiny-net", network_options={"width": "6"})
+        assert isinstance(trainer.net, TinyNet) and trainer.net.feature_dim == 6 + 4
+        trainer.train()
+        state = load_checkpoint(tmp_path / "run")["model"]
+        assert state["flat.weight"].shape[0] == 6 and not any(k.startswith("image_conv") for k in state)
+        with pytest.raises(UsageError, match="no network option depth"):
+            TrainConfig(mode=method.name, network_options={"depth": 2})
+    finally:
+        METHODS.pop(method.name)

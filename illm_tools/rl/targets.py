@@ -98,18 +98,35 @@ class CachedTargets:
             self._visits = Counter({r: n for r, n in self._visits.items() if n > 1})
         self._visits.update(records)
 
-    def targets(self, records: Sequence[StateRecord]) -> Targets:
+    def _with_live(self, records: Sequence[StateRecord], lookup) -> tuple:
+        """`lookup()` -> (columns, found mask) from the cache, refreshed first, with the live
+        fallback run on the states it misses; returns (columns, found, cache hits, states annotated
+        live). Shared by every task's provider."""
         self.cache.refresh()  # other runs may have written to the shared cache meanwhile
-        keys_a, keys_s = self.keys(records)
-        a, s, found = self._lookup(keys_a, keys_s)
+        columns, found = lookup()
         hits, live = int(found.sum()), 0
         if self.live is not None:
             self._count_visits(records)  # only the live fallback's priorities need them
             if not found.all():
                 live = self._annotate_missing(records, found)
                 if self.live.waits:  # sync: this rollout uses the new answers; async: a later one
-                    a, s, found = self._lookup(keys_a, keys_s)
+                    columns, found = lookup()
             live += self.live.landed()
+        return columns, found, hits, live
+
+    def _record(self, steps: int, covered: int, hits: int, live: int) -> None:
+        n = max(steps, 1)
+        self._last = {"cache_hit_rate": hits / n, "target_coverage": covered / n, "live_annotations": float(live),
+                      **(self.live.stats() if self.live is not None else {})}
+
+    def targets(self, records: Sequence[StateRecord]) -> Targets:
+        keys_a, keys_s = self.keys(records)
+
+        def lookup():
+            a, s, found = self._lookup(keys_a, keys_s)
+            return (a, s), found
+
+        (a, s), found, hits, live = self._with_live(records, lookup)
         b = len(records)
         probs = np.zeros((b, self.num_actions), np.float32)
         emb = np.zeros((b, self.embedding_dim), np.float32)
@@ -118,9 +135,7 @@ class CachedTargets:
             scores = [np.asarray([a[c][i] for i in idx], dtype=np.float64) for c in ACTION_COLUMNS]
             probs[idx] = action_target(*scores, self.calibration, self.action_target)
             emb[idx] = s["embedding"][idx]
-        n = max(b, 1)
-        self._last = {"cache_hit_rate": hits / n, "target_coverage": idx.size / n, "live_annotations": float(live),
-                      **(self.live.stats() if self.live is not None else {})}
+        self._record(b, idx.size, hits, live)
         return Targets(probs, emb, found)
 
     def stats(self) -> Mapping[str, float]:
@@ -163,22 +178,16 @@ class GoalTargets(CachedTargets):
         return out
 
     def targets(self, records: Sequence[StateRecord]) -> Targets:
-        self.cache.refresh()
         keys = self.goal_keys(records)
-        rows = self.cache.get_columns(keys, ["candidates"], task="goal")
-        hits, live = int(rows["found"].sum()), 0
-        if self.live is not None:
-            self._count_visits(records)
-            if not rows["found"].all():
-                live = self._annotate_missing(records, rows["found"])
-                if self.live.waits:
-                    rows = self.cache.get_columns(keys, ["candidates"], task="goal")
-            live += self.live.landed()
-        found = np.asarray(rows["found"], bool)
+
+        def lookup():
+            rows = self.cache.get_columns(keys, ["candidates"], task="goal")
+            return rows, np.asarray(rows["found"], bool)
+
+        rows, found, hits, live = self._with_live(records, lookup)
         self.goals = [tuple(g or ()) if f else None for g, f in zip(rows["candidates"], found)]
-        b, n = len(records), max(len(records), 1)
-        self._last = {"cache_hit_rate": hits / n, "target_coverage": float(found.sum()) / n,
-                      "live_annotations": float(live), **(self.live.stats() if self.live is not None else {})}
+        b = len(records)
+        self._record(b, int(found.sum()), hits, live)
         return Targets(np.zeros((b, self.num_actions), np.float32), np.zeros((b, 0), np.float32), found)
 
 
