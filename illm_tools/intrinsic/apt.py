@@ -37,7 +37,7 @@ import torch
 
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus
-from illm_tools.intrinsic.ngu import EXACT, EmbeddingSettings, InverseDynamics, check_k, train_inverse_dynamics
+from illm_tools.intrinsic.ngu import EXACT, EmbeddingBonus, EmbeddingSettings, check_k
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer, RunningMeanStd
 
 
@@ -60,7 +60,7 @@ class APTConfig(EmbeddingSettings):
             raise UsageError(f"APT's k must be positive, got {self.k}")
 
 
-class APTBonus(IntrinsicBonus):
+class APTBonus(EmbeddingBonus, IntrinsicBonus):
     """APT's particle-based entropy reward (see the module docstring). Initial weights come from
     torch's global RNG (the trainer seeds it with `ctx.seed`); minibatch order from the bonus's own
     generator."""
@@ -71,11 +71,9 @@ class APTBonus(IntrinsicBonus):
         check_k("APT", config.k, ctx.num_envs * ctx.num_steps - 1,
                 "the {} other states of a rollout (num_envs x num_steps - 1)")
         self.config = config
-        self.embedding = InverseDynamics(ctx.image_shape, ctx.num_actions, config.hidden, config.embedding_dim)
-        self.optimizer = torch.optim.Adam(self.embedding.parameters(), lr=config.embedding_lr)
+        self.build_embedding(config, ctx)
         self.dist_rms = RunningMeanStd()  # m: the kNN distances
         self.reward_norm = DiscountedReturnNormalizer(ctx.num_envs, ctx.int_gamma)
-        self.generator = torch.Generator().manual_seed(ctx.seed + 1)
 
     @torch.no_grad()
     def entropy_rewards(self, reached: torch.Tensor) -> torch.Tensor:
@@ -102,20 +100,13 @@ class APTBonus(IntrinsicBonus):
 
     def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
         """Train the representation by inverse dynamics on the rollout (ngu.py)."""
-        cfg = self.config
-        fit = train_inverse_dynamics(self.embedding, self.optimizer, batch, epochs=cfg.epochs,
-                                     minibatches=cfg.minibatches, max_grad_norm=cfg.max_grad_norm,
-                                     generator=self.generator)
-        return {f"apt_embedding_{k}": v for k, v in fit.items()}
+        return self.fit_embedding(batch, "apt")
 
     def state_dict(self) -> dict:
-        return {"embedding": self.embedding.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "dist_rms": self.dist_rms.state_dict(), "reward_norm": self.reward_norm.state_dict(),
-                "generator": self.generator.get_state()}
+        return {**self.embedding_state(), "dist_rms": self.dist_rms.state_dict(),
+                "reward_norm": self.reward_norm.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
-        self.embedding.load_state_dict(state["embedding"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        self.load_embedding_state(state)
         self.dist_rms.load_state_dict(state["dist_rms"])
         self.reward_norm.load_state_dict(state["reward_norm"])
-        self.generator.set_state(state["generator"])

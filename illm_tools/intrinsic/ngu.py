@@ -160,6 +160,35 @@ class EmbeddingSettings:
                 raise UsageError(f"{who}'s {name} must be positive, got {getattr(self, name)}")
 
 
+class EmbeddingBonus:
+    """Mixin of the bonuses that learn an inverse-dynamics embedding (NGU, APT): the model
+    `embedding`, its Adam optimiser and the generator of its minibatch order, trained on each
+    rollout, saved in the bonus's state under "embedding", "optimizer" and "generator"."""
+
+    def build_embedding(self, settings: EmbeddingSettings, ctx: BonusContext) -> None:
+        self.embedding = InverseDynamics(ctx.image_shape, ctx.num_actions, settings.hidden, settings.embedding_dim)
+        self.optimizer = torch.optim.Adam(self.embedding.parameters(), lr=settings.embedding_lr)
+        self.generator = torch.Generator().manual_seed(ctx.seed + 1)
+        self._embedding_settings = settings
+
+    def fit_embedding(self, batch: Mapping[str, torch.Tensor], prefix: str) -> dict[str, float]:
+        """Train the embedding by inverse dynamics on the rollout; its losses, named `prefix`_..."""
+        cfg = self._embedding_settings
+        fit = train_inverse_dynamics(self.embedding, self.optimizer, batch, epochs=cfg.epochs,
+                                     minibatches=cfg.minibatches, max_grad_norm=cfg.max_grad_norm,
+                                     generator=self.generator)
+        return {f"{prefix}_embedding_{k}": v for k, v in fit.items()}
+
+    def embedding_state(self) -> dict:
+        return {"embedding": self.embedding.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "generator": self.generator.get_state()}
+
+    def load_embedding_state(self, state: dict) -> None:
+        self.embedding.load_state_dict(state["embedding"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
+
+
 def check_k(who: str, k: int, available: int, what: str) -> None:
     """One line refusing k nearest neighbours out of fewer than k candidates (`what` names them,
     with a {} for their number)."""
@@ -203,7 +232,7 @@ class NGUConfig(EmbeddingSettings):
         check_k("NGU", self.k, self.memory_capacity, "the {} embeddings an episodic memory holds (memory_capacity)")
 
 
-class NGUBonus(IntrinsicBonus):
+class NGUBonus(EmbeddingBonus, IntrinsicBonus):
     """NGU's episodic novelty times RND's life-long factor (see the module docstring). Initial
     weights come from torch's global RNG (the trainer seeds it with `ctx.seed`); minibatch order
     from the bonus's own generator."""
@@ -213,13 +242,11 @@ class NGUBonus(IntrinsicBonus):
     def __init__(self, config: NGUConfig, ctx: BonusContext):
         self.config = config
         self.num_envs = ctx.num_envs
-        self.embedding = InverseDynamics(ctx.image_shape, ctx.num_actions, config.hidden, config.embedding_dim)
-        self.optimizer = torch.optim.Adam(self.embedding.parameters(), lr=config.embedding_lr)
+        self.build_embedding(config, ctx)
         self.rnd = RNDBonus(RNDConfig(), ctx) if config.lifelong else None
         self.dist_rms = RunningMeanStd()   # d_m^2: the kNN squared distances
         self.error_rms = RunningMeanStd()  # mu_e, sigma_e: RND's error
         self.reward_norm = DiscountedReturnNormalizer(ctx.num_envs, ctx.int_gamma)
-        self.generator = torch.Generator().manual_seed(ctx.seed + 1)
         self.memory = [torch.zeros(0, config.embedding_dim) for _ in range(ctx.num_envs)]
         """Per env, the embeddings of its current episode's observations so far (before this rollout)."""
 
@@ -286,30 +313,23 @@ class NGUBonus(IntrinsicBonus):
 
     def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
         """Train the embedding by inverse dynamics, and RND's predictor (rnd.py), on the rollout."""
-        cfg = self.config
-        fit = train_inverse_dynamics(self.embedding, self.optimizer, batch, epochs=cfg.epochs,
-                                     minibatches=cfg.minibatches, max_grad_norm=cfg.max_grad_norm,
-                                     generator=self.generator)
-        logs = {f"ngu_embedding_{k}": v for k, v in fit.items()}
+        logs = self.fit_embedding(batch, "ngu")
         if self.rnd is not None:
             logs.update(self.rnd.update(batch))
         return logs
 
     def state_dict(self) -> dict:
-        state = {"embedding": self.embedding.state_dict(), "optimizer": self.optimizer.state_dict(),
-                 "dist_rms": self.dist_rms.state_dict(), "error_rms": self.error_rms.state_dict(),
-                 "reward_norm": self.reward_norm.state_dict(), "generator": self.generator.get_state()}
+        state = {**self.embedding_state(), "dist_rms": self.dist_rms.state_dict(),
+                 "error_rms": self.error_rms.state_dict(), "reward_norm": self.reward_norm.state_dict()}
         if self.rnd is not None:
             state["rnd"] = self.rnd.state_dict()
         return state
 
     def load_state_dict(self, state: dict) -> None:
-        self.embedding.load_state_dict(state["embedding"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        self.load_embedding_state(state)
         self.dist_rms.load_state_dict(state["dist_rms"])
         self.error_rms.load_state_dict(state["error_rms"])
         self.reward_norm.load_state_dict(state["reward_norm"])
-        self.generator.set_state(state["generator"])
         if self.rnd is not None:
             self.rnd.load_state_dict(state["rnd"])
         # the episodic memories stay empty: a resumed run's environments restart their episodes
