@@ -17,14 +17,17 @@ from illm_tools.errors import OutputExistsError
 
 def owner(folder: str | Path) -> str | None:
     """"trajectory dataset", "annotation cache", "training run", or None (absent, empty, other)."""
+    from illm_tools.cache.layout import FORMAT, MANIFEST
+    from illm_tools.data.trajectories import STATE
+
     folder = Path(folder)
     if not folder.is_dir():
         return None
-    if (folder / "state.json").is_file():
+    if (folder / STATE).is_file():
         return "trajectory dataset"
-    if (folder / "manifest.json").is_file():
+    if (folder / MANIFEST).is_file():
         try:
-            if json.loads((folder / "manifest.json").read_text()).get("format") == "illm.annotation-cache":
+            if json.loads((folder / MANIFEST).read_text()).get("format") == FORMAT:
                 return "annotation cache"
         except (OSError, ValueError, AttributeError):
             return "annotation cache"  # damaged, still the cache's: `illm cache repair` is its tool
