@@ -24,6 +24,7 @@ serve annotations of other texts.
 from __future__ import annotations
 
 import contextlib
+import functools
 import inspect
 import io
 import logging
@@ -35,6 +36,7 @@ from gymnasium.envs.registration import load_env_creator
 from minigrid.core.actions import Actions
 from minigrid.core.constants import IDX_TO_COLOR, IDX_TO_OBJECT, OBJECT_TO_IDX, STATE_TO_IDX
 
+from illm_tools.envs.suite import ObsSpec, Suite
 from illm_tools.errors import UsageError
 
 RENDERER_NAME = "babyai-text"
@@ -180,6 +182,8 @@ class BabyAITextEnv(gym.Wrapper):
             raise UsageError(f"action {action!r} is not in 0..{len(self.action_names) - 1} "
                              f"({', '.join(self.action_names)})") from None
         obs, reward, terminated, truncated, info = self.env.step(minigrid_action)
+        if terminated or truncated:  # BabyAI pays a reward only when the mission is done
+            info["success"] = bool(terminated and reward > 0)
         return obs, reward, terminated, truncated, self._info(obs, info)
 
 
@@ -202,9 +206,46 @@ def accepts_num_dists(env_id: str) -> bool:
     return "num_dists" in inspect.signature(creator).parameters
 
 
+@functools.lru_cache(maxsize=1)
 def env_ids() -> list[str]:
     """The BabyAI-* and MiniGrid-* ids that minigrid registers (importing minigrid registers them)."""
     import minigrid  # noqa: F401  (registers the ids)
 
     return sorted(k for k in gym.registry if k.startswith(("BabyAI-", "MiniGrid-")))
 
+
+
+class BabyAISuite(Suite):
+    """BabyAI and MiniGrid: the symbolic egocentric view and the mission, rendered as BabyAI-Text."""
+
+    name = "babyai"
+    renderer = f"{RENDERER_NAME}@{RENDERER_VERSION}"
+    description = "BabyAI and MiniGrid levels (minigrid), text as in BabyAI-Text (paper C.1)"
+
+    def env_ids(self) -> list[str]:
+        return env_ids()
+
+    def owns(self, env_id: str) -> bool:
+        return env_id.startswith(("BabyAI-", "MiniGrid-")) and env_id in env_ids()
+
+    def make(self, env_id: str, *, action_space: str, render_text: bool = True, **options: Any) -> BabyAITextEnv:
+        return make_babyai_text(env_id, action_space=action_space, render_text=render_text, **options)
+
+    def options(self, env_id: str) -> tuple[str, ...]:
+        from illm_tools.envs.suite import gym_options
+
+        return (*gym_options(env_id), "num_dists")  # num_dists: the maker says which levels take it
+
+    def action_spaces(self, env_id: str) -> tuple[str, ...]:
+        first = default_action_space(env_id)
+        return (first, *(name for name in ACTION_SPACES if name != first))
+
+    def obs_spec(self, env_id: str) -> ObsSpec:
+        return ObsSpec(shape=(7, 7, 3), dtype="uint8", kind="grid",
+                       description="the 7x7 egocentric view as (object, colour, state) codes, and the mission")
+
+    def policy_obs(self, obs: dict) -> np.ndarray:
+        return obs["image"]
+
+
+SUITE = BabyAISuite()

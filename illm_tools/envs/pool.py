@@ -1,23 +1,36 @@
-"""EnvPool: N text environments stepped in one process, with same-step autoreset and per-episode
-statistics. This is the only place that decides episode seeds.
+"""EnvPool: N environments of one id stepped together through gymnasium's vector envs, with
+same-step autoreset, deterministic episode seeds and per-episode statistics. This is the only
+place that decides episode seeds.
 
-Same-step autoreset: when env i finishes at a step, that step's `PoolStep.obs` already holds the
-first state of env i's next episode (gymnasium's vector envs instead return the last state and
-reset one step later). The step's reward/terminated/truncated belong to the finished episode.
-
-Episode seeds: env i's k-th episode (k = 0, 1, ...) is reset with seed `seed + i + k * num_envs`.
-The pool's episodes therefore use the distinct seeds seed, seed + 1, seed + 2, ..., and the seed of
-every episode depends only on (seed, num_envs, i, k), never on which env finished first.
+Stepping is gymnasium's: `SyncVectorEnv` (all envs in this process) or `AsyncVectorEnv` (one
+process each, for suites whose envs step slowly: Crafter), both with
+`AutoresetMode.SAME_STEP`: when env i finishes at a step, that step's `PoolStep.obs` already holds
+the first state of env i's next episode; the step's reward/terminated/truncated and its
+`EpisodeStats` belong to the finished episode. What this file adds is small:
+- `EpisodeSeeds`, a wrapper that reseeds every episode: env i's k-th episode (k = 0, 1, ...) is
+  reset with seed `seed + i + k * num_envs`, so the pool's episodes use the distinct seeds seed,
+  seed + 1, ..., and every episode's seed depends only on (seed, num_envs, i, k), never on which
+  env finished first (gymnasium's vector envs seed only the first reset);
+- `PolicyObservation`, a wrapper giving the suite's policy array as the observation (the vector
+  env batches it), the env's own observation staying in the suite's hands;
+- the bookkeeping of episode returns, lengths and the suite's success and extras.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from functools import partial
+from typing import Any
 
+import gymnasium as gym
 import numpy as np
 
-from illm_tools.envs import make_env, resolve_action_space
+from illm_tools.envs import make_env, resolve_action_space, suite_of
+from illm_tools.envs.suite import EpisodeStats
 from illm_tools.errors import UsageError
+
+__all__ = ["EnvPool", "EpisodeStats", "PoolObs", "PoolStep"]
+
+VECTOR_MODES = ("auto", "sync", "async")
 
 
 @dataclass
@@ -25,26 +38,16 @@ class PoolObs:
     """The current state of every env of the pool."""
 
     images: np.ndarray
-    """uint8 [N, 7, 7, 3]: MiniGrid's egocentric (object, colour, state) view."""
-    directions: np.ndarray
-    """int64 [N]: the agent's absolute direction (0 right, 1 down, 2 left, 3 up)."""
+    """[N, ...] the suite's policy array (`Suite.obs_spec`: MiniGrid's (7, 7, 3) codes, Atari's
+    (4, 84, 84) frames, ...)."""
     texts: list[str]
-    """The rendered observation of each env ("" when the pool was made with render=False)."""
+    """The rendered observation of each env ("" when the pool was made with render=False, or the
+    suite has no text)."""
     missions: list[str]
     seeds: np.ndarray
     """int64 [N]: the seed of each env's current episode."""
     steps: np.ndarray
     """int64 [N]: the index of this state in its episode (0 right after a reset)."""
-
-
-class EpisodeStats(NamedTuple):
-    """One finished episode; unpacks as (env_index, episode_return, length, success)."""
-
-    env_index: int
-    episode_return: float
-    length: int
-    success: bool
-    """Terminated with a positive reward (BabyAI pays reward only on success)."""
 
 
 @dataclass
@@ -63,23 +66,86 @@ class PoolStep:
     """The episodes that finished this step, by env index."""
 
 
-class EnvPool:
-    """N text environments of one id, stepped together in this process."""
+class EpisodeSeeds(gym.Wrapper):
+    """Reset k (k = 0, 1, ...) of env `index` of `num_envs` uses seed `base + index + k * num_envs`,
+    whatever seed the caller passes; `info["episode_seed"]` says which."""
 
-    def __init__(self, env_id: str, num_envs: int, seed: int, *, render: bool = True, **options: Any):
+    def __init__(self, env: gym.Env, base: int, index: int, num_envs: int):
+        super().__init__(env)
+        self.base, self.index, self.num_envs, self.episodes = base, index, num_envs, 0
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        seed = self.base + self.index + self.episodes * self.num_envs
+        self.episodes += 1
+        obs, info = self.env.reset(seed=seed, options=options)
+        info["episode_seed"] = seed
+        return obs, info
+
+
+class PolicyObservation(gym.ObservationWrapper):
+    """The suite's policy array as the observation (`Suite.policy_obs`)."""
+
+    def __init__(self, env: gym.Env, suite, example: np.ndarray):
+        super().__init__(env)
+        self.suite = suite
+        info = np.iinfo(example.dtype) if np.issubdtype(example.dtype, np.integer) else np.finfo(example.dtype)
+        self.observation_space = gym.spaces.Box(info.min, info.max, example.shape, example.dtype)
+
+    def observation(self, observation: Any) -> np.ndarray:
+        return self.suite.policy_obs(observation)
+
+
+def _make_one(env_id: str, index: int, base: int, num_envs: int, render: bool, action_space: str,
+              options: dict) -> gym.Env:
+    """Env `index` of a pool (module-level so AsyncVectorEnv can pickle it into its workers)."""
+    suite = suite_of(env_id)
+    env = make_env(env_id, render_text=render, action_space=action_space, **options)
+    example = suite.policy_obs(env.observation_space.sample())
+    return EpisodeSeeds(PolicyObservation(env, suite, example), base, index, num_envs)
+
+
+def _take(info: dict, key: str, i: int, default: Any = None) -> Any:
+    """Env i's value of `key` in a vector env's info (present where the mask `_key` says so; a
+    dict value, such as Crafter's achievements, is batched key by key and comes back whole)."""
+    if key not in info or not info.get(f"_{key}", np.ones(i + 1, bool))[i]:
+        return default
+    value = info[key]
+    if isinstance(value, dict):
+        return {k: _take(value, k, i) for k in value if not k.startswith("_")}
+    return value[i]
+
+
+class EnvPool:
+    """N environments of one id, stepped together (see the module docstring)."""
+
+    def __init__(self, env_id: str, num_envs: int, seed: int, *, render: bool = True, vector: str = "auto",
+                 **options: Any):
         if num_envs <= 0:
             raise UsageError(f"num_envs must be positive, got {num_envs}")
+        if vector not in VECTOR_MODES:
+            raise UsageError(f"--vector must be one of {', '.join(VECTOR_MODES)}, got {vector!r}")
         self.env_id = env_id
+        self.suite = suite_of(env_id)
         self.num_envs = int(num_envs)
         self.seed = int(seed)
-        self.render = render
+        self.render = render and self.suite.renderer is not None
         # the resolved action space ("auto" never appears here): what a run or dataset records
         self.action_space_name = resolve_action_space(env_id, options.pop("action_space", "auto"))
-        self.envs = [make_env(env_id, render_text=render, action_space=self.action_space_name, **options)
-                     for _ in range(self.num_envs)]
-        self.action_names: tuple[str, ...] = tuple(self.envs[0].action_names)
+        options = {k: v for k, v in options.items() if not (k == "num_dists" and v is None)}
+        probe = make_env(env_id, render_text=False, action_space=self.action_space_name, **options)
+        self.action_names: tuple[str, ...] = tuple(probe.action_names)
+        probe.close()
+        fns = [partial(_make_one, env_id, i, self.seed, self.num_envs, self.render, self.action_space_name, options)
+               for i in range(self.num_envs)]
+        mode = self.suite.vector if vector == "auto" else vector
+        same_step = gym.vector.AutoresetMode.SAME_STEP
+        if mode == "async" and self.num_envs > 1:
+            self.vector = "async"
+            self.envs = gym.vector.AsyncVectorEnv(fns, autoreset_mode=same_step, context="spawn")
+        else:
+            self.vector = "sync"
+            self.envs = gym.vector.SyncVectorEnv(fns, autoreset_mode=same_step)
         n = self.num_envs
-        self._episode_index = np.zeros(n, dtype=np.int64)  # k: episodes started by each env
         self._seeds = np.zeros(n, dtype=np.int64)
         self._steps = np.zeros(n, dtype=np.int64)
         self._returns = np.zeros(n, dtype=np.float64)
@@ -89,29 +155,24 @@ class EnvPool:
         """The seed of env `env_index`'s `episode_index`-th episode (see the module docstring)."""
         return self.seed + env_index + episode_index * self.num_envs
 
-    def _reset_env(self, i: int) -> tuple[dict, dict]:
-        seed = self.episode_seed(i, int(self._episode_index[i]))
-        self._episode_index[i] += 1
-        self._seeds[i] = seed
-        self._steps[i] = 0
-        self._returns[i] = 0.0
-        return self.envs[i].reset(seed=seed)
-
-    def _obs(self, results: list[tuple[dict, dict]]) -> PoolObs:
-        return PoolObs(
-            images=np.stack([obs["image"] for obs, _ in results]),
-            directions=np.fromiter((obs["direction"] for obs, _ in results), dtype=np.int64, count=self.num_envs),
-            texts=[info["text"] for _, info in results],
-            missions=[obs["mission"] for obs, _ in results],
-            seeds=self._seeds.copy(),
-            steps=self._steps.copy(),
-        )
+    def _obs(self, images: np.ndarray, info: dict) -> PoolObs:
+        n = self.num_envs
+        for i in range(n):
+            seed = _take(info, "episode_seed", i)
+            if seed is not None:  # a new episode began in env i
+                self._seeds[i], self._steps[i], self._returns[i] = seed, 0, 0.0
+        texts = info.get("text")
+        return PoolObs(images=images, texts=[str(t) for t in texts] if texts is not None else [""] * n,
+                       missions=[str(m) for m in info["mission"]], seeds=self._seeds.copy(),
+                       steps=self._steps.copy())
 
     def reset(self) -> PoolObs:
         """Start every env on its first episode (seeds seed .. seed + num_envs - 1)."""
-        self._episode_index[:] = 0
+        if self._started:  # the episode counters restart too: a reset pool repeats its episodes
+            self.envs.call("__setattr__", "episodes", 0)
         self._started = True
-        return self._obs([self._reset_env(i) for i in range(self.num_envs)])
+        images, info = self.envs.reset()
+        return self._obs(images, info)
 
     def step(self, actions: np.ndarray) -> PoolStep:
         """Apply one action index per env; finished envs are reset within this call."""
@@ -120,24 +181,21 @@ class EnvPool:
         actions = np.asarray(actions)
         if actions.shape != (self.num_envs,):
             raise UsageError(f"expected {self.num_envs} actions, got an array of shape {actions.shape}")
-        n = self.num_envs
-        rewards = np.zeros(n, dtype=np.float32)
-        terminated = np.zeros(n, dtype=bool)
-        truncated = np.zeros(n, dtype=bool)
+        if actions.size and (actions.min() < 0 or actions.max() >= len(self.action_names)):
+            raise UsageError(f"actions must be in 0..{len(self.action_names) - 1} "
+                             f"({', '.join(self.action_names)}), got {actions.tolist()}")
+        images, rewards, terminated, truncated, info = self.envs.step(actions)
+        self._steps += 1
+        self._returns += rewards
         episodes: list[EpisodeStats] = []
-        results = []
-        for i, (env, action) in enumerate(zip(self.envs, actions.tolist())):
-            obs, reward, term, trunc, info = env.step(action)
-            rewards[i], terminated[i], truncated[i] = reward, term, trunc
-            self._steps[i] += 1
-            self._returns[i] += reward
-            if term or trunc:
-                episodes.append(EpisodeStats(i, float(self._returns[i]), int(self._steps[i]),
-                                             bool(term and reward > 0)))
-                obs, info = self._reset_env(i)
-            results.append((obs, info))
-        return PoolStep(rewards, terminated, truncated, self._obs(results), episodes)
+        final = info.get("final_info", {})
+        for i in np.flatnonzero(np.logical_or(terminated, truncated)):
+            last = {k: _take(final, k, i) for k in final if not k.startswith("_")}
+            episodes.append(EpisodeStats(int(i), float(self._returns[i]), int(self._steps[i]),
+                                         None if last.get("success") is None else bool(last["success"]),
+                                         self.suite.episode_info(last)))
+        return PoolStep(np.asarray(rewards, dtype=np.float32), np.asarray(terminated, dtype=bool),
+                        np.asarray(truncated, dtype=bool), self._obs(images, info), episodes)
 
     def close(self) -> None:
-        for env in self.envs:
-            env.close()
+        self.envs.close()
