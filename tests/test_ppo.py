@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from illm_tools.envs.suite import EpisodeStats
 from illm_tools.errors import OutputExistsError, UsageError
 from illm_tools.intrinsic import Targets
 from illm_tools.rl import TrainConfig, Trainer, gae, load_checkpoint, load_policy, make_pool
@@ -31,7 +32,7 @@ class FakePool:
         n = self.num_envs
         return SimpleNamespace(
             images=self.rng.integers(0, 6, size=(n, 7, 7, 3)).astype(np.uint8),
-            directions=np.zeros(n, np.int64), missions=[f"go to the {c} ball" for c in self.colours],
+            missions=[f"go to the {c} ball" for c in self.colours],
             texts=[f"you see a wall {s} steps forward" for s in self.steps], seeds=np.arange(n),
             steps=self.steps.copy())
 
@@ -47,7 +48,8 @@ class FakePool:
         done = self.steps >= self.lengths
         rewards = (done & (np.asarray(actions) == 2)).astype(np.float32)
         self.returns += rewards
-        episodes = [(i, self.returns[i], int(self.steps[i]), bool(rewards[i] > 0)) for i in np.flatnonzero(done)]
+        episodes = [EpisodeStats(int(i), float(self.returns[i]), int(self.steps[i]), bool(rewards[i] > 0))
+                    for i in np.flatnonzero(done)]
         for i in np.flatnonzero(done):
             self.steps[i], self.returns[i] = 0, 0.0
             self.lengths[i] = self.rng.integers(3, 10)

@@ -10,13 +10,14 @@ stage, and are re-exported here.
 
 The tensors a bonus may read (the trainer's side of the contract; every bonus gets all of them):
 
-  images         uint8 [.., H, W, 3]  the observation the policy acted from (MiniGrid's symbolic
-                                      (object, colour, state) view)
+  images         [.., *obs shape]     the observation the policy acted from: the suite's policy
+                                      array (`BonusContext.obs_kind` says which: MiniGrid's uint8
+                                      (H, W, 3) symbolic view, Atari's (4, 84, 84) frames, ...)
   missions       int64 [.., L]        its mission as word ids (`illm_tools.rl.networks.MissionVocab`)
   actions        int64 [..]           the action taken
   ends           float [..]           1.0 where that transition ended its episode (terminated or
                                       truncated)
-  next_images    uint8 [.., H, W, 3]  the observation after the transition;
+  next_images    [.., *obs shape]     the observation after the transition;
   next_missions  int64 [.., L]        ... and its mission. The pool resets in the same step (as
                                       gymnasium's SAME_STEP autoreset, and as CleanRL's
                                       ppo_rnd_envpool.py uses its next_obs), so where `ends` is 1
@@ -114,7 +115,7 @@ class BonusContext:
     num_steps: int
     """T, the steps of one rollout per env."""
     image_shape: tuple[int, ...]
-    """(H, W, 3) of one observation image."""
+    """The shape of one observation (MiniGrid: (H, W, 3))."""
     num_actions: int
     """A, the valid actions."""
     feature_dim: int
@@ -124,6 +125,9 @@ class BonusContext:
     seed: int
     """Seed of the bonus's own random streams (derived from the run's seed, apart from the
     trainer's; the trainer also seeds torch's global RNG with it while it builds the bonus)."""
+    obs_kind: str = "grid"
+    """How to read an observation (`illm_tools.envs.suite.ObsSpec.kind`): "grid", "frames",
+    "image" or "glyphs"."""
 
 
 class IntrinsicBonus(ABC):

@@ -85,6 +85,9 @@ class ELLMBonus(IntrinsicBonus):
     def __init__(self, config: ELLMConfig, ctx: BonusContext, embedder=None):
         from illm_tools.envs.captions import captioner
 
+        if ctx.obs_kind != "grid":
+            raise UsageError(f"--method ellm captions MiniGrid transitions (what the agent picked up, opened, reached); "
+                             f"it has no captioner for {ctx.obs_kind} observations: use it on BabyAI/MiniGrid")
         self.config = config
         self.num_envs = ctx.num_envs
         self.embedder = embedder

@@ -61,8 +61,9 @@ class Method:
     """The `--bonus-preset` (bonus and advantage weights, `illm_tools.rl.config.BONUS_PRESETS`)
     `illm train` uses when none is given."""
     network: str | type | None = None
-    """The policy network class ("module:Class", a `GridMissionNet` subclass), None: the grid
-    policy. Its `Options` dataclass lists the `--network-option`s it takes."""
+    """The policy network class ("module:Class", a `GridMissionNet` subclass), None: the suite's
+    own (`illm_tools.envs.suite.Suite.network`). Its `Options` dataclass lists the
+    `--network-option`s it takes."""
     target_shuffle: int | None = None
     """With `needs_targets`: None, each state's own LLM targets; an int, the seed of the fixed
     permutation that hands each state another cached state's targets instead (`CachedTargets`'s
@@ -70,15 +71,16 @@ class Method:
 
     @cached_property
     def network_class(self) -> type:
-        """The policy network class of this method."""
+        """The method's own policy network class (the grid policy when it names none; a run uses
+        its suite's then, `illm_tools.rl.networks.make_network`)."""
         from illm_tools.rl.networks import GridMissionNet
 
         return _entry_point(self.network or GridMissionNet, GridMissionNet, f"method {self.name}: network")
 
-    def network_options(self, options: Mapping[str, Any]):
-        """The network's options dataclass from `--network-option` values (None: it takes none);
-        unknown or ill-typed options are refused in one line."""
-        cls = self.network_class.Options
+    def network_options(self, options: Mapping[str, Any], network: type | None = None):
+        """The options dataclass of `network` (default: the method's own) from `--network-option`
+        values (None: it takes none); unknown or ill-typed options are refused in one line."""
+        cls = (network or self.network_class).Options
         if cls is None:
             if options:
                 raise UsageError(f"--method {self.name} takes no network option ({', '.join(options)})")

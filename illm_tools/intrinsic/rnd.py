@@ -32,7 +32,9 @@ Where this differs from CleanRL, on purpose:
   MLPs on the 147 normalised inputs: target Linear-LeakyReLU-Linear-LeakyReLU-Linear, predictor the
   same plus two more ReLU layers (as CleanRL's predictor adds two layers to the target's), hidden
   256, output 128, orthogonal init (gain sqrt 2). At this size the MLP is cheaper than a conv stack
-  and sees every cell with its position;
+  and sees every cell with its position (MiniHack's glyph array is read the same way). On pictures
+  CleanRL's convnets are used (`rnd_conv_networks`): Atari's newest frame, as CleanRL, or Crafter's
+  RGB picture, with output 128;
 - the observation statistics start from the first rollout (its next observations update them
   before its rewards are computed); CleanRL first steps a random policy for 50 rollouts. Later
   rollouts are rewarded with the statistics as they were, then merged in, as in CleanRL;
@@ -56,6 +58,10 @@ from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer, RunningMeanStd
 
 
+PICTURES = ("frames", "image")
+"""Observation kinds RND reads with CleanRL's convolutional networks (the rest: MLPs)."""
+
+
 @dataclass
 class RNDConfig:
     """RND's settings (defaults: CleanRL's ppo_rnd_envpool.py where it has one)."""
@@ -73,7 +79,8 @@ class RNDConfig:
     obs_clip: float = 5.0
     """Normalised observations are clipped to [-obs_clip, obs_clip] (RND: 5)."""
     hidden: int = 256
-    """Hidden units of the target and predictor MLPs."""
+    """Hidden units of the target and predictor MLPs (on pictures the predictor's layers have 512,
+    as CleanRL's)."""
     output_dim: int = 128
     """Size of the random features the predictor regresses."""
 
@@ -101,6 +108,27 @@ def rnd_networks(inp: int, hidden: int, out: int) -> tuple[nn.Sequential, nn.Seq
     return target, predictor
 
 
+def _conv(inp: int, out: int, kernel: int, stride: int) -> nn.Conv2d:
+    layer = nn.Conv2d(inp, out, kernel, stride)
+    nn.init.orthogonal_(layer.weight, math.sqrt(2))
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+def rnd_conv_networks(shape: tuple[int, int, int], hidden: int, out: int) -> tuple[nn.Sequential, nn.Sequential]:
+    """(target, predictor) on pictures [B, C, H, W], CleanRL's Atari networks: three LeakyReLU
+    convolutions (32 8x8/4, 64 4x4/2, 64 3x3/1), then a linear layer for the target; the predictor
+    adds two ReLU layers of `hidden` units (CleanRL: 512)."""
+    convs = lambda: [_conv(shape[0], 32, 8, 4), nn.LeakyReLU(), _conv(32, 64, 4, 2), nn.LeakyReLU(),  # noqa: E731
+                     _conv(64, 64, 3, 1), nn.LeakyReLU(), nn.Flatten()]
+    with torch.no_grad():
+        flat = nn.Sequential(*convs())(torch.zeros(1, *shape)).shape[1]
+    target = nn.Sequential(*convs(), _linear(flat, out))
+    predictor = nn.Sequential(*convs(), _linear(flat, hidden), nn.ReLU(), _linear(hidden, hidden), nn.ReLU(),
+                              _linear(hidden, out))
+    return target, predictor
+
+
 class RNDBonus(IntrinsicBonus):
     """RND on the observation image (see the module docstring). The networks' initial weights come
     from torch's global RNG (the trainer seeds it with `ctx.seed` under `fork_rng`); the predictor's
@@ -111,21 +139,39 @@ class RNDBonus(IntrinsicBonus):
     def __init__(self, config: RNDConfig, ctx: BonusContext):
         self.config = config
         self.image_shape = tuple(ctx.image_shape)
-        self.target, self.predictor = rnd_networks(int(np.prod(self.image_shape)), config.hidden, config.output_dim)
+        self.kind = ctx.obs_kind
+        self.input_shape = self._pictures(torch.zeros(1, *self.image_shape, dtype=torch.uint8)).shape[1:]
+        if self.kind in PICTURES:
+            self.target, self.predictor = rnd_conv_networks(tuple(self.input_shape), 512, config.output_dim)
+        else:
+            self.target, self.predictor = rnd_networks(int(np.prod(self.image_shape)), config.hidden,
+                                                       config.output_dim)
         self.target.requires_grad_(False)  # frozen: never trained, never in an optimiser
         self.optimizer = torch.optim.Adam(self.predictor.parameters(), lr=config.predictor_lr, eps=1e-5)
-        self.obs_rms = RunningMeanStd(shape=self.image_shape)
+        self.obs_rms = RunningMeanStd(shape=tuple(self.input_shape))
         self.reward_norm = DiscountedReturnNormalizer(ctx.num_envs, ctx.int_gamma)
         self.generator = torch.Generator().manual_seed(ctx.seed)
 
     # --- the model --------------------------------------------------------------------------
+    def _pictures(self, images: torch.Tensor) -> torch.Tensor:
+        """What the networks read of observations [..., *obs shape]: for stacked frames the newest
+        one [B, 1, H, W] (as CleanRL), for an RGB picture [B, 3, H, W]; else the rows [B, *obs shape]."""
+        x = images.reshape(-1, *self.image_shape)
+        if self.kind == "frames":
+            return x[:, -1:]
+        if self.kind == "image":
+            return x.permute(0, 3, 1, 2)
+        return x
+
     def normalise(self, images: torch.Tensor) -> torch.Tensor:
-        """uint8 [..., H, W, 3] -> float32 [B, H * W * 3], standardised and clipped."""
-        x = images.reshape(-1, *self.image_shape).double()
+        """[..., *obs shape] -> float32, standardised and clipped: [B, C, H, W] for pictures,
+        [B, prod(obs shape)] otherwise (MiniGrid: H * W * 3)."""
+        x = self._pictures(images).double()
         mean = torch.as_tensor(self.obs_rms.mean)
         std = torch.as_tensor(self.obs_rms.var).sqrt()
         clip = self.config.obs_clip
-        return ((x - mean) / std).clamp(-clip, clip).float().flatten(1)
+        x = ((x - mean) / std).clamp(-clip, clip).float()
+        return x if self.kind in PICTURES else x.flatten(1)
 
     def prediction_error(self, x: torch.Tensor) -> torch.Tensor:
         """Per-row mean squared error of the predictor against the target on normalised rows."""
@@ -140,10 +186,10 @@ class RNDBonus(IntrinsicBonus):
         t, n = images.shape[:2]
         first = self.obs_rms.count < 1  # statistics start from the first rollout
         if first:
-            self.obs_rms.update(images.numpy())
+            self.obs_rms.update(self._pictures(images).numpy())
         error = self.prediction_error(self.normalise(images)).view(t, n)
         if not first:  # rewarded with the statistics as they were, then merged in (CleanRL's order)
-            self.obs_rms.update(images.numpy())
+            self.obs_rms.update(self._pictures(images).numpy())
         logs = {"rnd_error": float(error.mean())}
         return self.normalised(error, self.reward_norm, logs)
 

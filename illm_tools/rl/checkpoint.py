@@ -224,7 +224,7 @@ def read_config(run_dir: Path) -> dict:
 
 # settings a resumed run may change; any other difference is refused
 RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "checkpoint_minutes", "tensorboard", "live_budget", "threads",
-                               "llm_threads", "live_mode", "new_setup", "heads_bf16", "run_dir", "cache"})
+                               "llm_threads", "live_mode", "new_setup", "heads_bf16", "run_dir", "cache", "vector"})
 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:
@@ -264,7 +264,7 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     """Rebuild a run's network for `pool` (whose action list must match) and load its weights."""
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.config import TrainConfig
-    from illm_tools.rl.networks import MissionVocab
+    from illm_tools.rl.networks import MissionVocab, make_network
 
     run_dir = Path(run_dir)
     cfg = TrainConfig.from_dict(read_config(run_dir))
@@ -276,9 +276,10 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     vocab = MissionVocab(cfg.mission_max_len)
     heads = "f_hc.2.weight" in state["model"]  # the method's bonus put the iLLM heads on the network
     method = get_method(cfg.mode)
-    net = method.network_class(len(names), vocab_size=len(vocab), options=method.network_options(cfg.network_options),
-                         embedding_dim=state["model"]["f_hc.2.weight"].shape[0] if heads else None,
-                         head_hidden=cfg.head_hidden, image_shape=tuple(state["image_shape"][:2]))
+    net = make_network(method, cfg.env_id, len(names), image_shape=tuple(state["image_shape"]),
+                       vocab_size=len(vocab), network_options=cfg.network_options,
+                       embedding_dim=state["model"]["f_hc.2.weight"].shape[0] if heads else None,
+                       head_hidden=cfg.head_hidden)
     net.load_state_dict(state["model"])
     return TrainedPolicy(net, vocab, name=f"run:{run_dir.name}@{state['global_step']}",
                          greedy=greedy, seed=seed, frames=int(state["global_step"]))

@@ -34,7 +34,7 @@ class TrainConfig:
 
     # --- run -------------------------------------------------------------------------------
     env_id: str = "BabyAI-GoToLocal-v0"
-    """Gymnasium id of the environment."""
+    """Id of the environment (BabyAI/MiniGrid, MiniHack, Crafter, Atari: `illm envs` lists them)."""
     run_dir: Path = Path("data/runs/default")
     """Folder for config.json, metrics.jsonl, TensorBoard events and checkpoint.pt."""
     mode: str = "illm"
@@ -54,9 +54,9 @@ class TrainConfig:
     num_steps: int = 128
     """Steps per env in one rollout; a rollout holds num_envs * num_steps transitions."""
     action_space: str = "auto"
-    """BabyAI action vocabulary: original (3), augmented (6) or irrelevant (9), paper Table 5; auto:
-    original for the GoTo levels (paper Tables 1 and 5), augmented otherwise. The run records the
-    resolved name."""
+    """Action vocabulary: BabyAI's original (3), augmented (6) or irrelevant (9), paper Table 5
+    (other suites offer one each, `illm envs`); auto: the suite's default (BabyAI: original for the
+    GoTo levels, paper Tables 1 and 5, augmented otherwise). The run records the resolved name."""
     num_dists: int | None = None
     """Distractor count for levels that take it; None keeps the level's default."""
 
@@ -166,7 +166,11 @@ class TrainConfig:
     tensorboard: bool = True
     """Also write TensorBoard events beside metrics.jsonl."""
     env_options: dict = field(default_factory=dict)
-    """Extra keyword options for the environment pool."""
+    """Options of the environment, its suite's (`--env-option KEY=VALUE`, e.g. max_episode_steps;
+    `illm envs` lists the suites)."""
+    vector: str = "auto"
+    """How the envs step: sync (all in this process), async (a process each: slow envs such as
+    Crafter), auto (the suite's choice)."""
 
     def __post_init__(self) -> None:
         self.run_dir = Path(self.run_dir)

@@ -1,10 +1,17 @@
-"""The agent's network: symbolic-grid CNN + mission encoder torso, actor, two critics, iLLM heads.
+"""The agent's networks: a torso per kind of observation, actor, two critics, iLLM heads.
 
 Owns `MissionVocab` (fixed word-level vocabulary of BabyAI/MiniGrid mission grammar, no external
 tokenizer), `GridMissionNet` (features -> actor logits, extrinsic and intrinsic values) and the
 heads f^a / f^hc (two fully connected layers of `head_hidden` units on the torso's features:
 Linear(F, 1024) - ReLU - Linear(1024, out)). Layout follows rl-starter-files' ACModel, with the
 grid's object/colour/state indices one-hot encoded instead of fed as raw numbers.
+
+The other suites' torsos subclass it and replace `build_torso` / `features`: `FrameNet` (the Nature
+CNN of Mnih et al. 2015 on Atari's stacked frames or Crafter's picture) and `GlyphNet` (MiniHack's
+glyph crop through a learned glyph embedding and a small CNN, and the message bytes through a
+byte embedding and a 1-D convolution). `make_network` picks a run's class: the method's own
+network (ChibiT) or else the suite's (`Suite.network`), refusing a pair whose observation kinds
+do not fit (`kinds`).
 """
 
 from __future__ import annotations
@@ -78,16 +85,19 @@ class PolicyOutput(NamedTuple):
 class GridMissionNet(nn.Module):
     """Actor-critic over (symbolic grid, mission) with optional iLLM heads.
 
-    images: uint8/int [B, H, W, 3] MiniGrid encoding; missions: int64 [B, L] from `MissionVocab`.
+    images: uint8/int [B, H, W, 3] MiniGrid encoding; missions: int64 [B, L] from `MissionVocab`;
+    `image_shape` is one observation's shape.
     `embedding_dim=None` builds no heads (plain PPO). Subclasses replace the torso
     (`build_torso`, `features`); `Options` lists the settings a torso takes (`--network-option`).
     """
 
     Options = None
     """The dataclass of this network's settings (None: it has none)."""
+    kinds: tuple[str, ...] = ("grid",)
+    """The observation kinds (`illm_tools.envs.suite.ObsSpec.kind`) this torso reads."""
 
     def __init__(self, num_actions: int, *, vocab_size: int, embedding_dim: int | None = None,
-                 head_hidden: int = 1024, image_shape: tuple[int, int] = (7, 7), heads_bf16: bool | None = None,
+                 head_hidden: int = 1024, image_shape: tuple[int, ...] = (7, 7, 3), heads_bf16: bool | None = None,
                  hidden: int = 64, options=None):
         super().__init__()
         self.register_buffer("cell_sizes", torch.tensor(GRID_CHANNEL_SIZES), persistent=False)
@@ -107,7 +117,7 @@ class GridMissionNet(nn.Module):
     def has_heads(self) -> bool:
         return self.f_a is not None
 
-    def build_torso(self, *, vocab_size: int, image_shape: tuple[int, int], options=None,
+    def build_torso(self, *, vocab_size: int, image_shape: tuple[int, ...], options=None,
                     word_embed: int = 32, text_hidden: int = 128) -> int:
         """The grid CNN and the mission encoder; returns the feature dimension."""
         channels = sum(GRID_CHANNEL_SIZES)
@@ -117,7 +127,7 @@ class GridMissionNet(nn.Module):
             nn.Conv2d(32, 64, (2, 2)), nn.ReLU(), nn.Flatten(),
         )
         with torch.no_grad():
-            image_dim = self.image_conv(torch.zeros(1, channels, *image_shape)).shape[1]
+            image_dim = self.image_conv(torch.zeros(1, channels, *image_shape[:2])).shape[1]
         return image_dim + self.build_mission_encoder(vocab_size, word_embed, text_hidden)
 
     def build_mission_encoder(self, vocab_size: int, word_embed: int = 32, text_hidden: int = 128) -> int:
@@ -162,6 +172,112 @@ class GridMissionNet(nn.Module):
                             enabled=self.heads_bf16 and features.device.type == "cpu"):
             action, summary = self.f_a(features), self.f_hc(features)
         return action.float(), summary.float()
+
+
+def conv_trunk(in_channels: int, height: int, width: int, out: int) -> tuple[nn.Sequential, int]:
+    """The Nature CNN (Mnih et al. 2015): 32 8x8/4, 64 4x4/2, 64 3x3/1 convolutions, ReLU, then
+    Linear(., out) - ReLU; returns it and `out`. Input: float [B, C, H, W] (84x84 as in the paper;
+    any size from 36x36 works, Crafter's 64x64 included)."""
+    convs = nn.Sequential(
+        nn.Conv2d(in_channels, 32, 8, stride=4), nn.ReLU(),
+        nn.Conv2d(32, 64, 4, stride=2), nn.ReLU(),
+        nn.Conv2d(64, 64, 3, stride=1), nn.ReLU(), nn.Flatten(),
+    )
+    with torch.no_grad():
+        flat = convs(torch.zeros(1, in_channels, height, width)).shape[1]
+    return nn.Sequential(*convs, layer_init(nn.Linear(flat, out)), nn.ReLU()), out
+
+
+def channels_first(images: torch.Tensor, kind: str) -> torch.Tensor:
+    """[B, C, H, W] float in [0, 1] from "frames" ([B, C, H, W] uint8) or "image" ([B, H, W, C] uint8)."""
+    x = images.float() / 255.0
+    return x.permute(0, 3, 1, 2) if kind == "image" else x
+
+
+def chw_shape(image_shape: tuple[int, ...], kind: str) -> tuple[int, int, int]:
+    """(C, H, W) of one "frames" or "image" observation."""
+    if kind == "image":
+        h, w, c = image_shape
+        return c, h, w
+    c, h, w = image_shape
+    return c, h, w
+
+
+class FrameNet(GridMissionNet):
+    """The Nature CNN torso (512 features) on pixels: Atari's 4 stacked grey 84x84 frames ("frames")
+    or Crafter's 64x64 RGB picture ("image"); these suites have no instruction, so `missions` is
+    not read."""
+
+    kinds = ("frames", "image")
+
+    def __init__(self, *args, kind: str = "frames", **kw):
+        self.kind = kind
+        super().__init__(*args, **kw)
+
+    def build_torso(self, *, vocab_size: int, image_shape: tuple[int, ...], options=None, **_) -> int:
+        self.trunk, out = conv_trunk(*chw_shape(image_shape, self.kind), 512)
+        return out
+
+    def features(self, images: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
+        return self.trunk(channels_first(images, self.kind))
+
+
+NUM_GLYPHS = 5976
+"""NetHack's glyph count (nle.nethack.MAX_GLYPH), the size of the glyph embedding."""
+
+
+class GlyphNet(GridMissionNet):
+    """MiniHack's torso: the agent-centred glyph crop through a 32-wide glyph embedding and two 3x3
+    convolutions, the message bytes through a 16-wide byte embedding and a 1-D convolution with max
+    pooling, concatenated (the "glyphs" kind: a flat int16 array, crop first, `ObsSpec.parts`)."""
+
+    kinds = ("glyphs",)
+
+    def __init__(self, *args, parts: dict | None = None, **kw):
+        self.parts = dict(parts or {})
+        super().__init__(*args, **kw)
+
+    def build_torso(self, *, vocab_size: int, image_shape: tuple[int, ...], options=None, **_) -> int:
+        self.crop_shape = tuple(self.parts["glyphs_crop"])
+        self.message_len = int(np.prod(self.parts["message"]))
+        self.glyph_embedding = nn.Embedding(NUM_GLYPHS + 1, 32)
+        self.glyph_conv = nn.Sequential(nn.Conv2d(32, 32, 3, padding=1), nn.ReLU(),
+                                        nn.Conv2d(32, 32, 3, padding=1), nn.ReLU(), nn.Flatten())
+        self.byte_embedding = nn.Embedding(256, 16)
+        self.message_conv = nn.Sequential(nn.Conv1d(16, 64, 8, stride=4), nn.ReLU(), nn.AdaptiveMaxPool1d(1),
+                                          nn.Flatten())
+        return 32 * int(np.prod(self.crop_shape)) + 64
+
+    def features(self, images: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
+        cells = int(np.prod(self.crop_shape))
+        glyphs = images[:, :cells].long().clamp(0, NUM_GLYPHS).view(-1, *self.crop_shape)
+        message = images[:, cells:cells + self.message_len].long().clamp(0, 255)
+        crop = self.glyph_conv(self.glyph_embedding(glyphs).permute(0, 3, 1, 2))
+        return torch.cat([crop, self.message_conv(self.byte_embedding(message).transpose(1, 2))], dim=1)
+
+
+def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[int, ...], vocab_size: int,
+                 network_options: dict, embedding_dim: int | None, head_hidden: int,
+                 heads_bf16: bool | None = None) -> GridMissionNet:
+    """The policy network of a run: the method's own class (ChibiT) or else the suite's, checked to
+    read the suite's kind of observation; `network_options` as the class's `Options`."""
+    from illm_tools.envs import suite_of
+    from illm_tools.errors import UsageError
+    from illm_tools.intrinsic.registry import _entry_point
+
+    suite = suite_of(env_id)
+    spec = suite.obs_spec(env_id)
+    cls = method.network_class if method.network else _entry_point(suite.network, GridMissionNet,
+                                                                    f"suite {suite.name}: network")
+    if spec.kind not in cls.kinds:
+        raise UsageError(f"--method {method.name}'s network {cls.__name__} reads {', '.join(cls.kinds)} "
+                         f"observations; {env_id} gives {spec.kind} ({spec.description}): use another method")
+    extra = {"kind": spec.kind} if issubclass(cls, FrameNet) else {}
+    if issubclass(cls, GlyphNet):
+        extra = {"parts": spec.parts}
+    return cls(num_actions, vocab_size=vocab_size, options=method.network_options(network_options, cls),
+               embedding_dim=embedding_dim, head_hidden=head_hidden, image_shape=tuple(image_shape),
+               heads_bf16=heads_bf16, **extra)
 
 
 @functools.lru_cache(maxsize=1)

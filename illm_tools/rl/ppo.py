@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from illm_tools.envs import suite_of
 from illm_tools.errors import OutputExistsError, UsageError
 from illm_tools.folders import refuse_foreign
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, TargetProvider
@@ -31,7 +32,7 @@ from illm_tools.intrinsic.registry import get_method
 from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint, write_config,
                                       save_checkpoint)
 from illm_tools.rl.config import TrainConfig
-from illm_tools.rl.networks import MissionVocab
+from illm_tools.rl.networks import MissionVocab, make_network
 from illm_tools.rl.storage import Advantages, Rollout, two_stream_advantages
 from illm_tools.tasks.state import HistoryTracker, StateRecord
 
@@ -49,7 +50,7 @@ def make_pool(cfg: TrainConfig):
         if space == "auto":  # the run's own action space, as its config recorded it
             space = state["config"].get("action_space", space)
     return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets, action_space=space,
-                   num_dists=cfg.num_dists, **cfg.env_options)
+                   num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
 
 
 class Trainer:
@@ -66,6 +67,7 @@ class Trainer:
         if cfg.action_space == "auto" and getattr(pool, "action_space_name", None):
             cfg = dataclasses.replace(cfg, action_space=pool.action_space_name)  # the run records the resolved name
         self.cfg, self.pool, self.on_metrics = cfg, pool, on_metrics
+        self.suite = suite_of(cfg.env_id)
         self.provider = provider if method.needs_targets else None
         self.action_names = list(pool.action_names)
         self.vocab = MissionVocab(cfg.mission_max_len)
@@ -76,18 +78,19 @@ class Trainer:
             torch.manual_seed(cfg.seed)
             self.obs = pool.reset()
             self.image_shape = tuple(self.obs.images.shape[1:])
-            self.net = method.network_class(len(self.action_names), vocab_size=len(self.vocab),
-                                            options=method.network_options(cfg.network_options),
-                                      embedding_dim=cfg.embedding_dim if method.policy_heads else None,
-                                      head_hidden=cfg.head_hidden, image_shape=self.image_shape[:2],
-                                      heads_bf16=cfg.heads_bf16)
+            self.image_dtype = torch.as_tensor(self.obs.images[:1]).dtype
+            self.net = make_network(method, cfg.env_id, len(self.action_names), image_shape=self.image_shape,
+                                    vocab_size=len(self.vocab), network_options=cfg.network_options,
+                                    embedding_dim=cfg.embedding_dim if method.policy_heads else None,
+                                    head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16)
         self.generator = torch.Generator().manual_seed(cfg.seed + 1)  # action sampling
         self.np_rng = np.random.default_rng(cfg.seed + 2)             # minibatch order
 
         self.optimizer = torch.optim.AdamW(self.net.parameters(), lr=cfg.learning_rate, eps=1e-5)
         ctx = BonusContext(num_envs=cfg.num_envs, num_steps=cfg.num_steps, image_shape=self.image_shape,
                            num_actions=len(self.action_names), feature_dim=self.net.feature_dim,
-                           int_gamma=cfg.int_gamma, seed=cfg.seed + 3)
+                           int_gamma=cfg.int_gamma, seed=cfg.seed + 3,
+                           obs_kind=self.suite.obs_spec(cfg.env_id).kind)
         with torch.random.fork_rng(devices=[]):  # the bonus's own models: their own seeded stream
             torch.manual_seed(ctx.seed)
             self.bonus = method.build(cfg.to_dict(), cfg.bonus_options, ctx)
@@ -138,14 +141,15 @@ class Trainer:
         return torch.as_tensor(obs.images), torch.as_tensor(self.vocab.encode(obs.missions))
 
     @torch.no_grad()
-    def collect_rollout(self) -> tuple[Rollout, list[StateRecord], dict, tuple[torch.Tensor, torch.Tensor]]:
-        """T steps of every env. Returns (rollout, records t-major, episode stats, next values)."""
+    def collect_rollout(self) -> tuple[Rollout, list[StateRecord], list, tuple[torch.Tensor, torch.Tensor]]:
+        """T steps of every env. Returns (rollout, records t-major, the episodes that ended
+        (`EpisodeStats`), next values)."""
         cfg = self.cfg
         ro = Rollout.empty(cfg.num_steps, cfg.num_envs, self.image_shape, cfg.mission_max_len,
                            len(self.action_names), cfg.embedding_dim if self.method.policy_heads else 0,
-                           self.net.feature_dim)
+                           self.net.feature_dim, self.image_dtype)
         records: list[StateRecord] = []
-        returns, lengths, successes = [], [], []
+        episodes: list = []
         obs = self.obs
         images, missions = self._policy_inputs(obs)
         for t in range(cfg.num_steps):
@@ -169,15 +173,11 @@ class Trainer:
             self.bonus.observe({"images": images, "missions": missions, "actions": action, "ends": ro.ends[t],
                                 "next_images": next_images, "next_missions": next_missions,
                                 "features": out.features})
-            for _i, ret, length, success in step.episodes:
-                returns.append(float(ret))
-                lengths.append(int(length))
-                successes.append(float(success))
+            episodes.extend(step.episodes)
             obs, images, missions = step.obs, next_images, next_missions
         self.obs = obs
         self.global_step += cfg.batch_size
         last = self.net(images, missions)
-        episodes = {"returns": returns, "lengths": lengths, "successes": successes}
         return ro, records, episodes, (last.value_ext, last.value_int)
 
     # --- 2. targets -------------------------------------------------------------------------
@@ -318,12 +318,13 @@ class Trainer:
         t3 = time.perf_counter()
         metrics = {"global_step": self.global_step, "update": self.update_idx,
                    "charts/learning_rate": self.optimizer.param_groups[0]["lr"],
-                   "charts/episodes": len(episodes["returns"]),
+                   "charts/episodes": len(episodes),
                    "time/rollout_s": t1 - t0, "time/targets_s": t2 - t1, "time/update_s": t3 - t2}
-        if episodes["returns"]:
-            metrics["charts/episodic_return"] = float(np.mean(episodes["returns"]))
-            metrics["charts/episodic_length"] = float(np.mean(episodes["lengths"]))
-            metrics["charts/success_rate"] = float(np.mean(episodes["successes"]))
+        if episodes:
+            metrics["charts/episodic_return"] = float(np.mean([e.episode_return for e in episodes]))
+            metrics["charts/episodic_length"] = float(np.mean([e.length for e in episodes]))
+            suite_figures = self.suite.episode_metrics(episodes)  # success rate, score, achievements
+            metrics.update({f"charts/{k}": v for k, v in suite_figures.items() if not np.isnan(v)})
         metrics.update({f"charts/{k}": v for k, v in {**target_logs, **bonus.logs}.items()})
         metrics.update(loss_logs)
         metrics.update({f"charts/{k}": v for k, v in adv.scale_logs().items()})

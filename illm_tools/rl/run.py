@@ -122,24 +122,25 @@ def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy:
     cfg = TrainConfig.from_dict(read_config(run_dir))
     num_envs = min(num_envs, episodes)
     pool = EnvPool(cfg.env_id, num_envs, EVAL_SEED_OFFSET + seed, render=False, action_space=cfg.action_space,
-                   num_dists=cfg.num_dists, **cfg.env_options)
+                   num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
     policy = load_policy(run_dir, pool, greedy=greedy, seed=seed)
-    returns, successes, lengths = [], [], []
+    finished = []
     counted = np.zeros(num_envs, dtype=np.int64)  # episodes taken from each env: equal shares, no bias to short ones
     quota = [episodes // num_envs + (i < episodes % num_envs) for i in range(num_envs)]
     obs = pool.reset()
     with torch_threads(cfg.threads):
-        while len(returns) < episodes:
+        while len(finished) < episodes:
             step = pool.step(policy.act(obs))
-            for i, ret, length, success in step.episodes:
-                if counted[i] < quota[i]:
-                    counted[i] += 1
-                    returns.append(ret)
-                    lengths.append(length)
-                    successes.append(success)
+            for episode in step.episodes:
+                if counted[episode.env_index] < quota[episode.env_index]:
+                    counted[episode.env_index] += 1
+                    finished.append(episode)
             obs = step.obs
     pool.close()
+    figures = pool.suite.episode_metrics(finished)
     return {"run": str(run_dir), "env_id": cfg.env_id, "method": cfg.mode, "episodes": episodes,
-            "success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns)),
-            "mean_length": float(np.mean(lengths)), "greedy": greedy, "policy": policy.name,
-            "frames": policy.frames}
+            "score": figures["score"], "score_name": pool.suite.score_name,
+            "success_rate": figures["success_rate"],
+            "mean_return": float(np.mean([e.episode_return for e in finished])),
+            "mean_length": float(np.mean([e.length for e in finished])), "greedy": greedy, "policy": policy.name,
+            "frames": policy.frames, **{k: v for k, v in figures.items() if k not in ("score", "success_rate")}}

@@ -29,9 +29,9 @@ TARGET_FIELDS = ("target_probs", "target_emb", "target_mask")
 class Rollout:
     """One rollout of T steps from N envs. Targets are filled after the rollout."""
 
-    images: torch.Tensor       # uint8 [T, N, H, W, 3] the observation acted from
+    images: torch.Tensor       # [T, N, *obs shape] the observation acted from (the suite's dtype)
     missions: torch.Tensor     # int64 [T, N, L]
-    next_images: torch.Tensor  # uint8 [T, N, H, W, 3] the observation after the step (see module doc)
+    next_images: torch.Tensor  # [T, N, *obs shape] the observation after the step (see module doc)
     next_missions: torch.Tensor  # int64 [T, N, L]
     actions: torch.Tensor      # int64 [T, N]
     logprobs: torch.Tensor     # float [T, N]
@@ -46,12 +46,13 @@ class Rollout:
 
     @classmethod
     def empty(cls, num_steps: int, num_envs: int, image_shape: tuple[int, ...], mission_len: int,
-              num_actions: int, embedding_dim: int, feature_dim: int = 0) -> "Rollout":
+              num_actions: int, embedding_dim: int, feature_dim: int = 0,
+              image_dtype: torch.dtype = torch.uint8) -> "Rollout":
         t, n = num_steps, num_envs
         z = lambda *shape, dtype=torch.float32: torch.zeros((t, n, *shape), dtype=dtype)  # noqa: E731
         return cls(
-            images=z(*image_shape, dtype=torch.uint8), missions=z(mission_len, dtype=torch.int64),
-            next_images=z(*image_shape, dtype=torch.uint8), next_missions=z(mission_len, dtype=torch.int64),
+            images=z(*image_shape, dtype=image_dtype), missions=z(mission_len, dtype=torch.int64),
+            next_images=z(*image_shape, dtype=image_dtype), next_missions=z(mission_len, dtype=torch.int64),
             actions=z(dtype=torch.int64), logprobs=z(), rewards=z(), ends=z(),
             values_ext=z(), values_int=z(), target_probs=z(num_actions),
             target_emb=z(embedding_dim), target_mask=z(dtype=torch.bool), features=z(feature_dim),
