@@ -1,0 +1,487 @@
+"""MiniHack-Text: the text illm writes for a MiniHack (NetHack Learning Environment) observation,
+the missions of the paper's MiniHack tasks, and readable names for NLE's actions.
+
+The text is `describe`'s phrases joined with "; " (NetHack's messages and the inventory list
+contain commas, so a comma cannot separate phrases). Phrases, in this order:
+
+1. "message: <text>": NetHack's message line (`message`), whitespace collapsed; left out when empty.
+2. "you are <state> and <state>": the status conditions NetHack's bottom line shows
+   (`blstats` condition mask: levitating, flying, riding, blind, deaf, stunned, confused,
+   hallucinating, sick from food poisoning, terminally ill, turning to stone, turning into slime,
+   being strangled); "your hit points are low (<hp> of <max>)" when hit points are at most 5 or
+   at most a seventh of the maximum (NetHack's own "low hit points" rule, the one prayer answers).
+3. What the map (`glyphs`; the agent stands at x = blstats[0], y = blstats[1]) shows, as
+   "<thing> <distance> <direction>", e.g. "a newt very near east", "lava adjacent east",
+   "2 boulders far northeast", "the staircase down very far east". Things are monsters (a pet is
+   "a tame little dog", a remembered unseen monster "an unseen creature"), objects, corpses,
+   statues and dungeon features: doorways, doors, stairs, ladders, altars, fountains, sinks,
+   thrones, graves, trees, iron bars, water, lava, ice, drawbridges, traps, poison clouds. Walls,
+   floor, corridors, dark and unexplored parts, and transient effects (zaps, explosions, warnings,
+   the inside of an engulfer) are not described; nor is the agent's own square (NetHack shows the
+   agent there; what lies under it comes in the message, "You see here ...").
+   - Direction: the nearest of the 8 compass directions to the angle from the agent (screen up is
+     north); integer offsets never fall exactly between two directions.
+   - Distance: by Chebyshev distance d (the number of moves, diagonals allowed): d = 1 "adjacent",
+     2 "very near", 3-4 "near", 5-8 "far", 9 or more "very far".
+   - Grouping: the squares of one thing in one distance band and one direction make one phrase,
+     with its count ("3 boulders near east"); water, lava, ice, iron bars and gold take no count
+     or article ("water far east"). Staircases, ladders and unique monsters take "the" ("the
+     Oracle"), monsters with proper names no article ("Medusa"), the rest "a" or "an".
+   - Names: monsters by NetHack's species name; objects as a player sees them before identifying
+     them. NLE's object glyphs follow the looks NetHack shuffles each game (a ring of levitation
+     that looks "opal" shows the glyph of the ring whose fixed look is "opal"), so the glyph's
+     object name is wrong for those: potions, rings, wands, scrolls, spellbooks and amulets are
+     named by their class ("a ring"), the shuffled helmets, cloaks, gloves and boots by their kind
+     ("a pair of boots"); gems by colour ("a red gem", "a gray stone"); everything else by its
+     fixed look or, when it has none, its name ("a boulder", "a horn", "a runed dagger"). Class
+     names rather than looks keep the text the same across episodes.
+   - Selection: at most 3 phrases per thing (its nearest), then at most 12 in all, chosen
+     staircases and ladders down first (the goal of most MiniHack tasks), then monsters and
+     objects, then the other features, nearer first within each; the chosen phrases are written
+     nearest first, ties broken clockwise from north, then by name.
+4. "you carry <item>, <item>": NetHack's inventory lines (`inv_strs`) of what the agent carries
+   beyond the starting kits of MiniHack's default characters (a rogue in navigation tasks: short
+   sword, daggers, leather armor, potion of sickness, lock pick, sack, at times a blindfold; a
+   caveman in skill tasks: club, sling, flint stones, rocks, leather armor; a kit item is a line
+   naming only it, its count, curse status, erosion, enchantment and state, e.g. "17 uncursed flint
+   stones (in quiver pouch)", "an uncursed very burnt +1 leather armor (being worn)"), so that
+   it says "you carry a ring of levitation (on right hand)" once the LavaCross ring is picked up
+   and put on, and nothing while only the kit is carried. Left out when empty.
+
+`describe` needs the observation keys in `OBS_KEYS`; make the env with
+`gym.make(env_id, observation_keys=OBS_KEYS)` (plus whatever else the policy reads).
+
+The paper's five MiniHack tasks (`TASKS`) and the ids minihack 1.0 registers for them:
+- "River-Monster" -> MiniHack-River-Monster-v0;
+- "MultiRoom-N4-Monster" -> MiniHack-MultiRoom-N4-Monster-v0;
+- "LavaCross-Ring" -> MiniHack-LavaCross-Levitate-Ring-Pickup-Full-v0;
+- "LavaCross-Potion" -> MiniHack-LavaCross-Levitate-Potion-Pickup-Full-v0;
+- "LavaCross-Full" -> MiniHack-LavaCross-Full-v0.
+minihack has no id without a "-Full"/"-Restricted" suffix for the ring and potion tasks: the suffix
+is the action set (all of NLE's actions, or the few the task needs), not the task, while the "Full"
+of "LavaCross-Full" is the task with every item (a levitation potion, ring or boots, a wand of cold
+or a frost horn) and happens to use the full action set too. The ring and potion tasks take the
+"-Full" ids so that all three LavaCross tasks share one action set. "Pickup" (the item lies on the
+floor) rather than "Inv" (the agent starts carrying it).
+
+CHANGING THE RENDERED TEXT IN ANY WAY MUST BUMP `RENDERER_VERSION`: "minihack-text@<version>" goes
+into every annotation cache key, so a changed renderer with an unchanged version would silently
+serve annotations of other texts.
+"""
+from __future__ import annotations
+
+import enum
+import functools
+import math
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from nle import nethack  # no minihack import here: minihack's import warns (pkg_resources)
+
+RENDERER_NAME = "minihack-text"
+RENDERER_VERSION = 1
+"""Part of every annotation cache key: CHANGING THE RENDERED TEXT MUST BUMP IT."""
+
+OBS_KEYS: tuple[str, ...] = ("glyphs", "message", "blstats", "inv_strs")
+
+TASKS: dict[str, str] = {
+    "River-Monster": "MiniHack-River-Monster-v0",
+    "MultiRoom-N4-Monster": "MiniHack-MultiRoom-N4-Monster-v0",
+    "LavaCross-Ring": "MiniHack-LavaCross-Levitate-Ring-Pickup-Full-v0",
+    "LavaCross-Potion": "MiniHack-LavaCross-Levitate-Potion-Pickup-Full-v0",
+    "LavaCross-Full": "MiniHack-LavaCross-Full-v0",
+}
+"""The paper's task names -> MiniHack env ids (see the module docstring for the choice of ids)."""
+
+# Goals read off minihack's env classes and level files, first matching prefix wins.
+_MISSIONS: tuple[tuple[str, str], ...] = (
+    ("MiniHack-River", "cross the river by pushing boulders into it, and reach the staircase down"),
+    ("MiniHack-MultiRoom-", "go through the rooms and their doors to reach the staircase down"),
+    ("MiniHack-LavaCross-Levitate-Ring-Inv",
+     "put on the ring of levitation you carry, float over the lava and reach the staircase down"),
+    ("MiniHack-LavaCross-Levitate-Ring",
+     "pick up the ring of levitation, put it on, float over the lava and reach the staircase down"),
+    ("MiniHack-LavaCross-Levitate-Potion-Inv",
+     "drink the potion of levitation you carry, float over the lava and reach the staircase down"),
+    ("MiniHack-LavaCross-Levitate-Potion",
+     "pick up the potion of levitation, drink it, float over the lava and reach the staircase down"),
+    ("MiniHack-LavaCross-Levitate",
+     "pick up the levitation item (a potion, ring or boots), use it to float over the lava, "
+     "and reach the staircase down"),
+    ("MiniHack-LavaCross",
+     "pick up the item on your side of the lava (a levitation potion, ring or boots, a wand of cold "
+     "or a frost horn), use it to cross the lava, and reach the staircase down"),
+    ("MiniHack-LavaCrossing", "get past the lava to reach the staircase down"),
+    ("MiniHack-Eat", "eat the apple"),
+    ("MiniHack-Wield", "wield the dagger"),
+    ("MiniHack-Wear", "wear the robe"),
+    ("MiniHack-PutOn", "put on the amulet"),
+    ("MiniHack-Zap", "zap the wand"),
+    ("MiniHack-Read", "read the scroll"),
+    ("MiniHack-Pray", "pray at the altar"),
+    ("MiniHack-Sink", "drink (quaff) from the sink"),
+    ("MiniHack-LockedDoor", "kick open the locked door and reach the staircase down"),
+    ("MiniHack-ClosedDoor", "open the closed door and reach the staircase down"),
+    ("MiniHack-Freeze-Lava", "freeze the lava with cold and reach the staircase down"),
+    ("MiniHack-Freeze", "shoot a bolt of cold that bounces off a wall"),
+    ("MiniHack-Levitate", "start levitating with the levitation item"),
+    ("MiniHack-WoD", "kill the minotaur with the wand of death"),
+    ("MiniHack-Boxoban", "push every boulder onto a fountain"),
+)
+_DEFAULT_MISSION = "reach the staircase down"
+
+
+def mission(env_id: str) -> str:
+    """The goal of a MiniHack task in one short phrase, for LLM prompts; "reach the staircase down"
+    (MiniHack's default goal) for tasks without a more specific one."""
+    return next((text for prefix, text in _MISSIONS if env_id.startswith(prefix)), _DEFAULT_MISSION)
+
+
+# ---------------------------------------------------------------------------------------- actions
+
+_COMPASS = {"N": "north", "NE": "northeast", "E": "east", "SE": "southeast", "S": "south",
+            "SW": "southwest", "W": "west", "NW": "northwest"}
+_TYPED = {"PLUS": "plus sign", "MINUS": "minus sign", "SPACE": "space", "APOS": "apostrophe",
+          "QUOTE": "quotation mark", "DOLLAR": "dollar sign"}
+# (enum class, member) -> name; members missing here are named after themselves ("apply", "kick").
+_ACTION_NAMES = {
+    ("MiscDirection", "UP"): "go up the stairs",
+    ("MiscDirection", "DOWN"): "go down the stairs",
+    ("MiscDirection", "WAIT"): "wait",
+    ("MiscAction", "MORE"): "next message",
+    ("Command", "EXTCMD"): "extended command",
+    ("Command", "EXTLIST"): "list extended commands",
+    ("Command", "ADJUST"): "adjust inventory letters",
+    ("Command", "ANNOTATE"): "annotate level",
+    ("Command", "ATTRIBUTES"): "show attributes",
+    ("Command", "AUTOPICKUP"): "toggle autopickup",
+    ("Command", "CALL"): "call (name)",
+    ("Command", "CAST"): "cast a spell",
+    ("Command", "CLOSE"): "close a door",
+    ("Command", "CONDUCT"): "show conduct",
+    ("Command", "DROPTYPE"): "drop several",
+    ("Command", "ENHANCE"): "enhance skills",
+    ("Command", "ESC"): "escape",
+    ("Command", "FORCE"): "force a lock",
+    ("Command", "GLANCE"): "glance at a symbol",
+    ("Command", "HISTORY"): "show history",
+    ("Command", "INVENTORY"): "show inventory",
+    ("Command", "INVENTTYPE"): "show inventory of one kind",
+    ("Command", "KNOWN"): "show discoveries",
+    ("Command", "KNOWNCLASS"): "show discoveries of one class",
+    ("Command", "LOOK"): "look here",
+    ("Command", "MONSTER"): "use monster ability",
+    ("Command", "MOVE"): "move without picking up",
+    ("Command", "MOVEFAR"): "run without picking up",
+    ("Command", "OFFER"): "offer a sacrifice",
+    ("Command", "OPEN"): "open a door",
+    ("Command", "OVERVIEW"): "dungeon overview",
+    ("Command", "PICKUP"): "pick up",
+    ("Command", "PUTON"): "put on",
+    ("Command", "QUAFF"): "drink (quaff)",
+    ("Command", "QUIVER"): "fill quiver",
+    ("Command", "REDRAW"): "redraw screen",
+    ("Command", "REMOVE"): "remove an accessory",
+    ("Command", "RUSH2"): "rush (alternative)",
+    ("Command", "SEEALL"): "show equipment in use",
+    ("Command", "SEEAMULET"): "show amulet",
+    ("Command", "SEEARMOR"): "show armor",
+    ("Command", "SEEGOLD"): "count gold",
+    ("Command", "SEERINGS"): "show rings",
+    ("Command", "SEESPELLS"): "show spells",
+    ("Command", "SEETOOLS"): "show tools in use",
+    ("Command", "SEETRAP"): "show adjacent trap",
+    ("Command", "SEEWEAPON"): "show weapon",
+    ("Command", "SWAP"): "swap weapons",
+    ("Command", "TAKEOFF"): "take off",
+    ("Command", "TAKEOFFALL"): "take off all armor",
+    ("Command", "TIP"): "tip a container",
+    ("Command", "TURN"): "turn undead",
+    ("Command", "TWOWEAPON"): "toggle two-weapon combat",
+    ("Command", "VERSION"): "show version",
+    ("Command", "VERSIONSHORT"): "show short version",
+    ("Command", "WHATDOES"): "what does a key do",
+    ("Command", "WHATIS"): "what is a symbol",
+    ("Command", "WIPE"): "wipe face",
+}
+
+
+def _action_name(action: enum.Enum) -> str:
+    kind, name = type(action).__name__, action.name
+    if kind == "CompassDirection":
+        return f"move {_COMPASS[name]}"
+    if kind == "CompassDirectionLonger":  # Shift + direction: run until something interesting
+        return f"run {_COMPASS[name]}"
+    if kind == "TextCharacters":
+        return f"type {_TYPED.get(name, name.removeprefix('NUM_'))}"
+    return _ACTION_NAMES.get((kind, name), name.lower().replace("_", " "))
+
+
+def action_names(actions: Sequence[enum.Enum]) -> tuple[str, ...]:
+    """Readable lower-case names of an env's actions (`env.unwrapped.actions`, NLE enum members),
+    in order: "move north", "run northeast", "pick up", "put on", "drink (quaff)", "apply", ...
+    Distinct members get distinct names: members are told apart by enum class as well as value
+    (TextCharacters.PLUS is "type plus sign", Command.SEESPELLS, the same key, "show spells")."""
+    return tuple(_action_name(action) for action in actions)
+
+
+# ------------------------------------------------------------------------------------ map things
+
+_DIRECTIONS = ("north", "northeast", "east", "southeast", "south", "southwest", "west", "northwest")
+_MAX_MAP_PHRASES = 12
+_MAX_PHRASES_PER_THING = 3
+
+# Tiers: the order in which map phrases are chosen when there are more than _MAX_MAP_PHRASES.
+_GOAL, _CREATURE_OR_OBJECT, _FEATURE = 0, 1, 2
+
+# cmap indices (NetHack's defsyms) of the features described: doorway, open and closed doors, iron
+# bars, tree (12-18); stairs, ladders, altar, grave, throne, sink, fountain, water, ice, lava,
+# drawbridges (23-38); the Plane of Water's water, traps, vibrating square (41-64); poison cloud (77).
+_DESCRIBED_CMAP = (*range(12, 19), *range(23, 39), *range(41, 65), 77)
+_CMAP_RENAMES = {"molten lava": "lava", "opulent throne": "throne"}
+_CMAP_ARTICLES = {**dict.fromkeys(("water", "lava", "ice", "iron bars"), ""),
+                  **dict.fromkeys(("staircase up", "staircase down", "ladder up", "ladder down"), "the")}
+_M2_PNAME, _G_UNIQ = 0x00080000, 0x1000  # NetHack's monflag.h: a proper name; a unique monster
+_CLASS_NOUNS = {nethack.POTION_CLASS: "potion", nethack.RING_CLASS: "ring", nethack.WAND_CLASS: "wand",
+                nethack.SCROLL_CLASS: "scroll", nethack.SPBOOK_CLASS: "spellbook",
+                nethack.AMULET_CLASS: "amulet"}
+# Armor whose looks NetHack shuffles each game (o_init.c): named by kind, as the glyph's object
+# name would be wrong (see the module docstring).
+_SHUFFLED_ARMOR = {
+    **dict.fromkeys(("helmet", "helm of brilliance", "helm of opposite alignment", "helm of telepathy"),
+                    "helmet"),
+    **dict.fromkeys(("cloak of protection", "cloak of invisibility", "cloak of magic resistance",
+                     "cloak of displacement"), "cloak"),
+    **dict.fromkeys(("leather gloves", "gauntlets of fumbling", "gauntlets of power",
+                     "gauntlets of dexterity"), "gloves"),
+    **dict.fromkeys(("speed boots", "water walking boots", "jumping boots", "elven boots", "kicking boots",
+                     "fumble boots", "levitation boots"), "boots"),
+}
+_PAIRS = ("boots", "shoes", "gloves", "lenses")
+_IRREGULAR_PLURALS = {"man": "men", "woman": "women", "mouse": "mice", "louse": "lice", "wolf": "wolves",
+                      "werewolf": "werewolves", "dwarf": "dwarves", "elf": "elves", "thief": "thieves",
+                      "knife": "knives", "staff": "staves", "tooth": "teeth", "foot": "feet"}
+
+
+@dataclass(frozen=True)
+class _Thing:
+    name: str
+    """Singular, without article: "newt", "lava", "staircase down", "pair of boots"."""
+    tier: int
+    article: str | None = None
+    """None: "a" or "an"; "the"; "": none (proper names, and mass nouns, which are never counted)."""
+
+
+def _a(noun: str) -> str:
+    vowel = noun[0].lower() in "aeiou" and not noun.startswith(("one", "eu", "uni", "use", "ura", "uke"))
+    return f"{'an' if vowel else 'a'} {noun}"
+
+
+def _plural(noun: str) -> str:
+    head, sep, tail = noun.partition(" of ")  # "pair of boots" -> "pairs of boots"
+    if not sep and noun.endswith((" up", " down")):  # "staircase down" -> "staircases down"
+        head, tail = noun.rsplit(" ", 1)
+        sep = " "
+    *words, last = head.split(" ")
+    if last in _IRREGULAR_PLURALS:
+        last = _IRREGULAR_PLURALS[last]
+    elif last.endswith(("s", "x", "z", "ch", "sh")):
+        last += "es"
+    elif last.endswith("y") and last[-2:-1] not in ("a", "e", "i", "o", "u"):
+        last = last[:-1] + "ies"
+    else:
+        last += "s"
+    return " ".join((*words, last)) + sep + tail
+
+
+def _noun_phrase(thing: _Thing, count: int) -> str:
+    if thing.article == "":
+        return thing.name
+    if count > 1:
+        return f"{count} {_plural(thing.name)}"
+    return f"{thing.article} {thing.name}" if thing.article else _a(thing.name)
+
+
+def _monster(index: int) -> _Thing:
+    monster = nethack.permonst(index)
+    article = "" if monster.mflags2 & _M2_PNAME else "the" if monster.geno & _G_UNIQ else None
+    return _Thing(monster.mname, _CREATURE_OR_OBJECT, article)
+
+
+def _object(index: int) -> _Thing:
+    """An object as a player sees it before identifying it (see the module docstring)."""
+    objclass = nethack.objclass(index)
+    cls = ord(objclass.oc_class)
+    name, looks = nethack.OBJ_NAME(objclass), nethack.OBJ_DESCR(objclass)
+    if cls == nethack.COIN_CLASS:
+        return _Thing("gold", _CREATURE_OR_OBJECT, "")
+    if cls in _CLASS_NOUNS:
+        noun = _CLASS_NOUNS[cls]
+    elif cls == nethack.GEM_CLASS and looks:
+        noun = f"{looks} {'stone' if looks == 'gray' else 'gem'}"
+    else:
+        noun = _SHUFFLED_ARMOR.get(name) if cls == nethack.ARMOR_CLASS else None
+        noun = noun or looks or name
+    return _Thing(f"pair of {noun}" if noun.endswith(_PAIRS) else noun, _CREATURE_OR_OBJECT)
+
+
+def _feature(cmap: int) -> _Thing | None:
+    if cmap not in _DESCRIBED_CMAP:
+        return None
+    name = nethack.symdef.from_idx(cmap).explanation
+    name = _CMAP_RENAMES.get(name, name)
+    tier = _GOAL if name in ("staircase down", "ladder down") else _FEATURE
+    return _Thing(name, tier, _CMAP_ARTICLES.get(name))
+
+
+def _glyph_thing(glyph: int) -> _Thing | None:
+    if nethack.glyph_is_pet(glyph):
+        return _Thing(f"tame {_monster(nethack.glyph_to_mon(glyph)).name}", _CREATURE_OR_OBJECT)
+    if nethack.glyph_is_monster(glyph):  # seen, detected and ridden monsters
+        return _monster(nethack.glyph_to_mon(glyph))
+    if nethack.glyph_is_invisible(glyph):
+        return _Thing("unseen creature", _CREATURE_OR_OBJECT)
+    if nethack.glyph_is_body(glyph):
+        return _Thing(f"{_monster(glyph - nethack.GLYPH_BODY_OFF).name} corpse", _CREATURE_OR_OBJECT)
+    if nethack.glyph_is_statue(glyph):
+        monster = _monster(nethack.glyph_to_mon(glyph))
+        return _Thing(f"statue of {_noun_phrase(monster, 1)}", _CREATURE_OR_OBJECT)
+    if nethack.glyph_is_normal_object(glyph):
+        return _object(nethack.glyph_to_obj(glyph))
+    if nethack.glyph_is_cmap(glyph):  # dungeon features and traps
+        return _feature(nethack.glyph_to_cmap(glyph))
+    return None  # explosions, zaps, the engulfer's inside, warnings
+
+
+@functools.lru_cache(maxsize=1)
+def _glyph_table() -> tuple[tuple[_Thing | None, ...], np.ndarray]:
+    """What every glyph shows (None: not described), and a boolean mask of the described glyphs."""
+    things = tuple(_glyph_thing(glyph) for glyph in range(nethack.MAX_GLYPH))
+    described = np.array([thing is not None for thing in things] + [False])  # + NO_GLYPH
+    return things, described
+
+
+def _heading(dx: int, dy: int) -> int:
+    """The compass direction (index into _DIRECTIONS) nearest to the offset (dx columns east, dy
+    rows south) of a square."""
+    angle = math.degrees(math.atan2(dx, -dy))  # 0 = north, clockwise
+    return round(angle / 45) % 8
+
+
+def _distance_band(distance: int) -> str:
+    """The distance word for a Chebyshev distance of at least 1."""
+    if distance <= 1:
+        return "adjacent"
+    if distance == 2:
+        return "very near"
+    if distance <= 4:
+        return "near"
+    return "far" if distance <= 8 else "very far"
+
+
+@dataclass
+class _Group:
+    thing: _Thing
+    band: str
+    heading: int
+    """Index into _DIRECTIONS."""
+    distance: int
+    """Of the group's nearest square."""
+    count: int = 1
+
+    def order(self) -> tuple[int, int, str]:
+        return self.distance, self.heading, self.thing.name
+
+
+def _map_phrases(glyphs: np.ndarray, x: int, y: int) -> list[str]:
+    things, described = _glyph_table()
+    glyphs = np.asarray(glyphs)
+    mask = described[glyphs]
+    mask[y, x] = False
+    groups: dict[tuple[str, str, int], _Group] = {}
+    for row, col in zip(*np.nonzero(mask)):
+        thing = things[glyphs[row, col]]
+        dx, dy = int(col) - x, int(row) - y
+        distance = max(abs(dx), abs(dy))
+        heading = _heading(dx, dy)
+        key = (thing.name, _distance_band(distance), heading)
+        if key in groups:
+            groups[key].count += 1
+            groups[key].distance = min(groups[key].distance, distance)
+        else:
+            groups[key] = _Group(thing, key[1], heading, distance)
+    per_thing: dict[str, int] = {}
+    nearest = []
+    for group in sorted(groups.values(), key=_Group.order):
+        per_thing[group.thing.name] = per_thing.get(group.thing.name, 0) + 1
+        if per_thing[group.thing.name] <= _MAX_PHRASES_PER_THING:
+            nearest.append(group)
+    chosen = sorted(nearest, key=lambda g: (g.thing.tier, *g.order()))[:_MAX_MAP_PHRASES]
+    return [f"{_noun_phrase(g.thing, g.count)} {g.band} {_DIRECTIONS[g.heading]}"
+            for g in sorted(chosen, key=_Group.order)]
+
+
+# ------------------------------------------------------------------------- message, status, items
+
+_CONDITIONS = (
+    (nethack.BL_MASK_LEV, "levitating"), (nethack.BL_MASK_FLY, "flying"), (nethack.BL_MASK_RIDE, "riding"),
+    (nethack.BL_MASK_BLIND, "blind"), (nethack.BL_MASK_DEAF, "deaf"), (nethack.BL_MASK_STUN, "stunned"),
+    (nethack.BL_MASK_CONF, "confused"), (nethack.BL_MASK_HALLU, "hallucinating"),
+    (nethack.BL_MASK_FOODPOIS, "sick from food poisoning"), (nethack.BL_MASK_TERMILL, "terminally ill"),
+    (nethack.BL_MASK_STONE, "turning to stone"), (nethack.BL_MASK_SLIME, "turning into slime"),
+    (nethack.BL_MASK_STRNGL, "being strangled"),
+)
+# An inventory line of the starting kits of MiniHack's default characters (rogue, caveman): the
+# item's name with only its count, curse status, erosion, enchantment and state around it. Matched
+# on the text: inventory glyphs follow shuffled looks, so the potion of sickness has no fixed glyph.
+_KIT_ITEM = re.compile(
+    r"(?:a|an|\d+)(?: (?:uncursed|cursed|blessed|empty|greased|poisoned|(?:fire|rust|corrode|rot)proof"
+    r"|(?:very |thoroughly )?(?:burnt|rusty|corroded|rotted)|[+-]\d+))* "
+    r"(?:short swords?|daggers?|leather armor|potions? of sickness|lock picks?|sacks?|blindfolds?|clubs?"
+    r"|slings?|flint stones?|rocks?)(?: \(.*\))?")
+
+
+def _decode(text: np.ndarray) -> str:
+    """NUL-padded bytes -> text with runs of whitespace collapsed to one space."""
+    raw = np.asarray(text, dtype=np.uint8).tobytes().split(b"\0", 1)[0]
+    return " ".join(raw.decode("latin-1").split())
+
+
+def _status(blstats: np.ndarray) -> list[str]:
+    phrases = []
+    condition = int(blstats[nethack.NLE_BL_CONDITION])
+    states = [word for mask, word in _CONDITIONS if condition & mask]
+    if states:
+        phrases.append("you are " + " and ".join(states))
+    hp, hp_max = int(blstats[nethack.NLE_BL_HP]), int(blstats[nethack.NLE_BL_HPMAX])
+    if hp_max > 0 and (hp <= 5 or hp * 7 <= hp_max):
+        phrases.append(f"your hit points are low ({hp} of {hp_max})")
+    return phrases
+
+
+def _carried(inv_strs: np.ndarray) -> list[str]:
+    items = (_decode(text) for text in inv_strs)
+    return [item for item in items if item and not _KIT_ITEM.fullmatch(item)]
+
+
+def describe(obs: dict) -> list[str]:
+    """The MiniHack-Text phrases for one observation (a dict holding `OBS_KEYS`), in the order of
+    the module docstring: message, status, map (nearest first), inventory."""
+    blstats = np.asarray(obs["blstats"])
+    phrases = []
+    message = _decode(obs["message"])
+    if message:
+        phrases.append(f"message: {message}")
+    phrases += _status(blstats)
+    phrases += _map_phrases(obs["glyphs"], int(blstats[nethack.NLE_BL_X]), int(blstats[nethack.NLE_BL_Y]))
+    carried = _carried(obs["inv_strs"])
+    if carried:
+        phrases.append("you carry " + ", ".join(carried))
+    return phrases
+
+
+def render_text(obs: dict) -> str:
+    """The MiniHack-Text description of one observation: `describe`'s phrases joined with "; "."""
+    return "; ".join(describe(obs))

@@ -1,0 +1,166 @@
+"""The suite seam: a fifth suite is one file plus one registry entry (here a tiny one registered from
+this test file runs through collect, the env pool and the unchanged trainer), and every shipped
+suite's contract (ids, observation spec, text, options, score)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from illm_tools.collect import CollectConfig, collect
+from illm_tools.data.trajectories import open_table
+from illm_tools.envs import SUITES, _load, known_env_ids, make_env, register_suite, renderer_of, suite_of
+from illm_tools.envs.pool import EnvPool
+from illm_tools.envs.suite import ObsSpec, Suite
+from illm_tools.errors import UnknownEnvError, UsageError
+from illm_tools.rl import TrainConfig, Trainer, make_pool
+from illm_tools.rl.checkpoint import load_checkpoint
+
+TINY = "Tiny-Corridor-v0"
+
+
+class Corridor(gym.Env):
+    """Five cells; 'go right' from the fourth reaches the goal (reward 1). The grid shows the agent
+    as a key (MiniGrid code 5) in row 3 of a 7x7x3 view."""
+
+    def __init__(self, length: int = 5, render_text: bool = True):
+        self.length, self.render_text = int(length), render_text
+        self.action_names = ("go left", "go right")
+        self.action_space = gym.spaces.Discrete(2)
+        self.observation_space = gym.spaces.Box(0, 10, (7, 7, 3), np.uint8)
+
+    def _obs(self):
+        grid = np.ones((7, 7, 3), np.uint8)
+        grid[self.pos, 3, 0] = 5
+        return grid
+
+    def _info(self, info):
+        info.update(text=f"You are {self.length - 1 - self.pos} steps from the goal" if self.render_text else "",
+                    mission="reach the end of the corridor", valid_actions=list(self.action_names))
+        return info
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.pos = int(self.np_random.integers(0, self.length - 1))
+        return self._obs(), self._info({})
+
+    def step(self, action):
+        self.pos = max(0, self.pos + (1 if int(action) == 1 else -1))
+        done = self.pos >= self.length - 1
+        info = {"success": True} if done else {}
+        return self._obs(), float(done), done, False, self._info(info)
+
+
+class TinySuite(Suite):
+    name = "tiny"
+    renderer = "tiny-text@1"
+    description = "a corridor"
+
+    def env_ids(self):
+        return [TINY]
+
+    def options(self, env_id):
+        return ("length",)
+
+    def make(self, env_id, *, action_space, render_text=True, **options):
+        return Corridor(render_text=render_text, **options)
+
+    def obs_spec(self, env_id):
+        return ObsSpec(shape=(7, 7, 3), dtype="uint8", kind="grid", description="a corridor as MiniGrid codes")
+
+
+@pytest.fixture
+def tiny():
+    register_suite(TinySuite())
+    try:
+        yield
+    finally:
+        SUITES.pop("tiny")
+        _load.cache_clear()
+
+
+def test_a_suite_registered_from_a_test_file_runs_every_stage(tiny, tmp_path):
+    assert suite_of(TINY).name == "tiny" and TINY in known_env_ids() and renderer_of(TINY) == "tiny-text@1"
+    with pytest.raises(UsageError, match="already registered"):
+        register_suite(TinySuite())
+    with pytest.raises(UsageError, match="takes no env option width; it takes length"):
+        make_env(TINY, width=3)
+
+    summary = collect(CollectConfig(env_id=TINY, out=tmp_path / "traj", steps=60, num_envs=3,
+                                    env_options={"length": 4}))
+    assert summary["rows"] == 60 and summary["episodes_finished"] > 0 and summary["success_rate"] == 1.0
+    table = open_table(tmp_path / "traj")
+    assert set(table["renderer"].to_pylist()) == {"tiny-text@1"}
+    assert table["obs_text"][0].as_py().startswith("You are ") and table["valid_actions"][0].as_py() == ["go left", "go right"]
+
+    for method in ("ppo", "rnd"):
+        cfg = TrainConfig(env_id=TINY, mode=method, run_dir=tmp_path / method, total_steps=64, num_envs=2,
+                          num_steps=16, tensorboard=False, env_options={"length": 4})
+        pool = make_pool(cfg)
+        try:
+            last = Trainer(cfg, pool).train()
+        finally:
+            pool.close()
+        assert last["global_step"] == 64 and last["charts/score"] == 1.0  # every finished episode succeeded
+        assert load_checkpoint(tmp_path / method)["action_names"] == ["go left", "go right"]
+
+
+def test_pool_seeds_are_deterministic_per_episode(tiny):
+    def positions(pool, steps):
+        out = [pool.reset().images[:, :, 3, 0].argmax(1).tolist()]
+        for _ in range(steps):
+            out.append(pool.step(np.ones(pool.num_envs, np.int64)).obs.images[:, :, 3, 0].argmax(1).tolist())
+        return out
+
+    a, b = EnvPool(TINY, 3, seed=5), EnvPool(TINY, 3, seed=5)
+    assert positions(a, 12) == positions(b, 12)
+    step = a.step(np.ones(3, np.int64))
+    assert all(s >= 5 for s in step.obs.seeds)
+
+
+def test_unknown_env_and_suite_specific_options_are_refused():
+    with pytest.raises(UnknownEnvError, match="did you mean ALE/MontezumaRevenge-v5"):
+        suite_of("ALE/MontezumaRevenge-v4x")
+    with pytest.raises(UsageError, match="takes no env option area"):
+        make_env("ALE/Pong-v5", area=3)
+    with pytest.raises(UsageError, match="no text observation"):
+        renderer_of("ALE/Pong-v5")
+    with pytest.raises(UsageError, match="has no action space 'original'"):
+        make_env("ALE/Pong-v5", action_space="original")
+
+
+@pytest.mark.parametrize("env_id,kind,score", [
+    ("BabyAI-GoToLocal-v0", "grid", "success rate"),
+    ("MiniGrid-MultiRoom-N6-v0", "grid", "success rate"),
+    ("MiniHack-River-Monster-v0", "glyphs", "success rate"),
+    ("CrafterReward-v1", "image", "Crafter score"),
+    ("ALE/MontezumaRevenge-v5", "frames", "mean return"),
+])
+def test_every_suite_gives_its_policy_array_text_and_score(env_id, kind, score):
+    suite = suite_of(env_id)
+    spec = suite.obs_spec(env_id)
+    assert spec.kind == kind and suite.score_name == score
+    pool = EnvPool(env_id, 2, seed=0, vector="sync")
+    try:
+        obs = pool.reset()
+        assert obs.images.shape == (2, *spec.shape) and obs.images.dtype == np.dtype(spec.dtype)
+        assert (obs.texts[0] != "") == (suite.renderer is not None)
+        step = pool.step(np.zeros(2, np.int64))
+        assert step.obs.images.shape == obs.images.shape and len(pool.action_names) == len(set(pool.action_names))
+    finally:
+        pool.close()
+
+
+@pytest.mark.parametrize("env_id", ["MiniHack-River-Monster-v0", "MiniHack-MultiRoom-N4-Monster-v0", "CrafterReward-v1"])
+def test_a_seed_gives_the_same_episodes(env_id):
+    def texts(pool):
+        out, rng = [pool.reset().texts], np.random.default_rng(0)
+        for _ in range(25):
+            out.append(pool.step(rng.integers(0, len(pool.action_names), 2)).obs.texts)
+        pool.close()
+        return out
+
+    first = texts(EnvPool(env_id, 2, seed=3, vector="sync"))
+    assert first == texts(EnvPool(env_id, 2, seed=3, vector="sync"))
+    assert first[0] != texts(EnvPool(env_id, 2, seed=4, vector="sync"))[0]
