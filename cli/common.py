@@ -120,3 +120,8 @@ def stop_on_signals(what: str) -> Iterator[Stop]:
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+def score_text(value: float | None) -> str:
+    """A suite's score for people: "-" while no episode has ended (NaN), else 2 decimals."""
+    return "-" if value is None or value != value else f"{value:.2f}"

@@ -37,9 +37,10 @@ def info(
         if "env_id" not in part:
             typer.echo(f"  part        {part['rows']:,} rows: settings {part['settings']}")
             continue
-        dists = "the level's default" if part["num_dists"] is None else part["num_dists"]
+        dists = "" if part["num_dists"] is None else f", {part['num_dists']} distractors"
+        options = "".join(f", {k}={v}" for k, v in (part.get("env_options") or {}).items())
         typer.echo(f"  part        {part['rows']:,} rows of {part['env_id']}: {part['action_space']} actions "
-                   f"({part['actions']}), distractors {dists}, episode seeds from {part['seed']:,}, "
+                   f"({part['actions']}){dists}{options}, episode seeds from {part['seed']:,}, "
                    f"policy {part['policy']}")
 
 

@@ -79,8 +79,9 @@ def root(
 
 
 def _register() -> None:
-    from cli import annotate, cache, collect, data, models, report, train
+    from cli import annotate, cache, collect, data, envs, models, report, train
 
+    envs.register(app)
     collect.register(app)
     app.add_typer(data.app, name="data")
     models.register(app)

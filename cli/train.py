@@ -22,7 +22,7 @@ EXAMPLE = ("Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --met
 
 
 def _rate(value) -> str:
-    """A success rate for people: "no episode ended yet" where the metrics hold NaN (none ended)."""
+    """A score for people: "no episode ended yet" where the metrics hold NaN or nothing (none ended)."""
     return "no episode ended yet" if value is None or value != value else f"{value:.2f}"
 
 
@@ -114,13 +114,16 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"--frames {cfg.total_steps:,} is not a whole number of rollouts ({cfg.num_envs} envs × "
                        f"{cfg.num_steps} steps = {cfg.batch_size:,} frames each): the run trains "
                        f"{cfg.num_updates * cfg.batch_size:,} frames", err=True)
+        from illm_tools.envs import suite_of
+
+        score_name = suite_of(env).score_name
         last: dict = {}
         coverage: list[float] = []
         with stop_on_signals("the current update, then writing a checkpoint") as stop, \
                 progress(cfg.num_updates * cfg.batch_size, f"train {method}", unit="steps") as advance:
             def on_metrics(m: dict) -> None:
                 last.update(m)
-                fields = {"success": _rate(m.get("charts/success_rate"))}
+                fields = {"score": _rate(m.get("charts/score"))}
                 if cfg.needs_targets:
                     coverage.append(m.get("charts/target_coverage", 0.0))
                     fields["targets"] = f"{coverage[-1]:.2f}"
@@ -139,8 +142,8 @@ def register(app: typer.Typer) -> None:
                        f"`illm train --out {out} --resume`")
             raise typer.Exit(stop.exit_code)
         typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames "
-                   f"({last.get('charts/sps', 0):,.0f} steps/s); last success rate "
-                   f"{_rate(last.get('charts/success_rate'))}{targets} -> {out}")
+                   f"({last.get('charts/sps', 0):,.0f} steps/s); last {score_name} "
+                   f"{_rate(last.get('charts/score'))}{targets} -> {out}")
 
     train.__signature__ = inspect.Signature(_train_parameters())
     app.command(epilog=EXAMPLE)(friendly(train))
@@ -154,8 +157,9 @@ def register(app: typer.Typer) -> None:
         greedy: bool = typer.Option(False, "--greedy", help="Take the most likely action instead of sampling."),
         as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
     ) -> None:
-        """Success rate and mean return of trained policies on the same fresh episodes (a markdown
-        table; --json: a list with one object per run)."""
+        """Score (the suite's: success rate, Crafter score, mean return), success rate and mean return
+        of trained policies on the same fresh episodes (a markdown table; --json: a list with one
+        object per run)."""
         from illm_tools.errors import UsageError
         from illm_tools.rl.run import evaluate as run
 
@@ -165,10 +169,11 @@ def register(app: typer.Typer) -> None:
         if as_json:
             emit_json(results)
             return
-        typer.echo("| run | method | env | trained frames | success rate | mean return | mean length |")
-        typer.echo("|---|---|---|---|---|---|---|")
+        typer.echo("| run | method | env | trained frames | score | success rate | mean return | mean length |")
+        typer.echo("|---|---|---|---|---|---|---|---|")
         for r in results:
-            typer.echo(f"| {r['run']} | {r['method']} | {r['env_id']} | {r['frames']:,} | {r['success_rate']:.3f} | "
-                       f"{r['mean_return']:.3f} | {r['mean_length']:.1f} |")
+            success = "-" if r["success_rate"] != r["success_rate"] else f"{r['success_rate']:.3f}"
+            typer.echo(f"| {r['run']} | {r['method']} | {r['env_id']} | {r['frames']:,} | {r['score']:.3f} "
+                       f"({r['score_name']}) | {success} | {r['mean_return']:.3f} | {r['mean_length']:.1f} |")
         typer.echo(f"\n{episodes} episodes per run (evaluation seed {seed}, the same episodes for every run), actions "
                    + ("greedy (the most likely)" if greedy else "sampled from the policy"))

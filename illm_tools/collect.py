@@ -14,13 +14,17 @@ import pyarrow.compute as pc
 from illm_tools.data.trajectories import TrajectoryWriter
 from illm_tools.errors import UsageError
 
+NO_RENDERER = "none"
+"""The `renderer` of rows from a suite without a text observation (their `obs_text` is empty)."""
+
 
 @dataclass
 class CollectConfig:
     """Everything that determines a collection run."""
 
     env_id: str
-    """Gymnasium id of the environment, e.g. BabyAI-GoToLocal-v0."""
+    """Id of the environment, e.g. BabyAI-GoToLocal-v0, MiniHack-River-Monster-v0, CrafterReward-v1,
+    ALE/MontezumaRevenge-v5 (`illm envs` lists them)."""
     out: Path
     """Folder of the trajectory dataset to write."""
     steps: int = 20_000
@@ -32,9 +36,9 @@ class CollectConfig:
     policy: str = "random"
     """'random', or a training run folder whose policy picks the actions."""
     action_space: str = "auto"
-    """BabyAI action vocabulary: original (3), augmented (6) or irrelevant (9), paper Table 5; auto:
-    original for the GoTo levels (paper Tables 1 and 5), augmented otherwise, or with a trained
-    policy the action space its run was trained with."""
+    """Action vocabulary: BabyAI's original (3), augmented (6) or irrelevant (9), paper Table 5
+    (other suites offer one each); auto: the suite's default (BabyAI: original for the GoTo levels,
+    paper Tables 1 and 5, augmented otherwise), or with a trained policy its run's own."""
     num_dists: int | None = None
     """Number of distractors for levels that take it (paper Table 1); None keeps the level's own."""
     save_raw: bool = True
@@ -46,7 +50,9 @@ class CollectConfig:
     shard_rows: int = 50_000
     """Rows per Arrow shard."""
     env_options: dict = field(default_factory=dict)
-    """Extra keyword options for the environment constructor."""
+    """Options of the environment, its suite's (`--env-option KEY=VALUE`)."""
+    vector: str = "auto"
+    """Vector env: sync (all envs in this process), async (a process each), auto (the suite's)."""
 
     def __post_init__(self) -> None:
         self.out = Path(self.out)
@@ -131,24 +137,24 @@ def make_policy(config: CollectConfig, pool) -> Policy:
 
 def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | None = None) -> dict:
     """Run the collection; returns a summary (rows, episodes, successes, output folder)."""
-    from illm_tools.envs import renderer_of
     from illm_tools.envs.pool import EnvPool
 
     pool = EnvPool(config.env_id, config.num_envs, config.seed, action_space=resolved_action_space(config),
-                   num_dists=config.num_dists, **config.env_options)
+                   num_dists=config.num_dists, vector=config.vector, **config.env_options)
     names = list(pool.action_names)
     check_append(config, names)
     policy = make_policy(config, pool)
-    renderer = renderer_of(config.env_id)
+    renderer = pool.suite.renderer or NO_RENDERER  # Atari: no text; its rows keep the frames only
+    raw_obs = pool.suite.raw_obs
     n = pool.num_envs
     part = {"env_id": config.env_id, "action_space": pool.action_space_name, "actions": len(names),
-            "num_dists": config.num_dists, "seed": config.seed, "num_envs": n, "policy": policy.name}
+            "num_dists": config.num_dists, "seed": config.seed, "num_envs": n, "policy": policy.name,
+            **({"env_options": dict(config.env_options)} if config.env_options else {})}
     writer = TrajectoryWriter(config.out, mode=config.mode, shard_rows=config.shard_rows, part=part)
     next_episode = writer.first_episode_id
     episode_ids = np.arange(next_episode, next_episode + n)
     next_episode += n
-    finished = successes = 0
-    returns: list[float] = []
+    finished: list = []  # the EpisodeStats of the logged episodes
     with writer:
         obs = pool.reset()
         done_steps = 0
@@ -156,8 +162,9 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
             take = min(n, config.steps - done_steps)  # the last batch may log fewer envs
             actions = np.asarray(policy.act(obs), dtype=np.int64)
             result = pool.step(actions)
-            shape = list(obs.images.shape[1:])
-            dtype = str(obs.images.dtype)
+            raws = [raw_obs(obs.images[i]) for i in range(take)] if config.save_raw else []
+            shape = list(raws[0].shape) if raws else None
+            dtype = str(raws[0].dtype) if raws else None
             writer.add({
                 "episode_id": episode_ids[:take].tolist(),
                 "step": obs.steps[:take].tolist(),
@@ -165,7 +172,7 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
                 "mission": obs.missions[:take],
                 "obs_text": obs.texts[:take],
                 "renderer": [renderer] * take,
-                "obs_raw": [obs.images[i].tobytes() for i in range(take)] if config.save_raw else [None] * take,
+                "obs_raw": [raw.tobytes() for raw in raws] if config.save_raw else [None] * take,
                 "obs_shape": [shape] * take if config.save_raw else [None] * take,
                 "obs_dtype": [dtype] * take if config.save_raw else [None] * take,
                 "action": actions[:take].tolist(),
@@ -178,22 +185,24 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
                 "policy": [policy.name] * take,
             })
             done_steps += take
-            for i, ret, _length, success in result.episodes:
+            for episode in result.episodes:
+                i = episode.env_index
                 if i < take:  # an episode whose last step was logged
-                    finished += 1
-                    successes += int(success)
-                    returns.append(float(ret))
+                    finished.append(episode)
                 episode_ids[i] = next_episode
                 next_episode += 1
             obs = result.obs
             if on_progress is not None:
-                on_progress(take, {"episodes": finished, "success_rate": successes / max(finished, 1)})
+                on_progress(take, {"episodes": len(finished), **pool.suite.episode_metrics(finished)})
+    figures = pool.suite.episode_metrics(finished)
     return {
         "out": str(config.out),
         "rows": writer.rows_written,
-        "episodes_finished": finished,
-        "success_rate": successes / max(finished, 1),
-        "mean_return": float(np.mean(returns)) if returns else 0.0,
+        "episodes_finished": len(finished),
+        "success_rate": figures["success_rate"],
+        "score": figures["score"],
+        "score_name": pool.suite.score_name,
+        "mean_return": float(np.mean([e.episode_return for e in finished])) if finished else 0.0,
         "env_id": config.env_id,
         "action_space": pool.action_space_name,
         "policy": policy.name,

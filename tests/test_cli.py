@@ -73,7 +73,7 @@ def test_collect_refuses_existing_output_and_keeps_it(tmp_path):
     assert stats["rows"] == 80 and stats["finished_episodes"] <= stats["episodes"]
     assert [(p["seed"], p["action_space"], p["rows"]) for p in stats["parts"]] == [(0, "original", 40),
                                                                                    (int(hint), "original", 40)]
-    assert "distractors the level's default, episode seeds from 0" in runner.invoke(app, ["data", "info", str(out)]).output
+    assert "(3), episode seeds from 0" in runner.invoke(app, ["data", "info", str(out)]).output
     other = runner.invoke(app, [*args[:2], "BabyAI-GoToObj-v0", *args[3:], "--append", "--seed", "1000"])
     assert other.exit_code == 1 and "--mix-envs" in other.output
     assert runner.invoke(app, [*args[:2], "BabyAI-GoToObj-v0", *args[3:], "--append", "--seed", "1000",

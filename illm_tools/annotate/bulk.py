@@ -84,13 +84,12 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     the cache lacks (`on_plan(stats, states_to_do)`); annotate them, stopping between chunks once
     `max_minutes` have passed or `should_stop()` says so; report the coverage."""
     from illm_tools.cache.store import AnnotationCache
-    from illm_tools.data.trajectories import open_table
+    from illm_tools.data.trajectories import open_table, require_text
     from illm_tools.llm.loading import load_model
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
     table = open_table(config.data, columns=TABLE_COLUMNS + ["renderer"])
-    if table.num_rows and table.column("obs_text").null_count == table.num_rows:
-        raise UsageError(f"{config.data} has no observation text: its env has no text renderer yet")
+    require_text(table, config.data)
     cache = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
     records, env_ids = records_from_table(table, config.history)
     renderers = table.column("renderer").to_pylist()

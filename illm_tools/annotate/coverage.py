@@ -125,7 +125,7 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
     (`heldout_curve`). No model is loaded: the keys need only the model's fingerprint."""
     from illm_tools.cache.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
-    from illm_tools.data.trajectories import open_table
+    from illm_tools.data.trajectories import open_table, require_text
     from illm_tools.errors import UsageError
     from illm_tools.llm.loading import model_fingerprint
     from illm_tools.tasks.prompts import TASKS
@@ -137,6 +137,7 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
     if not histories or min(histories) < 0:
         raise UsageError("--history must be 0 or more (repeat the option for several lengths)")
     table = open_table(data, columns=TABLE_COLUMNS + ["renderer"])
+    require_text(table, data)
     if cache is not None and not (Path(cache) / "manifest.json").is_file():
         raise UsageError(f"no annotation cache at {cache}: check the path, or leave --cache out to see only the costs")
     ann = AnnotationCache(cache) if cache is not None else None

@@ -299,3 +299,16 @@ def info(path: str | Path) -> dict:
         "parts": _parts(_shard_entries(root)),
         "bytes": sum((root / f).stat().st_size for f in files),
     }
+
+
+def require_text(table: pa.Table, where: str | Path) -> None:
+    """Refuse, in one line, a dataset whose rows have no observation text (a suite without a text
+    renderer, e.g. Atari: renderer "none"): the language stages need text."""
+    if not table.num_rows:
+        return
+    textless = pc.or_(pc.equal(table["renderer"], "none"), pc.is_null(table["obs_text"]))
+    if pc.any(textless).as_py():
+        envs = sorted(pc.unique(table.filter(textless)["env_id"]).to_pylist())
+        raise UsageError(f"{where} holds steps of {', '.join(envs)}, which have no text observation: LLM annotation "
+                         "needs text (iLLM on images comes with --mode hop); train these with --method ppo, rnd, "
+                         "ngu or apt")

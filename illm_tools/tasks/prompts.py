@@ -73,9 +73,10 @@ def template_sha(name: str) -> str:
 
 
 def game_of(env_id: str) -> str:
-    """The game named in the prompt's "You are an expert player playing {task}"."""
+    """The game named in the prompt's "You are an expert player playing {task}": the env id's
+    family ("BabyAI", "MiniGrid", "MiniHack"; "Crafter" for CrafterReward-v1 / CrafterNoReward-v1)."""
     family = env_id.split("-", 1)[0]
-    return {"BabyAI": "BabyAI", "MiniGrid": "MiniGrid", "MiniHack": "MiniHack"}.get(family, family)
+    return "Crafter" if family.startswith("Crafter") else family
 
 
 def format_history(record: StateRecord) -> str:
