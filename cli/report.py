@@ -15,12 +15,13 @@ def register(app: typer.Typer) -> None:
     @friendly
     def report(
         runs: list[Path] = typer.Argument(..., help="Run folders written by `illm train`."),
-        every: int = typer.Option(20_000, "--every", help="Frames per curve point (window of the success rate)."),
+        every: int = typer.Option(20_000, "--every", help="Frames per curve point (window of the score)."),
         as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
     ) -> None:
-        """Success rate against frames, mean ± std over seeds, one row per configuration (a markdown
-        table), then what was grouped: runs are seeds of one row when their config.json agree on
-        everything that changes what is learned."""
+        """The suite's score against frames (success rate; Crafter score; Atari's mean return), mean ±
+        std over seeds, one row per configuration (a markdown table), then what was grouped: runs
+        are seeds of one row when their config.json agree on everything that changes what is learned."""
+        from illm_tools.envs import suite_of
         from illm_tools.report.curves import summarise
 
         from illm_tools.errors import UsageError
@@ -44,7 +45,8 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"| {env} | {method} | {len(g['seeds'])} | " + " | ".join(cells) + f" | {cover} |")
         typer.echo("")
         for (env, method), g in groups.items():
-            typer.echo(f"{env}, {method}: seeds {', '.join(map(str, g['seeds'])) or '-'} ({', '.join(g['runs']) or 'no run'})")
+            typer.echo(f"{env}, {method} ({suite_of(env).score_name}): seeds {', '.join(map(str, g['seeds'])) or '-'} "
+                       f"({', '.join(g['runs']) or 'no run'})")
             for run, last in g["short_runs"].items():
                 typer.echo(f"  {run} left out: trained for {last:,} frames, too short for a point at --every "
                            f"{every:,} (a run gives a last, shorter window once it passes half of it)")

@@ -1,8 +1,11 @@
-"""Learning curves from run folders: success rate against frames, grouped by method over seeds.
+"""Learning curves from run folders: the suite's score against frames, grouped by method over seeds.
 
-Each run's `metrics.csv` gives, per update, the success rate of the episodes that finished in it
-and how many there were; a curve point at frame F is the episode-weighted success rate over the
-window (F - every, F].
+Each run's `metrics.csv` gives, per update, the score of the episodes that finished in it (the
+suite's: success rate for BabyAI and MiniHack, Crafter score, Atari's mean return; runs written
+before the score column existed: their success rate) and how many there were; a curve point at
+frame F is the episode-weighted mean over the window (F - every, F]. For Crafter that is the mean
+of per-update Crafter scores, close to but not exactly the score of the window's episodes taken
+together (a geometric mean of success rates does not average).
 
 Grouping. Runs are seeds of one configuration when their config.json agree on everything but the
 settings that do not change what is learned (`NOT_LEARNED`: seed, folders, threads, resume). A
@@ -74,6 +77,12 @@ def read_metrics_csv(path: Path) -> list[dict]:
     return rows
 
 
+def _score(row: dict) -> float:
+    """A row's score (its success rate in runs written before the score column existed)."""
+    value = row.get("score") or row.get("success_rate")
+    return float(value) if value else 0.0
+
+
 def load_curve(run_dir: Path, every: int) -> Curve:
     from illm_tools.rl.checkpoint import read_config
 
@@ -83,7 +92,7 @@ def load_curve(run_dir: Path, every: int) -> Curve:
     rows = read_metrics_csv(csv_path)
     steps = np.array([int(r["global_step"]) for r in rows])
     eps = np.array([float(r["episodes"] or 0) for r in rows])
-    succ = np.array([float(r["success_rate"]) if r["success_rate"] else 0.0 for r in rows])
+    succ = np.array([_score(r) for r in rows])
     frames, points = [], []
     last_step = int(steps.max(initial=0))
     ends = list(range(every, last_step + 1, every))

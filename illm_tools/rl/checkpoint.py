@@ -45,7 +45,7 @@ CSV_COLUMNS = ("global_step", "update", "episodic_return", "episodic_length", "s
                "live_annotations", "no_target_steps", "episodes", "learning_rate", "policy_loss",
                "value_loss", "value_loss_int", "entropy", "approx_kl", "clipfrac", "explained_variance",
                "distill_action", "distill_summary", "live_queue", "adv_ext_abs", "adv_int_abs",
-               "adv_int_ext_ratio", "return_ext", "return_int", "intrinsic_reward")
+               "adv_int_ext_ratio", "return_ext", "return_int", "intrinsic_reward", "score")
 # (a bonus's own scalars, e.g. rnd_error, ngu_lifelong, ellm_paid_steps, are in metrics.jsonl under charts/)
 
 
