@@ -26,6 +26,9 @@ def register(app: typer.Typer) -> None:
         max_minutes: float = typer.Option(None, "--max-minutes", help="Stop after M minutes, keeping every finished chunk; run again to go on."),
         dtype: str = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16."),
         quant: str = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit."),
+        mode: str = typer.Option("obs", "--mode", help="obs: the states' text | hop: the raw observations translated into the LLM's embedding space (iLLM(hop); any suite, Atari included)."),
+        hop_seed: int = typer.Option(0, "--hop-seed", help="hop: seed of the translation's random projection (the run's --hop-seed)."),
+        hop_beta: float = typer.Option(1.0, "--hop-beta", help="hop: inverse temperature of the Hopfield retrieval (the run's --hop-beta)."),
     ) -> None:
         """Annotate every distinct state once: next-action log-prob ranking and 64-token summary with embedding
         (and, with --tasks goal, the goals the LLM suggests: ELLM's)."""
@@ -33,7 +36,7 @@ def register(app: typer.Typer) -> None:
 
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()),
                                 history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
-                                dtype=dtype, quant=quant)
+                                dtype=dtype, quant=quant, mode=mode, hop_seed=hop_seed, hop_beta=hop_beta)
         with stop_on_signals("the chunk in progress (written whole)") as stop, \
                 progress(0, f"annotate {model}", unit="states") as advance:
             def on_plan(stats, todo: int) -> None:
@@ -66,7 +69,8 @@ def register(app: typer.Typer) -> None:
         if left:
             typer.echo(f"left to annotate in this dataset: {left:,} states ({1 - result.covered_step_share:.0%} of its "
                        f"steps); {'run again to go on' if stats.stopped_early else 'a larger --limit takes the next ones'}")
-        typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
-                   f"{config.data} --cache {cache} --history {config.history}` estimates how many")
+        if mode == "obs":
+            typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
+                       f"{config.data} --cache {cache} --history {config.history}` estimates how many")
         if stop.requested and stats.stopped_early:
             raise typer.Exit(stop.exit_code)

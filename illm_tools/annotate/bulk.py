@@ -39,6 +39,13 @@ class AnnotateConfig:
     """Compute dtype (bfloat16 is the fast path on CPUs with fast bf16; part of every cache key)."""
     quant: str = "none"
     """bitsandbytes quantisation: none, 4bit or 8bit."""
+    mode: str = "obs"
+    """obs: the states' text; hop: the raw observations translated into the LLM's embedding space
+    (iLLM(hop), `illm_tools.hop`; any suite, Atari included)."""
+    hop_seed: int = 0
+    """hop: seed of the translation's random projection (the training run's --hop-seed)."""
+    hop_beta: float = 1.0
+    """hop: inverse temperature of the Hopfield retrieval (the training run's --hop-beta)."""
     chunk: int = 32
     """States per written shard: a killed run loses at most one chunk, and `max_minutes` is
     checked between chunks (a chunk takes about 20 s on 2 CPU cores at history 0)."""
@@ -55,6 +62,10 @@ class AnnotateConfig:
             raise UsageError("--batch-size and --chunk must be positive")
         if self.limit is not None and self.limit < 0:
             raise UsageError(f"--limit must be 0 or more, got {self.limit}")
+        if self.mode not in ("obs", "hop"):
+            raise UsageError(f"--mode must be obs or hop, got {self.mode!r}")
+        if self.mode == "hop" and "goal" in self.tasks:
+            raise UsageError("the goal task has no hop form: annotate hop data with --tasks action,summary")
         if self.max_minutes is not None and self.max_minutes <= 0:
             raise UsageError(f"--max-minutes must be positive, got {self.max_minutes}")
 
@@ -88,11 +99,19 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     from illm_tools.llm.loading import load_model
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
-    table = open_table(config.data, columns=TABLE_COLUMNS + ["renderer"])
-    require_text(table, config.data)
-    cache = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
-    records, env_ids = records_from_table(table, config.history)
-    renderers = table.column("renderer").to_pylist()
+    if config.mode == "hop":
+        from illm_tools.hop.context import RAW_COLUMNS, hop_records_from_table, hop_renderer
+
+        table = open_table(config.data, columns=RAW_COLUMNS)
+        cache = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
+        records, env_ids = hop_records_from_table(table, config.history)
+        renderers = [hop_renderer(config.hop_seed, config.hop_beta, config.history + 1)] * len(records)
+    else:
+        table = open_table(config.data, columns=TABLE_COLUMNS + ["renderer"])
+        require_text(table, config.data)
+        cache = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
+        records, env_ids = records_from_table(table, config.history)
+        renderers = table.column("renderer").to_pylist()
     lm = load_model(config.model, dtype=config.dtype, quant=config.quant)
     annotator = Annotator(lm, cache, model=config.model, tasks=config.tasks, history_len=config.history,
                           layout=config.layout, batch_size=config.batch_size, chunk=config.chunk)

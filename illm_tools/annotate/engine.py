@@ -38,6 +38,8 @@ class Job:
     key: str
     prompt: Prompt
     builder: PromptBuilder
+    record: StateRecord | None = None
+    """The state (a hop state's arrays ride on it: `illm_tools.hop.context.HopRecord`)."""
 
 
 @dataclass
@@ -93,6 +95,7 @@ class Annotator:
         self.model_fingerprint = fingerprint_hash(lm.fingerprint)
         self._builders: dict[tuple[str, str], PromptBuilder] = {}
         self._neutral: dict[tuple[str, ...], list[float]] = {}
+        self._hop: dict[tuple, object] = {}
 
     def builder(self, env_id: str, renderer: str) -> PromptBuilder:
         key = (env_id, renderer)
@@ -127,7 +130,7 @@ class Annotator:
                     continue
                 present.add(key)  # a key shared by two states (e.g. one summary prompt) is planned once
                 history = format_history(record) if history is None else history
-                jobs.append(Job(key, builder.render(task, record, history), builder))
+                jobs.append(Job(key, builder.render(task, record, history), builder, record))
             if jobs:
                 plan.append(jobs)
         return plan
@@ -184,6 +187,10 @@ class Annotator:
         goal: list[Job] = []
         pairs: list[tuple[Job, Job]] = []
         share = self.layout == "shared" and can_share_prefix(self.lm)
+        hop = [jobs for jobs in states if jobs[0].builder.renderer.startswith("hop@")]
+        if hop:
+            rows += self._annotate_hop(hop)
+            states = [jobs for jobs in states if not jobs[0].builder.renderer.startswith("hop@")]
         for jobs in states:
             by_task = {j.prompt.task: j for j in jobs}
             goal += [j for j in jobs if j.prompt.task == "goal"]
@@ -210,6 +217,77 @@ class Annotator:
             gens = generate(self.lm, [j.prompt.text for j in goal], max_new_tokens=GOAL_TOKENS,
                             batch_size=self.batch_size)
             rows += [self._goal_row(j, g) for j, g in zip(goal, gens)]
+        return rows
+
+    def hop_context(self, renderer: str, obs_dim: int, num_actions: int):
+        """The `HopContext` (translation over this model's input embeddings) of a hop renderer."""
+        from illm_tools.hop.context import HopContext, parse_hop_renderer
+
+        settings = parse_hop_renderer(renderer)
+        key = (obs_dim, num_actions, settings["seed"], settings["beta"])
+        if key not in self._hop:
+            self._hop[key] = HopContext(self.lm, obs_dim, num_actions, seed=settings["seed"], beta=settings["beta"])
+        return self._hop[key]
+
+    def _annotate_hop(self, states: list[list[Job]]) -> list[dict]:
+        """iLLM(hop)'s language tasks: each prompt is its template with the translated window
+        spliced in as input embeddings where the written history would stand (B.2's prompts, D.7).
+        Prompts of one length run as one batch; action candidates are scored after the prompt,
+        summaries decoded greedily from it (64 tokens, mean last hidden state as the embedding)."""
+        import torch
+
+        from illm_tools.llm.generation import Generation, greedy_from
+        from illm_tools.llm.scoring import CandidateScores, extend, plan_state, score_continuations
+
+        marker = "\x00HISTORY\x00"
+        embed = self.lm.model.get_input_embeddings()
+        bos = len(self.lm.bos_ids)
+        items = []  # (job, full embeddings [L, d], plan or None)
+        for jobs in states:
+            record = jobs[0].record
+            if not getattr(record, "frames", ()):
+                raise UsageError("a hop state reached the annotator without its observations (a HopRecord is needed)")
+            if any(j.prompt.task == "goal" for j in jobs):
+                raise UsageError("the goal task has no hop form: annotate hop data with --tasks action,summary")
+            context = self.hop_context(jobs[0].builder.renderer, int(np.asarray(record.frames[0]).size),
+                                       len(record.valid_actions))
+            window = context.window_embeddings(record.frames, record.prev_actions)
+            for job in jobs:
+                head, tail = job.builder.render(job.prompt.task, record, marker).text.split(marker)
+                plan = None
+                if job.prompt.task == "action":
+                    plan = plan_state(self.lm, tail, list(job.prompt.candidates))
+                    tail_ids = plan.prefix[bos:]
+                else:
+                    tail_ids = self.lm.tokenizer(tail, add_special_tokens=False)["input_ids"]
+                with torch.inference_mode():
+                    parts = [embed(torch.as_tensor(ids, dtype=torch.long, device=self.lm.device)).float().cpu()
+                             for ids in (self.lm.encode(head), tail_ids) if ids]
+                full = torch.cat([parts[0], window, *parts[1:]]) if len(parts) == 2 else torch.cat([parts[0], window])
+                items.append((job, full, plan))
+        rows: list[dict] = []
+        by_length: dict[int, list[int]] = {}
+        for n, (_job, full, _plan) in enumerate(items):
+            by_length.setdefault(int(full.shape[0]), []).append(n)
+        pending = []
+        for length, members in sorted(by_length.items()):
+            for start in range(0, len(members), self.batch_size):
+                batch = [items[n] for n in members[start:start + self.batch_size]]
+                state = extend(self.lm, [], embeds=torch.stack([full for _, full, _ in batch]))
+                actions = [i for i, (job, _, _) in enumerate(batch) if job.prompt.task == "action"]
+                if actions:
+                    scored = score_continuations(self.lm, state.select(actions),
+                                                 [batch[i][2].continuations for i in actions],
+                                                 [batch[i][2].skip for i in actions])
+                    for i, logprobs in zip(actions, scored):
+                        rows.append(self._action_row(batch[i][0], CandidateScores.from_logprobs(logprobs)))
+                summaries = [i for i, (job, _, _) in enumerate(batch) if job.prompt.task == "summary"]
+                if summaries:
+                    pending.append(([batch[i][0] for i in summaries], state.select(summaries)))
+        for jobs, state in pending:
+            for job, (ids, finished, emb) in zip(jobs, greedy_from(self.lm, state, SUMMARY_TOKENS)):
+                text = self.lm.tokenizer.decode(ids, skip_special_tokens=True)
+                rows.append(self._summary_row(job, Generation(text, ids, finished, emb)))
         return rows
 
     def neutral_scores(self, candidates: tuple[str, ...]) -> list[float]:

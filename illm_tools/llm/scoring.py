@@ -150,12 +150,16 @@ def has_sliding_window(lm: LoadedModel) -> bool:
 
 
 def extend(lm: LoadedModel, rows: Sequence[Sequence[int]], past: PrefixState | None = None, *,
-           hidden: bool = False) -> PrefixState:
+           hidden: bool = False, embeds: Any = None) -> PrefixState:
     """Run `rows` (one token list per batch row, left-padded here) after `past` and return the
-    new state; `past` (of batch 1 or len(rows)) is left untouched and can be extended again."""
+    new state; `past` (of batch 1 or len(rows)) is left untouched and can be extended again.
+    `embeds` (float [B, L, d], every row L real positions) runs input embeddings instead of tokens
+    (iLLM(hop)'s translated observations; `rows` is then ignored)."""
     import torch
     from transformers import DynamicCache
 
+    if embeds is not None:
+        rows = [[lm.pad_id] * int(embeds.shape[1])] * int(embeds.shape[0])  # the shape; ids unused
     if past is not None:
         if past.batch_size not in (1, len(rows)):
             raise ValueError(f"past has {past.batch_size} rows, got {len(rows)}")
@@ -176,8 +180,10 @@ def extend(lm: LoadedModel, rows: Sequence[Sequence[int]], past: PrefixState | N
     # view, which the head then multiplies as a batched matmul over a copy of its weight per row
     # (≈ 100x slower on CPU for a 49k vocabulary); the index gathers a contiguous [B, 1, H] first
     last = torch.tensor([ids.shape[1] - 1], device=lm.device)
+    inputs = {"input_ids": ids} if embeds is None else {
+        "inputs_embeds": embeds.to(device=lm.device, dtype=lm.model.get_input_embeddings().weight.dtype)}
     with torch.inference_mode():
-        out = lm.model(input_ids=ids, attention_mask=full_mask, position_ids=position_ids,
+        out = lm.model(**inputs, attention_mask=full_mask, position_ids=position_ids,
                        past_key_values=cache, use_cache=True, logits_to_keep=last,
                        output_hidden_states=hidden)
     logprobs = torch.log_softmax(out.logits[:, -1].float(), dim=-1)

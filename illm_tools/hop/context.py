@@ -1,0 +1,203 @@
+"""Hop states: the translated window of recent steps, its records (cache keys) and Z_h.
+
+A hop state is the window of the last K = history_len + 1 steps of one episode (fewer near its
+start), each step being (raw observation, previous action). `HopRecord` is a `StateRecord` whose texts name those steps by
+content ("<sha256 of the raw observation's dtype, shape and bytes> after <previous action>"), so
+the cache's keys (built from the rendered prompt and the setup, `illm_tools.tasks.prompts`) change
+with the observations and actions and with nothing else; the setup's renderer field,
+`hop_renderer`, carries the projection's seed, beta and the window, and the model fingerprint is
+in every key already. The arrays ride along (not compared, not hashed) for the LLM calls.
+
+`HopTracker` builds these records step by step during a rollout, as `HistoryTracker` builds text
+records, and keeps each step's translation; `HopContext` turns the windows into Z_h, the LLM's
+last hidden state after reading the translated steps as input embeddings (no prompt around them),
+which the policy reads beside its own torso. Both run every rollout step: on a CPU this costs one
+forward pass of the LLM over N windows of at most K positions per step (README: measured cost).
+"""
+from __future__ import annotations
+
+import hashlib
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from illm_tools.hop.translate import FrozenHopfield
+from illm_tools.tasks.state import StateRecord
+
+HOP_VERSION = 1
+"""Version of the hop record format and translation; part of every hop cache key (bump on change)."""
+START = "start"
+"""The previous action of an episode's first step."""
+
+
+def hop_renderer(seed: int, beta: float, window: int) -> str:
+    """The `renderer` field of hop keys: the translation's settings (the model is in the key already)."""
+    return f"hop@{HOP_VERSION}:seed={int(seed)}:beta={float(beta)!r}:window={int(window)}"
+
+
+def parse_hop_renderer(renderer: str) -> dict | None:
+    """{"seed", "beta", "window"} of a hop renderer string, None for a text renderer."""
+    if not renderer.startswith("hop@"):
+        return None
+    fields = dict(part.split("=", 1) for part in renderer.split(":")[1:])
+    return {"seed": int(fields["seed"]), "beta": float(fields["beta"]), "window": int(fields["window"])}
+
+
+def digest(raw: np.ndarray) -> str:
+    """Content name of one raw observation (dtype, shape and bytes)."""
+    h = hashlib.sha256(f"{raw.dtype.str}{raw.shape}".encode())
+    h.update(np.ascontiguousarray(raw).tobytes())
+    return h.hexdigest()[:24]
+
+
+def step_name(raw: np.ndarray, prev_action: str | None) -> str:
+    return f"{digest(raw)} after {prev_action or START}"
+
+
+@dataclass(frozen=True)
+class HopRecord(StateRecord):
+    """A `StateRecord` of a hop state; `frames` and `prev_actions` (oldest first, the current step
+    last; -1: none) are what the LLM reads, not part of equality or hashing."""
+
+    frames: tuple = field(default=(), compare=False, hash=False, repr=False)
+    prev_actions: tuple = field(default=(), compare=False, hash=False, repr=False)
+
+
+RAW_COLUMNS = ["episode_id", "step", "env_id", "mission", "obs_raw", "obs_shape", "obs_dtype", "action",
+               "valid_actions"]
+"""The trajectory columns hop records are built from."""
+
+
+def hop_records_from_table(table, history_len: int) -> tuple[list[HopRecord], list[str]]:
+    """One hop record per row of a trajectory table (any row order; the window rebuilt from the
+    preceding rows of the same episode, as `HopTracker` builds it in training), and each row's env
+    id, in the table's row order. Rows without raw observations (collected with --no-raw) are
+    refused in one line."""
+    from illm_tools.errors import UsageError
+
+    cols = {name: table.column(name).to_pylist() for name in RAW_COLUMNS}
+    if any(raw is None for raw in cols["obs_raw"]):
+        raise UsageError("the dataset has rows without raw observations (collected with --no-raw): --mode hop "
+                         "translates the observations themselves; collect again without --no-raw")
+    order = sorted(range(table.num_rows), key=lambda i: (cols["episode_id"][i], cols["step"][i]))
+    records: list[HopRecord | None] = [None] * table.num_rows
+    trackers: dict[tuple[str, ...], HopTracker] = {}
+    episode = prev_step = None
+    for i in order:
+        actions = tuple(cols["valid_actions"][i])
+        tracker = trackers.setdefault(actions, HopTracker(1, history_len, actions))
+        ep, step = cols["episode_id"][i], cols["step"][i]
+        if ep != episode or step != (prev_step or 0) + 1:
+            tracker.reset()
+        episode, prev_step = ep, step
+        raw = np.frombuffer(cols["obs_raw"][i], dtype=np.dtype(cols["obs_dtype"][i])).reshape(cols["obs_shape"][i])
+        (records[i],) = tracker.records([cols["mission"][i]], [raw])
+        tracker.push([int(cols["action"][i])], [False])
+    return records, cols["env_id"]  # type: ignore[return-value]
+
+
+class HopTracker:
+    """Per-env window of the last `history_len` steps (raw observation, previous action, action
+    taken, translation) before the current one. `records()` before stepping (it also holds each
+    env's current step), `HopContext.step()` to translate it, `push()` after stepping."""
+
+    def __init__(self, num_envs: int, history_len: int, valid_actions: Sequence[str]):
+        if history_len < 0:
+            raise ValueError(f"--history must be 0 or more, got {history_len}")
+        self.valid_actions = tuple(valid_actions)
+        self._steps: list[deque] = [deque(maxlen=history_len) for _ in range(num_envs)]
+        self._prev = [-1] * num_envs  # previous action of each env's current step
+        self._pending: list[np.ndarray | None] = [None] * num_envs
+        self._pending_x: dict[int, torch.Tensor] = {}
+
+    def _name(self, raw: np.ndarray, prev: int) -> str:
+        return step_name(raw, self.valid_actions[prev] if prev >= 0 else None)
+
+    def records(self, missions: Sequence[str], raws: Sequence[np.ndarray]) -> list[HopRecord]:
+        out = []
+        for i, (mission, raw) in enumerate(zip(missions, raws)):
+            raw = np.array(raw, copy=True)
+            self._pending[i] = raw
+            past = list(self._steps[i])
+            history = tuple((self._name(r, p), self.valid_actions[a]) for r, p, a, _x in past)
+            out.append(HopRecord(mission, history, self._name(raw, self._prev[i]), self.valid_actions,
+                                 frames=tuple(r for r, *_ in past) + (raw,),
+                                 prev_actions=tuple(p for _r, p, *_ in past) + (self._prev[i],)))
+        return out
+
+    def windows(self) -> list[list[tuple[np.ndarray, int, torch.Tensor | None]]]:
+        """Each env's window, oldest first, ending with its current step: (raw, previous action,
+        translation, None where not yet computed)."""
+        return [[(r, p, x) for r, p, _a, x in steps] + [(self._pending[i], self._prev[i], self._pending_x.get(i))]
+                for i, steps in enumerate(self._steps)]
+
+    def set_translation(self, i: int, x: torch.Tensor) -> None:
+        """Remember env i's current step's translation (kept with the step once pushed)."""
+        self._pending_x[i] = x
+
+    def push(self, actions: Sequence[int], ends: Sequence[bool]) -> None:
+        for i, (action, end) in enumerate(zip(actions, ends)):
+            if end:
+                self._steps[i].clear()
+                self._prev[i] = -1
+            else:
+                self._steps[i].append((self._pending[i], self._prev[i], int(action), self._pending_x.get(i)))
+                self._prev[i] = int(action)
+        self._pending_x = {}
+
+    def reset(self) -> None:
+        for i, steps in enumerate(self._steps):
+            steps.clear()
+            self._prev[i] = -1
+        self._pending_x = {}
+
+
+class HopContext:
+    """Translation and Z_h for a run: the frozen Hopfield layer over the LLM's input embeddings and
+    the LLM itself (frozen, inference only)."""
+
+    def __init__(self, lm, obs_dim: int, num_actions: int, *, seed: int, beta: float):
+        self.lm = lm
+        self.translator = FrozenHopfield(lm.model.get_input_embeddings().weight, obs_dim, num_actions,
+                                         seed=seed, beta=beta)
+        self.hidden_size = int(lm.hidden_size)
+
+    def translate(self, raws: Sequence[np.ndarray], prev_actions: Sequence[int]) -> torch.Tensor:
+        """[B, d] translations of (raw observation, previous action) pairs."""
+        obs = torch.as_tensor(np.stack([np.asarray(r) for r in raws]))
+        return self.translator(obs, torch.as_tensor(list(prev_actions), dtype=torch.long))
+
+    def window_embeddings(self, frames: Sequence[np.ndarray], prev_actions: Sequence[int]) -> torch.Tensor:
+        """[L, d] translated steps of one window, oldest first (what the language tasks read)."""
+        return self.translate(frames, prev_actions)
+
+    @torch.no_grad()
+    def z_h(self, windows: Sequence[torch.Tensor]) -> torch.Tensor:
+        """float32 [B, H]: the LLM's last hidden state after reading each window [L_i, d] as input
+        embeddings; windows of one length run as one batch (no padding)."""
+        out = torch.zeros(len(windows), self.hidden_size)
+        by_length: dict[int, list[int]] = {}
+        for i, w in enumerate(windows):
+            by_length.setdefault(int(w.shape[0]), []).append(i)
+        dtype = self.lm.model.get_input_embeddings().weight.dtype
+        for length, rows in by_length.items():
+            embeds = torch.stack([windows[i] for i in rows]).to(dtype=dtype, device=self.lm.device)
+            result = self.lm.model(inputs_embeds=embeds, output_hidden_states=True, use_cache=False,
+                                   logits_to_keep=1)
+            out[rows] = result.hidden_states[-1][:, -1].float().cpu()
+        return out
+
+    def step(self, tracker: HopTracker) -> torch.Tensor:
+        """Z_h of every env's current window (after `tracker.records`), translating only the new
+        step of each and remembering it for the next steps."""
+        windows = tracker.windows()
+        new = self.translate([w[-1][0] for w in windows], [w[-1][1] for w in windows])
+        stacked = []
+        for i, win in enumerate(windows):
+            tracker.set_translation(i, new[i])
+            stacked.append(torch.stack([x if x is not None else self.translate([r], [p])[0] for r, p, x in win[:-1]]
+                                       + [new[i]]))
+        return self.z_h(stacked)

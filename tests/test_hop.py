@@ -1,0 +1,134 @@
+"""iLLM(hop): the Hopfield translation, hop records and keys, the language tasks on spliced
+embeddings, Z_h in the policy, and hop runs that train, resume and evaluate (tiny random LLM)."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from cli.main import app
+from illm_tools.hop.context import HopContext, HopTracker, hop_records_from_table, hop_renderer
+from illm_tools.hop.translate import FrozenHopfield
+from illm_tools.tasks.prompts import PromptBuilder
+
+runner = CliRunner()
+pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")
+ACTIONS = ("left", "right", "forward")
+
+
+def ok(args):
+    result = runner.invoke(app, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def test_translation_is_deterministic_for_a_seed_and_lies_in_the_span_of_the_embeddings():
+    emb = torch.randn(50, 8, generator=torch.Generator().manual_seed(1))
+    obs, prev = torch.randint(0, 255, (5, 12)), torch.tensor([-1, 0, 1, 2, 0])
+    a = FrozenHopfield(emb, 12, 3, seed=7)(obs, prev)
+    assert torch.equal(a, FrozenHopfield(emb, 12, 3, seed=7)(obs, prev))
+    assert not torch.allclose(a, FrozenHopfield(emb, 12, 3, seed=8)(obs, prev))
+    assert not torch.allclose(a, FrozenHopfield(emb, 12, 3, seed=7, beta=20.0)(obs, prev))
+    weights = torch.linalg.lstsq(emb.T, a.T).solution  # x = E^T w: in the span of E's rows
+    assert torch.allclose(emb.T @ weights, a.T, atol=1e-4)
+    lo, hi = emb.min(0).values, emb.max(0).values  # a convex combination stays inside the box of E's rows
+    assert bool(((a >= lo - 1e-5) & (a <= hi + 1e-5)).all())
+    assert not torch.allclose(FrozenHopfield(emb, 12, 3, seed=7)(obs, torch.tensor([0] * 5)), a)  # actions matter
+
+
+def _records(frames, history_len=1):
+    tracker, out = HopTracker(1, history_len, ACTIONS), []
+    for frame, action in frames:
+        (record,) = tracker.records(["get out"], [frame])
+        out.append(record)
+        tracker.push([action], [False])
+    return out
+
+
+def test_hop_keys_change_with_the_observations_and_settings_and_nothing_else():
+    frame = np.zeros((4, 4), np.uint8)
+    other = frame.copy()
+    other[3, 3] = 1
+    builder = PromptBuilder(env_id="ALE/Pong-v5", renderer=hop_renderer(0, 1.0, 2), model_fingerprint="fp",
+                            model="m", history_len=1)
+    base = builder.state_keys(_records([(frame, 0), (frame, 1)])[1])
+    assert base == builder.state_keys(_records([(frame.copy(), 0), (frame.copy(), 1)])[1])  # content, not identity
+    assert base != builder.state_keys(_records([(frame, 0), (other, 1)])[1])  # the current observation
+    assert base != builder.state_keys(_records([(other, 0), (frame, 1)])[1])  # the window's older step
+    assert base != builder.state_keys(_records([(frame, 2), (frame, 1)])[1])  # the previous action
+    for renderer in (hop_renderer(1, 1.0, 2), hop_renderer(0, 2.0, 2)):  # projection seed, beta
+        changed = PromptBuilder(env_id="ALE/Pong-v5", renderer=renderer, model_fingerprint="fp", model="m",
+                                history_len=1)
+        assert changed.state_keys(_records([(frame, 0), (frame, 1)])[1]) != base
+    assert PromptBuilder(env_id="ALE/Pong-v5", renderer=hop_renderer(0, 1.0, 2), model_fingerprint="fp2",
+                         model="m", history_len=1).state_keys(_records([(frame, 0), (frame, 1)])[1]) != base
+
+
+def test_z_h_batches_equal_single_windows_and_records_carry_the_window(tiny_lm):
+    context = HopContext(tiny_lm, 16, 3, seed=0, beta=1.0)
+    tracker = HopTracker(2, 2, ACTIONS)
+    rng = np.random.default_rng(0)
+    zs = []
+    for t in range(4):
+        frames = [rng.integers(0, 255, 16, dtype=np.uint8) for _ in range(2)]
+        records = tracker.records(["go", "go"], frames)
+        assert len(records[0].frames) == min(t, 2) + 1 and records[0].prev_actions[-1] == (-1 if t == 0 else 1)
+        zs.append(context.step(tracker))
+        tracker.push([1, 1], [False, t == 1])
+    assert zs[-1].shape == (2, tiny_lm.hidden_size)
+    window = context.window_embeddings(records[0].frames, records[0].prev_actions)
+    alone = context.z_h([window])
+    assert torch.allclose(alone[0], zs[-1][0], atol=1e-5)
+
+
+def test_hop_annotate_train_resume_eval_on_minigrid_and_atari(tmp_path, tiny_lm):
+    model = tiny_lm.spec.path
+    for env_id, extra in (("MiniGrid-MultiRoom-N6-v0", []),
+                          ("ALE/Pong-v5", ["--env-option", "max_num_frames_per_episode=400"])):
+        name = env_id.replace("/", "-")
+        traj, ann = tmp_path / f"traj-{name}", tmp_path / f"ann-{name}"
+        ok(["collect", "--env", env_id, "--steps", 48, "--num-envs", 2, "--out", traj, *extra])
+        out = ok(["annotate", traj, "--cache", ann, "--model", model, "--dtype", "float32", "--mode", "hop",
+                  "--history", 1, "--limit", 5, "--batch-size", 4])
+        assert "annotated 5 states (10 rows" in out
+        rows = json.loads(ok(["cache", "info", ann, "--json"]))
+        assert rows["tasks"] == {"action": 5, "summary": 5}
+        train = ["train", "--env", env_id, "--mode", "hop", "--method", "illm", "--cache", ann, "--model", model,
+                 "--dtype", "float32", "--history", 1, "--num-envs", 2, "--num-steps", 16, "--live-budget", 2,
+                 "--live-mode", "sync", "--out", tmp_path / f"run-{name}", *extra]
+        cold = ["train", "--env", env_id, "--mode", "hop", "--method", "illm", "--cache", ann, "--model", model,
+                "--dtype", "float32", "--history", 1, "--num-envs", 2, "--num-steps", 4, "--live-budget", 0,
+                "--frames", 8, "--out", tmp_path / f"cold-{name}", *extra]
+        ok(cold)  # the collection's episodes start from the same seeds: their first states are cached
+        with open(tmp_path / f"cold-{name}" / "metrics.csv", newline="") as fh:
+            assert float(next(csv.DictReader(fh))["cache_hit_rate"]) > 0  # the trainer's hop keys are annotate's
+        ok([*train, "--frames", 32])
+        ok([*train, "--frames", 64, "--resume"])
+        with open(tmp_path / f"run-{name}" / "metrics.csv", newline="") as fh:
+            metrics = list(csv.DictReader(fh))
+        assert [int(r["global_step"]) for r in metrics] == [32, 64]
+        assert all(float(r["live_annotations"]) > 0 or float(r["target_coverage"]) > 0 for r in metrics)
+        (result,) = json.loads(ok(["eval", tmp_path / f"run-{name}", "--episodes", 2, "--json"]))
+        assert result["episodes"] == 2
+
+
+def test_hop_records_from_a_table_match_the_trainer_s(tmp_path):
+    from illm_tools.collect import CollectConfig, collect
+    from illm_tools.data.trajectories import open_table
+    from illm_tools.hop.context import RAW_COLUMNS
+
+    collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=tmp_path / "t", steps=30, num_envs=1))
+    table = open_table(tmp_path / "t", columns=[*RAW_COLUMNS, "terminated", "truncated"])
+    records, _ = hop_records_from_table(table, 2)
+    tracker = HopTracker(1, 2, tuple(table["valid_actions"][0].as_py()))
+    raws = [np.frombuffer(r, np.uint8).reshape(s) for r, s in zip(table["obs_raw"].to_pylist(),
+                                                                   table["obs_shape"].to_pylist())]
+    for i, (raw, action) in enumerate(zip(raws, table["action"].to_pylist())):
+        (mine,) = tracker.records([table["mission"][i].as_py()], [raw])
+        assert mine == records[i]
+        tracker.push([action], [bool(table["terminated"][i].as_py() or table["truncated"][i].as_py())])
