@@ -11,7 +11,13 @@ embeddings (the trainer's speed does not depend on what the LLM said); training 
 given the seed, so a second pass with the same seed meets exactly the same states and finds
 every one of them in the cache (its cache hit rate is printed). Only that second pass is timed.
 
+With `--mode hop` (iLLM(hop), `illm_tools.hop`) it measures instead what the hop mode costs per
+step, in the same run: ppo on the observation alone, ppo reading Z_h (the embedded SmolLM2-135M
+run over every env's translated window at every step), and illm in hop mode with every target
+cached (as above; the trainer's LLM computes Z_h, the targets are synthetic).
+
     .venv/bin/python benchmarks/train.py [--env BabyAI-GoToLocal-v0] [--frames 20480]
+    .venv/bin/python benchmarks/train.py --mode hop --env MiniGrid-MultiRoom-N6-v0 --frames 2048 --num-steps 32
 """
 
 from __future__ import annotations
@@ -25,7 +31,6 @@ from pathlib import Path
 
 from illm_tools.annotate.synthetic import SyntheticAnnotator, SyntheticLM
 from illm_tools.cache.store import AnnotationCache
-from illm_tools.envs import renderer_of
 from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.live import SyncLive
 from illm_tools.rl.ppo import Trainer, make_pool
@@ -44,7 +49,7 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
         cache = AnnotationCache(cache_dir)
         annotator = SyntheticAnnotator(SyntheticLM("synthetic-benchmark", DIM), cache, model="synthetic", history_len=cfg.history_len,
                                        chunk=10_000)
-        builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
+        builder = annotator.builder(cfg.env_id, cfg.renderer)
         live = SyncLive(annotator, cfg.env_id, builder.renderer, cfg.live_budget) if cfg.live_budget else None
         provider = CachedTargets(cache, builder, calibration="sum", num_actions=len(pool.action_names),
                                  embedding_dim=DIM, live=live)
@@ -72,6 +77,8 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=16)
     parser.add_argument("--num-steps", type=int, default=128)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--mode", choices=("obs", "hop"), default="obs", help="hop: the cost of iLLM(hop) instead.")
+    parser.add_argument("--history", type=int, default=3, help="hop: steps of history (the window is one more).")
     parser.add_argument("--async-frames", type=int, default=40_960,
                         help="Frames of the async case (long enough that the worker's start-up is a small part).")
     args = parser.parse_args()
@@ -82,6 +89,21 @@ def main() -> None:
                                num_envs=args.num_envs, num_steps=args.num_steps, embedding_dim=DIM,
                                live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads)
 
+        if args.mode == "hop":
+            hop = {"obs_mode": "hop", "history_len": args.history}
+            sps_ppo, last_ppo = run(config("ppo", "ppo", 0), None)
+            sps_ppo_hop, last_ppo_hop = run(dataclasses.replace(config("ppo", "ppo-hop", 0), **hop), None)
+            run(dataclasses.replace(config("illm", "fill", 10**9), **hop), Path(tmp) / "ann")  # fills the cache
+            sps_illm, last = run(dataclasses.replace(config("illm", "illm", 0), **hop), Path(tmp) / "ann")
+            print(f"env {args.env}, {args.frames} frames, {args.num_envs} envs x {args.num_steps} steps, "
+                  f"{args.threads} thread(s), hop window {args.history + 1}, SmolLM2-135M bf16")
+            print(f"ppo               {sps_ppo:8,.0f} steps/s  per update: {last_ppo['phases']}")
+            print(f"ppo, hop (Z_h)    {sps_ppo_hop:8,.0f} steps/s  per update: {last_ppo_hop['phases']}")
+            print(f"illm, hop (cached){sps_illm:8,.0f} steps/s  per update: {last['phases']}  "
+                  f"(cache hit rate {last['charts/cache_hit_rate']:.3f})")
+            print(f"hop cost per step: {1e3 / sps_ppo_hop - 1e3 / sps_ppo:.2f} ms (ppo hop/ppo ratio "
+                  f"{sps_ppo_hop / sps_ppo:.3f}); illm hop/ppo ratio {sps_illm / sps_ppo:.3f}")
+            return
         run(config("illm", "fill", 10**9), Path(tmp) / "ann")  # pass 1: fills the cache
         sps_illm, last = run(config("illm", "illm", 0), Path(tmp) / "ann")
         sps_ppo, last_ppo = run(config("ppo", "ppo", 0), None)

@@ -49,12 +49,12 @@ def _optional(hint: Any) -> tuple[Any, bool]:
     return hint, False
 
 
-def dataclass_parameters(cls: type, *, aliases: dict[str, str], dict_flags: dict[str, str],
+def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]], dict_flags: dict[str, str],
                          exclude: set[str], defaults: dict[str, Any], required: set[str],
                          extra_help: dict[str, str]) -> list[inspect.Parameter]:
     """One keyword parameter per field of `cls` (minus `exclude`) with a `typer.Option` default.
 
-    aliases: field -> an extra flag kept from the documented CLI; dict_flags: dict field -> its
+    aliases: field -> an extra flag kept from the documented CLI (a tuple: the only flags); dict_flags: dict field -> its
     repeatable KEY=VALUE flag; defaults: CLI defaults that differ from the field's (e.g. None for
     "take it from a preset"); required: fields the command needs; extra_help: appended to help."""
     hints = typing.get_type_hints(cls)
@@ -69,7 +69,9 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str], dict_flags: dict
             decls, annotation, default = [dict_flags[f.name]], list[str], None
             help_text += " Repeatable KEY=VALUE."
         else:
-            names = ([aliases[f.name]] if f.name in aliases else []) + [flag(f.name)]  # the documented one first
+            alias = aliases.get(f.name)
+            # the documented one first; a tuple of flags replaces the field's own (its name means another thing)
+            names = list(alias) if isinstance(alias, tuple) else ([alias] if alias else []) + [flag(f.name)]
             if hint is bool:
                 decls = [f"{names[0]}/--no-{names[0][2:]}"] + names[1:]
             else:

@@ -12,8 +12,8 @@ from cli.common import emit_json, progress, stop_on_signals
 from cli.errors import friendly
 
 # flags kept from the documented command line beside each field's own (`--frames` = `--total-steps`)
-ALIASES = {"env_id": "--env", "run_dir": "--out", "mode": "--method", "total_steps": "--frames",
-           "history_len": "--history", "model_dtype": "--dtype"}
+ALIASES = {"env_id": "--env", "run_dir": "--out", "mode": ("--method",), "obs_mode": ("--mode",),
+           "total_steps": "--frames", "history_len": "--history", "model_dtype": "--dtype"}
 DICT_FLAGS = {"bonus_options": "--bonus-option", "network_options": "--network-option", "env_options": "--env-option"}
 WEIGHTS = ("lambda_a", "beta_hc", "ext_coef", "int_coef")
 NOT_OPTIONS = {"embedding_dim"}  # set from the model's hidden size when the run starts
@@ -33,7 +33,8 @@ def _given(ctx: typer.Context) -> set[str]:
 
 
 def _flag(name: str) -> str:
-    return ALIASES.get(name, DICT_FLAGS.get(name, "--" + name.replace("_", "-")))
+    alias = ALIASES.get(name, DICT_FLAGS.get(name, "--" + name.replace("_", "-")))
+    return alias[0] if isinstance(alias, tuple) else alias
 
 
 def resumed_config(ctx: typer.Context, out: Path, fields: dict):

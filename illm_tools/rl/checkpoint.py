@@ -244,20 +244,34 @@ def check_resumable(state: dict, cfg, action_names: list[str]) -> None:
 class TrainedPolicy:
     """A trained run's actor, acting on the pool's `PoolObs` (sampled, or greedy)."""
 
-    def __init__(self, net, vocab, *, name: str, greedy: bool = False, seed: int = 0, frames: int = 0):
+    def __init__(self, net, vocab, *, name: str, greedy: bool = False, seed: int = 0, frames: int = 0,
+                 hop=None, raw_obs=None):
         self.net, self.vocab, self.name, self.greedy = net.eval(), vocab, name, greedy
         self.frames = frames
         """Frames the policy was trained for."""
         self.generator = torch.Generator().manual_seed(seed)
+        self.hop, self.raw_obs = hop, raw_obs
+        """iLLM(hop) runs: (HopContext, HopTracker) giving Z_h, and the suite's raw observation."""
+        self._last: np.ndarray | None = None
 
     @torch.no_grad()
     def act(self, obs) -> np.ndarray:
         images = torch.as_tensor(obs.images)
         missions = torch.as_tensor(self.vocab.encode(obs.missions))
-        logits = self.net(images, missions).logits
+        context = None
+        if self.hop is not None:  # the windows follow the episodes: a state with step 0 began a new one
+            hop, tracker = self.hop
+            if self._last is not None:
+                tracker.push(self._last.tolist(), (np.asarray(obs.steps) == 0).tolist())
+            tracker.records(obs.missions, [self.raw_obs(img) for img in obs.images])
+            context = hop.step(tracker)
+        logits = self.net(images, missions, context).logits
         if self.greedy:
-            return logits.argmax(-1).numpy()
-        return torch.multinomial(logits.softmax(-1), 1, generator=self.generator).squeeze(-1).numpy()
+            actions = logits.argmax(-1).numpy()
+        else:
+            actions = torch.multinomial(logits.softmax(-1), 1, generator=self.generator).squeeze(-1).numpy()
+        self._last = actions
+        return actions
 
 
 def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 0) -> TrainedPolicy:
@@ -276,10 +290,19 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     vocab = MissionVocab(cfg.mission_max_len)
     heads = "f_hc.2.weight" in state["model"]  # the method's bonus put the iLLM heads on the network
     method = get_method(cfg.mode)
+    hop = None
+    if cfg.obs_mode == "hop":
+        from illm_tools.hop.context import HopContext, HopTracker
+        from illm_tools.llm.loading import load_model
+
+        obs_dim = int(np.prod(pool.suite.raw_obs(np.zeros(state["image_shape"], dtype=np.uint8)).shape))
+        hop = (HopContext(load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant), obs_dim, len(names),
+                          seed=cfg.hop_seed, beta=cfg.hop_beta), HopTracker(pool.num_envs, cfg.history_len, names))
     net = make_network(method, cfg.env_id, len(names), image_shape=tuple(state["image_shape"]),
                        vocab_size=len(vocab), network_options=cfg.network_options,
                        embedding_dim=state["model"]["f_hc.2.weight"].shape[0] if heads else None,
-                       head_hidden=cfg.head_hidden)
+                       head_hidden=cfg.head_hidden, context_dim=hop[0].hidden_size if hop else 0)
     net.load_state_dict(state["model"])
     return TrainedPolicy(net, vocab, name=f"run:{run_dir.name}@{state['global_step']}",
-                         greedy=greedy, seed=seed, frames=int(state["global_step"]))
+                         greedy=greedy, seed=seed, frames=int(state["global_step"]), hop=hop,
+                         raw_obs=pool.suite.raw_obs)

@@ -15,6 +15,7 @@ from illm_tools.tasks.calibration import ACTION_TARGETS, CALIBRATIONS
 
 MODES = METHODS  # the bonus registry, name -> method (a live mapping: methods registered later count)
 LIVE_MODES = ("sync", "async")
+OBS_MODES = ("obs", "hop")
 BONUS_PRESETS = {  # `illm train --bonus-preset`: bonus weights and advantage weights together
     "paper": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0},  # Appendix B
     "rnd": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 2.0, "int_coef": 1.0},    # CleanRL RND's advantage weights
@@ -95,6 +96,14 @@ class TrainConfig:
     """Hidden units of the f^a and f^hc heads (paper: 1024)."""
 
     # --- iLLM ------------------------------------------------------------------------------
+    obs_mode: str = "obs"
+    """How the LLM sees a state: obs (the suite's text, written by its renderer) or hop (iLLM(hop):
+    the raw observation translated into the LLM's embedding space by a frozen Hopfield layer; the
+    policy also reads Z_h, the LLM's state after the translated window; paper Algorithm 1)."""
+    hop_seed: int = 0
+    """hop: seed of the translation's fixed random projection P (part of every hop cache key)."""
+    hop_beta: float = 1.0
+    """hop: inverse temperature of the Hopfield retrieval (not beta_hc; part of every hop cache key)."""
     history_len: int = 3
     """(observation, action) pairs before the current observation handed to the LLM (paper: 3)."""
     embedding_dim: int = 576
@@ -204,6 +213,11 @@ class TrainConfig:
         if self.action_similarity not in ("tv", "bhattacharyya"):
             raise UsageError("action_similarity must be tv or bhattacharyya, "
                              f"got {self.action_similarity!r}")
+        if self.obs_mode not in OBS_MODES:
+            raise UsageError(f"--mode is the observation mode, {' or '.join(OBS_MODES)}; got {self.obs_mode!r} "
+                             "(the method is --method)")
+        if self.hop_beta <= 0:
+            raise UsageError(f"--hop-beta must be positive, got {self.hop_beta}")
         if self.checkpoint_every < 0:
             raise UsageError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
 
@@ -237,6 +251,18 @@ class TrainConfig:
     def pays_bonus(self) -> bool:
         """Whether the intrinsic rewards reach the advantages."""
         return get_method(self.mode).pays
+
+    @property
+    def renderer(self) -> str:
+        """The renderer field of the run's cache keys: the suite's text renderer, or in hop mode the
+        translation's settings (`illm_tools.hop.context.hop_renderer`)."""
+        if self.obs_mode == "hop":
+            from illm_tools.hop.context import hop_renderer
+
+            return hop_renderer(self.hop_seed, self.hop_beta, self.history_len + 1)
+        from illm_tools.envs import renderer_of
+
+        return renderer_of(self.env_id)
 
     @property
     def live_threads(self) -> int:

@@ -98,12 +98,14 @@ class GridMissionNet(nn.Module):
 
     def __init__(self, num_actions: int, *, vocab_size: int, embedding_dim: int | None = None,
                  head_hidden: int = 1024, image_shape: tuple[int, ...] = (7, 7, 3), heads_bf16: bool | None = None,
-                 hidden: int = 64, options=None):
+                 hidden: int = 64, options=None, context_dim: int = 0):
         super().__init__()
         self.register_buffer("cell_sizes", torch.tensor(GRID_CHANNEL_SIZES), persistent=False)
         self.register_buffer("cell_offsets", torch.tensor(np.cumsum((0, *GRID_CHANNEL_SIZES[:-1]))),
                              persistent=False)
-        self.feature_dim = self.build_torso(vocab_size=vocab_size, image_shape=image_shape, options=options)
+        self.context_dim = int(context_dim)
+        self.feature_dim = self.build_torso(vocab_size=vocab_size, image_shape=image_shape,
+                                            options=options) + self.context_dim
         self.actor = mlp_head(self.feature_dim, hidden, num_actions, std=0.01)
         self.critic_ext = mlp_head(self.feature_dim, hidden, 1, std=1.0)
         self.critic_int = mlp_head(self.feature_dim, hidden, 1, std=1.0)
@@ -156,8 +158,12 @@ class GridMissionNet(nn.Module):
         # the one-hot grid (a learned embedding followed by the first conv would be the same linear map)
         return torch.cat([self.image_conv(self.one_hot_grid(images)), self.encode_mission(missions)], dim=1)
 
-    def forward(self, images: torch.Tensor, missions: torch.Tensor) -> PolicyOutput:
+    def forward(self, images: torch.Tensor, missions: torch.Tensor, context: torch.Tensor | None = None) -> PolicyOutput:
+        """`context` [B, context_dim]: what the network reads beside its torso (iLLM(hop)'s Z_h),
+        concatenated to the torso's features; the heads and critics sit on the concatenation."""
         f = self.features(images, missions)
+        if self.context_dim:
+            f = torch.cat([f, context.to(f.dtype)], dim=1)
         return PolicyOutput(self.actor(f), self.critic_ext(f).squeeze(-1),
                             self.critic_int(f).squeeze(-1), f)
 
@@ -258,7 +264,7 @@ class GlyphNet(GridMissionNet):
 
 def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[int, ...], vocab_size: int,
                  network_options: dict, embedding_dim: int | None, head_hidden: int,
-                 heads_bf16: bool | None = None) -> GridMissionNet:
+                 heads_bf16: bool | None = None, context_dim: int = 0) -> GridMissionNet:
     """The policy network of a run: the method's own class (ChibiT) or else the suite's, checked to
     read the suite's kind of observation; `network_options` as the class's `Options`."""
     from illm_tools.envs import suite_of
@@ -277,7 +283,7 @@ def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[in
         extra = {"parts": spec.parts}
     return cls(num_actions, vocab_size=vocab_size, options=method.network_options(network_options, cls),
                embedding_dim=embedding_dim, head_hidden=head_hidden, image_shape=tuple(image_shape),
-               heads_bf16=heads_bf16, **extra)
+               heads_bf16=heads_bf16, context_dim=context_dim, **extra)
 
 
 @functools.lru_cache(maxsize=1)

@@ -49,7 +49,8 @@ def make_pool(cfg: TrainConfig):
         seed += int(state["global_step"]) + cfg.num_envs
         if space == "auto":  # the run's own action space, as its config recorded it
             space = state["config"].get("action_space", space)
-    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets, action_space=space,
+    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets and cfg.obs_mode == "obs",
+                   action_space=space,
                    num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
 
 
@@ -79,10 +80,12 @@ class Trainer:
             self.obs = pool.reset()
             self.image_shape = tuple(self.obs.images.shape[1:])
             self.image_dtype = torch.as_tensor(self.obs.images[:1]).dtype
+            self.hop = self._hop_context() if cfg.obs_mode == "hop" else None
             self.net = make_network(method, cfg.env_id, len(self.action_names), image_shape=self.image_shape,
                                     vocab_size=len(self.vocab), network_options=cfg.network_options,
                                     embedding_dim=cfg.embedding_dim if method.policy_heads else None,
-                                    head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16)
+                                    head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16,
+                                    context_dim=self.hop.hidden_size if self.hop else 0)
         self.generator = torch.Generator().manual_seed(cfg.seed + 1)  # action sampling
         self.np_rng = np.random.default_rng(cfg.seed + 2)             # minibatch order
 
@@ -99,6 +102,24 @@ class Trainer:
         self.history = HistoryTracker(cfg.num_envs, cfg.history_len, self.action_names)
         self.global_step, self.update_idx = 0, 0
         self._open_run_dir()
+
+    # --- iLLM(hop) ---------------------------------------------------------------------------
+    def _hop_context(self):
+        """The run's translation and LLM (`illm_tools.hop`), and the per-env windows."""
+        from illm_tools.hop.context import HopContext, HopTracker
+        from illm_tools.llm.loading import load_model
+
+        cfg = self.cfg
+        lm = load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+        raw = np.asarray(self.suite.raw_obs(self.obs.images[0]))
+        self.hop_tracker = HopTracker(cfg.num_envs, cfg.history_len, self.action_names)
+        self._hop_now = None  # (records, Z_h) of the current observations, computed once
+        return HopContext(lm, raw.size, len(self.action_names), seed=cfg.hop_seed, beta=cfg.hop_beta)
+
+    def _hop_state(self, obs) -> tuple[list, torch.Tensor]:
+        """The hop records and Z_h [N, H] of the pool's current observations."""
+        records = self.hop_tracker.records(obs.missions, [self.suite.raw_obs(img) for img in obs.images])
+        return records, self.hop.step(self.hop_tracker)
 
     # --- run directory ----------------------------------------------------------------------
     def _open_run_dir(self) -> None:
@@ -147,20 +168,29 @@ class Trainer:
         cfg = self.cfg
         ro = Rollout.empty(cfg.num_steps, cfg.num_envs, self.image_shape, cfg.mission_max_len,
                            len(self.action_names), cfg.embedding_dim if self.method.policy_heads else 0,
-                           self.net.feature_dim, self.image_dtype)
+                           self.net.feature_dim, self.image_dtype, self.net.context_dim)
         records: list[StateRecord] = []
         episodes: list = []
         obs = self.obs
         images, missions = self._policy_inputs(obs)
+        context = None
         for t in range(cfg.num_steps):
-            out = self.net(images, missions)
+            if self.hop is not None:  # Z_h of the current windows, the records of their hop states
+                if self._hop_now is None:
+                    self._hop_now = self._hop_state(obs)
+                hop_records, context = self._hop_now
+                ro.contexts[t] = context
+            out = self.net(images, missions, context)
             logp_all = out.logits.log_softmax(-1)
             action = torch.multinomial(logp_all.exp(), 1, generator=self.generator).squeeze(-1)
             if self.provider is not None:
-                records.extend(self.history.records(obs.missions, obs.texts))
+                records.extend(hop_records if self.hop is not None else self.history.records(obs.missions, obs.texts))
             step = self.pool.step(action.numpy())
             ends = np.logical_or(step.terminated, step.truncated)
-            if self.provider is not None:
+            if self.hop is not None:
+                self.hop_tracker.push(action.tolist(), ends.tolist())
+                self._hop_now = self._hop_state(step.obs)
+            elif self.provider is not None:
                 self.history.push(obs.texts, action.tolist(), ends.tolist())
             ro.images[t], ro.missions[t], ro.actions[t] = images, missions, action
             ro.logprobs[t] = logp_all.gather(1, action[:, None]).squeeze(1)
@@ -177,7 +207,7 @@ class Trainer:
             obs, images, missions = step.obs, next_images, next_missions
         self.obs = obs
         self.global_step += cfg.batch_size
-        last = self.net(images, missions)
+        last = self.net(images, missions, self._hop_now[1] if self.hop is not None else None)
         return ro, records, episodes, (last.value_ext, last.value_int)
 
     # --- 2. targets -------------------------------------------------------------------------
@@ -243,7 +273,7 @@ class Trainer:
     def update(self, ro: Rollout, adv: Advantages) -> dict:
         cfg = self.cfg
         b_adv, b_ret_ext, b_ret_int = (x.reshape(-1) for x in (adv.advantages, adv.returns_ext, adv.returns_int))
-        b_images, b_missions = ro.flat("images"), ro.flat("missions")
+        b_images, b_missions, b_contexts = ro.flat("images"), ro.flat("missions"), ro.flat("contexts")
         b_actions, b_logprobs = ro.flat("actions"), ro.flat("logprobs")
         b_v_ext, b_v_int = ro.flat("values_ext"), ro.flat("values_int")
         sums: dict[str, float] = {}
@@ -254,7 +284,7 @@ class Trainer:
             self.np_rng.shuffle(inds)
             for start in range(0, cfg.batch_size, cfg.minibatch_size):
                 mb = torch.as_tensor(inds[start:start + cfg.minibatch_size])
-                out = self.net(b_images[mb], b_missions[mb])
+                out = self.net(b_images[mb], b_missions[mb], b_contexts[mb] if self.hop is not None else None)
                 logp_all = out.logits.log_softmax(-1)
                 newlogprob = logp_all.gather(1, b_actions[mb, None]).squeeze(1)
                 entropy = -(logp_all.exp() * logp_all).sum(-1).mean()

@@ -40,7 +40,6 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "see `illm annotate`), or use --method ppo")
     from illm_tools.cache.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
-    from illm_tools.envs import renderer_of
     from illm_tools.llm.loading import model_fingerprint, model_hidden_size
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.targets import CachedTargets, GoalTargets, check_setup
@@ -49,7 +48,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     tasks = get_method(cfg.mode).target_tasks
 
     cache = AnnotationCache(cfg.cache)
-    renderer = renderer_of(cfg.env_id)
+    renderer = cfg.renderer  # the suite's text renderer, or the hop translation's settings
     fp = fingerprint_hash(model_fingerprint(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant))
     builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=cfg.model, model_fingerprint=fp,
                             history_len=cfg.history_len, layout=cfg.layout)

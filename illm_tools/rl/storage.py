@@ -43,11 +43,12 @@ class Rollout:
     target_emb: torch.Tensor    # float [T, N, D] LLM summary embedding
     target_mask: torch.Tensor   # bool [T, N]
     features: torch.Tensor      # float [T, N, F] policy features at acting time
+    contexts: torch.Tensor      # float [T, N, C] what the network read beside the observation (hop: Z_h; C = 0 else)
 
     @classmethod
     def empty(cls, num_steps: int, num_envs: int, image_shape: tuple[int, ...], mission_len: int,
               num_actions: int, embedding_dim: int, feature_dim: int = 0,
-              image_dtype: torch.dtype = torch.uint8) -> "Rollout":
+              image_dtype: torch.dtype = torch.uint8, context_dim: int = 0) -> "Rollout":
         t, n = num_steps, num_envs
         z = lambda *shape, dtype=torch.float32: torch.zeros((t, n, *shape), dtype=dtype)  # noqa: E731
         return cls(
@@ -56,6 +57,7 @@ class Rollout:
             actions=z(dtype=torch.int64), logprobs=z(), rewards=z(), ends=z(),
             values_ext=z(), values_int=z(), target_probs=z(num_actions),
             target_emb=z(embedding_dim), target_mask=z(dtype=torch.bool), features=z(feature_dim),
+            contexts=z(context_dim),
         )
 
     @property
@@ -65,7 +67,7 @@ class Rollout:
     def flat(self, name: str) -> torch.Tensor:
         """Field `name` with the T and N axes merged: [T * N, ...]."""
         x = getattr(self, name)
-        return x.reshape(-1, *x.shape[2:])
+        return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])  # explicit: a field may be empty ([T, N, 0])
 
     def bonus_batch(self, targets: bool, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """What a bonus reads: `BONUS_FIELDS` (+ `TARGET_FIELDS` when `targets`), [T, N, ...]
