@@ -79,7 +79,7 @@ def root(
 
 
 def _register() -> None:
-    from cli import annotate, cache, collect, data, envs, models, report, train
+    from cli import annotate, cache, collect, data, envs, experiment, models, report, train
 
     envs.register(app)
     collect.register(app)
@@ -89,6 +89,7 @@ def _register() -> None:
     cache.register(app)
     train.register(app)
     report.register(app)
+    experiment.register(app)
 
 
 _register()

@@ -1,0 +1,290 @@
+"""`illm experiment SPEC.yaml`: a grid of training runs (methods x envs x settings x seeds) under one
+results folder, run N at a time, finished runs skipped and unfinished ones resumed.
+
+A spec (YAML; experiments/specs/ holds the paper's tables at CPU budgets):
+
+    name: table1-distractors
+    frames: 50000                 # per run (the paper: 100M; `--frames` overrides)
+    seeds: [0, 1, 2]              # or a count: 3 (`--seeds` overrides)
+    envs: [BabyAI-GoToLocal-v0]
+    methods: [ppo, rnd, illm]
+    grid:                         # every combination of these values (TrainConfig fields, or
+      num_dists: [4, 8, 16]       # env_options.KEY for an env option)
+    settings:                     # for every run (TrainConfig fields)
+      num_envs: 16
+    method_settings:              # per method, over `settings`
+      illm: {cache: data/ann, history_len: 0, live_budget: 16}
+
+Everything is checked before anything runs: the top-level keys, the method names, the env ids, the
+setting names (each a field of `illm_tools.rl.config.TrainConfig`, or `env_options.<name>`, which
+its suite checks) and their values (every run's TrainConfig is built); a bad one is refused in one
+line naming the spec's line. A run's folder is RESULTS/<env>/<label>/seed<n> (the label: the method
+and the grid values, e.g. `illm-num_dists=8`); the spec is copied to RESULTS/spec.yaml, and a
+results folder made from another spec is refused (grids never mix). A run whose checkpoint has
+reached its frames is skipped, one with a checkpoint short of them is resumed (`--resume`), the
+rest start; runs go `jobs` at a time, each in a process of its own with one torch thread.
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import shutil
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from illm_tools.errors import IllmError, UsageError
+
+TOP_KEYS = ("name", "frames", "seeds", "envs", "methods", "grid", "settings", "method_settings", "description")
+REQUIRED = ("envs", "methods")
+SPEC_COPY = "spec.yaml"
+
+
+@dataclass
+class Run:
+    """One run of the grid."""
+
+    env_id: str
+    label: str
+    seed: int
+    config: Any
+    """Its `TrainConfig` (run_dir set)."""
+    status: str = "new"
+    """new | resume | done, from what its folder holds."""
+
+
+@dataclass
+class Spec:
+    name: str
+    path: Path
+    text: str
+    frames: int
+    seeds: list[int]
+    envs: list[str]
+    methods: list[str]
+    grid: dict[str, list] = field(default_factory=dict)
+    settings: dict[str, Any] = field(default_factory=dict)
+    method_settings: dict[str, dict] = field(default_factory=dict)
+    lines: dict[tuple, int] = field(default_factory=dict)
+    """(key, subkey, ...) -> line number in the file, for errors."""
+
+    def line(self, *path) -> str:
+        for n in range(len(path), 0, -1):
+            if path[:n] in self.lines:
+                return f"{self.path} line {self.lines[path[:n]]}"
+        return str(self.path)
+
+
+def _lines(node, prefix: tuple = ()) -> dict[tuple, int]:
+    """The line of every mapping key (and list item) of a composed YAML node, by its key path."""
+    import yaml
+
+    out: dict[tuple, int] = {}
+    if isinstance(node, yaml.MappingNode):
+        for key, value in node.value:
+            path = (*prefix, key.value)
+            out[path] = key.start_mark.line + 1
+            out.update(_lines(value, path))
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            out[(*prefix, i)] = item.start_mark.line + 1
+            out.update(_lines(item, (*prefix, i)))
+    return out
+
+
+def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[int] | None = None) -> Spec:
+    """Read and check a spec file's shape (names and values are checked by `plan`)."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise UsageError(f"no experiment spec at {path}: pass a YAML file (experiments/specs/ has examples)")
+    text = path.read_text()
+    try:
+        data = yaml.safe_load(text)
+        lines = _lines(yaml.compose(text)) if data else {}
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise UsageError(f"{path}{where} is not valid YAML ({getattr(e, 'problem', e)}): fix the spec") from None
+    if not isinstance(data, dict):
+        raise UsageError(f"{path} must be a mapping with keys {', '.join(REQUIRED)} (and {', '.join(TOP_KEYS[2:])})")
+    spec_lines = lines
+    for key in data:
+        if key not in TOP_KEYS:
+            import difflib
+
+            close = difflib.get_close_matches(str(key), TOP_KEYS, n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise UsageError(f"{path} line {spec_lines.get((key,), '?')}: unknown key {key!r}{hint}; a spec takes "
+                             f"{', '.join(TOP_KEYS)}")
+    for key in REQUIRED:
+        if not data.get(key):
+            raise UsageError(f"{path}: the spec needs a non-empty {key!r} list")
+
+    def as_list(key: str) -> list:
+        value = data[key]
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, list):
+            raise UsageError(f"{path} line {spec_lines.get((key,), '?')}: {key} must be a list")
+        return value
+
+    chosen_seeds = seeds if seeds is not None else data.get("seeds", 3)
+    seed_list = list(range(chosen_seeds)) if isinstance(chosen_seeds, int) else list(chosen_seeds)
+    if not seed_list or not all(isinstance(s, int) and s >= 0 for s in seed_list):
+        raise UsageError(f"{path} line {spec_lines.get(('seeds',), '?')}: seeds must be a count or a list of "
+                         "non-negative integers")
+    grid = data.get("grid") or {}
+    settings = data.get("settings") or {}
+    per_method = data.get("method_settings") or {}
+    for key, value in (("grid", grid), ("settings", settings), ("method_settings", per_method)):
+        if not isinstance(value, dict):
+            raise UsageError(f"{path} line {spec_lines.get((key,), '?')}: {key} must be a mapping")
+    for key, values in grid.items():
+        if not isinstance(values, list) or not values:
+            raise UsageError(f"{path} line {spec_lines.get(('grid', key), '?')}: grid.{key} must be a non-empty list "
+                             "of values")
+    total = frames if frames is not None else data.get("frames", 50_000)
+    if not isinstance(total, int) or total <= 0:
+        raise UsageError(f"{path} line {spec_lines.get(('frames',), '?')}: frames must be a positive integer")
+    return Spec(name=str(data.get("name") or path.stem), path=path, text=text, frames=total, seeds=seed_list,
+                envs=[str(e) for e in as_list("envs")], methods=[str(m) for m in as_list("methods")], grid=grid,
+                settings=settings, method_settings=per_method, lines=spec_lines)
+
+
+def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> None:
+    """Set a TrainConfig field (or env_options.KEY) in `fields`, refusing unknown names."""
+    from illm_tools.rl.config import TrainConfig
+
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    if name.startswith("env_options."):
+        fields.setdefault("env_options", {})[name.split(".", 1)[1]] = value
+        return
+    if name in ("env_id", "mode", "seed", "run_dir", "total_steps", "resume"):
+        raise UsageError(f"{spec.line(*where)}: {name} is set by the grid itself (envs, methods, seeds, frames, "
+                         "the results folder): remove it")
+    if name not in known:
+        import difflib
+
+        close = difflib.get_close_matches(name, sorted(known), n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise UsageError(f"{spec.line(*where)}: unknown setting {name!r}{hint}; settings are TrainConfig fields "
+                         "(`illm train --help`) or env_options.KEY")
+    fields[name] = value
+
+
+def _label(method: str, combo: dict) -> str:
+    return "-".join([method, *(f"{k.split('.')[-1]}={v}" for k, v in combo.items())])
+
+
+def plan(spec: Spec, results: str | Path) -> list[Run]:
+    """Every run of the grid with its TrainConfig (all built now: a bad value is refused before
+    anything runs) and its status from its folder."""
+    from illm_tools.envs import suite_of
+    from illm_tools.intrinsic.registry import get_method
+    from illm_tools.rl.checkpoint import CHECKPOINT_NAME, load_checkpoint
+    from illm_tools.rl.config import TrainConfig, bonus_weights
+
+    results = Path(results)
+    for i, method in enumerate(spec.methods):
+        try:
+            get_method(method)
+        except UsageError as e:
+            raise UsageError(f"{spec.line('methods', i)}: {e}") from None
+    for i, env_id in enumerate(spec.envs):
+        try:
+            suite_of(env_id)
+        except IllmError as e:
+            raise UsageError(f"{spec.line('envs', i)}: {e}") from None
+    for method in spec.method_settings:
+        if method not in spec.methods:
+            raise UsageError(f"{spec.line('method_settings', method)}: method_settings names {method!r}, which is "
+                             f"not among the spec's methods ({', '.join(spec.methods)})")
+    keys = list(spec.grid)
+    runs = []
+    for env_id, method, values in itertools.product(spec.envs, spec.methods,
+                                                    itertools.product(*spec.grid.values())):
+        combo = dict(zip(keys, values))
+        label = _label(method, combo)
+        base: dict = {}
+        for name, value in spec.settings.items():
+            _apply(base, name, value, spec, ("settings", name))
+        for name, value in (spec.method_settings.get(method) or {}).items():
+            _apply(base, name, value, spec, ("method_settings", method, name))
+        for name, value in combo.items():
+            _apply(base, name, value, spec, ("grid", name))
+        weights = bonus_weights(base.pop("bonus_preset", None) or get_method(method).preset,
+                                **{w: base.pop(w, None) for w in ("lambda_a", "beta_hc", "ext_coef", "int_coef")})
+        for seed in spec.seeds:
+            run_dir = results / env_id.replace("/", "-") / label / f"seed{seed}"
+            try:
+                cfg = TrainConfig(**{**base, **weights, "env_id": env_id, "mode": method, "seed": seed,
+                                     "total_steps": spec.frames, "run_dir": run_dir, "threads": 1})
+            except (IllmError, TypeError) as e:
+                raise UsageError(f"{spec.line('settings')}: the run {env_id} {label} seed {seed} is refused: "
+                                 f"{e}") from None
+            status = "new"
+            if (run_dir / CHECKPOINT_NAME).exists():
+                done = int(load_checkpoint(run_dir)["global_step"])
+                status = "done" if done >= cfg.num_updates * cfg.batch_size else "resume"
+                cfg = dataclasses.replace(cfg, resume=status == "resume")
+            runs.append(Run(env_id, label, seed, cfg, status))
+    return runs
+
+
+def _train_one(cfg) -> dict:
+    """One run in a worker process (its metrics' last line)."""
+    import os
+
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    from illm_tools.rl.run import train
+
+    return train(cfg)
+
+
+def claim_results(spec: Spec, results: str | Path) -> Path:
+    """Create the results folder with the spec copied in, or check that it holds this spec."""
+    results = Path(results)
+    copy = results / SPEC_COPY
+    if copy.exists():
+        if copy.read_text() != spec.text:
+            raise UsageError(f"{results} holds the results of another spec ({copy} differs from {spec.path}): pass "
+                             "another --out, or restore the spec that made them")
+        return results
+    if results.exists() and any(results.iterdir()):
+        raise UsageError(f"{results} holds files but no {SPEC_COPY}: pass another --out for this experiment")
+    results.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(spec.path, copy)
+    return results
+
+
+def run_experiment(spec: Spec, results: str | Path, *, jobs: int = 1,
+                   on_run: Callable[[Run, str], None] | None = None) -> list[Run]:
+    """Plan, claim the results folder, and train every run not done, `jobs` at a time. `on_run(run,
+    event)` hears "done" or "failed: <reason>" as each run ends. Returns the plan."""
+    if jobs < 1:
+        raise UsageError(f"--jobs must be at least 1, got {jobs}")
+    runs = plan(spec, results)
+    claim_results(spec, results)
+    todo = [r for r in runs if r.status != "done"]
+    if not todo:
+        return runs
+    import multiprocessing as mp
+
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+        futures = {pool.submit(_train_one, run.config): run for run in todo}
+        for future in as_completed(futures):
+            run = futures[future]
+            try:
+                future.result()
+                run.status = "done"
+                event = "done"
+            except Exception as e:  # noqa: BLE001 - one failed run must not stop the grid; it is reported
+                run.status = "failed"
+                event = f"failed: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+            if on_run is not None:
+                on_run(run, event)
+    return runs

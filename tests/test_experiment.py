@@ -1,0 +1,92 @@
+"""`illm experiment`: spec parsing and validation (bad specs refused naming the line, before any
+run), the shipped specs all plan, and a partly finished grid resumes: finished runs skipped,
+unfinished ones resumed, new ones started."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from cli.main import app
+from illm_tools.errors import UsageError
+from illm_tools.experiment import load_spec, plan
+
+runner = CliRunner()
+SPECS = sorted((Path(__file__).resolve().parents[1] / "experiments" / "specs").glob("*.yaml"))
+TINY = """\
+name: tiny
+frames: 64
+seeds: 2
+envs: [BabyAI-GoToLocal-v0]
+methods: [ppo]
+grid:
+  num_dists: [1, 2]
+settings:
+  num_envs: 2
+  num_steps: 16
+  num_minibatches: 2
+  tensorboard: false
+"""
+
+
+def write(tmp_path, text, name="spec.yaml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("spec", SPECS, ids=lambda p: p.stem)
+def test_every_shipped_spec_plans(spec, tmp_path):
+    runs = plan(load_spec(spec), tmp_path / "results")
+    assert runs and all(r.status == "new" for r in runs)
+    assert len({r.config.run_dir for r in runs}) == len(runs)
+
+
+@pytest.mark.parametrize("text,message", [
+    (TINY.replace("methods: [ppo]", "methods: [ppo, rdn]"), "line 5: unknown method (mode) 'rdn'"),
+    (TINY.replace("envs: [BabyAI-GoToLocal-v0]", "envs: [BabyAI-GoToLocl-v0]"), "line 4: unknown environment id"),
+    (TINY.replace("  num_envs: 2", "  num_env: 2"), "line 9: unknown setting 'num_env' (did you mean num_envs?)"),
+    (TINY.replace("grid:", "gird:"), "line 6: unknown key 'gird' (did you mean grid?)"),
+    (TINY.replace("  num_dists: [1, 2]", "  num_dists: 3"), "line 7: grid.num_dists must be a non-empty list"),
+    (TINY.replace("  num_steps: 16", "  num_steps: -1"), "num_steps must be positive"),
+    (TINY.replace("  num_envs: 2", "  seed: 2"), "line 9: seed is set by the grid itself"),
+    (TINY + "  num_dists: [: bad\n", "is not valid YAML"),
+    (TINY.replace("envs: [BabyAI-GoToLocal-v0]", "envs: []"), "needs a non-empty 'envs' list"),
+])
+def test_bad_specs_are_refused_naming_the_line_before_anything_runs(tmp_path, text, message):
+    spec = write(tmp_path, text)
+    out = runner.invoke(app, ["experiment", str(spec), "--out", str(tmp_path / "results")])
+    assert out.exit_code == 1 and message in out.output and "Traceback" not in out.output, out.output
+    assert not (tmp_path / "results").exists()
+    with pytest.raises(UsageError):
+        plan(load_spec(spec), tmp_path / "r")
+
+
+@pytest.mark.slow
+def test_a_partly_finished_grid_skips_resumes_and_starts(tmp_path):
+    spec, results = write(tmp_path, TINY), tmp_path / "results"
+    runs = plan(load_spec(spec), results)
+    assert [r.label for r in runs] == ["ppo-num_dists=1"] * 2 + ["ppo-num_dists=2"] * 2
+    # one run finished, one stopped half way, by hand
+    first, second = runs[0].config.run_dir, runs[1].config.run_dir
+    base = ["train", "--env", "BabyAI-GoToLocal-v0", "--method", "ppo", "--num-dists", 1, "--num-envs", 2,
+            "--num-steps", 16, "--num-minibatches", 2, "--no-tensorboard", "--threads", 1]
+    for run_dir, seed, frames in ((first, 0, 64), (second, 1, 32)):
+        out = runner.invoke(app, [str(a) for a in [*base, "--seed", seed, "--frames", frames, "--out", run_dir]])
+        assert out.exit_code == 0, out.output
+    (results / "spec.yaml").write_text(TINY)
+    out = runner.invoke(app, ["experiment", str(spec), "--out", str(results), "--dry-run"])
+    assert "1 finished, 1 to resume, 2 to start" in out.output
+    out = runner.invoke(app, ["experiment", str(spec), "--out", str(results), "--jobs", "2"])
+    assert out.exit_code == 0, out.output
+    for run in runs:
+        rows = [json.loads(line) for line in (run.config.run_dir / "metrics.jsonl").read_text().splitlines()]
+        assert [r["global_step"] for r in rows] == [32, 64]  # the stopped one went on from its checkpoint
+    again = runner.invoke(app, ["experiment", str(spec), "--out", str(results)])
+    assert "4 finished, 0 to resume, 0 to start" in again.output
+    other = write(tmp_path, TINY.replace("seeds: 2", "seeds: 3"), "other.yaml")
+    refused = runner.invoke(app, ["experiment", str(other), "--out", str(results)])
+    assert refused.exit_code == 1 and "holds the results of another spec" in refused.output
