@@ -79,6 +79,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--mode", choices=("obs", "hop"), default="obs", help="hop: the cost of iLLM(hop) instead.")
     parser.add_argument("--history", type=int, default=3, help="hop: steps of history (the window is one more).")
+    parser.add_argument("--dtype", default="bfloat16", help="hop: the LLM's compute dtype (float32 is faster on some CPUs).")
     parser.add_argument("--async-frames", type=int, default=40_960,
                         help="Frames of the async case (long enough that the worker's start-up is a small part).")
     args = parser.parse_args()
@@ -90,13 +91,13 @@ def main() -> None:
                                live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads)
 
         if args.mode == "hop":
-            hop = {"obs_mode": "hop", "history_len": args.history}
+            hop = {"obs_mode": "hop", "history_len": args.history, "model_dtype": args.dtype}
             sps_ppo, last_ppo = run(config("ppo", "ppo", 0), None)
             sps_ppo_hop, last_ppo_hop = run(dataclasses.replace(config("ppo", "ppo-hop", 0), **hop), None)
             run(dataclasses.replace(config("illm", "fill", 10**9), **hop), Path(tmp) / "ann")  # fills the cache
             sps_illm, last = run(dataclasses.replace(config("illm", "illm", 0), **hop), Path(tmp) / "ann")
             print(f"env {args.env}, {args.frames} frames, {args.num_envs} envs x {args.num_steps} steps, "
-                  f"{args.threads} thread(s), hop window {args.history + 1}, SmolLM2-135M bf16")
+                  f"{args.threads} thread(s), hop window {args.history + 1}, SmolLM2-135M {args.dtype}")
             print(f"ppo               {sps_ppo:8,.0f} steps/s  per update: {last_ppo['phases']}")
             print(f"ppo, hop (Z_h)    {sps_ppo_hop:8,.0f} steps/s  per update: {last_ppo_hop['phases']}")
             print(f"illm, hop (cached){sps_illm:8,.0f} steps/s  per update: {last['phases']}  "

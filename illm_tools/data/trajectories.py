@@ -309,6 +309,6 @@ def require_text(table: pa.Table, where: str | Path) -> None:
     textless = pc.or_(pc.equal(table["renderer"], "none"), pc.is_null(table["obs_text"]))
     if pc.any(textless).as_py():
         envs = sorted(pc.unique(table.filter(textless)["env_id"]).to_pylist())
-        raise UsageError(f"{where} holds steps of {', '.join(envs)}, which have no text observation: LLM annotation "
-                         "needs text (iLLM on images comes with --mode hop); train these with --method ppo, rnd, "
-                         "ngu or apt")
+        raise UsageError(f"{where} holds steps of {', '.join(envs)}, which have no text observation: annotate "
+                         "them with --mode hop (iLLM(hop): the observations translated into the LLM's embedding "
+                         "space), or train them with --method ppo, rnd, ngu or apt")

@@ -76,8 +76,8 @@ def renderer_of(env_id: str) -> str:
     text observation (Atari) are refused in one line."""
     suite = suite_of(env_id)
     if suite.renderer is None:
-        raise UsageError(f"{env_id} has no text observation ({suite.name} suite): LLM annotation needs text; "
-                         "train it with --method ppo, rnd, ngu or apt (iLLM on images comes with --mode hop)")
+        raise UsageError(f"{env_id} has no text observation ({suite.name} suite): iLLM on it needs --mode hop "
+                         "(annotate and train), or train --method ppo, rnd, ngu or apt")
     return suite.renderer
 
 

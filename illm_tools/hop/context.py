@@ -183,11 +183,11 @@ class HopContext:
         for i, w in enumerate(windows):
             by_length.setdefault(int(w.shape[0]), []).append(i)
         dtype = self.lm.model.get_input_embeddings().weight.dtype
+        backbone = self.lm.model.base_model  # the decoder without its output layer: no logits are needed
         for length, rows in by_length.items():
             embeds = torch.stack([windows[i] for i in rows]).to(dtype=dtype, device=self.lm.device)
-            result = self.lm.model(inputs_embeds=embeds, output_hidden_states=True, use_cache=False,
-                                   logits_to_keep=1)
-            out[rows] = result.hidden_states[-1][:, -1].float().cpu()
+            result = backbone(inputs_embeds=embeds, use_cache=False)
+            out[rows] = result.last_hidden_state[:, -1].float().cpu()
         return out
 
     def step(self, tracker: HopTracker) -> torch.Tensor:
