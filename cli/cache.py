@@ -100,6 +100,35 @@ def merge(
                f"{report.rows_skipped:,} already present, {len(report.shards_written)} new shards")
 
 
+@app.command("export", epilog="Example: illm cache export data/ann --format parquet --out shared/ann.parquet")
+@friendly
+def export(
+    path: Path = typer.Argument(..., help="Annotation cache folder (verified first; left untouched)."),
+    out: Path = typer.Option(..., "--out", help="File to write."),
+    fmt: str = typer.Option("parquet", "--format", help="parquet (one file; `datasets.Dataset.from_parquet` reads it)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
+) -> None:
+    """Write every entry of a cache to one file, to share it (e.g. as a Hugging Face dataset)."""
+    from illm_tools.cache.share import export as run
+
+    report = run(path, out, fmt=fmt, overwrite=overwrite)
+    typer.echo(f"exported {report.rows:,} rows from {report.shards} shards of {path} -> {report.path}")
+
+
+@app.command("import", epilog="Example: illm cache import shared/ann.parquet --into data/ann")
+@friendly
+def import_(
+    path: Path = typer.Argument(..., help="Parquet file written by `illm cache export` (or `datasets`' to_parquet)."),
+    into: Path = typer.Option(..., "--into", help="Cache to add the entries to (created if absent)."),
+) -> None:
+    """Add a shared file's entries to a cache; keys it already holds are skipped, none is stored twice."""
+    from illm_tools.cache.share import import_parquet
+
+    report = import_parquet(path, into)
+    typer.echo(f"imported {path}: {report.added:,} new entries of its {report.rows:,} rows "
+               f"({report.rows - report.added:,} already present) -> {into}")
+
+
 @app.command("repair", epilog="Example: illm cache repair data/ann --drop-damaged")
 @friendly
 def repair(
