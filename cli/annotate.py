@@ -29,14 +29,27 @@ def register(app: typer.Typer) -> None:
         mode: str = typer.Option("obs", "--mode", help="obs: the states' text | hop: the raw observations translated into the LLM's embedding space (iLLM(hop); any suite, Atari included)."),
         hop_seed: int = typer.Option(0, "--hop-seed", help="hop: seed of the translation's random projection (the run's --hop-seed)."),
         hop_beta: float = typer.Option(1.0, "--hop-beta", help="hop: inverse temperature of the Hopfield retrieval (the run's --hop-beta)."),
+        device: str = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto; with several processes each takes its own GPU."),
+        num_processes: int = typer.Option(1, "--num-processes", help="Annotate with N processes: runs `accelerate launch --num_processes N` on this command (the states are split between them)."),
     ) -> None:
         """Annotate every distinct state once: next-action log-prob ranking and 64-token summary with embedding
         (and, with --tasks goal, the goals the LLM suggests: ELLM's)."""
-        from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
+        from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset, distributed_state
 
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()),
                                 history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
-                                dtype=dtype, quant=quant, mode=mode, hop_seed=hop_seed, hop_beta=hop_beta)
+                                dtype=dtype, quant=quant, mode=mode, hop_seed=hop_seed, hop_beta=hop_beta,
+                                device=device)
+        if num_processes > 1 and distributed_state() is None:
+            raise typer.Exit(launch(num_processes, device))
+        if num_processes < 1:
+            from illm_tools.errors import UsageError
+
+            raise UsageError(f"--num-processes must be at least 1, got {num_processes}")
+        state = distributed_state()
+        if state is not None and not state.is_main_process:  # one voice: the main process reports
+            annotate_dataset(config)
+            return
         with stop_on_signals("the chunk in progress (written whole)") as stop, \
                 progress(0, f"annotate {model}", unit="states") as advance:
             def on_plan(stats, todo: int) -> None:
@@ -74,3 +87,31 @@ def register(app: typer.Typer) -> None:
                        f"{config.data} --cache {cache} --history {config.history}` estimates how many")
         if stop.requested and stats.stopped_early:
             raise typer.Exit(stop.exit_code)
+
+
+def launch(num_processes: int, device: str) -> int:
+    """Run this same `illm annotate` command under `accelerate launch --multi_gpu` with N processes
+    (torchrun underneath; on a machine without GPUs they are CPU processes: accelerate's `--cpu`
+    launcher would start one unless MPI is set up). Every launcher setting is given, so accelerate
+    asks nothing and warns about nothing. Returns its exit code."""
+    import subprocess
+    import sys
+
+    argv = sys.argv[1:]
+    args, skip = [], False
+    for i, arg in enumerate(argv):
+        if skip:
+            skip = False
+            continue
+        if arg == "--num-processes":
+            skip = True
+            continue
+        if arg.startswith("--num-processes="):
+            continue
+        args.append(arg)
+    import os
+
+    env = {**os.environ, **({"ACCELERATE_USE_CPU": "true"} if device == "cpu" else {})}
+    command = [sys.executable, "-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes", str(num_processes),
+               "--num_machines", "1", "--mixed_precision", "no", "--dynamo_backend", "no", "-m", "cli.main", *args]
+    return subprocess.run(command, env=env).returncode

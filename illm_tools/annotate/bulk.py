@@ -46,6 +46,9 @@ class AnnotateConfig:
     """hop: seed of the translation's random projection (the training run's --hop-seed)."""
     hop_beta: float = 1.0
     """hop: inverse temperature of the Hopfield retrieval (the training run's --hop-beta)."""
+    device: str = "cpu"
+    """Where the model runs: cpu, cuda, cuda:N or auto (a GPU when there is one). Under
+    `accelerate launch` (or --num-processes) each process takes its own device for cuda/auto."""
     chunk: int = 32
     """States per written shard: a killed run loses at most one chunk, and `max_minutes` is
     checked between chunks (a chunk takes about 20 s on 2 CPU cores at history 0)."""
@@ -66,6 +69,8 @@ class AnnotateConfig:
             raise UsageError(f"--mode must be obs or hop, got {self.mode!r}")
         if self.mode == "hop" and "goal" in self.tasks:
             raise UsageError("the goal task has no hop form: annotate hop data with --tasks action,summary")
+        if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
+            raise UsageError(f"--device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
         if self.max_minutes is not None and self.max_minutes <= 0:
             raise UsageError(f"--max-minutes must be positive, got {self.max_minutes}")
 
@@ -86,6 +91,53 @@ class AnnotateResult:
     """Distinct states of the dataset the cache now answers for every task."""
     covered_step_share: float
     """Share of the dataset's steps they cover: the target coverage a run retracing it would get."""
+
+
+def distributed_state():
+    """accelerate's `PartialState` when this process is one of several (`accelerate launch
+    --multi_gpu`, torchrun), else None. Without a GPU (or with ACCELERATE_USE_CPU) the processes
+    are CPU processes joined by gloo. (accelerate's `--cpu` launcher starts several processes only
+    through MPI, `--mpirun_hostfile`; without it, it starts one.)"""
+    import os
+
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return None
+    import torch
+    from accelerate import PartialState
+
+    cpu = not torch.cuda.is_available() or os.environ.get("ACCELERATE_USE_CPU", "").lower() in ("1", "true")
+    return PartialState(cpu=cpu)
+
+
+def resolve_device(device: str, state=None) -> str:
+    """The torch device of the model: `device`, or for auto the process's accelerator (cuda when
+    there is one, else cpu); under several processes cuda and auto mean each process's own GPU."""
+    import torch
+
+    if state is not None and device in ("cuda", "auto") and state.device.type == "cuda":
+        return str(state.device)
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
+
+
+def _gathered(stats: Stats, state) -> Stats:
+    """Every process's counters summed (each annotated its own share of the plan)."""
+    from accelerate.utils import gather_object
+
+    parts = gather_object([(stats.annotated_states, stats.rows, stats.summaries, stats.summary_tokens,
+                            stats.per_task, stats.stopped_early, stats.seconds)])
+    total = Stats(states=stats.states, keys=stats.keys, hits=stats.hits, misses=stats.misses)
+    for annotated, rows, summaries, tokens, per_task, stopped, seconds in parts:
+        total.annotated_states += annotated
+        total.rows += rows
+        total.summaries += summaries
+        total.summary_tokens += tokens
+        total.stopped_early |= stopped
+        total.seconds = max(total.seconds, seconds)
+        for task, n in per_task.items():
+            total.per_task[task] = total.per_task.get(task, 0) + n
+    return total
 
 
 def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats], None] | None = None,
@@ -112,17 +164,25 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
         cache = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
         records, env_ids = records_from_table(table, config.history)
         renderers = table.column("renderer").to_pylist()
-    lm = load_model(config.model, dtype=config.dtype, quant=config.quant)
+    state = distributed_state()
+    lm = load_model(config.model, dtype=config.dtype, quant=config.quant, device=resolve_device(config.device, state))
     annotator = Annotator(lm, cache, model=config.model, tasks=config.tasks, history_len=config.history,
                           layout=config.layout, batch_size=config.batch_size, chunk=config.chunk)
     visited = annotator.visited(records, env_ids, renderers)
     selected = visited.top(config.limit)
     stats = Stats()
     plan = annotator.plan(selected, stats=stats)
+    if state is not None:  # each process annotates its contiguous share of the states, writing its own shards
+        with state.split_between_processes(plan) as mine:
+            plan = list(mine)
     if on_plan is not None:
         on_plan(stats, len(plan))
     max_seconds = None if config.max_minutes is None else 60.0 * config.max_minutes
     annotator.run(plan, stats=stats, on_progress=on_progress, max_seconds=max_seconds, should_stop=should_stop)
+    if state is not None:
+        state.wait_for_everyone()
+        stats = _gathered(stats, state)
+        cache.refresh()
     covered = visited.covered(cache)
     return AnnotateResult(stats, len(visited), visited.total_steps, len(selected),
                           selected.total_steps / max(visited.total_steps, 1), int(covered.sum()),
