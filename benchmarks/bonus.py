@@ -27,7 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from train import DIM  # noqa: E402  (benchmarks/train.py's summary size)
 
-from illm_tools.annotate.synthetic import SyntheticAnnotator, SyntheticLM  # noqa: E402
+from illm_tools.annotate.engine import Annotator  # noqa: E402
+from illm_tools.llm.stub import StubBackend  # noqa: E402
 
 from illm_tools.cache.store import AnnotationCache  # noqa: E402
 from illm_tools.envs import renderer_of  # noqa: E402
@@ -40,8 +41,9 @@ from illm_tools.rl.run import torch_threads  # noqa: E402
 PHASES = ("time/rollout_s", "time/targets_s", "time/update_s")
 
 
-class GoalAwareAnnotator(SyntheticAnnotator):
-    """benchmarks/train.py's synthetic annotator, plus `goal` rows (a fixed short goal list)."""
+class GoalAwareAnnotator(Annotator):
+    """The stub backend's annotator (answers derived from the prompt), with `goal` rows of a fixed
+    short goal list (the stub's own goal text would parse to no goal ELLM can match)."""
 
     def annotate(self, states):
         goal_jobs = [[j for j in jobs if j.prompt.task == "goal"] for jobs in states]
@@ -59,7 +61,7 @@ def provider_for(method, cfg: TrainConfig, cache_dir: Path, num_actions: int, fi
 
     tasks = tuple(getattr(method, "target_tasks", ("action", "summary")))
     cache = AnnotationCache(cache_dir)
-    annotator = GoalAwareAnnotator(SyntheticLM("synthetic-benchmark", DIM), cache, model="synthetic", tasks=tasks,
+    annotator = GoalAwareAnnotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", tasks=tasks,
                                    history_len=cfg.history_len, chunk=10_000)
     builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
     live = SyncLive(annotator, cfg.env_id, builder.renderer, 10**9) if fill else None

@@ -29,7 +29,8 @@ import time
 from pathlib import Path
 
 
-from illm_tools.annotate.synthetic import SyntheticAnnotator, SyntheticLM
+from illm_tools.annotate.engine import Annotator
+from illm_tools.llm.stub import StubBackend
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.live import SyncLive
@@ -47,7 +48,7 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
         provider, cfg = make_provider(cfg, len(pool.action_names))
     elif cfg.uses_heads:
         cache = AnnotationCache(cache_dir)
-        annotator = SyntheticAnnotator(SyntheticLM("synthetic-benchmark", DIM), cache, model="synthetic", history_len=cfg.history_len,
+        annotator = Annotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", history_len=cfg.history_len,
                                        chunk=10_000)
         builder = annotator.builder(cfg.env_id, cfg.renderer)
         live = SyncLive(annotator, cfg.env_id, builder.renderer, cfg.live_budget) if cfg.live_budget else None

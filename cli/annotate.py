@@ -29,6 +29,7 @@ def register(app: typer.Typer) -> None:
         mode: str = typer.Option("obs", "--mode", help="obs: the states' text | hop: the raw observations translated into the LLM's embedding space (iLLM(hop); any suite, Atari included)."),
         hop_seed: int = typer.Option(0, "--hop-seed", help="hop: seed of the translation's random projection (the run's --hop-seed)."),
         hop_beta: float = typer.Option(1.0, "--hop-beta", help="hop: inverse temperature of the Hopfield retrieval (the run's --hop-beta)."),
+        backend: str = typer.Option("transformers", "--backend", help="LLM backend: transformers | stub (deterministic answers from the prompt, no weights; for tests)."),
         device: str = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto; with several processes each takes its own GPU."),
         num_processes: int = typer.Option(1, "--num-processes", help="Annotate with N processes: runs `accelerate launch --num_processes N` on this command (the states are split between them)."),
     ) -> None:
@@ -39,7 +40,7 @@ def register(app: typer.Typer) -> None:
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()),
                                 history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
                                 dtype=dtype, quant=quant, mode=mode, hop_seed=hop_seed, hop_beta=hop_beta,
-                                device=device)
+                                device=device, backend=backend)
         if num_processes > 1 and distributed_state() is None:
             raise typer.Exit(launch(num_processes, device))
         if num_processes < 1:

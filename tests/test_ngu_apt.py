@@ -18,13 +18,14 @@ import torch
 from typer.testing import CliRunner
 
 from cli.main import app
-from illm_tools.annotate.synthetic import SyntheticAnnotator, SyntheticLM
+from illm_tools.annotate.engine import Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic import BonusContext, ILLMBonus, RNDBonus
 from illm_tools.intrinsic.apt import APTBonus, APTConfig
 from illm_tools.intrinsic.ngu import NGUBonus, NGUConfig
 from illm_tools.intrinsic.registry import METHODS, get_method
+from illm_tools.llm.stub import StubBackend
 from illm_tools.rl import TrainConfig, Trainer, load_checkpoint, two_stream_advantages
 from illm_tools.rl.live import SyncLive
 from illm_tools.rl.targets import CachedTargets
@@ -256,7 +257,7 @@ def states(count: int, start: int = 0, actions=ACTIONS) -> list[StateRecord]:
 
 
 def annotate(cache: AnnotationCache, records, *, chunk: int = 4, lm=None) -> Annotator:
-    annotator = SyntheticAnnotator(lm or SyntheticLM(hidden_size=DIM), cache, model="synthetic", history_len=3, chunk=chunk)
+    annotator = Annotator(lm or StubBackend(f"synthetic:{DIM}"), cache, model="synthetic", history_len=3, chunk=chunk)
     annotator.annotate_states(records, ENV, RENDERER)
     return annotator
 
@@ -309,7 +310,7 @@ def test_shuffled_pool_is_one_setup_and_grows_without_moving_other_states(tmp_pa
     records = states(12)
     cache = AnnotationCache(tmp_path / "ann")
     annotator = annotate(cache, records)
-    annotate(cache, states(6, start=100), lm=SyntheticLM("another-model", DIM))  # another setup: never a partner
+    annotate(cache, states(6, start=100), lm=StubBackend(f"another-model:{DIM}"))  # another setup: never a partner
     plain, shuffled = providers(cache, annotator)
     before = partners(plain, shuffled, records)
     assert sorted(before) == list(range(12))
@@ -336,7 +337,6 @@ def test_an_action_partner_has_the_same_valid_actions(tmp_path):
 
 
 def test_illm_shuffled_is_illm_on_shuffled_targets_end_to_end(tmp_path, monkeypatch):
-    from illm_tools.llm import loading
     from illm_tools.rl.run import make_provider
 
     method = get_method("illm-shuffled")
@@ -347,15 +347,14 @@ def test_illm_shuffled_is_illm_on_shuffled_targets_end_to_end(tmp_path, monkeypa
     # pass 1 (illm, live annotation by the synthetic annotator) fills the cache with the states a
     # run of this seed meets first; pass 2 (illm-shuffled, cache only) meets them again
     cache = AnnotationCache(tmp_path / "ann")
-    annotator = SyntheticAnnotator(SyntheticLM(hidden_size=DIM), cache, model="synthetic", history_len=3, chunk=64)
+    annotator = Annotator(StubBackend(f"synthetic:{DIM}"), cache, model=f"synthetic:{DIM}", history_len=3, chunk=64)
     plain = CachedTargets(cache, annotator.builder(ENV, RENDERER), calibration="sum", num_actions=6,
                           embedding_dim=DIM, live=SyncLive(annotator, ENV, RENDERER, budget=10**6))
     common = dict(num_envs=4, num_steps=32, total_steps=128, tensorboard=False, update_epochs=1, num_minibatches=2,
-                  embedding_dim=DIM, head_hidden=32, cache=tmp_path / "ann", model="synthetic", live_budget=0)
+                  embedding_dim=DIM, head_hidden=32, cache=tmp_path / "ann", model=f"synthetic:{DIM}", backend="stub",
+                  live_budget=0)
     Trainer(TrainConfig(run_dir=tmp_path / "fill", mode="illm", **common), FakePool(4), plain).train()
 
-    monkeypatch.setattr(loading, "model_fingerprint", lambda name, **kw: SyntheticLM(hidden_size=DIM).fingerprint)
-    monkeypatch.setattr(loading, "model_hidden_size", lambda name, **kw: DIM)
     cfg = TrainConfig(run_dir=tmp_path / "shuffled", mode="illm-shuffled", **common)
     provider, cfg = make_provider(cfg, len(ACTIONS))
     assert provider.shuffle is not None and provider.shuffle.seed == 0

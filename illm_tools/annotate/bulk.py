@@ -21,6 +21,8 @@ class AnnotateConfig:
     """Annotation cache folder (created if absent; shared by every run that reads it)."""
     model: str = "smollm2-135m"
     """Model alias (see `illm models`), hub id or local folder."""
+    backend: str = "transformers"
+    """LLM backend (`illm_tools.llm.backend`): transformers, or stub (deterministic, no weights)."""
     tasks: tuple[str, ...] = DEFAULT_TASKS
     """Language tasks: action (next-action ranking), summary (64-token history compression), goal
     (ELLM's suggested goals; only when named)."""
@@ -65,6 +67,9 @@ class AnnotateConfig:
             raise UsageError("--batch-size and --chunk must be positive")
         if self.limit is not None and self.limit < 0:
             raise UsageError(f"--limit must be 0 or more, got {self.limit}")
+        from illm_tools.llm.backend import check_backend
+
+        check_backend(self.backend)
         if self.mode not in ("obs", "hop"):
             raise UsageError(f"--mode must be obs or hop, got {self.mode!r}")
         if self.mode == "hop" and "goal" in self.tasks:
@@ -148,7 +153,7 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     `max_minutes` have passed or `should_stop()` says so; report the coverage."""
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.data.trajectories import open_table, require_text
-    from illm_tools.llm.loading import load_model
+    from illm_tools.llm.backend import load_backend
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
     if config.mode == "hop":
@@ -165,7 +170,8 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
         records, env_ids = records_from_table(table, config.history)
         renderers = table.column("renderer").to_pylist()
     state = distributed_state()
-    lm = load_model(config.model, dtype=config.dtype, quant=config.quant, device=resolve_device(config.device, state))
+    lm = load_backend(config.backend, config.model, dtype=config.dtype, quant=config.quant,
+                      device=resolve_device(config.device, state))
     annotator = Annotator(lm, cache, model=config.model, tasks=config.tasks, history_len=config.history,
                           layout=config.layout, batch_size=config.batch_size, chunk=config.chunk)
     visited = annotator.visited(records, env_ids, renderers)

@@ -84,7 +84,10 @@ class Annotator:
         unknown = sorted(set(tasks) - set(TASKS))
         if unknown or not tasks:
             raise UsageError(f"unknown tasks {unknown or list(tasks)}: choose from {', '.join(TASKS)}")
-        self.lm = lm
+        from illm_tools.llm.backend import as_backend
+
+        self.lm = as_backend(lm)
+        """The LLM backend (`illm_tools.llm.backend`); a loaded transformers model is wrapped."""
         self.cache = cache
         self.model = model
         self.tasks = tuple(tasks)
@@ -92,7 +95,7 @@ class Annotator:
         self.layout = layout
         self.batch_size = batch_size
         self.chunk = chunk
-        self.model_fingerprint = fingerprint_hash(lm.fingerprint)
+        self.model_fingerprint = fingerprint_hash(self.lm.fingerprint)
         self._builders: dict[tuple[str, str], PromptBuilder] = {}
         self._neutral: dict[tuple[str, ...], list[float]] = {}
         self._hop: dict[tuple, object] = {}
@@ -177,16 +180,12 @@ class Annotator:
     def annotate(self, states: list[list[Job]]) -> list[dict]:
         """Cache rows for the jobs of these states (no writing). A state needing both tasks under
         the shared layout runs its common prompt prefix once for both."""
-        from illm_tools.llm.generation import generate
-        from illm_tools.llm.joint import can_share_prefix, score_and_generate
-        from illm_tools.llm.scoring import score_candidates
-
         rows: list[dict] = []
         action: list[Job] = []
         summary: list[Job] = []
         goal: list[Job] = []
         pairs: list[tuple[Job, Job]] = []
-        share = self.layout == "shared" and can_share_prefix(self.lm)
+        share = self.layout == "shared" and getattr(self.lm, "shares_prefix", False)
         hop = [jobs for jobs in states if jobs[0].builder.renderer.startswith("hop@")]
         if hop:
             rows += self._annotate_hop(hop)
@@ -200,22 +199,22 @@ class Annotator:
             action += [j for j in jobs if j.prompt.task == "action"]
             summary += [j for j in jobs if j.prompt.task == "summary"]
         if pairs:
-            scores, gens = score_and_generate(
-                self.lm, [a.prompt.text for a, _ in pairs], [list(a.prompt.candidates) for a, _ in pairs],
+            scores, gens = self.lm.score_and_generate(
+                [a.prompt.text for a, _ in pairs], [list(a.prompt.candidates) for a, _ in pairs],
                 [s.prompt.text for _, s in pairs], max_new_tokens=SUMMARY_TOKENS, batch_size=self.batch_size)
             rows += [self._action_row(a, sc) for (a, _), sc in zip(pairs, scores)]
             rows += [self._summary_row(s, g) for (_, s), g in zip(pairs, gens)]
         if action:
-            scores = score_candidates(self.lm, [j.prompt.text for j in action],
-                                      [list(j.prompt.candidates) for j in action], batch_size=self.batch_size)
+            scores = self.lm.score([j.prompt.text for j in action], [list(j.prompt.candidates) for j in action],
+                                   batch_size=self.batch_size)
             rows += [self._action_row(j, sc) for j, sc in zip(action, scores)]
         if summary:
-            gens = generate(self.lm, [j.prompt.text for j in summary], max_new_tokens=SUMMARY_TOKENS,
-                            batch_size=self.batch_size)
+            gens = self.lm.generate([j.prompt.text for j in summary], max_new_tokens=SUMMARY_TOKENS,
+                                    batch_size=self.batch_size)
             rows += [self._summary_row(j, g) for j, g in zip(summary, gens)]
         if goal:
-            gens = generate(self.lm, [j.prompt.text for j in goal], max_new_tokens=GOAL_TOKENS,
-                            batch_size=self.batch_size)
+            gens = self.lm.generate([j.prompt.text for j in goal], max_new_tokens=GOAL_TOKENS,
+                                    batch_size=self.batch_size)
             rows += [self._goal_row(j, g) for j, g in zip(goal, gens)]
         return rows
 
@@ -231,18 +230,12 @@ class Annotator:
 
     def _annotate_hop(self, states: list[list[Job]]) -> list[dict]:
         """iLLM(hop)'s language tasks: each prompt is its template with the translated window
-        spliced in as input embeddings where the written history would stand (B.2's prompts, D.7).
-        Prompts of one length run as one batch; action candidates are scored after the prompt,
-        summaries decoded greedily from it (64 tokens, mean last hidden state as the embedding)."""
-        import torch
-
-        from illm_tools.llm.generation import Generation, greedy_from
-        from illm_tools.llm.scoring import CandidateScores, extend, plan_state, score_continuations
+        spliced in as input embeddings where the written history would stand (B.2's prompts, D.7);
+        the backend scores the action candidates after it and decodes the summary from it."""
+        from illm_tools.llm.backend import SplicedPrompt
 
         marker = "\x00HISTORY\x00"
-        embed = self.lm.model.get_input_embeddings()
-        bos = len(self.lm.bos_ids)
-        items = []  # (job, full embeddings [L, d], plan or None)
+        jobs_in_order, prompts = [], []
         for jobs in states:
             record = jobs[0].record
             if not getattr(record, "frames", ()):
@@ -254,48 +247,17 @@ class Annotator:
             window = context.window_embeddings(record.frames, record.prev_actions)
             for job in jobs:
                 head, tail = job.builder.render(job.prompt.task, record, marker).text.split(marker)
-                plan = None
-                if job.prompt.task == "action":
-                    plan = plan_state(self.lm, tail, list(job.prompt.candidates))
-                    tail_ids = plan.prefix[bos:]
-                else:
-                    tail_ids = self.lm.tokenizer(tail, add_special_tokens=False)["input_ids"]
-                with torch.inference_mode():
-                    parts = [embed(torch.as_tensor(ids, dtype=torch.long, device=self.lm.device)).float().cpu()
-                             for ids in (self.lm.encode(head), tail_ids) if ids]
-                full = torch.cat([parts[0], window, *parts[1:]]) if len(parts) == 2 else torch.cat([parts[0], window])
-                items.append((job, full, plan))
-        rows: list[dict] = []
-        by_length: dict[int, list[int]] = {}
-        for n, (_job, full, _plan) in enumerate(items):
-            by_length.setdefault(int(full.shape[0]), []).append(n)
-        pending = []
-        for length, members in sorted(by_length.items()):
-            for start in range(0, len(members), self.batch_size):
-                batch = [items[n] for n in members[start:start + self.batch_size]]
-                state = extend(self.lm, [], embeds=torch.stack([full for _, full, _ in batch]))
-                actions = [i for i, (job, _, _) in enumerate(batch) if job.prompt.task == "action"]
-                if actions:
-                    scored = score_continuations(self.lm, state.select(actions),
-                                                 [batch[i][2].continuations for i in actions],
-                                                 [batch[i][2].skip for i in actions])
-                    for i, logprobs in zip(actions, scored):
-                        rows.append(self._action_row(batch[i][0], CandidateScores.from_logprobs(logprobs)))
-                summaries = [i for i, (job, _, _) in enumerate(batch) if job.prompt.task == "summary"]
-                if summaries:
-                    pending.append(([batch[i][0] for i in summaries], state.select(summaries)))
-        for jobs, state in pending:
-            for job, (ids, finished, emb) in zip(jobs, greedy_from(self.lm, state, SUMMARY_TOKENS)):
-                text = self.lm.tokenizer.decode(ids, skip_special_tokens=True)
-                rows.append(self._summary_row(job, Generation(text, ids, finished, emb)))
-        return rows
+                jobs_in_order.append(job)
+                prompts.append(SplicedPrompt(head, window, tail,
+                                             job.prompt.candidates if job.prompt.task == "action" else None))
+        answers = self.lm.spliced(prompts, max_new_tokens=SUMMARY_TOKENS, batch_size=self.batch_size)
+        return [self._action_row(job, answer) if job.prompt.task == "action" else self._summary_row(job, answer)
+                for job, answer in zip(jobs_in_order, answers)]
 
     def neutral_scores(self, candidates: tuple[str, ...]) -> list[float]:
         """Each candidate's summed log-prob after the neutral prompt (once per candidate set)."""
         if candidates not in self._neutral:
-            from illm_tools.llm.scoring import score_candidates
-
-            (scores,) = score_candidates(self.lm, [neutral_prompt()], [list(candidates)], batch_size=1)
+            (scores,) = self.lm.score([neutral_prompt()], [list(candidates)], batch_size=1)
             self._neutral[candidates] = [float(s) for s in scores.sums]
         return self._neutral[candidates]
 

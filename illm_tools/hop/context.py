@@ -156,14 +156,15 @@ class HopTracker:
 
 
 class HopContext:
-    """Translation and Z_h for a run: the frozen Hopfield layer over the LLM's input embeddings and
-    the LLM itself (frozen, inference only)."""
+    """Translation and Z_h for a run: the frozen Hopfield layer over the LLM backend's input
+    embeddings, and the backend itself (frozen, inference only; `illm_tools.llm.backend`)."""
 
     def __init__(self, lm, obs_dim: int, num_actions: int, *, seed: int, beta: float):
-        self.lm = lm
-        self.translator = FrozenHopfield(lm.model.get_input_embeddings().weight, obs_dim, num_actions,
-                                         seed=seed, beta=beta)
-        self.hidden_size = int(lm.hidden_size)
+        from illm_tools.llm.backend import as_backend
+
+        self.lm = as_backend(lm)
+        self.translator = FrozenHopfield(self.lm.input_embeddings(), obs_dim, num_actions, seed=seed, beta=beta)
+        self.hidden_size = int(self.lm.hidden_size)
 
     def translate(self, raws: Sequence[np.ndarray], prev_actions: Sequence[int]) -> torch.Tensor:
         """[B, d] translations of (raw observation, previous action) pairs."""
@@ -174,21 +175,10 @@ class HopContext:
         """[L, d] translated steps of one window, oldest first (what the language tasks read)."""
         return self.translate(frames, prev_actions)
 
-    @torch.no_grad()
     def z_h(self, windows: Sequence[torch.Tensor]) -> torch.Tensor:
         """float32 [B, H]: the LLM's last hidden state after reading each window [L_i, d] as input
-        embeddings; windows of one length run as one batch (no padding)."""
-        out = torch.zeros(len(windows), self.hidden_size)
-        by_length: dict[int, list[int]] = {}
-        for i, w in enumerate(windows):
-            by_length.setdefault(int(w.shape[0]), []).append(i)
-        dtype = self.lm.model.get_input_embeddings().weight.dtype
-        backbone = self.lm.model.base_model  # the decoder without its output layer: no logits are needed
-        for length, rows in by_length.items():
-            embeds = torch.stack([windows[i] for i in rows]).to(dtype=dtype, device=self.lm.device)
-            result = backbone(inputs_embeds=embeds, use_cache=False)
-            out[rows] = result.last_hidden_state[:, -1].float().cpu()
-        return out
+        embeddings (no prompt around them)."""
+        return self.lm.last_hidden(windows)
 
     def step(self, tracker: HopTracker) -> torch.Tensor:
         """Z_h of every env's current window (after `tracker.records`), translating only the new

@@ -293,11 +293,12 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     hop = None
     if cfg.obs_mode == "hop":
         from illm_tools.hop.context import HopContext, HopTracker
-        from illm_tools.llm.loading import load_model
+        from illm_tools.llm.backend import load_backend
 
         obs_dim = int(np.prod(pool.suite.raw_obs(np.zeros(state["image_shape"], dtype=np.uint8)).shape))
-        hop = (HopContext(load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant), obs_dim, len(names),
-                          seed=cfg.hop_seed, beta=cfg.hop_beta), HopTracker(pool.num_envs, cfg.history_len, names))
+        lm = load_backend(cfg.backend, cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+        hop = (HopContext(lm, obs_dim, len(names), seed=cfg.hop_seed, beta=cfg.hop_beta),
+               HopTracker(pool.num_envs, cfg.history_len, names))
     net = make_network(method, cfg.env_id, len(names), image_shape=tuple(state["image_shape"]),
                        vocab_size=len(vocab), network_options=cfg.network_options,
                        embedding_dim=state["model"]["f_hc.2.weight"].shape[0] if heads else None,

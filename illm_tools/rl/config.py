@@ -138,6 +138,9 @@ class TrainConfig:
     """Annotation cache the targets are read from (and live annotations written back to)."""
     model: str = "smollm2-135m"
     """LLM whose annotations are the targets: its fingerprint is part of every cache key."""
+    backend: str = "transformers"
+    """LLM backend serving `model` (`illm_tools.llm.backend`): transformers, or stub (deterministic
+    answers from the prompt, no weights: for tests and benchmarks)."""
     model_dtype: str = "bfloat16"
     """Compute dtype of that LLM (part of its fingerprint, as in `illm annotate --dtype`)."""
     quant: str = "none"
@@ -213,6 +216,9 @@ class TrainConfig:
         if self.action_similarity not in ("tv", "bhattacharyya"):
             raise UsageError("action_similarity must be tv or bhattacharyya, "
                              f"got {self.action_similarity!r}")
+        from illm_tools.llm.backend import check_backend
+
+        check_backend(self.backend)
         if self.obs_mode not in OBS_MODES:
             raise UsageError(f"--mode is the observation mode, {' or '.join(OBS_MODES)}; got {self.obs_mode!r} "
                              "(the method is --method)")

@@ -107,10 +107,10 @@ class Trainer:
     def _hop_context(self):
         """The run's translation and LLM (`illm_tools.hop`), and the per-env windows."""
         from illm_tools.hop.context import HopContext, HopTracker
-        from illm_tools.llm.loading import load_model
+        from illm_tools.llm.backend import load_backend
 
         cfg = self.cfg
-        lm = load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+        lm = load_backend(cfg.backend, cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
         raw = np.asarray(self.suite.raw_obs(self.obs.images[0]))
         self.hop_tracker = HopTracker(cfg.num_envs, cfg.history_len, self.action_names)
         self._hop_now = None  # (records, Z_h) of the current observations, computed once

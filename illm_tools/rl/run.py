@@ -40,7 +40,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "see `illm annotate`), or use --method ppo")
     from illm_tools.cache.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
-    from illm_tools.llm.loading import model_fingerprint, model_hidden_size
+    from illm_tools.llm.backend import backend_fingerprint, backend_hidden_size
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.targets import CachedTargets, GoalTargets, check_setup
     from illm_tools.tasks.prompts import PromptBuilder
@@ -49,7 +49,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
 
     cache = AnnotationCache(cfg.cache)
     renderer = cfg.renderer  # the suite's text renderer, or the hop translation's settings
-    fp = fingerprint_hash(model_fingerprint(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant))
+    fp = fingerprint_hash(backend_fingerprint(cfg.backend, cfg.model, dtype=cfg.model_dtype, quant=cfg.quant))
     builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=cfg.model, model_fingerprint=fp,
                             history_len=cfg.history_len, layout=cfg.layout)
     if len(cache) == 0 and cfg.live_budget == 0:
@@ -59,7 +59,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
         check_setup(cache, builder, model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant, tasks=tasks)
     if tasks == ("goal",):
         return GoalTargets(cache, builder, num_actions=num_actions, live=make_live(cfg, builder, cache, tasks)), cfg
-    dim = model_hidden_size(cfg.model)
+    dim = backend_hidden_size(cfg.backend, cfg.model)
     if dim != cfg.embedding_dim:
         cfg = dataclasses.replace(cfg, embedding_dim=dim)
     provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
@@ -78,12 +78,12 @@ def make_live(cfg: TrainConfig, builder, cache, tasks: tuple[str, ...] = ("actio
     if cfg.live_mode == "async":
         spec = WorkerSpec(cache=str(cfg.cache), model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant,
                           env_id=builder.env_id, renderer=builder.renderer, history_len=cfg.history_len,
-                          layout=cfg.layout, threads=cfg.live_threads, tasks=tuple(tasks))
+                          layout=cfg.layout, threads=cfg.live_threads, tasks=tuple(tasks), backend=cfg.backend)
         return AsyncLive(spec, budget=cfg.live_budget)
     from illm_tools.annotate.engine import Annotator
-    from illm_tools.llm.loading import load_model
+    from illm_tools.llm.backend import load_backend
 
-    lm = load_model(cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+    lm = load_backend(cfg.backend, cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
     annotator = Annotator(lm, cache, model=cfg.model, tasks=tasks, history_len=cfg.history_len,
                           layout=cfg.layout)
     return SyncLive(annotator, builder.env_id, builder.renderer, cfg.live_budget, threads=cfg.live_threads)

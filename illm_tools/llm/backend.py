@@ -1,0 +1,114 @@
+"""The LLM backend protocol: everything the annotation engine, the live fallback and iLLM(hop) ask
+of a language model, and the registry that names the implementations.
+
+A backend knows its model's `fingerprint` (what every cache key hashes), `hidden_size` (the
+summary embedding's width) and `device`, and answers:
+
+- `score(contexts, candidates)`: log P(candidate | context) per candidate (`CandidateScores`);
+- `generate(prompts, max_new_tokens)`: greedy continuations with their embeddings (`Generation`);
+- `score_and_generate(...)`: both tasks of each state (a backend may share their prompt prefix);
+- `embed(texts)`: [n, hidden] text embeddings;
+- iLLM(hop), prompts with input embeddings spliced in: `input_embeddings()` (the [V, d] matrix the
+  Hopfield translation reads), `last_hidden(windows)` (Z_h: the state after reading each window of
+  input embeddings) and `spliced(items, ...)` (action scores and summaries of prompts whose history
+  is a window of input embeddings, `SplicedPrompt`).
+
+`BACKENDS` maps a name to "module:Class"; `load_backend(name, model, ...)` builds one (an unknown
+name is refused in one line), `backend_fingerprint` / `backend_hidden_size` answer without loading
+weights. `transformers` (the default: `illm_tools.llm.transformers_backend`) runs real models;
+`stub` (`illm_tools.llm.stub`) answers deterministically from the prompt, for tests and
+benchmarks of everything around the LLM. A third backend is one new file plus one entry here.
+"""
+from __future__ import annotations
+
+import importlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+from illm_tools.errors import UsageError
+
+BACKENDS: dict[str, str | type] = {
+    "transformers": "illm_tools.llm.transformers_backend:TransformersBackend",
+    "stub": "illm_tools.llm.stub:StubBackend",
+}
+"""Backend name -> its class ("module:Class", imported on first use, or the class)."""
+DEFAULT_BACKEND = "transformers"
+
+
+@dataclass(frozen=True)
+class SplicedPrompt:
+    """One hop prompt: text before the history, the window's input embeddings [L, d] (a tensor),
+    text after it; `candidates` to score (the action task) or None (the summary: generate)."""
+
+    head: str
+    window: Any
+    tail: str
+    candidates: tuple[str, ...] | None = None
+
+
+@runtime_checkable
+class Backend(Protocol):
+    name: str
+    model: str
+    fingerprint: dict
+    hidden_size: int
+    device: str
+
+    def score(self, contexts: Sequence[str], candidates: Sequence[Sequence[str]], *, batch_size: int = 8) -> list: ...
+
+    def generate(self, prompts: Sequence[str], *, max_new_tokens: int = 64, batch_size: int = 8) -> list: ...
+
+    def score_and_generate(self, contexts: Sequence[str], candidates: Sequence[Sequence[str]],
+                           prompts: Sequence[str], *, max_new_tokens: int = 64,
+                           batch_size: int = 8) -> tuple[list, list]: ...
+
+    def embed(self, texts: Sequence[str], *, batch_size: int = 8) -> Any: ...
+
+    def input_embeddings(self) -> Any: ...
+
+    def last_hidden(self, windows: Sequence[Any]) -> Any: ...
+
+    def spliced(self, prompts: Sequence[SplicedPrompt], *, max_new_tokens: int = 64,
+                batch_size: int = 8) -> list: ...
+
+
+def check_backend(name: str) -> None:
+    """Refuse an unknown backend name in one line (nothing is imported)."""
+    if name not in BACKENDS:
+        raise UsageError(f"unknown LLM backend {name!r}; choose one of {', '.join(BACKENDS)}")
+
+
+def backend_class(name: str) -> type:
+    """The class registered as `name`; an unknown name is refused in one line."""
+    check_backend(name)
+    entry = BACKENDS[name]
+    if isinstance(entry, str):
+        module, attr = entry.split(":")
+        entry = getattr(importlib.import_module(module), attr)
+    return entry
+
+
+def load_backend(name: str, model: str, *, dtype: str = "bfloat16", quant: str = "none", device: str = "cpu",
+                 cache_dir: str | None = None):
+    """The backend `name` serving `model` (an alias, hub id or folder for transformers)."""
+    return backend_class(name).load(model, dtype=dtype, quant=quant, device=device, cache_dir=cache_dir)
+
+
+def backend_fingerprint(name: str, model: str, *, dtype: str = "bfloat16", quant: str = "none") -> dict:
+    """What `load_backend(...).fingerprint` will be, without loading weights."""
+    return backend_class(name).model_fingerprint(model, dtype=dtype, quant=quant)
+
+
+def backend_hidden_size(name: str, model: str) -> int:
+    """The model's hidden size (the summary embedding's width), without loading weights."""
+    return backend_class(name).model_hidden_size(model)
+
+
+def as_backend(lm):
+    """A backend for `lm`: itself, or a loaded transformers model (`LoadedModel`) wrapped."""
+    if isinstance(lm, Backend):
+        return lm
+    from illm_tools.llm.transformers_backend import TransformersBackend
+
+    return TransformersBackend(lm)

@@ -1,0 +1,149 @@
+"""The transformers backend: a loaded causal LM (`illm_tools.llm.loading.LoadedModel`) behind the
+`Backend` protocol. Scoring, generation and their shared-prefix form are `scoring.py`,
+`generation.py` and `joint.py`; what is here is the iLLM(hop) side, prompts with input
+embeddings spliced in, and the thin delegation."""
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+from illm_tools.llm.backend import SplicedPrompt
+from illm_tools.llm.loading import LoadedModel
+
+
+class TransformersBackend:
+    name = "transformers"
+
+    def __init__(self, lm: LoadedModel):
+        self.lm = lm
+        self.model = lm.name
+        self.fingerprint = lm.fingerprint
+        self.hidden_size = int(lm.hidden_size)
+
+    @property
+    def device(self) -> str:
+        return str(self.lm.device)
+
+    # --- building ------------------------------------------------------------------------------
+    @classmethod
+    def load(cls, model: str, *, dtype: str = "bfloat16", quant: str = "none", device: str = "cpu",
+             cache_dir: str | os.PathLike | None = None) -> TransformersBackend:
+        from illm_tools.llm.loading import load_model
+
+        return cls(load_model(model, dtype=dtype, quant=quant, device=device, cache_dir=cache_dir))
+
+    @staticmethod
+    def model_fingerprint(model: str, *, dtype: str = "bfloat16", quant: str = "none") -> dict:
+        from illm_tools.llm import loading
+
+        return loading.model_fingerprint(model, dtype=dtype, quant=quant)
+
+    @staticmethod
+    def model_hidden_size(model: str) -> int:
+        from illm_tools.llm import loading
+
+        return loading.model_hidden_size(model)
+
+    # --- text ----------------------------------------------------------------------------------
+    def score(self, contexts, candidates, *, batch_size: int = 8):
+        from illm_tools.llm.scoring import score_candidates
+
+        return score_candidates(self.lm, contexts, candidates, batch_size=batch_size)
+
+    def generate(self, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
+        from illm_tools.llm.generation import generate
+
+        return generate(self.lm, prompts, max_new_tokens=max_new_tokens, batch_size=batch_size)
+
+    def score_and_generate(self, contexts, candidates, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
+        """One pass over each state's shared prompt prefix where the model allows it (not on
+        sliding-window models), else the two separate paths."""
+        from illm_tools.llm.joint import can_share_prefix, score_and_generate
+
+        if can_share_prefix(self.lm):
+            return score_and_generate(self.lm, contexts, candidates, prompts, max_new_tokens=max_new_tokens,
+                                      batch_size=batch_size)
+        return (self.score(contexts, candidates, batch_size=batch_size),
+                self.generate(prompts, max_new_tokens=max_new_tokens, batch_size=batch_size))
+
+    @property
+    def shares_prefix(self) -> bool:
+        from illm_tools.llm.joint import can_share_prefix
+
+        return can_share_prefix(self.lm)
+
+    def embed(self, texts, *, batch_size: int = 8):
+        from illm_tools.llm.generation import embed_texts
+
+        return embed_texts(self.lm, texts, batch_size=batch_size)
+
+    # --- input embeddings (iLLM(hop)) ------------------------------------------------------------
+    def input_embeddings(self):
+        return self.lm.model.get_input_embeddings().weight
+
+    def last_hidden(self, windows: Sequence):
+        """float32 [B, H]: the last hidden state after reading each window [L_i, d] as input
+        embeddings (no prompt); windows of one length run as one batch, through the decoder alone
+        (the output layer's logits are not needed)."""
+        import torch
+
+        out = torch.zeros(len(windows), self.hidden_size)
+        by_length: dict[int, list[int]] = {}
+        for i, w in enumerate(windows):
+            by_length.setdefault(int(w.shape[0]), []).append(i)
+        dtype = self.input_embeddings().dtype
+        backbone = self.lm.model.base_model
+        with torch.inference_mode():
+            for rows in by_length.values():
+                embeds = torch.stack([windows[i] for i in rows]).to(dtype=dtype, device=self.lm.device)
+                out[rows] = backbone(inputs_embeds=embeds, use_cache=False).last_hidden_state[:, -1].float().cpu()
+        return out
+
+    def spliced(self, prompts: Sequence[SplicedPrompt], *, max_new_tokens: int = 64, batch_size: int = 8) -> list:
+        """Per prompt: `CandidateScores` (candidates given) or `Generation` (none). Each prompt runs
+        as one sequence of input embeddings (head tokens, the window, tail tokens); prompts of one
+        length form a batch (no padding); candidates are scored after the prompt with joint
+        tokenisation of tail and candidate, summaries decoded greedily from it."""
+        import torch
+
+        from illm_tools.llm.generation import Generation, greedy_from
+        from illm_tools.llm.scoring import CandidateScores, extend, plan_state, score_continuations
+
+        lm = self.lm
+        embed = lm.model.get_input_embeddings()
+        bos = len(lm.bos_ids)
+        items = []  # (full embeddings [L, d], plan or None)
+        for prompt in prompts:
+            plan = None
+            if prompt.candidates is not None:
+                plan = plan_state(lm, prompt.tail, list(prompt.candidates))
+                tail_ids = plan.prefix[bos:]
+            else:
+                tail_ids = lm.tokenizer(prompt.tail, add_special_tokens=False)["input_ids"]
+            with torch.inference_mode():
+                parts = [embed(torch.as_tensor(ids, dtype=torch.long, device=lm.device)).float().cpu()
+                         for ids in (lm.encode(prompt.head), tail_ids) if ids]
+            items.append((torch.cat([parts[0], prompt.window.float(), *parts[1:]]), plan))
+        results: list = [None] * len(prompts)
+        by_length: dict[int, list[int]] = {}
+        for n, (full, _plan) in enumerate(items):
+            by_length.setdefault(int(full.shape[0]), []).append(n)
+        pending = []
+        for members in by_length.values():
+            for start in range(0, len(members), batch_size):
+                batch = members[start:start + batch_size]
+                state = extend(lm, [], embeds=torch.stack([items[n][0] for n in batch]))
+                scored = [i for i, n in enumerate(batch) if items[n][1] is not None]
+                if scored:
+                    logprobs = score_continuations(lm, state.select(scored),
+                                                   [items[batch[i]][1].continuations for i in scored],
+                                                   [items[batch[i]][1].skip for i in scored])
+                    for i, lp in zip(scored, logprobs):
+                        results[batch[i]] = CandidateScores.from_logprobs(lp)
+                decoded = [i for i, n in enumerate(batch) if items[n][1] is None]
+                if decoded:
+                    pending.append(([batch[i] for i in decoded], state.select(decoded)))
+        for rows, state in pending:
+            for n, (ids, finished, emb) in zip(rows, greedy_from(lm, state, max_new_tokens)):
+                results[n] = Generation(lm.tokenizer.decode(ids, skip_special_tokens=True), ids, finished, emb)
+        return results

@@ -1,0 +1,95 @@
+"""The LLM backend seam: an unknown backend is refused in one line, the stub answers
+deterministically from the prompt, a backend defined in this test file plugs in through the
+registry (one class plus one entry) and annotates and trains unchanged, and the whole pipeline
+runs on the stub, text and hop mode alike, with no weights."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cli.main import app
+from illm_tools.annotate.engine import Annotator
+from illm_tools.cache.store import AnnotationCache
+from illm_tools.errors import UsageError
+from illm_tools.llm.backend import BACKENDS, Backend, backend_fingerprint, backend_hidden_size, load_backend
+from illm_tools.llm.stub import StubBackend
+from illm_tools.tasks.state import StateRecord
+
+runner = CliRunner()
+ACTIONS = ("turn left", "turn right", "go forward")
+
+
+def ok(args):
+    result = runner.invoke(app, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def test_an_unknown_backend_is_refused_in_one_line(tmp_path):
+    with pytest.raises(UsageError, match="unknown LLM backend 'vllm'; choose one of transformers, stub"):
+        load_backend("vllm", "smollm2-135m")
+    out = runner.invoke(app, ["annotate", str(tmp_path), "--backend", "vllm"])
+    assert out.exit_code == 1 and "unknown LLM backend" in out.output and "Traceback" not in out.output
+
+
+def test_the_stub_answers_deterministically_from_the_prompt():
+    a, b = StubBackend("stub:32"), StubBackend("stub:32")
+    assert isinstance(a, Backend) and a.hidden_size == 32 and backend_hidden_size("stub", "stub:32") == 32
+    assert a.fingerprint == backend_fingerprint("stub", "stub:32") != StubBackend("other:32").fingerprint
+    s1, s2 = a.score(["ctx"], [[" go", " stop"]])[0], b.score(["ctx"], [[" go", " stop"]])[0]
+    assert s1.sums == s2.sums and s1.sums[0] != s1.sums[1]
+    assert a.score(["other ctx"], [[" go"]])[0].sums != s1.sums[:1]
+    g1, g2 = a.generate(["p"])[0], b.generate(["p"])[0]
+    assert g1.text == g2.text and np.array_equal(g1.embedding, g2.embedding) and g1.embedding.shape == (32,)
+    assert a.input_embeddings().shape[1] == 32 and a.last_hidden([a.input_embeddings()[:3]]).shape == (1, 32)
+
+
+class TinyBackend(StubBackend):
+    """A third backend, defined here: the stub under another name, with its own fingerprint."""
+
+    name = "tiny"
+
+    @staticmethod
+    def model_fingerprint(model, *, dtype="bfloat16", quant="none"):
+        return {"model_id": f"tiny:{model}", "source": "tiny", "sha256": None, "revision": "1", "dtype": dtype,
+                "quant": quant}
+
+
+def test_a_backend_registered_from_a_test_file_annotates_and_trains(tmp_path):
+    BACKENDS["tiny"] = TinyBackend
+    try:
+        lm = load_backend("tiny", "m:16")
+        assert lm.fingerprint["model_id"] == "tiny:m:16" and lm.hidden_size == 16
+        cache = AnnotationCache(tmp_path / "ann")
+        records = [StateRecord("go to the ball", (), f"You see a ball {k} steps forward", ACTIONS) for k in range(4)]
+        stats = Annotator(lm, cache, model="m:16", history_len=0).annotate_states(records, "BabyAI-GoToLocal-v0",
+                                                                                 "babyai-text@1")
+        assert stats.annotated_states == 4 and len(cache) == 8
+        ok(["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", 64, "--num-envs", 2, "--out", tmp_path / "traj"])
+        ok(["train", "--env", "BabyAI-GoToLocal-v0", "--method", "illm", "--cache", tmp_path / "ann", "--backend",
+            "tiny", "--model", "m:16", "--history", 0, "--num-envs", 2, "--num-steps", 16, "--frames", 32,
+            "--live-budget", 4, "--live-mode", "sync", "--out", tmp_path / "run"])
+        with open(tmp_path / "run" / "metrics.csv", newline="") as fh:
+            assert float(next(csv.DictReader(fh))["live_annotations"]) == 4
+    finally:
+        BACKENDS.pop("tiny")
+
+
+def test_the_pipeline_runs_on_the_stub_in_text_and_hop_mode(tmp_path):
+    traj = tmp_path / "traj"
+    ok(["collect", "--env", "MiniGrid-MultiRoom-N6-v0", "--steps", 64, "--num-envs", 2, "--out", traj])
+    for mode in ("obs", "hop"):
+        ann = tmp_path / f"ann-{mode}"
+        out = ok(["annotate", traj, "--cache", ann, "--backend", "stub", "--model", "stub:24", "--mode", mode,
+                  "--history", 0, "--limit", 6])
+        assert "annotated 6 states (12 rows" in out
+        ok(["train", "--env", "MiniGrid-MultiRoom-N6-v0", "--mode", mode, "--method", "illm", "--cache", ann,
+            "--backend", "stub", "--model", "stub:24", "--history", 0, "--num-envs", 2, "--num-steps", 16,
+            "--frames", 32, "--live-budget", 0, "--out", tmp_path / f"run-{mode}"])
+        (result,) = json.loads(ok(["eval", tmp_path / f"run-{mode}", "--episodes", 2, "--json"]))
+        assert result["episodes"] == 2
