@@ -10,6 +10,9 @@ the (4, 84, 84) uint8 stack through the Nature CNN (`illm_tools.rl.networks.Fram
 trajectory keeps the newest frame only (84 x 84 bytes a row). The score is the mean episode
 return (the game's own points); there is no success.
 
+`--env-option noisy_tv=<rho>`: the noisy TV of paper Table 4 (`illm_tools.envs.noisy_tv`) on each
+frame before stacking.
+
 Atari has no text: `info["text"]` and `info["mission"]` are empty, `renderer_of` refuses it, and
 `illm annotate` on an Atari dataset says so. ppo, rnd, ngu and apt train on it; iLLM on images
 needs the Hopfield translation (`--mode hop`, a later issue).
@@ -26,7 +29,7 @@ import numpy as np
 from illm_tools.envs.suite import EpisodeStats, ObsSpec, Suite, mean_or_nan, native_quiet
 from illm_tools.errors import UsageError
 
-PREPROCESSING = ("noop_max", "terminal_on_life_loss", "frame_stack")
+PREPROCESSING = ("noop_max", "terminal_on_life_loss", "frame_stack", "noisy_tv")
 """Options of the preprocessing (the rest of `--env-option` goes to the ALE env: repeat_action_probability,
 full_action_space, max_num_frames_per_episode, mode, difficulty)."""
 ALE_OPTIONS = ("repeat_action_probability", "full_action_space", "max_num_frames_per_episode", "mode",
@@ -70,7 +73,7 @@ class AtariInfo(gym.Wrapper):
 
 
 def make_atari(env_id: str, *, noop_max: int = 30, terminal_on_life_loss: bool = False, frame_stack: int = 4,
-               **options: Any) -> AtariInfo:
+               noisy_tv: float = 0.0, **options: Any) -> AtariInfo:
     """gym.make(env_id) with the preprocessing of the module docstring."""
     from gymnasium.wrappers import AtariPreprocessing, FrameStackObservation
 
@@ -80,6 +83,10 @@ def make_atari(env_id: str, *, noop_max: int = 30, terminal_on_life_loss: bool =
         env = gym.make(env_id, frameskip=1, **options)
     env = AtariPreprocessing(env, noop_max=int(noop_max), frame_skip=4, screen_size=84, grayscale_obs=True,
                              terminal_on_life_loss=bool(terminal_on_life_loss))
+    if float(noisy_tv):  # each new frame, before stacking (paper Table 4)
+        from illm_tools.envs.noisy_tv import NoisyTV
+
+        env = NoisyTV(env, float(noisy_tv))
     return AtariInfo(FrameStackObservation(env, int(frame_stack)))
 
 

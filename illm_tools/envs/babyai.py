@@ -165,6 +165,9 @@ class BabyAITextEnv(gym.Wrapper):
         info["text"] = render_text(obs["image"]) if self.render_text else ""
         info["mission"] = obs["mission"]
         info["valid_actions"] = list(self.action_names)
+        grid = self.env.unwrapped
+        info["agent_pos"] = np.array(grid.agent_pos, dtype=np.int64)  # (x, y): visitation counts
+        info["grid_size"] = np.array((grid.width, grid.height), dtype=np.int64)
         return info
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):

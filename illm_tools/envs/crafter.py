@@ -5,7 +5,7 @@ Env ids: `CrafterReward-v1` (the game's reward: +1 for each achievement unlocked
 time in an episode, +-0.1 per health point gained or lost) and `CrafterNoReward-v1` (reward 0,
 for pure exploration), the ids crafter registers for the old gym API; here they are a gymnasium
 env, `CrafterEnv`. `--env-option`s: area, view, size, length (crafter.Env's; length: steps before
-an episode is cut, 10,000 by default). An episode ends when the player dies (terminated) or at
+an episode is cut, 10,000 by default), noisy_tv (paper Table 4's noise patch, `noisy_tv.py`). An episode ends when the player dies (terminated) or at
 `length` (truncated). Each episode is generated from its own seed (the pool's episode seed).
 
 The text (renderer "crafter-text@<version>", `crafter_text.render_text`): what the agent faces,
@@ -30,7 +30,7 @@ from illm_tools.envs.suite import EpisodeStats, ObsSpec, Suite
 
 ENV_IDS = {"CrafterReward-v1": True, "CrafterNoReward-v1": False}
 """Id -> whether the env pays the game's reward."""
-OPTIONS = ("area", "view", "size", "length")
+OPTIONS = ("area", "view", "size", "length", "noisy_tv")
 
 
 def _ordered_world(world: Any) -> None:
@@ -108,11 +108,17 @@ class CrafterSuite(Suite):
     def options(self, env_id: str) -> tuple[str, ...]:
         return OPTIONS
 
-    def make(self, env_id: str, *, action_space: str, render_text: bool = True, **options: Any) -> CrafterEnv:
+    def make(self, env_id: str, *, action_space: str, render_text: bool = True, **options: Any):
+        noisy = float(options.pop("noisy_tv", 0.0))
         for key in ("area", "view", "size"):
             if isinstance(options.get(key), (int, str)):
                 options[key] = tuple(int(v) for v in str(options[key]).split("x"))  # "64x64" or 64
-        return CrafterEnv(reward=ENV_IDS[env_id], render_text=render_text, **options)
+        env = CrafterEnv(reward=ENV_IDS[env_id], render_text=render_text, **options)
+        if noisy:  # paper Table 4's noisy TV on the picture
+            from illm_tools.envs.noisy_tv import NoisyTV
+
+            return NoisyTV(env, noisy)
+        return env
 
     def obs_spec(self, env_id: str) -> ObsSpec:
         return ObsSpec(shape=(64, 64, 3), dtype="uint8", kind="image",

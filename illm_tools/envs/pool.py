@@ -48,6 +48,8 @@ class PoolObs:
     """int64 [N]: the seed of each env's current episode."""
     steps: np.ndarray
     """int64 [N]: the index of this state in its episode (0 right after a reset)."""
+    positions: np.ndarray | None = None
+    """int64 [N, 2]: the agent's (x, y) cell where the env reports it (MiniGrid), else None."""
 
 
 @dataclass
@@ -133,7 +135,7 @@ class EnvPool:
         self.action_space_name = resolve_action_space(env_id, options.pop("action_space", "auto"))
         options = {k: v for k, v in options.items() if not (k == "num_dists" and v is None)}
         probe = make_env(env_id, render_text=False, action_space=self.action_space_name, **options)
-        self.action_names: tuple[str, ...] = tuple(probe.action_names)
+        self.action_names: tuple[str, ...] = tuple(probe.get_wrapper_attr("action_names"))
         probe.close()
         fns = [partial(_make_one, env_id, i, self.seed, self.num_envs, self.render, self.action_space_name, options)
                for i in range(self.num_envs)]
@@ -162,9 +164,11 @@ class EnvPool:
             if seed is not None:  # a new episode began in env i
                 self._seeds[i], self._steps[i], self._returns[i] = seed, 0, 0.0
         texts = info.get("text")
+        positions = info.get("agent_pos")
         return PoolObs(images=images, texts=[str(t) for t in texts] if texts is not None else [""] * n,
                        missions=[str(m) for m in info["mission"]], seeds=self._seeds.copy(),
-                       steps=self._steps.copy())
+                       steps=self._steps.copy(),
+                       positions=np.asarray(positions, dtype=np.int64).reshape(n, 2) if positions is not None else None)
 
     def reset(self) -> PoolObs:
         """Start every env on its first episode (seeds seed .. seed + num_envs - 1)."""

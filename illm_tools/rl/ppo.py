@@ -86,6 +86,12 @@ class Trainer:
                                     embedding_dim=cfg.embedding_dim if method.policy_heads else None,
                                     head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16,
                                     context_dim=self.hop.hidden_size if self.hop else 0)
+        self.visits = None  # per-cell visit counts where the env reports positions (MiniGrid; Figure 1)
+        if getattr(self.obs, "positions", None) is not None:
+            from illm_tools.rl.visitation import VisitCounts
+
+            self.visits = VisitCounts()
+            self.visits.add(self.obs.positions)
         self.generator = torch.Generator().manual_seed(cfg.seed + 1)  # action sampling
         self.np_rng = np.random.default_rng(cfg.seed + 2)             # minibatch order
 
@@ -141,17 +147,22 @@ class Trainer:
             "action_names": self.action_names, "image_shape": list(self.image_shape),
             "model": self.net.state_dict(), "optimizer": self.optimizer.state_dict(),
             "bonus": self.bonus.state_dict(),
+            **({"visits": self.visits.state_dict()} if self.visits is not None else {}),
             "rng": {"torch": self.generator.get_state(), "numpy": self.np_rng.bit_generator.state},
         }
 
     def save(self) -> None:
         save_checkpoint(self.cfg.run_dir, self.state_dict())
+        if self.visits is not None:
+            self.visits.save(self.cfg.run_dir)
 
     def _restore(self, state: dict) -> None:
         check_resumable(state, self.cfg, self.action_names)
         self.net.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.bonus.load_state_dict(state["bonus"])
+        if self.visits is not None and "visits" in state:
+            self.visits.load_state_dict(state["visits"])
         self.generator.set_state(state["rng"]["torch"])
         self.np_rng.bit_generator.state = state["rng"]["numpy"]
         self.global_step, self.update_idx = int(state["global_step"]), int(state["update"])
@@ -187,6 +198,8 @@ class Trainer:
                 records.extend(hop_records if self.hop is not None else self.history.records(obs.missions, obs.texts))
             step = self.pool.step(action.numpy())
             ends = np.logical_or(step.terminated, step.truncated)
+            if self.visits is not None:
+                self.visits.add(step.obs.positions)
             if self.hop is not None:
                 self.hop_tracker.push(action.tolist(), ends.tolist())
                 self._hop_now = self._hop_state(step.obs)

@@ -1,0 +1,89 @@
+"""Per-cell visit counts of a training run (paper Figure 1's heatmaps), for envs that report the
+agent's position (MiniGrid/BabyAI: `info["agent_pos"]`).
+
+`VisitCounts` adds the positions of every step's new states into an int64 grid indexed [y, x],
+growing as needed; the trainer saves it as `visitation.npy` in the run folder with each checkpoint
+(and keeps it in the checkpoint, so a resumed run goes on counting). `heatmap_png` draws a grid
+(log-scaled colours, cells never visited left blank) with matplotlib's Agg backend.
+"""
+from __future__ import annotations
+
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+FILE = "visitation.npy"
+
+
+class VisitCounts:
+    def __init__(self, counts: np.ndarray | None = None):
+        self._counts = np.zeros((0, 0), np.int64) if counts is None else np.asarray(counts, np.int64).copy()
+
+    @property
+    def counts(self) -> np.ndarray:
+        """int64 [H, W]: visits per cell (row y, column x)."""
+        return self._counts
+
+    def add(self, positions: np.ndarray) -> None:
+        """Count int [N, 2] (x, y) positions; rows with a negative x (no position) are skipped."""
+        positions = np.asarray(positions, dtype=np.int64).reshape(-1, 2)
+        positions = positions[positions[:, 0] >= 0]
+        if not len(positions):
+            return
+        need = (int(positions[:, 1].max()) + 1, int(positions[:, 0].max()) + 1)
+        if need[0] > self._counts.shape[0] or need[1] > self._counts.shape[1]:
+            grown = np.zeros((max(need[0], self._counts.shape[0]), max(need[1], self._counts.shape[1])), np.int64)
+            grown[:self._counts.shape[0], :self._counts.shape[1]] = self._counts
+            self._counts = grown
+        np.add.at(self._counts, (positions[:, 1], positions[:, 0]), 1)
+
+    def save(self, run_dir: str | os.PathLike) -> Path:
+        """Write run_dir/visitation.npy atomically."""
+        path = Path(run_dir) / FILE
+        tmp = path.with_name(f".{FILE}.{uuid.uuid4().hex[:8]}.tmp")
+        with open(tmp, "wb") as fh:
+            np.save(fh, self._counts)
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, run_dir: str | os.PathLike) -> VisitCounts:
+        path = Path(run_dir) / FILE
+        return cls(np.load(path)) if path.is_file() else cls()
+
+    def state_dict(self) -> dict:
+        """For checkpoint.pt (a tensor: checkpoints load with torch's weights_only, which refuses numpy)."""
+        import torch
+
+        return {"counts": torch.as_tensor(self._counts.copy())}
+
+    def load_state_dict(self, state: dict) -> None:
+        counts = state["counts"]
+        self._counts = np.array(counts.numpy() if hasattr(counts, "numpy") else counts, dtype=np.int64)
+
+
+def heatmap_png(counts: np.ndarray, path: str | os.PathLike, title: str = "") -> Path:
+    """A PNG heatmap of a visit-count grid: log-scaled colours, unvisited cells blank, a colour bar."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    counts = np.asarray(counts, dtype=float)
+    masked = np.ma.masked_less_equal(counts, 0)
+    fig, ax = plt.subplots(figsize=(4.5, 4.0), dpi=100)
+    image = ax.imshow(masked, cmap="viridis", norm=LogNorm(vmin=1, vmax=max(float(counts.max()), 1.0)),
+                      interpolation="nearest")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title(title, fontsize=9)
+    fig.colorbar(image, ax=ax, label="visits")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
