@@ -92,6 +92,7 @@ def make_atari(env_id: str, *, noop_max: int = 30, terminal_on_life_loss: bool =
 
 class AtariSuite(Suite):
     name = "atari"
+    prefixes = ("ALE/",)
     renderer = None
     score_name = "mean return"
     network = "illm_tools.rl.networks:FrameNet"
@@ -99,9 +100,6 @@ class AtariSuite(Suite):
 
     def env_ids(self) -> list[str]:
         return env_ids()
-
-    def owns(self, env_id: str) -> bool:
-        return env_id.startswith("ALE/") and env_id in env_ids()
 
     def options(self, env_id: str) -> tuple[str, ...]:
         return (*PREPROCESSING, *ALE_OPTIONS)

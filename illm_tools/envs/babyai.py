@@ -222,14 +222,12 @@ class BabyAISuite(Suite):
     """BabyAI and MiniGrid: the symbolic egocentric view and the mission, rendered as BabyAI-Text."""
 
     name = "babyai"
+    prefixes = ("BabyAI-", "MiniGrid-")
     renderer = f"{RENDERER_NAME}@{RENDERER_VERSION}"
     description = "BabyAI and MiniGrid levels (minigrid), text as in BabyAI-Text (paper C.1)"
 
     def env_ids(self) -> list[str]:
         return env_ids()
-
-    def owns(self, env_id: str) -> bool:
-        return env_id.startswith(("BabyAI-", "MiniGrid-")) and env_id in env_ids()
 
     def make(self, env_id: str, *, action_space: str, render_text: bool = True, **options: Any) -> BabyAITextEnv:
         return make_babyai_text(env_id, action_space=action_space, render_text=render_text, **options)

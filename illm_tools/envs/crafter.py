@@ -91,6 +91,7 @@ class CrafterEnv(gym.Env):
 
 class CrafterSuite(Suite):
     name = "crafter"
+    prefixes = ("Crafter",)
     score_name = "Crafter score"
     vector = "async"
     network = "illm_tools.rl.networks:FrameNet"

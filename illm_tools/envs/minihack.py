@@ -89,15 +89,13 @@ class MiniHackTextEnv(gym.Wrapper):
 
 class MiniHackSuite(Suite):
     name = "minihack"
+    prefixes = ("MiniHack-",)
     renderer = property(lambda self: _renderer())
     network = "illm_tools.rl.networks:GlyphNet"
     description = "MiniHack tasks (minihack on NLE), glyphs and message; text written by illm"
 
     def env_ids(self) -> list[str]:
         return env_ids()
-
-    def owns(self, env_id: str) -> bool:
-        return env_id.startswith("MiniHack-") and env_id in env_ids()
 
     def options(self, env_id: str) -> tuple[str, ...]:
         return tuple(o for o in gym_options(env_id) if o != "observation_keys")

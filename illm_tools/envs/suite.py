@@ -108,6 +108,8 @@ class Suite:
     """Base class of a suite; subclasses set the attributes and override what differs."""
 
     name: str = ""
+    prefixes: tuple[str, ...] = ()
+    """Env ids of the suite start with one of these (a cheap test before `env_ids()`); () : any."""
     renderer: str | None = None
     """"<renderer name>@<version>", or None: no text observation."""
     score_name: str = "success rate"
@@ -124,7 +126,7 @@ class Suite:
         raise NotImplementedError
 
     def owns(self, env_id: str) -> bool:
-        return env_id in self.env_ids()
+        return env_id.startswith(self.prefixes or ("",)) and env_id in self.env_ids()
 
     # --- making one ---------------------------------------------------------------------------
     def make(self, env_id: str, *, action_space: str, render_text: bool = True, **options: Any):
