@@ -89,7 +89,7 @@ def test_z_h_batches_equal_single_windows_and_records_carry_the_window(tiny_lm):
 def test_hop_annotate_train_resume_eval_on_minigrid_and_atari(tmp_path, tiny_lm):
     model = tiny_lm.spec.path
     for env_id, extra in (("MiniGrid-MultiRoom-N6-v0", []),
-                          ("ALE/Pong-v5", ["--env-option", "max_num_frames_per_episode=400"])):
+                          ("ALE/MontezumaRevenge-v5", ["--env-option", "max_num_frames_per_episode=400"])):
         name = env_id.replace("/", "-")
         traj, ann = tmp_path / f"traj-{name}", tmp_path / f"ann-{name}"
         ok(["collect", "--env", env_id, "--steps", 48, "--num-envs", 2, "--out", traj, *extra])
