@@ -11,16 +11,26 @@ from cli.errors import friendly
 
 
 def register(app: typer.Typer) -> None:
-    @app.command(epilog="Example: illm report runs/gotolocal-* --every 20000")
+    @app.command(epilog="Example: illm report runs/gotolocal-* --every 20000 --out reports/gotolocal")
     @friendly
     def report(
         runs: list[Path] = typer.Argument(..., help="Run folders written by `illm train`."),
         every: int = typer.Option(20_000, "--every", help="Frames per curve point (window of the score)."),
         as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
+        out: Path | None = typer.Option(None, "--out", help="Also write a report folder: report.md (IQM [95% CI] "
+                                        "and mean ± std per configuration), learning-curve and visitation PNGs, "
+                                        "results.json."),
+        final_points: int = typer.Option(1, "--final-points", help="With --out: a seed's final score is the mean "
+                                         "of its last this many curve points."),
+        bootstrap: int = typer.Option(2000, "--bootstrap", help="With --out: bootstrap resamples of the 95% "
+                                      "intervals (rliable's stratified bootstrap, seeded)."),
     ) -> None:
         """The suite's score against frames (success rate; Crafter score; Atari's mean return), mean ±
         std over seeds, one row per configuration (a markdown table), then what was grouped: runs
-        are seeds of one row when their config.json agree on everything that changes what is learned."""
+        are seeds of one row when their config.json agree on everything that changes what is learned.
+        With --out, also a report folder readable without the toolkit: final scores as IQM with a
+        stratified-bootstrap 95% interval over seeds (rliable) and mean ± std, learning curves with
+        bands, visitation heatmaps where runs saved visitation.npy, and results.json."""
         from illm_tools.envs import suite_of
         from illm_tools.report.curves import summarise
 
@@ -30,8 +40,15 @@ def register(app: typer.Typer) -> None:
         if missing:
             raise UsageError(f"no run folder at {', '.join(missing[:3])}: pass folders written by `illm train`")
         groups = summarise(list(runs), every)
+        if out is not None:
+            from illm_tools.report.build import build_report
+
+            build_report(list(runs), out, every, final_points=final_points, reps=bootstrap)
+        written = f"report written to {out / 'report.md'} (figures and results.json beside it)" if out else ""
         if as_json:
             emit_json([{"env_id": env, "label": label, **g} for (env, label), g in groups.items()])
+            if written:
+                typer.echo(written, err=True)
             return
         frames = max((g["frames"] for g in groups.values()), key=len, default=[])
         typer.echo("| env | method | seeds | " + " | ".join(f"{f / 1000:.4g}k" for f in frames)
@@ -50,3 +67,5 @@ def register(app: typer.Typer) -> None:
             for run, last in g["short_runs"].items():
                 typer.echo(f"  {run} left out: trained for {last:,} frames, too short for a point at --every "
                            f"{every:,} (a run gives a last, shorter window once it passes half of it)")
+        if written:
+            typer.echo(f"\n{written}")

@@ -5,13 +5,16 @@ from __future__ import annotations
 import csv
 import json
 
+import numpy as np
+import pytest
+
 from illm_tools.report.curves import summarise
 from illm_tools.rl.checkpoint import CSV_COLUMNS
 
 
-def fake_run(path, seed, rows):
+def fake_run(path, seed, rows, mode="illm", env_id="BabyAI-GoToLocal-v0"):
     path.mkdir()
-    (path / "config.json").write_text(json.dumps({"mode": "illm", "env_id": "BabyAI-GoToLocal-v0", "seed": seed}))
+    (path / "config.json").write_text(json.dumps({"mode": mode, "env_id": env_id, "seed": seed}))
     with open(path / "metrics.csv", "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS)
         writer.writeheader()
@@ -69,3 +72,92 @@ def test_duplicate_seeds_are_refused_and_short_runs_are_named(tmp_path):
     table = [line for line in out.output.splitlines() if line.startswith("|")]
     assert len({line.count("|") for line in table}) == 1  # every row has the header's columns
     assert "| 1 | 1.00 ± 0.00 | 50.0% |" in out.output
+
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def iqm_by_hand(scores):
+    """The interquartile mean as rliable computes it (scipy's trim_mean at 0.25): int(n / 4) scores
+    cut from each end, so 3 seeds keep all three (the IQM is their mean), 4 keep the middle two."""
+    x = np.sort(np.asarray(scores, dtype=float))
+    cut = int(0.25 * len(x))
+    return float(x[cut:len(x) - cut].mean())
+
+
+def test_iqm_and_intervals_follow_rliable(tmp_path):
+    from illm_tools.report.stats import curve_band, final_scores, iqm_interval
+
+    three = iqm_interval([0.1, 0.5, 0.6], reps=500)
+    assert three["iqm"] == pytest.approx(iqm_by_hand([0.1, 0.5, 0.6])) == pytest.approx(0.4)  # nothing trimmed
+    assert (three["ci_low"], three["ci_high"]) == pytest.approx((0.1, 0.6))  # 3 seeds: the interval is [min, max]
+    assert three["mean"] == pytest.approx(0.4) and three["std"] == pytest.approx(np.std([0.1, 0.5, 0.6]))
+    assert iqm_interval([0.0, 0.2, 0.4, 1.0], reps=200)["iqm"] == pytest.approx(0.3)  # the middle two
+    state = np.random.get_state()[1].copy()
+    six = [0.1, 0.5, 0.9, 0.3, 0.35, 0.8]
+    assert iqm_interval(six, reps=300, seed=3) == iqm_interval(six, reps=300, seed=3)  # seeded
+    assert (np.random.get_state()[1] == state).all()  # the caller's random state is left alone
+    one = iqm_interval([0.7, float("nan")])
+    assert one["n"] == 1 and one["iqm"] == pytest.approx(0.7) and one["ci_low"] is None
+    assert final_scores(np.array([[0.0, 1.0, 0.5], [0.2, np.nan, 0.4]]), 2).tolist() == [0.75, 0.4]
+    mean, low, high = curve_band(np.array([[0.0, 1.0], [0.5, 1.0], [1.0, 1.0]]), reps=200)
+    assert mean == [0.5, 1.0] and low[0] < 0.5 < high[0] and low[1] == high[1] == 1.0
+
+
+def test_report_folder_tables_figures_and_grouping(tmp_path):
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from illm_tools.report.plots import summed_counts
+
+    finals = {"illm": [0.9, 0.5, 0.8], "ppo": [0.1, 0.4, 0.2]}
+    runs = []
+    for mode, scores in finals.items():
+        for seed, final in enumerate(scores):
+            runs.append(tmp_path / f"{mode}-s{seed}")
+            fake_run(runs[-1], seed, [(50, 0.0, 2), (100, final / 2, 2), (150, final, 1), (200, final, 3)], mode=mode)
+    other = tmp_path / "other-env"
+    fake_run(other, 0, [(100, 0.25, 1), (200, 0.75, 1)], env_id="BabyAI-GoToObj-v0")
+    np.save(runs[0] / "visitation.npy", np.array([[1, 0], [2, 3]], dtype=np.int64))
+    np.save(runs[1] / "visitation.npy", np.array([[5, 0, 1]], dtype=np.int64))
+    assert summed_counts([np.array([[1, 0], [2, 3]]), np.array([[5, 0, 1]])]).tolist() == [[6, 0, 1], [2, 3, 0]]
+
+    out = tmp_path / "rep"
+    result = CliRunner().invoke(app, ["report", *map(str, runs + [other]), "--every", "100", "--out", str(out),
+                                      "--bootstrap", "500"])
+    assert result.exit_code == 0, result.output
+    assert "| BabyAI-GoToLocal-v0 | ppo | 3 |" in result.output and "report written to" in result.output
+    for name in ["curves-BabyAI-GoToLocal-v0.png", "curves-BabyAI-GoToObj-v0.png", "final.png",
+                 "visitation-BabyAI-GoToLocal-v0-illm.png"]:
+        assert (out / name).read_bytes()[:8] == PNG, name
+    assert not list(out.glob("visitation-*ppo*"))  # no ppo seed saved visitation.npy
+
+    results = json.loads((out / "results.json").read_text())
+    rows = {(r["env_id"], r["label"]): r for r in results["rows"]}
+    assert set(rows) == {("BabyAI-GoToLocal-v0", "illm"), ("BabyAI-GoToLocal-v0", "ppo"), ("BabyAI-GoToObj-v0", "illm")}
+    md = (out / "report.md").read_text()
+    for mode, scores in finals.items():
+        final = rows["BabyAI-GoToLocal-v0", mode]["final"]
+        assert [s["score"] for s in final["per_seed"]] == pytest.approx(scores)  # the 200-frame point
+        assert final["iqm"] == pytest.approx(iqm_by_hand(scores)) == pytest.approx(np.mean(scores))
+        assert (final["ci_low"], final["ci_high"]) == pytest.approx((min(scores), max(scores)))
+        assert final["mean"] == pytest.approx(np.mean(scores)) and final["std"] == pytest.approx(np.std(scores))
+        assert (f"| {mode} | {iqm_by_hand(scores):.3f} [{min(scores):.3f}, {max(scores):.3f}] | "
+                f"{np.mean(scores):.3f} ± {np.std(scores):.3f} | 3 | 200 |") in md
+    assert rows["BabyAI-GoToLocal-v0", "illm"]["visitation"]["runs"] == [str(runs[0]), str(runs[1])]
+    assert "| illm | 0.750 (1 seed: no interval) | 0.750 | 1 | 200 |" in md  # the other env's single run
+    assert "## All envs" in md and "| illm | 0.733 [0.500, 0.900] | 0.750 (1 seed: no interval) |" in md
+    assert "7 run folders → 3 rows over 2 envs" in md
+    assert "BabyAI-GoToLocal-v0: 6 runs in 2 rows; BabyAI-GoToObj-v0: 1 run in 1 row (reported separately)" in md
+    assert "BabyAI-GoToLocal-v0, ppo (success rate): seeds 0, 1, 2; budget: trained 200 frames" in md
+    for link in ["curves-BabyAI-GoToLocal-v0.png", "final.png", "visitation-BabyAI-GoToLocal-v0-illm.png"]:
+        assert f"]({link})" in md  # relative links
+
+    again = tmp_path / "rep2"  # final score over the last two points, (0, 100] and (100, 200], episode-weighted
+    CliRunner().invoke(app, ["report", *map(str, runs), "--every", "100", "--out", str(again), "--final-points", "2",
+                             "--bootstrap", "200", "--json"])
+    two = json.loads((again / "results.json").read_text())["rows"]
+    illm = next(r for r in two if r["label"] == "illm")
+    expected = [np.mean([(0 * 2 + f / 2 * 2) / 4, (f * 1 + f * 3) / 4]) for f in finals["illm"]]
+    assert [s["score"] for s in illm["final"]["per_seed"]] == pytest.approx(expected)
+    assert illm["final"]["points"] == [100, 200]

@@ -1,0 +1,139 @@
+"""`illm report --out DIR`: a report folder readable without the toolkit.
+
+DIR/report.md (markdown tables: per env, each configuration's final score as IQM [95% CI] and
+mean ± std over seeds; a methods × envs table when there are several envs; what was grouped),
+DIR/curves-<env>.png (learning curves with bootstrap bands), DIR/final.png (final scores with
+their intervals), DIR/visitation-<env>-<label>.png (per configuration, for runs that saved
+visitation.npy, summed over seeds) and DIR/results.json (every number behind them).
+
+A seed's final score is the mean of its last `final_points` curve points (`curves.summarise`: the
+points every seed of the row has, so a row's final frame is its shortest seed's last point).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from illm_tools.errors import UsageError
+from illm_tools.report import plots, stats
+from illm_tools.report.curves import load_curve, summarise
+
+DEFAULT_BOOTSTRAP = 2000
+BOOTSTRAP_SEED = 0
+
+
+def score_name(env_id: str) -> str:
+    """The suite's name for its score ("success rate", "Crafter score", "mean return")."""
+    from illm_tools.envs import suite_of
+    from illm_tools.errors import IllmError
+
+    try:
+        return suite_of(env_id).score_name
+    except IllmError:  # an env this install does not know: its runs still have a score column
+        return "score"
+
+
+def slug(text: str) -> str:
+    """A file-name-safe form of an env id or a row label ("illm (ext_coef 2)" -> "illm-ext_coef-2")."""
+    return re.sub(r"[^A-Za-z0-9._=-]+", "-", text).strip("-.") or "run"
+
+
+def _clean(obj):
+    """NaN -> None, numpy scalars -> Python: results.json stays strict JSON."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        return None if math.isnan(obj) else float(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+def _row(env_id: str, label: str, group: dict, every: int, final_points: int, reps: int, seed: int) -> dict:
+    curves = [load_curve(Path(run), every) for run in group["runs"]]
+    table = np.array([[dict(zip(c.frames, c.success))[f] for f in group["frames"]] for c in curves],
+                     dtype=float).reshape(len(curves), len(group["frames"]))
+    mean, low, high = stats.curve_band(table, reps, seed)
+    finals = stats.final_scores(table, final_points)
+    final = stats.iqm_interval(finals, reps, seed)
+    used = group["frames"][-final_points:]
+    final.update(points=used, frames=used[-1] if used else None,
+                 per_seed=[{"seed": c.seed, "run": c.run, "score": s} for c, s in zip(curves, finals.tolist())],
+                 no_score=[c.run for c, s in zip(curves, finals) if np.isnan(s)])
+    trained = {c.run: c.last_step for c in curves} | dict(group["short_runs"])
+    return {"env_id": env_id, "label": label, "method": group["method"], "score_name": score_name(env_id),
+            "seeds": group["seeds"], "runs": group["runs"], "short_runs": group["short_runs"],
+            "trained_frames": trained, "frames": group["frames"], "mean": mean, "std": group["std"],
+            "band_low": low, "band_high": high, "final": final, "visitation": None,
+            "coverage": group["coverage"] if group["reads_targets"] else None}
+
+
+def _visitation(row: dict, out: Path, taken: set[str]) -> None:
+    from illm_tools.rl.visitation import FILE
+
+    have = [run for run in row["runs"] if (Path(run) / FILE).is_file()]
+    if not have:
+        return
+    name = f"visitation-{slug(row['env_id'])}-{slug(row['label'])}"
+    while name + ".png" in taken:  # two labels with the same slug
+        name += "_"
+    taken.add(name + ".png")
+    grids = [np.load(Path(run) / FILE) for run in have]
+    plots.visitation_png(grids, out / f"{name}.png",
+                         f"{row['env_id']}\n{row['label']}, {len(have)} seed{'s' * (len(have) > 1)} summed")
+    row["visitation"] = {"png": f"{name}.png", "runs": have}
+
+
+def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int = 1,
+                 reps: int = DEFAULT_BOOTSTRAP, seed: int = BOOTSTRAP_SEED) -> dict:
+    """Write the report folder `out` (see the module docstring) and return results.json's content."""
+    from illm_tools.report.markdown import render
+
+    if final_points <= 0:
+        raise UsageError(f"--final-points must be at least 1, got {final_points}")
+    if reps <= 0:
+        raise UsageError(f"--bootstrap must be at least 1 resample, got {reps}")
+    groups = summarise(list(run_dirs), every)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} is a file: pass a folder for the report")
+    out.mkdir(parents=True, exist_ok=True)
+    rows = [_row(env, label, g, every, final_points, reps, seed) for (env, label), g in groups.items()]
+    envs = list(dict.fromkeys(r["env_id"] for r in rows))
+    taken: set[str] = set()
+    curve_files = {}
+    for env in envs:
+        plotted = [r for r in rows if r["env_id"] == env and r["frames"]]
+        if not plotted:  # every run of the env too short for a point
+            continue
+        name = f"curves-{slug(env)}.png"
+        plots.curves_png(env, score_name(env), plotted, out / name)
+        curve_files[env] = name
+        taken.add(name)
+    for row in rows:
+        _visitation(row, out, taken)
+    panels = [{"env_id": env, "score_name": score_name(env), "rows": [r for r in rows if r["env_id"] == env]}
+              for env in envs]
+    final_file = None
+    if any(r["final"]["iqm"] is not None for r in rows):
+        final_file = "final.png"
+        plots.final_png(panels, out / final_file)
+    results = _clean({
+        "settings": {"every": every, "final_points": final_points, "bootstrap_reps": reps, "bootstrap_seed": seed,
+                     "confidence": stats.CONFIDENCE,
+                     "interval": "percentile, stratified bootstrap over seeds (rliable)"},
+        "envs": envs, "rows": rows,
+        "files": {"report": "report.md", "curves": curve_files, "final": final_file,
+                  "visitation": {f"{r['env_id']} / {r['label']}": r["visitation"]["png"]
+                                 for r in rows if r["visitation"]}},
+    })
+    (out / "report.md").write_text(render(results))
+    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    return results

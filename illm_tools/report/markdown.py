@@ -1,0 +1,140 @@
+"""report.md from results.json's content (`build.build_report`): plain markdown, no toolkit needed."""
+
+from __future__ import annotations
+
+
+def num(x) -> str:
+    """A score: 3 decimals (success rates, Crafter scores), 1 from 100 on (Atari returns)."""
+    if x is None:
+        return "-"
+    return f"{x:.3f}" if abs(x) < 100 else f"{x:.1f}"
+
+
+def iqm_cell(final: dict) -> str:
+    if final["iqm"] is None:
+        return "-"
+    if final["ci_low"] is None:
+        return f"{num(final['iqm'])} (1 seed: no interval)"
+    return f"{num(final['iqm'])} [{num(final['ci_low'])}, {num(final['ci_high'])}]"
+
+
+def mean_cell(final: dict) -> str:
+    if final["mean"] is None:
+        return "-"
+    return num(final["mean"]) if final["n"] < 2 else f"{num(final['mean'])} ± {num(final['std'])}"
+
+
+def _esc(text: str) -> str:
+    return str(text).replace("|", "\\|")
+
+
+def _frames(n) -> str:
+    return "-" if n is None else f"{n:,}"
+
+
+def _split(label: str) -> tuple[str, str]:
+    """"illm (num_dists 4)" -> ("illm", "num_dists 4"); "ppo" -> ("ppo", "")."""
+    method, _, rest = label.partition(" (")
+    return method, rest[:-1] if rest.endswith(")") else rest
+
+
+def _table(header: list[str], lines: list[list[str]]) -> list[str]:
+    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+            + ["| " + " | ".join(_esc(c) for c in line) + " |" for line in lines])
+
+
+def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | None) -> list[str]:
+    score, k = rows[0]["score_name"], settings["final_points"]
+    out = [f"## {env} ({score})", "",
+           f"Final {score}: each seed's mean over its last {k} curve point{'s' * (k > 1)} (windows of "
+           f"{settings['every']:,} frames), at the frames given. IQM [95% CI]: interquartile mean over seeds with a "
+           f"stratified-bootstrap percentile interval (rliable, {settings['bootstrap_reps']:,} resamples, seed "
+           f"{settings['bootstrap_seed']}); mean ± std (population std) over seeds beside it. With one seed no "
+           "interval can be computed and the single value is shown.", ""]
+    out += _table(["method", "IQM [95% CI]", "mean ± std", "seeds", "frames"],
+                  [[r["label"], iqm_cell(r["final"]), mean_cell(r["final"]), str(r["final"]["n"]),
+                    _frames(r["final"]["frames"])] for r in rows])
+    split = [_split(r["label"]) for r in rows]
+    columns = list(dict.fromkeys(s for _, s in split))
+    methods = list(dict.fromkeys(m for m, _ in split))
+    if len(columns) > 1 and len(methods) < len(rows):  # settings shared by methods: the paper's method x setting grid
+        cells = {sp: iqm_cell(r["final"]) for sp, r in zip(split, rows)}
+        out += ["", f"The same, methods × settings (IQM [95% CI] of the final {score}):", ""]
+        out += _table(["method"] + [c or "(as is)" for c in columns],
+                      [[m] + [cells.get((m, c), "-") for c in columns] for m in methods])
+    if curves_png:
+        out += ["", f"![{score} against frames, {env}]({curves_png})", "",
+                f"Learning curves ({curves_png}): mean over seeds, shaded: pointwise 95% bootstrap band."]
+    heatmaps = [r for r in rows if r["visitation"]]
+    if heatmaps:
+        out += ["", "Visitation (visits per cell, summed over seeds, log colour scale):", ""]
+        for r in heatmaps:
+            n = len(r["visitation"]["runs"])
+            out += [f"- {_esc(r['label'])} ({n} of {len(r['runs'])} seeds saved visitation.npy): "
+                    f"![visitation, {_esc(r['label'])}]({r['visitation']['png']})"]
+    return out + [""]
+
+
+def _wide(results: dict) -> list[str]:
+    envs, rows = results["envs"], [r for r in results["rows"]]
+    labels = list(dict.fromkeys(r["label"] for r in rows))
+    cells = {(r["label"], r["env_id"]): iqm_cell(r["final"]) for r in rows}
+    out = ["## All envs", "", "IQM [95% CI] of the final score over seeds, one column per env (each in its suite's "
+           "own score; nothing is averaged across envs):", ""]
+    out += _table(["method"] + envs, [[label] + [cells.get((label, e), "-") for e in envs] for label in labels])
+    return out + [""]
+
+
+def _grouped(results: dict) -> list[str]:
+    rows, every = results["rows"], results["settings"]["every"]
+    runs = sum(len(r["runs"]) + len(r["short_runs"]) for r in rows)
+    short = sum(len(r["short_runs"]) for r in rows)
+    envs = results["envs"]
+    out = ["## What was grouped", "",
+           f"{runs} run folder{'s' * (runs != 1)} → {len(rows)} row{'s' * (len(rows) != 1)} over {len(envs)} "
+           f"env{'s' * (len(envs) != 1)}" + (f", {short} left out as too short" if short else "") + ". Runs are seeds "
+           "of one row only when their config.json agree on everything that changes what is learned (all but "
+           "seed, folders, threads and the cache's path): runs of different envs, methods, budgets or settings "
+           "are reported apart.", ""]
+    if len(envs) > 1:
+        counts = {e: (sum(len(r["runs"]) + len(r["short_runs"]) for r in rows if r["env_id"] == e),
+                      sum(r["env_id"] == e for r in rows)) for e in envs}
+        out += ["Envs: " + "; ".join(f"{e}: {n} run{'s' * (n != 1)} in {k} row{'s' * (k != 1)}"
+                                     for e, (n, k) in counts.items()) + " (reported separately).", ""]
+    for r in rows:
+        trained = [r["trained_frames"][run] for run in r["runs"]]
+        budget = ("-" if not trained else f"{trained[0]:,}" if min(trained) == max(trained)
+                  else f"{min(trained):,} to {max(trained):,}")
+        head = f"- {r['env_id']}, {_esc(r['label'])} ({r['score_name']}): "
+        if not r["runs"]:
+            out.append(head + "no run long enough for a curve point")
+        else:
+            out.append(head + f"seeds {', '.join(map(str, r['seeds']))}; budget: trained {budget} frames, final "
+                       f"score at {_frames(r['final']['frames'])} frames; runs: "
+                       + ", ".join(f"`{run}`" for run in r["runs"]))
+        for run in r["final"]["no_score"]:
+            out.append(f"  - `{run}`: no episode ended in its last {results['settings']['final_points']} point(s), "
+                       "so it has no final score (left out of IQM and mean)")
+        for run, last in r["short_runs"].items():
+            out.append(f"  - `{run}` left out: trained for {last:,} frames, too short for a point at --every "
+                       f"{every:,} (a run gives a last, shorter window once it passes half of it)")
+    return out + [""]
+
+
+def render(results: dict) -> str:
+    settings, rows = results["settings"], results["rows"]
+    runs, short = sum(len(r["runs"]) for r in rows), sum(len(r["short_runs"]) for r in rows)
+    lines = ["# Training report", "",
+             f"{runs} run{'s' * (runs != 1)}" + (f" (and {short} too short, left out)" if short else "")
+             + f", {len(rows)} configuration{'s' * (len(rows) != 1)}, {len(results['envs'])} "
+             f"env{'s' * (len(results['envs']) != 1)}. Curve points: the suite's score over windows of "
+             f"{settings['every']:,} frames. Numbers: results.json; figures: PNG files beside this one.", ""]
+    for env in results["envs"]:
+        lines += _env_section(env, [r for r in rows if r["env_id"] == env], settings,
+                              results["files"]["curves"].get(env))
+    if len(results["envs"]) > 1:
+        lines += _wide(results)
+    if results["files"]["final"]:
+        lines += [f"Final scores with their intervals: ![final scores]({results['files']['final']})", ""]
+    lines += _grouped(results)
+    return "\n".join(lines)
