@@ -14,7 +14,7 @@ def register(app: typer.Typer) -> None:
     @app.command(epilog="Example: illm report runs/gotolocal-* --every 20000 --out reports/gotolocal")
     @friendly
     def report(
-        runs: list[Path] = typer.Argument(..., help="Run folders written by `illm train`."),
+        runs: list[Path] = typer.Argument(..., help="Run folders written by `illm train`, or folders holding them (an `illm experiment` results folder)."),
         every: int = typer.Option(20_000, "--every", help="Frames per curve point (window of the score)."),
         as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
         out: Path | None = typer.Option(None, "--out", help="Also write a report folder: report.md (IQM [95% CI] "
@@ -39,6 +39,12 @@ def register(app: typer.Typer) -> None:
         missing = [str(r) for r in runs if not r.is_dir()]
         if missing:
             raise UsageError(f"no run folder at {', '.join(missing[:3])}: pass folders written by `illm train`")
+        # a folder that is not a run (an `illm experiment` results folder) stands for the runs below it
+        runs = [run for r in runs for run in ([r] if (r / "metrics.csv").is_file() or (r / "config.json").is_file()
+                                             else sorted(p.parent for p in r.rglob("metrics.csv")))]
+        if not runs:
+            raise UsageError("no training run in the folders given: pass folders written by `illm train` or "
+                             "`illm experiment`")
         groups = summarise(list(runs), every)
         if out is not None:
             from illm_tools.report.build import build_report
