@@ -37,7 +37,7 @@ def register(app: typer.Typer) -> None:
         for r in rows:
             typer.echo(f"{r['suite']}: {r['description']}")
             typer.echo(f"  policy sees  {r['observation']} ({r['dtype']} {tuple(r['shape'])}, {r['kind']})")
-            typer.echo(f"  text         {r['text'] or 'none (no LLM annotation: ppo, rnd, ngu, apt only)'}")
+            typer.echo(f"  text         {r['text'] or 'none (iLLM runs on it with --mode hop; text annotation refuses it)'}")
             typer.echo(f"  score        {r['score']}")
             shown = r["env_ids"] if ids else r["env_ids"][:4]
             more = "" if ids or len(r["env_ids"]) <= 4 else f" ... ({len(r['env_ids'])} ids; --ids lists them)"
