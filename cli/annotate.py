@@ -48,46 +48,60 @@ def register(app: typer.Typer) -> None:
 
             raise UsageError(f"--num-processes must be at least 1, got {num_processes}")
         state = distributed_state()
-        if state is not None and not state.is_main_process:  # one voice: the main process reports
-            annotate_dataset(config)
-            return
-        with stop_on_signals("the chunk in progress (written whole)") as stop, \
-                progress(0, f"annotate {model}", unit="states") as advance:
-            def on_plan(stats, todo: int) -> None:
-                typer.echo(f"{stats.states:,} states selected (most visited first), {stats.keys:,} keys: "
-                           f"{stats.hits:,} cached, {stats.misses:,} to annotate", err=True)
-                advance(0, total=todo)
+        if state is None:
+            return annotate_and_report(config)
+        try:
+            if state.is_main_process:  # one voice: the main process reports
+                annotate_and_report(config)
+            else:
+                annotate_dataset(config)
+            state.wait_for_everyone()  # leave together: a gloo group torn down under a peer can abort it
+        finally:
+            state.destroy_process_group()
 
-            def on_progress(n: int, stats) -> None:
-                advance(n, stats.states_per_s, hits=stats.hits, misses=stats.misses)
 
-            result = annotate_dataset(config, on_progress=on_progress, on_plan=on_plan,
-                                      should_stop=lambda: stop.requested)
-        stats = result.stats
-        summary = f", summaries {stats.mean_summary_tokens:.1f} tokens on average" if stats.summaries else ""
-        typer.echo(
-            "nothing to annotate: the cache holds every selected state" if not stats.rows and not stats.stopped_early
-            else f"annotated {stats.annotated_states:,} states ({stats.rows:,} rows: "
-            + ", ".join(f"{k} {v:,}" for k, v in sorted(stats.per_task.items()))
-            + f") in {stats.seconds:.1f}s, {stats.states_per_s:.2f} states/s{summary}"
-            + ("" if not stats.stopped_early else "; stopped by a signal, run again to go on" if stop.requested
-               else "; stopped at --max-minutes, run again to go on")
-        )
-        if config.limit is not None:
-            typer.echo(f"the {result.selected_states:,} most visited states cover {result.selected_step_share:.0%} "
-                       f"of the {result.dataset_steps:,} steps")
-        typer.echo(f"the cache now answers {result.covered_states:,} of the {result.dataset_states:,} distinct states "
-                   f"(history {config.history}), covering {result.covered_step_share:.0%} of the "
-                   f"{result.dataset_steps:,} steps -> {cache}")
-        left = result.dataset_states - result.covered_states
-        if left:
-            typer.echo(f"left to annotate in this dataset: {left:,} states ({1 - result.covered_step_share:.0%} of its "
-                       f"steps); {'run again to go on' if stats.stopped_early else 'a larger --limit takes the next ones'}")
-        if mode == "obs":
-            typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
-                       f"{config.data} --cache {cache} --history {config.history}` estimates how many")
-        if stop.requested and stats.stopped_early:
-            raise typer.Exit(stop.exit_code)
+def annotate_and_report(config) -> None:
+    """The main process's annotation with its progress bar and closing lines."""
+    from illm_tools.annotate.bulk import annotate_dataset
+
+    model, cache = config.model, config.cache
+    with stop_on_signals("the chunk in progress (written whole)") as stop, \
+            progress(0, f"annotate {model}", unit="states") as advance:
+        def on_plan(stats, todo: int) -> None:
+            typer.echo(f"{stats.states:,} states selected (most visited first), {stats.keys:,} keys: "
+                       f"{stats.hits:,} cached, {stats.misses:,} to annotate", err=True)
+            advance(0, total=todo)
+
+        def on_progress(n: int, stats) -> None:
+            advance(n, stats.states_per_s, hits=stats.hits, misses=stats.misses)
+
+        result = annotate_dataset(config, on_progress=on_progress, on_plan=on_plan,
+                                  should_stop=lambda: stop.requested)
+    stats = result.stats
+    summary = f", summaries {stats.mean_summary_tokens:.1f} tokens on average" if stats.summaries else ""
+    typer.echo(
+        "nothing to annotate: the cache holds every selected state" if not stats.rows and not stats.stopped_early
+        else f"annotated {stats.annotated_states:,} states ({stats.rows:,} rows: "
+        + ", ".join(f"{k} {v:,}" for k, v in sorted(stats.per_task.items()))
+        + f") in {stats.seconds:.1f}s, {stats.states_per_s:.2f} states/s{summary}"
+        + ("" if not stats.stopped_early else "; stopped by a signal, run again to go on" if stop.requested
+           else "; stopped at --max-minutes, run again to go on")
+    )
+    if config.limit is not None:
+        typer.echo(f"the {result.selected_states:,} most visited states cover {result.selected_step_share:.0%} "
+                   f"of the {result.dataset_steps:,} steps")
+    typer.echo(f"the cache now answers {result.covered_states:,} of the {result.dataset_states:,} distinct states "
+               f"(history {config.history}), covering {result.covered_step_share:.0%} of the "
+               f"{result.dataset_steps:,} steps -> {cache}")
+    left = result.dataset_states - result.covered_states
+    if left:
+        typer.echo(f"left to annotate in this dataset: {left:,} states ({1 - result.covered_step_share:.0%} of its "
+                   f"steps); {'run again to go on' if stats.stopped_early else 'a larger --limit takes the next ones'}")
+    if config.mode == "obs":
+        typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
+                   f"{config.data} --cache {cache} --history {config.history}` estimates how many")
+    if stop.requested and stats.stopped_early:
+        raise typer.Exit(stop.exit_code)
 
 
 def launch(num_processes: int, device: str) -> int:

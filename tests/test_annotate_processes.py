@@ -32,6 +32,13 @@ def rows_of(cache_dir):
     return {r["key"]: r for r in table.to_pylist()}
 
 
+def told(done) -> str:
+    """A failed launch's own words: the head of its stderr (where a process's error is) and the tail
+    (the launcher's summary), without the launcher's traceback in between."""
+    err = done.stderr
+    return err if len(err) < 4000 else f"{err[:2500]}\n...\n{err[-1500:]}"
+
+
 def test_two_processes_give_the_one_process_cache(tmp_path, tiny_lm):
     traj = tmp_path / "traj"
     out = runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", 80, "--num-envs", 4,
@@ -46,15 +53,15 @@ def test_two_processes_give_the_one_process_cache(tmp_path, tiny_lm):
               "--mixed_precision", "no", "--dynamo_backend", "no", "-m", "cli.main", "annotate", str(traj)]
     launched = subprocess.run([*launch[:3], "--multi_gpu", *launch[3:], "--cache", str(tmp_path / "two"), *common],
                               capture_output=True, text=True, env=env, timeout=300)
-    assert launched.returncode == 0, launched.stderr[-2000:]
+    assert launched.returncode == 0, told(launched)
     assert launched.stdout.count("annotated 12 states (24 rows") == 1  # one report, the counts of both processes
     cpu = subprocess.run([*launch[:3], "--cpu", *launch[3:], "--cache", str(tmp_path / "cpu"), *common],
                          capture_output=True, text=True, env=env, timeout=300)
-    assert cpu.returncode == 0, cpu.stderr[-2000:]
+    assert cpu.returncode == 0, told(cpu)
     shortcut = subprocess.run([sys.executable, "-m", "cli.main", "annotate", str(traj), "--cache",
                                str(tmp_path / "short"), *common, "--num-processes", "2"],
                               capture_output=True, text=True, env=env, timeout=300)
-    assert shortcut.returncode == 0, shortcut.stderr[-2000:]
+    assert shortcut.returncode == 0, told(shortcut)
     reference = rows_of(tmp_path / "one")
     for name in ("two", "short", "cpu"):
         report = verify(tmp_path / name)

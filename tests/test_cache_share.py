@@ -4,8 +4,6 @@ overlapping keys, as trainers sharing a cache do: nothing lost, nothing stored t
 
 from __future__ import annotations
 
-import multiprocessing as mp
-
 import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
@@ -14,7 +12,7 @@ from cli.main import app
 from illm_tools.cache import AnnotationCache, verify
 from illm_tools.cache.share import export, import_parquet
 from illm_tools.errors import CacheError, OutputExistsError, SchemaError
-from test_cache_store import keys_of, make_rows
+from test_cache_store import keys_of, make_rows, run_writers
 
 runner = CliRunner()
 
@@ -76,14 +74,7 @@ def _trainer_like_writer(root: str, worker: int, start) -> None:
 
 
 def test_three_processes_writing_overlapping_keys_lose_nothing_and_store_nothing_twice(tmp_path):
-    ctx = mp.get_context("spawn")
-    barrier = ctx.Barrier(3)
-    procs = [ctx.Process(target=_trainer_like_writer, args=(str(tmp_path), w, barrier)) for w in range(3)]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join(90)
-    assert [p.exitcode for p in procs] == [0, 0, 0]
+    assert run_writers(_trainer_like_writer, tmp_path, 3) == [0, 0, 0]
     report = verify(tmp_path)
     expected = set()
     for w in range(3):

@@ -176,15 +176,20 @@ def _writer(root: str, worker: int, start: mp.Barrier) -> None:
         cache.write(make_rows(0, 5, tag=f"w{worker}-s{s}"))
 
 
-def test_two_processes_writing_concurrently_lose_nothing(tmp_path):
+def run_writers(target, root, count: int, timeout: float = 90) -> list[int]:
+    """Start `count` spawned processes `target(root, worker, barrier)` together; their exit codes."""
     ctx = mp.get_context("spawn")
-    barrier = ctx.Barrier(2)
-    procs = [ctx.Process(target=_writer, args=(str(tmp_path), w, barrier)) for w in range(2)]
+    barrier = ctx.Barrier(count)
+    procs = [ctx.Process(target=target, args=(str(root), w, barrier)) for w in range(count)]
     for p in procs:
         p.start()
     for p in procs:
-        p.join(60)
-    assert [p.exitcode for p in procs] == [0, 0]
+        p.join(timeout)
+    return [p.exitcode for p in procs]
+
+
+def test_two_processes_writing_concurrently_lose_nothing(tmp_path):
+    assert run_writers(_writer, tmp_path, 2) == [0, 0]
     report = verify(tmp_path)
     assert report.ok and report.shards == 40 and report.rows == 200 and not report.orphans
     expected = [r["key"] for w in range(2) for s in range(20) for r in make_rows(0, 5, tag=f"w{w}-s{s}")]

@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from illm_tools.envs import make_env, resolve_action_space, suite_of
-from illm_tools.envs.suite import EpisodeStats
+from illm_tools.envs.suite import EpisodeStats, check_options
 from illm_tools.errors import UsageError
 
 __all__ = ["EnvPool", "EpisodeStats", "PoolObs", "PoolStep"]
@@ -134,9 +134,7 @@ class EnvPool:
         # the resolved action space ("auto" never appears here): what a run or dataset records
         self.action_space_name = resolve_action_space(env_id, options.pop("action_space", "auto"))
         options = {k: v for k, v in options.items() if not (k == "num_dists" and v is None)}
-        probe = make_env(env_id, render_text=False, action_space=self.action_space_name, **options)
-        self.action_names: tuple[str, ...] = tuple(probe.get_wrapper_attr("action_names"))
-        probe.close()
+        check_options(env_id, options, self.suite.options(env_id))  # here, not in an async worker
         fns = [partial(_make_one, env_id, i, self.seed, self.num_envs, self.render, self.action_space_name, options)
                for i in range(self.num_envs)]
         mode = self.suite.vector if vector == "auto" else vector
@@ -147,6 +145,7 @@ class EnvPool:
         else:
             self.vector = "sync"
             self.envs = gym.vector.SyncVectorEnv(fns, autoreset_mode=same_step)
+        self.action_names: tuple[str, ...] = tuple(self.envs.get_attr("action_names")[0])
         n = self.num_envs
         self._seeds = np.zeros(n, dtype=np.int64)
         self._steps = np.zeros(n, dtype=np.int64)

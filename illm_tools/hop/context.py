@@ -101,7 +101,7 @@ def hop_records_from_table(table, history_len: int) -> tuple[list[HopRecord], li
 
 class HopTracker:
     """Per-env window of the last `history_len` steps (raw observation, previous action, action
-    taken, translation) before the current one. `records()` before stepping (it also holds each
+    taken, translation, content name) before the current one. `records()` before stepping (it also holds each
     env's current step), `HopContext.step()` to translate it, `push()` after stepping."""
 
     def __init__(self, num_envs: int, history_len: int, valid_actions: Sequence[str]):
@@ -111,6 +111,7 @@ class HopTracker:
         self._steps: list[deque] = [deque(maxlen=history_len) for _ in range(num_envs)]
         self._prev = [-1] * num_envs  # previous action of each env's current step
         self._pending: list[np.ndarray | None] = [None] * num_envs
+        self._pending_name: list[str] = [""] * num_envs  # each step is hashed once, when it is current
         self._pending_x: dict[int, torch.Tensor] = {}
 
     def _name(self, raw: np.ndarray, prev: int) -> str:
@@ -121,9 +122,10 @@ class HopTracker:
         for i, (mission, raw) in enumerate(zip(missions, raws)):
             raw = np.array(raw, copy=True)
             self._pending[i] = raw
+            self._pending_name[i] = self._name(raw, self._prev[i])
             past = list(self._steps[i])
-            history = tuple((self._name(r, p), self.valid_actions[a]) for r, p, a, _x in past)
-            out.append(HopRecord(mission, history, self._name(raw, self._prev[i]), self.valid_actions,
+            history = tuple((name, self.valid_actions[a]) for _r, _p, a, _x, name in past)
+            out.append(HopRecord(mission, history, self._pending_name[i], self.valid_actions,
                                  frames=tuple(r for r, *_ in past) + (raw,),
                                  prev_actions=tuple(p for _r, p, *_ in past) + (self._prev[i],)))
         return out
@@ -131,7 +133,7 @@ class HopTracker:
     def windows(self) -> list[list[tuple[np.ndarray, int, torch.Tensor | None]]]:
         """Each env's window, oldest first, ending with its current step: (raw, previous action,
         translation, None where not yet computed)."""
-        return [[(r, p, x) for r, p, _a, x in steps] + [(self._pending[i], self._prev[i], self._pending_x.get(i))]
+        return [[(r, p, x) for r, p, _a, x, _name in steps] + [(self._pending[i], self._prev[i], self._pending_x.get(i))]
                 for i, steps in enumerate(self._steps)]
 
     def set_translation(self, i: int, x: torch.Tensor) -> None:
@@ -144,7 +146,8 @@ class HopTracker:
                 self._steps[i].clear()
                 self._prev[i] = -1
             else:
-                self._steps[i].append((self._pending[i], self._prev[i], int(action), self._pending_x.get(i)))
+                self._steps[i].append((self._pending[i], self._prev[i], int(action), self._pending_x.get(i),
+                                       self._pending_name[i]))
                 self._prev[i] = int(action)
         self._pending_x = {}
 
