@@ -18,7 +18,7 @@ def register(app: typer.Typer) -> None:
         data: Path = typer.Argument(..., help="Trajectory dataset written by `illm collect`."),
         cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache folder (shared across runs)."),
         model: str = typer.Option("smollm2-135m", "--model", help="Alias (see `illm models`), hub id or local folder."),
-        tasks: str = typer.Option("action,summary", "--tasks", help="Comma-separated: action, summary, goal (ELLM's suggested goals, for --method ellm)."),
+        tasks: str = typer.Option("action,summary", "--tasks", help="Comma-separated, any combination of action, summary, goal, plan (paper Table 2; goal is also ELLM's)."),
         history: int = typer.Option(3, "--history", help="Observation/action pairs of history in the prompts."),
         layout: str = typer.Option("shared", "--layout", help="Templates: shared (history first, prefix computed once) or paper (as printed)."),
         batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
@@ -34,10 +34,10 @@ def register(app: typer.Typer) -> None:
         num_processes: int = typer.Option(1, "--num-processes", help="Annotate with N processes: runs `accelerate launch --num_processes N` on this command (the states are split between them)."),
     ) -> None:
         """Annotate every distinct state once: next-action log-prob ranking and 64-token summary with embedding
-        (and, with --tasks goal, the goals the LLM suggests: ELLM's)."""
+        (and, named in --tasks, the goals the LLM suggests and its 2-7 action plan: D.2's goal and plan tasks)."""
         from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset, distributed_state
 
-        config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()),
+        config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tasks,
                                 history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
                                 dtype=dtype, quant=quant, mode=mode, hop_seed=hop_seed, hop_beta=hop_beta,
                                 device=device, backend=backend)

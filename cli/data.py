@@ -64,7 +64,7 @@ def coverage(
     from illm_tools.annotate.coverage import TOP_K, measure_coverage
 
     rows = measure_coverage(path, cache=cache, histories=history, model=model, dtype=dtype, quant=quant,
-                            layout=layout, tasks=tuple(t.strip() for t in tasks.split(",") if t.strip()))
+                            layout=layout, tasks=tasks)
     if as_json:
         emit_json(rows)
         return

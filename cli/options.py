@@ -76,6 +76,9 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
                 decls = [f"{names[0]}/--no-{names[0][2:]}"] + names[1:]
             else:
                 decls = names
+            if typing.get_origin(hint) is tuple:  # a tuple of names: one comma-separated option
+                hint = str
+                help_text += " Comma-separated."
             annotation = hint if not nullable else typing.Optional[hint]  # noqa: UP007 - Typer reads Optional
             if hint is bool and nullable:
                 annotation = typing.Optional[bool]  # noqa: UP007
@@ -83,6 +86,8 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
                 f.name, f.default if f.default is not dataclasses.MISSING else None)
             if isinstance(default, Path):
                 default = str(default)
+            elif isinstance(default, tuple):
+                default = ",".join(default)
         params.append(inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
                                         default=typer.Option(default, *decls, help=help_text,
                                                              show_default=default is not None)))

@@ -14,7 +14,8 @@ from cli.errors import friendly
 # flags kept from the documented command line beside each field's own (`--frames` = `--total-steps`)
 ALIASES = {"env_id": "--env", "run_dir": "--out", "mode": ("--method",), "obs_mode": ("--mode",),
            "total_steps": "--frames", "history_len": "--history", "model_dtype": "--dtype"}
-DICT_FLAGS = {"bonus_options": "--bonus-option", "network_options": "--network-option", "env_options": "--env-option"}
+DICT_FLAGS = {"bonus_options": "--bonus-option", "network_options": "--network-option", "env_options": "--env-option",
+              "task_weights": "--task-weight"}
 WEIGHTS = ("lambda_a", "beta_hc", "ext_coef", "int_coef")
 NOT_OPTIONS = {"embedding_dim"}  # set from the model's hidden size when the run starts
 EXAMPLE = ("Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm --frames 200000 --seed 0 "
@@ -66,6 +67,7 @@ def train_config(ctx: typer.Context, options: dict):
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.config import TrainConfig, bonus_weights
     from illm_tools.settings import parse_pairs
+    from illm_tools.tasks.registry import parse_tasks
 
     options = dict(options)
     preset = options.pop("bonus_preset")
@@ -76,6 +78,7 @@ def train_config(ctx: typer.Context, options: dict):
     for name, option in DICT_FLAGS.items():
         fields[name] = parse_pairs(options.get(name), option)
     fields["bonus_options"] = spec.typed_options(fields["bonus_options"])
+    fields["tasks"] = list(parse_tasks(options["tasks"]))  # as config.json keeps them
     if options["resume"]:
         return resumed_config(ctx, fields["run_dir"], fields)
     return TrainConfig(**fields)

@@ -152,4 +152,4 @@ def test_trainer_keys_hit_the_rows_annotate_wrote_and_live_fallback_writes_back(
     assert first.mask.tolist() == [True, True, True, False, False, True]
     assert live.stats()["live_annotations"] == 3
     reread = AnnotationCache(cache)
-    assert reread.contains(live.keys(unseen[:3])[0]).all() and verify(cache).ok
+    assert reread.contains(live.keys(unseen[:3])["action"]).all() and verify(cache).ok

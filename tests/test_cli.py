@@ -174,7 +174,7 @@ def test_every_train_setting_is_an_option_named_as_its_field_with_its_default(tm
     command = typer.main.get_command(app).commands["train"]
     opts = {o for p in command.params for o in p.opts}
     fields = [f for f in dataclasses.fields(TrainConfig) if f.name not in NOT_OPTIONS]
-    dict_fields = {"bonus_options", "network_options", "env_options"}
+    dict_fields = {"bonus_options", "network_options", "env_options", "task_weights"}
     renamed = {"mode": "--method", "obs_mode": "--mode"}  # the method's field is "mode"; --mode is obs|hop
     assert all(renamed.get(f.name, "--" + f.name.replace("_", "-")) in opts for f in fields if f.name not in dict_fields)
     wrong = runner.invoke(app, ["train", "--out", str(tmp_path / "w"), "--mode", "illm"])

@@ -10,6 +10,7 @@ CAPTIONER_VERSION in illm_tools/envs/captions.py, then regenerate with
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -30,6 +31,7 @@ from illm_tools.intrinsic.ellm import ELLMBonus, ELLMConfig
 from illm_tools.intrinsic.registry import get_method
 from illm_tools.tasks import prompts
 from illm_tools.tasks.prompts import PromptBuilder, parse_goals
+from illm_tools.tasks.registry import LANGUAGE_TASKS
 from illm_tools.tasks.state import StateRecord
 
 SNAPSHOTS = Path(__file__).parent / "snapshots" / "babyai_captions.json"
@@ -68,12 +70,16 @@ def test_goal_keys_carry_the_template_and_parser_versions(monkeypatch):
     b = builder()
     key = b.task_key("goal", record())
     assert key not in b.state_keys(record()) and key == builder().task_key("goal", record())
-    assert b.setup("goal")["decoding"] == '{"max_new_tokens":32,"method":"greedy","parse":"goals@1"}'
+    assert b.setup("goal")["decoding"] == ('{"embedding":"mean-last-hidden@1","max_new_tokens":32,"method":"greedy",'
+                                          '"parse":"goals@1"}')
     assert builder().task_key("goal", record("You see a blue key 1 step forward")) != key
-    monkeypatch.setitem(prompts.TEMPLATES, ("goal", "shared"), ("goal", 2))
+    goal = LANGUAGE_TASKS["goal"]
+    monkeypatch.setitem(LANGUAGE_TASKS, "goal", dataclasses.replace(goal, templates={**goal.templates,
+                                                                                      "shared": ("goal", 2)}))
     assert builder().setup("goal")["template_version"] == 2 and builder().task_key("goal", record()) != key
     monkeypatch.undo()
-    monkeypatch.setattr(prompts, "GOAL_PARSER_VERSION", 2)
+    monkeypatch.setitem(LANGUAGE_TASKS, "goal", dataclasses.replace(goal, decoding_extra={
+        **goal.decoding_extra, "parse": "goals@2"}))
     assert builder().task_key("goal", record()) != key
     monkeypatch.undo()
     assert builder().task_key("goal", record()) == key
@@ -335,7 +341,8 @@ def test_annotate_goal_then_train_ellm(tmp_path, tiny_lm, monkeypatch):
     rows = table.to_pylist()
     assert all(r["candidates"] in (parse_goals(r["text"]), parse_goals(r["text"], truncated=True)) for r in rows)
     assert all(r["prompt"].endswith("\nGoals:") and json.loads(r["decoding"])["parse"] == "goals@1" for r in rows)
-    assert all(r["embedding"] is None and r["cand_logprob_sum"] is None for r in rows)
+    assert all(len(r["embedding"]) == r["embedding_dim"] == tiny_lm.hidden_size and r["cand_logprob_sum"] is None
+               for r in rows)  # the text's embedding: the goal head of iLLM (--tasks goal) learns it
     again = runner.invoke(app, annotate)
     assert again.exit_code == 0 and "nothing to annotate" in again.output, again.output
     assert len(AnnotationCache(cache)) == len(ann)

@@ -56,8 +56,8 @@ class _Cache:
 
 
 class _Builder:
-    def state_keys(self, record):
-        return f"a{record.observation}", f"s{record.observation}"
+    def state_keys(self, record, tasks=("action", "summary")):
+        return tuple(f"{t[0]}{record.observation}" for t in tasks)
 
 
 def test_cached_targets_serve_the_chosen_action_target():

@@ -9,7 +9,8 @@ import pytest
 
 from illm_tools.errors import UsageError
 from illm_tools.tasks.calibration import action_distribution
-from illm_tools.tasks.prompts import TEMPLATES, PromptBuilder, format_history, template_sha
+from illm_tools.tasks.prompts import PromptBuilder, format_history, template_sha
+from illm_tools.tasks.registry import LANGUAGE_TASKS
 from illm_tools.tasks.state import HistoryTracker, StateRecord, records_from_table
 
 # Changing a template's text must bump its version in VERSIONS and the hash here.
@@ -18,6 +19,7 @@ PINNED = {
     ("action.shared", 1): "e26ba63753ebba15",
     ("summary", 1): "176b9227a05ae00e",
     ("goal", 1): "237d50b4c0e62685",
+    ("plan", 1): "4395f3ba8de9e629",
 }
 
 ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
@@ -34,7 +36,7 @@ def record(obs="You see a red ball 1 step forward", history=()):
     return StateRecord("go to the red ball", tuple(history), obs, ACTIONS)
 
 
-@pytest.mark.parametrize("name,version", sorted(set(TEMPLATES.values())))
+@pytest.mark.parametrize("name,version", sorted({tv for t in LANGUAGE_TASKS.values() for tv in t.templates.values()}))
 def test_template_text_is_pinned_to_its_version(name, version):
     assert template_sha(name) == PINNED[(name, version)]
 

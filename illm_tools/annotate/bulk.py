@@ -8,7 +8,8 @@ from pathlib import Path
 
 from illm_tools.annotate.engine import Annotator, Stats
 from illm_tools.errors import UsageError
-from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS, TASKS
+from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS
+from illm_tools.tasks.registry import get_task, parse_tasks
 
 
 @dataclass
@@ -24,8 +25,9 @@ class AnnotateConfig:
     backend: str = "transformers"
     """LLM backend (`illm_tools.llm.backend`): transformers, or stub (deterministic, no weights)."""
     tasks: tuple[str, ...] = DEFAULT_TASKS
-    """Language tasks: action (next-action ranking), summary (64-token history compression), goal
-    (ELLM's suggested goals; only when named)."""
+    """Language tasks (`illm_tools.tasks.registry`): action (next-action ranking), summary (64-token
+    history compression), goal (suggested goals: ELLM's, and a head of iLLM's), plan (a 2-7 action
+    plan); any combination."""
     history: int = 3
     """Observation/action pairs of history in the prompts (paper B.1 uses 3)."""
     layout: str = "shared"
@@ -57,10 +59,7 @@ class AnnotateConfig:
 
     def __post_init__(self) -> None:
         self.data, self.cache = Path(self.data), Path(self.cache)
-        self.tasks = tuple(self.tasks)
-        unknown = sorted(set(self.tasks) - set(TASKS))
-        if unknown or not self.tasks:
-            raise UsageError(f"unknown --tasks {','.join(unknown) or '(none)'}: choose from {','.join(TASKS)}")
+        self.tasks = parse_tasks(self.tasks)
         if self.layout not in LAYOUTS:
             raise UsageError(f"unknown --layout {self.layout!r}: use {' or '.join(LAYOUTS)}")
         if self.batch_size <= 0 or self.chunk <= 0:
@@ -72,8 +71,9 @@ class AnnotateConfig:
         check_backend(self.backend)
         if self.mode not in ("obs", "hop"):
             raise UsageError(f"--mode must be obs or hop, got {self.mode!r}")
-        if self.mode == "hop" and "goal" in self.tasks:
-            raise UsageError("the goal task has no hop form: annotate hop data with --tasks action,summary")
+        unfit = [t for t in self.tasks if not get_task(t).hop]
+        if self.mode == "hop" and unfit:
+            raise UsageError(f"the {', '.join(unfit)} task has no hop form: annotate hop data with other --tasks")
         if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
             raise UsageError(f"--device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
         if self.max_minutes is not None and self.max_minutes <= 0:

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from illm_tools.tasks.prompts import PromptBuilder, format_history
+from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.state import StateRecord
 
 TOP_K = (100, 1_000, 10_000)
@@ -55,8 +55,7 @@ class VisitedStates:
         states, builders, keys = [], [], []
         for (record, env_id, renderer), _n in ordered:
             builder = builder_for(env_id, renderer)
-            history = format_history(record)
-            keys.append(tuple(builder.key(builder.render(task, record, history)) for task in tasks))
+            keys.append(builder.state_keys(record, tasks))
             states.append(record)
             builders.append(builder)
         steps = np.fromiter((n for _, n in ordered), np.int64, len(ordered))
@@ -128,12 +127,10 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
     from illm_tools.data.trajectories import open_table, require_text
     from illm_tools.errors import UsageError
     from illm_tools.llm.loading import model_fingerprint
-    from illm_tools.tasks.prompts import TASKS
+    from illm_tools.tasks.registry import parse_tasks
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
-    unknown = sorted(set(tasks) - set(TASKS))
-    if unknown or not tasks:
-        raise UsageError(f"unknown --tasks {','.join(unknown) or '(none)'}: choose from {','.join(TASKS)}")
+    tasks = parse_tasks(tasks)
     if not histories or min(histories) < 0:
         raise UsageError("--history must be 0 or more (repeat the option for several lengths)")
     table = open_table(data, columns=TABLE_COLUMNS + ["renderer"])

@@ -4,10 +4,10 @@ write identical rows under identical keys.
 
 For each distinct state it renders the language tasks' prompts (illm_tools.tasks), drops keys the
 cache already holds, and runs the LLM on the rest in length-sorted batches: candidate scoring for
-`action` (context KV computed once per state and shared by all candidates), greedy generation of
-at most 64 tokens plus the summary embedding for `summary`, greedy generation of at most 32 tokens
-for `goal` (ELLM's suggested goals: the raw text in `text`, the parsed goals in `candidates`,
-`illm_tools.tasks.prompts.parse_goals`). Rows are written in chunks, so a run
+a ranking task (`action`: context KV computed once per state and shared by all candidates),
+greedy generation for a text task (`summary` 64 tokens, `goal` 32, `plan` 48: the text and its
+embedding, plus the goal task's parsed goals in `candidates`, `illm_tools.tasks.goals`); the
+tasks are `illm_tools.tasks.registry`'s. Rows are written in chunks, so a run
 killed at any point keeps every finished chunk and a restart does only what is missing.
 """
 
@@ -24,8 +24,8 @@ from illm_tools.annotate.coverage import VisitedStates
 from illm_tools.cache.keys import canonical_json, fingerprint_hash
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
-from illm_tools.tasks.prompts import (DEFAULT_TASKS, GOAL_TOKENS, SUMMARY_TOKENS, TASKS, Prompt, PromptBuilder,
-                                      format_history, neutral_prompt, parse_goals)
+from illm_tools.tasks.prompts import DEFAULT_TASKS, Prompt, PromptBuilder, format_history, neutral_prompt
+from illm_tools.tasks.registry import get_task, parse_tasks
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
@@ -81,9 +81,7 @@ class Annotator:
 
     def __init__(self, lm, cache: AnnotationCache, *, model: str, tasks: Sequence[str] = DEFAULT_TASKS,
                  history_len: int = 3, layout: str = "shared", batch_size: int = 8, chunk: int = 64):
-        unknown = sorted(set(tasks) - set(TASKS))
-        if unknown or not tasks:
-            raise UsageError(f"unknown tasks {unknown or list(tasks)}: choose from {', '.join(TASKS)}")
+        tasks = parse_tasks(tasks)
         from illm_tools.llm.backend import as_backend
 
         self.lm = as_backend(lm)
@@ -178,12 +176,12 @@ class Annotator:
     # ---- the LLM calls ---------------------------------------------------------------------
 
     def annotate(self, states: list[list[Job]]) -> list[dict]:
-        """Cache rows for the jobs of these states (no writing). A state needing both tasks under
-        the shared layout runs its common prompt prefix once for both."""
+        """Cache rows for the jobs of these states (no writing). A state needing both action and
+        summary under the shared layout runs their common prompt prefix once for both; every other
+        ranking task is scored, every other text task generated, in batches of its own."""
         rows: list[dict] = []
-        action: list[Job] = []
-        summary: list[Job] = []
-        goal: list[Job] = []
+        ranking: list[Job] = []
+        text: dict[str, list[Job]] = {}
         pairs: list[tuple[Job, Job]] = []
         share = self.layout == "shared" and getattr(self.lm, "shares_prefix", False)
         hop = [jobs for jobs in states if jobs[0].builder.renderer.startswith("hop@")]
@@ -192,30 +190,29 @@ class Annotator:
             states = [jobs for jobs in states if not jobs[0].builder.renderer.startswith("hop@")]
         for jobs in states:
             by_task = {j.prompt.task: j for j in jobs}
-            goal += [j for j in jobs if j.prompt.task == "goal"]
             if share and "action" in by_task and "summary" in by_task:
                 pairs.append((by_task["action"], by_task["summary"]))
-                continue
-            action += [j for j in jobs if j.prompt.task == "action"]
-            summary += [j for j in jobs if j.prompt.task == "summary"]
+                jobs = [j for j in jobs if j.prompt.task not in ("action", "summary")]
+            for j in jobs:
+                if get_task(j.prompt.task).kind == "ranking":
+                    ranking.append(j)
+                else:
+                    text.setdefault(j.prompt.task, []).append(j)
         if pairs:
             scores, gens = self.lm.score_and_generate(
                 [a.prompt.text for a, _ in pairs], [list(a.prompt.candidates) for a, _ in pairs],
-                [s.prompt.text for _, s in pairs], max_new_tokens=SUMMARY_TOKENS, batch_size=self.batch_size)
+                [s.prompt.text for _, s in pairs], max_new_tokens=get_task("summary").max_new_tokens,
+                batch_size=self.batch_size)
             rows += [self._action_row(a, sc) for (a, _), sc in zip(pairs, scores)]
-            rows += [self._summary_row(s, g) for (_, s), g in zip(pairs, gens)]
-        if action:
-            scores = self.lm.score([j.prompt.text for j in action], [list(j.prompt.candidates) for j in action],
+            rows += [self._text_row(s, g) for (_, s), g in zip(pairs, gens)]
+        if ranking:
+            scores = self.lm.score([j.prompt.text for j in ranking], [list(j.prompt.candidates) for j in ranking],
                                    batch_size=self.batch_size)
-            rows += [self._action_row(j, sc) for j, sc in zip(action, scores)]
-        if summary:
-            gens = self.lm.generate([j.prompt.text for j in summary], max_new_tokens=SUMMARY_TOKENS,
+            rows += [self._action_row(j, sc) for j, sc in zip(ranking, scores)]
+        for task, jobs in text.items():
+            gens = self.lm.generate([j.prompt.text for j in jobs], max_new_tokens=get_task(task).max_new_tokens,
                                     batch_size=self.batch_size)
-            rows += [self._summary_row(j, g) for j, g in zip(summary, gens)]
-        if goal:
-            gens = self.lm.generate([j.prompt.text for j in goal], max_new_tokens=GOAL_TOKENS,
-                                    batch_size=self.batch_size)
-            rows += [self._goal_row(j, g) for j, g in zip(goal, gens)]
+            rows += [self._text_row(j, g) for j, g in zip(jobs, gens)]
         return rows
 
     def hop_context(self, renderer: str, obs_dim: int, num_actions: int):
@@ -231,28 +228,37 @@ class Annotator:
     def _annotate_hop(self, states: list[list[Job]]) -> list[dict]:
         """iLLM(hop)'s language tasks: each prompt is its template with the translated window
         spliced in as input embeddings where the written history would stand (B.2's prompts, D.7);
-        the backend scores the action candidates after it and decodes the summary from it."""
+        the backend scores a ranking task's candidates after it and decodes a text task from it
+        (one call per generation length: the ranking tasks ride with the first)."""
         from illm_tools.llm.backend import SplicedPrompt
 
         marker = "\x00HISTORY\x00"
-        jobs_in_order, prompts = [], []
+        groups: dict[int, tuple[list[Job], list]] = {}  # max_new_tokens -> (jobs, prompts)
         for jobs in states:
             record = jobs[0].record
             if not getattr(record, "frames", ()):
                 raise UsageError("a hop state reached the annotator without its observations (a HopRecord is needed)")
-            if any(j.prompt.task == "goal" for j in jobs):
-                raise UsageError("the goal task has no hop form: annotate hop data with --tasks action,summary")
+            unfit = sorted({j.prompt.task for j in jobs if not get_task(j.prompt.task).hop})
+            if unfit:
+                raise UsageError(f"the {', '.join(unfit)} task has no hop form: annotate hop data with other --tasks")
             context = self.hop_context(jobs[0].builder.renderer, int(np.asarray(record.frames[0]).size),
                                        len(record.valid_actions))
             window = context.window_embeddings(record.frames, record.prev_actions)
             for job in jobs:
                 head, tail = job.builder.render(job.prompt.task, record, marker).text.split(marker)
-                jobs_in_order.append(job)
-                prompts.append(SplicedPrompt(head, window, tail,
-                                             job.prompt.candidates if job.prompt.task == "action" else None))
-        answers = self.lm.spliced(prompts, max_new_tokens=SUMMARY_TOKENS, batch_size=self.batch_size)
-        return [self._action_row(job, answer) if job.prompt.task == "action" else self._summary_row(job, answer)
-                for job, answer in zip(jobs_in_order, answers)]
+                group = groups.setdefault(get_task(job.prompt.task).max_new_tokens, ([], []))
+                group[0].append(job)
+                group[1].append(SplicedPrompt(head, window, tail, job.prompt.candidates))
+        if 0 in groups and len(groups) > 1:  # ranking tasks ride with a generating call
+            ranked = groups.pop(0)
+            first = groups[next(iter(groups))]
+            first[0][:0], first[1][:0] = ranked
+        rows = []
+        for tokens, (jobs, prompts) in groups.items():
+            answers = self.lm.spliced(prompts, max_new_tokens=max(tokens, 1), batch_size=self.batch_size)
+            rows += [self._action_row(job, answer) if get_task(job.prompt.task).kind == "ranking"
+                     else self._text_row(job, answer) for job, answer in zip(jobs, answers)]
+        return rows
 
     def neutral_scores(self, candidates: tuple[str, ...]) -> list[float]:
         """Each candidate's summed log-prob after the neutral prompt (once per candidate set)."""
@@ -286,15 +292,15 @@ class Annotator:
         )
         return row
 
-    def _summary_row(self, job: Job, gen) -> dict:
+    def _text_row(self, job: Job, gen) -> dict:
+        """A text task's row: the generation in `text`, its embedding, and the task's parse of the
+        text (the goal task's goals) in `candidates`."""
         row = self._base_row(job)
+        task = get_task(job.prompt.task)
         emb = np.asarray(gen.embedding, dtype=np.float32)
-        row.update(text=gen.text, embedding=emb.tolist(), embedding_dim=int(emb.shape[0]),
-                   _tokens=len(gen.token_ids))
-        return row
-
-    def _goal_row(self, job: Job, gen) -> dict:
-        """The raw generation in `text`, its goals (`parse_goals`, possibly none) in `candidates`."""
-        row = self._base_row(job)
-        row.update(text=gen.text, candidates=parse_goals(gen.text, truncated=not gen.finished))
+        row.update(text=gen.text, embedding=emb.tolist(), embedding_dim=int(emb.shape[0]))
+        if task.parse is not None:
+            row["candidates"] = task.parse(gen.text, not gen.finished)
+        if task.name == "summary":
+            row["_tokens"] = len(gen.token_ids)  # counted for the run's mean summary length
         return row

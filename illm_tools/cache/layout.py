@@ -34,9 +34,16 @@ from illm_tools.cache.index import parse_keys
 from illm_tools.errors import CacheError, SchemaError
 
 KIND = "annotation"
-TASKS = ("action", "summary", "goal")
-"""The `task` values a row may hold (illm_tools.tasks.prompts.TASKS; `goal` rows use the v1
-columns as they are: `text` the raw generation, `candidates` the parsed goals)."""
+
+
+def known_tasks() -> tuple[str, ...]:
+    """The `task` values a row may hold: the registered language tasks (`illm_tools.tasks.registry`).
+    Every task uses the v1 columns as they are: a ranking task the candidate columns, a text task
+    `text` and `embedding` (`goal` rows also `candidates`, the parsed goals)."""
+    from illm_tools.tasks.registry import LANGUAGE_TASKS
+
+    return tuple(LANGUAGE_TASKS)
+
 FORMAT = "illm.annotation-cache"
 MANIFEST = "manifest.json"
 LOCK = ".lock"
@@ -263,8 +270,8 @@ def to_table(rows: list[dict] | pa.Table, schema: pa.Schema) -> pa.Table:
     if not valid.all():
         bad = table.column("key")[int(np.flatnonzero(~valid)[0])].as_py()
         raise CacheError(f"key {bad!r} is not a 64-character lowercase hex sha256")
-    if not pc.all(pc.is_in(table.column("task"), pa.array(TASKS))).as_py():
-        raise CacheError(f"task must be one of {TASKS}")
+    if not pc.all(pc.is_in(table.column("task"), pa.array(known_tasks()))).as_py():
+        raise CacheError(f"task must be one of {known_tasks()}")
     emb, dim = table.column("embedding"), table.column("embedding_dim")
     lengths = pc.list_value_length(emb)
     mismatch = pc.or_kleene(pc.not_equal(pc.is_null(emb), pc.is_null(dim)), pc.not_equal(lengths, dim))

@@ -31,15 +31,18 @@ and, when the bonus's class declares them:
 
   needs_targets = True (LLM targets from the run's `TargetProvider`, e.g. an annotation cache):
   target_probs   float [.., A]        the LLM's distribution over the valid actions
-  target_emb     float [.., D]        the LLM's summary embedding
+  target_emb     float [.., K*D]      the LLM's text embeddings, one D-wide block per text task of
+                                      the run (summary alone by default: K = 1)
   target_mask    bool  [..]           True where a target exists (other rows hold anything)
-  (`target_tasks` names the language tasks whose cache rows the provider reads: iLLM's action and
-  summary by default; ELLM's ("goal",) makes the run's provider a goal provider, whose targets
-  carry only the mask, D = 0, and whose per-step goals the bonus reads from the provider itself,
-  handed to it through `use_provider`.)
-  policy_heads = True (the policy network carries iLLM's heads f^a / f^hc on its features):
-  action_logits  float [.., A]        f^a's logits on `features`
-  summary        float [.., D]        f^hc's predicted embedding on `features`
+  (A method with `policy_heads` reads the run's language tasks, `TrainConfig.tasks`: action and
+  summary by default, any combination of `illm_tools.tasks.registry`'s. Another method reads its
+  `target_tasks`: ELLM's ("goal",) makes the run's provider a goal provider, whose targets carry
+  only the mask, D = 0, and whose per-step goals the bonus reads from the provider itself, handed
+  to it through `use_provider`.)
+  policy_heads = True (the policy network carries iLLM's heads, one per language task, on its features):
+  action_logits  float [.., A]        f^a's logits on `features` (with the action task)
+  summary        float [.., K*D]      the text heads' predicted embeddings on `features` (f^hc's
+                                      first with the summary task), blocks as in target_emb
 
 The leading axes `..` are [N] for `observe` (one env step), [T, N] for `compute_rewards` and
 `update` (one rollout, t-major), and [B] for `aux_loss` (one PPO minibatch of flat rows).
@@ -147,8 +150,9 @@ class IntrinsicBonus(ABC):
     """The policy network carries the iLLM heads f^a / f^hc (trained by `aux_loss` through the
     policy's optimiser); the batches then carry action_logits and summary."""
     target_tasks: ClassVar[tuple[str, ...]] = ("action", "summary")
-    """With `needs_targets`: the language tasks (illm_tools.tasks.prompts.TASKS) whose cache rows
-    the run's provider reads and the live fallback annotates."""
+    """With `needs_targets` and without `policy_heads`: the language tasks (illm_tools.tasks.registry)
+    whose cache rows the run's provider reads and the live fallback annotates (a method with the
+    heads reads the run's `tasks`)."""
     pays_reward: bool = True
     """Whether the rewards reach the advantages; False trains the bonus's models and pays nothing
     (e.g. `illm-noreward`, paper Table 3). Set by the registry entry, read by the trainer."""

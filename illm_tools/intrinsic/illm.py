@@ -6,10 +6,16 @@ Settings: `ILLMConfig`, whose fields are the run's own (TrainConfig) settings of
 
 Reads (rewards: [T, N, ...]; loss: [B, ...]; see base.py):
   action_logits  f^a's logits over the valid actions      [.., A]
-  summary        f^hc's predicted summary embedding        [.., D]
+  summary        the text heads' predicted embeddings      [.., K*D]
   target_probs   the LLM's distribution over valid actions [.., A]
-  target_emb     the LLM's summary embedding               [.., D]
+  target_emb     the LLM's text embeddings                 [.., K*D]
   target_mask    bool, True where the LLM target exists    [..]
+
+The language tasks are the run's `tasks` (paper Table 2; default action + summary, the paper's
+two): the action task on f^a, and K text tasks (summary on f^hc, goal, plan), each on its own
+head, their D-wide blocks side by side in task order. Every task below has its own distillation
+loss, bonus and normaliser; the goal and plan heads are trained and paid as f^hc is (paper D.2),
+weighted by `task_weights` (default 0.5, beta's value).
 
 Choices (documented here once):
 - Action distillation loss: KL(p_LLM || softmax(f^a)). Same gradient as cross-entropy, but 0 at
@@ -19,9 +25,10 @@ Choices (documented here once):
 - r^a = 1 - sim(softmax(f^a), p_LLM) with sim = 1 - total variation (so r^a is the TV distance,
   in [0, 1]) or the Bhattacharyya coefficient (r^a is then the squared Hellinger distance).
 - r^hc = clip(1 - cos(f^hc, target), 0, 1).
-- Both are zero where there is no target (and those steps are counted), each is divided by the
-  running std of its own discounted return (normalize.py), and the bonus paid is
-  lambda * r^a + beta * r^hc. The trainer feeds it to a separate intrinsic value head (RND's
+- All are zero where there is no target (a step has one when the cache answers every task of the
+  run; those without are counted), each is divided by the running std of its own discounted
+  return (normalize.py), and the bonus paid is lambda * r^a + beta * r^hc (+ w_goal * r^goal +
+  w_plan * r^plan with those tasks). The trainer feeds it to a separate intrinsic value head (RND's
   two streams); with unit advantage weights this is PPO on r* = r + lambda r^a + beta r^hc.
 - The rewards of a rollout are paid for the state the agent acts from (paper Alg. 1, line 11):
   reward t belongs to state s_t, computed after the rollout from the updated heads in one batch.
@@ -52,7 +59,7 @@ Compared with CleanRL's RND (`cleanrl/ppo_rnd_envpool.py`), the reference most u
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 import torch
@@ -61,6 +68,7 @@ import torch.nn.functional as F
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer
+from illm_tools.tasks.registry import DEFAULT_WEIGHT, get_task, parse_tasks, text_tasks
 
 
 @dataclass
@@ -68,22 +76,36 @@ class ILLMConfig:
     """iLLM's settings. Each is the training run's setting of the same name (`TrainConfig`,
     `illm train --lambda-a` etc.), so they are not bonus options."""
 
-    RUN_SETTINGS: ClassVar[tuple[str, ...]] = ("lambda_a", "beta_hc", "summary_loss", "action_similarity")
+    RUN_SETTINGS: ClassVar[tuple[str, ...]] = ("lambda_a", "beta_hc", "summary_loss", "action_similarity", "tasks",
+                                               "task_weights")
 
     lambda_a: float = 0.8
     """Weight lambda of the action-generation bonus r^a (paper: 0.8)."""
     beta_hc: float = 0.5
     """Weight beta of the history-compression bonus r^hc (paper: 0.5)."""
     summary_loss: str = "cosine"
-    """Distillation loss of f^hc: cosine (1 - cos) or mse."""
+    """Distillation loss of the text heads (f^hc and the goal/plan heads): cosine (1 - cos) or mse."""
     action_similarity: str = "tv"
     """Similarity behind r^a = 1 - sim: tv (1 - total variation) or bhattacharyya."""
+    tasks: tuple[str, ...] = ("action", "summary")
+    """The language tasks distilled and paid for (`illm_tools.tasks.registry`)."""
+    task_weights: dict = field(default_factory=dict)
+    """Bonus weights of the tasks without a setting of their own (goal, plan; default 0.5)."""
 
     def __post_init__(self) -> None:
         if self.summary_loss not in ("cosine", "mse"):
             raise UsageError(f"summary_loss must be cosine or mse, got {self.summary_loss!r}")
         if self.action_similarity not in ("tv", "bhattacharyya"):
             raise UsageError(f"action_similarity must be tv or bhattacharyya, got {self.action_similarity!r}")
+        self.tasks = parse_tasks(self.tasks)
+
+    def weights(self) -> dict[str, float]:
+        """Each task's bonus weight: lambda_a, beta_hc, or `task_weights` (default 0.5)."""
+        out = {}
+        for task in self.tasks:
+            setting = get_task(task).weight_setting
+            out[task] = float(getattr(self, setting)) if setting else float(self.task_weights.get(task, DEFAULT_WEIGHT))
+        return out
 
 
 def action_disagreement(logits: torch.Tensor, target: torch.Tensor, kind: str = "tv") -> torch.Tensor:
@@ -114,8 +136,18 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (x * m).sum() / m.sum().clamp_min(1.0)
 
 
+_SUFFIX = {"action": "a", "summary": "hc"}
+"""The paper's names of the first two tasks' columns (intrinsic_reward_a, intrinsic_reward_hc)."""
+
+
+def _suffix(task: str) -> str:
+    return _SUFFIX.get(task, task)
+
+
 class ILLMBonus(IntrinsicBonus):
-    """iLLM's two bonuses and distillation losses (see the module docstring)."""
+    """iLLM's bonuses and distillation losses, one per language task of the run (see the module
+    docstring): the action task's on f^a, each text task's on its own head, whose predictions
+    arrive side by side in `summary` (and the targets in `target_emb`), D each, in task order."""
 
     config_class = ILLMConfig
     needs_targets = True
@@ -123,58 +155,76 @@ class ILLMBonus(IntrinsicBonus):
 
     def __init__(self, num_envs: int, *, lambda_a: float = 0.8, beta_hc: float = 0.5,
                  gamma: float = 0.99, pays_reward: bool = True, summary_loss: str = "cosine",
-                 action_similarity: str = "tv"):
-        self.lambda_a = lambda_a
-        self.beta_hc = beta_hc
+                 action_similarity: str = "tv", tasks=("action", "summary"), task_weights: dict | None = None):
+        config = ILLMConfig(lambda_a=lambda_a, beta_hc=beta_hc, summary_loss=summary_loss,
+                            action_similarity=action_similarity, tasks=tasks, task_weights=dict(task_weights or {}))
+        self.lambda_a, self.beta_hc = lambda_a, beta_hc
         self.pays_reward = pays_reward
         self.summary_loss = summary_loss
         self.action_similarity = action_similarity
-        self.norm_a = DiscountedReturnNormalizer(num_envs, gamma)
-        self.norm_hc = DiscountedReturnNormalizer(num_envs, gamma)
+        self.tasks = config.tasks
+        self.text = text_tasks(self.tasks)
+        self.weights = config.weights()
+        self.norms = {task: DiscountedReturnNormalizer(num_envs, gamma) for task in self.tasks}
+
+    @property
+    def norm_a(self) -> DiscountedReturnNormalizer:
+        return self.norms["action"]
+
+    @property
+    def norm_hc(self) -> DiscountedReturnNormalizer:
+        return self.norms["summary"]
 
     @classmethod
     def from_config(cls, config: ILLMConfig, ctx: BonusContext) -> "ILLMBonus":
         return cls(ctx.num_envs, lambda_a=config.lambda_a, beta_hc=config.beta_hc, gamma=ctx.int_gamma,
-                   summary_loss=config.summary_loss, action_similarity=config.action_similarity)
+                   summary_loss=config.summary_loss, action_similarity=config.action_similarity,
+                   tasks=config.tasks, task_weights=config.task_weights)
+
+    def _text_blocks(self, pred: torch.Tensor, emb: torch.Tensor) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+        """Each text task's (prediction, target) block of the side-by-side [.., K * D] tensors."""
+        if not self.text:
+            return {}
+        d = emb.shape[-1] // len(self.text)
+        return {task: (pred[..., i * d:(i + 1) * d], emb[..., i * d:(i + 1) * d]) for i, task in enumerate(self.text)}
 
     @torch.no_grad()
     def compute_rewards(self, batch: Mapping[str, torch.Tensor]) -> BonusRewards:
         mask, probs, emb = _clean(batch)
-        r_a = action_disagreement(batch["action_logits"], probs, self.action_similarity)
-        r_hc = summary_disagreement(batch["summary"], emb)
-        r_a = torch.where(mask, r_a, torch.zeros_like(r_a))
-        r_hc = torch.where(mask, r_hc, torch.zeros_like(r_hc))
-        logs = {
-            "intrinsic_reward_a": float(_masked_mean(r_a, mask)),
-            "intrinsic_reward_hc": float(_masked_mean(r_hc, mask)),
-            "target_coverage": float(mask.float().mean()),
-            "no_target_steps": float((~mask).sum()),
-        }
+        raw = {}
+        if "action" in self.tasks:
+            raw["action"] = action_disagreement(batch["action_logits"], probs, self.action_similarity)
+        for task, (pred, target) in self._text_blocks(batch["summary"], emb).items():
+            raw[task] = summary_disagreement(pred, target)
+        raw = {task: torch.where(mask, r, torch.zeros_like(r)) for task, r in raw.items()}
+        logs = {f"intrinsic_reward_{_suffix(t)}": float(_masked_mean(r, mask)) for t, r in raw.items()}
+        logs.update(target_coverage=float(mask.float().mean()), no_target_steps=float((~mask).sum()))
         if not self.pays_reward:
-            return BonusRewards(torch.zeros_like(r_a), logs)
-        reward = self.lambda_a * self.norm_a(r_a, mask) + self.beta_hc * self.norm_hc(r_hc, mask)
+            return BonusRewards(torch.zeros_like(mask, dtype=torch.float32), logs)
+        reward = sum(self.weights[t] * self.norms[t](r, mask) for t, r in raw.items())
         logs["intrinsic_reward"] = float(reward.mean())
-        logs["intrinsic_std_a"] = self.norm_a.rms.std
-        logs["intrinsic_std_hc"] = self.norm_hc.rms.std
+        logs.update({f"intrinsic_std_{_suffix(t)}": self.norms[t].rms.std for t in raw})
         return BonusRewards(reward, logs)
 
     def aux_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
-        """Masked mean of the two distillation losses, summed (gradients reach heads and torso)."""
+        """Masked mean of the distillation losses, summed (gradients reach heads and torso): KL for
+        the action task, 1 - cos (or MSE) for each text task."""
         mask, target, emb = _clean(batch)
-        kl = (torch.xlogy(target, target) - target * batch["action_logits"].log_softmax(-1)).sum(-1)
-        pred = batch["summary"]
-        if self.summary_loss == "cosine":
-            hc = 1.0 - F.cosine_similarity(pred, emb, dim=-1, eps=1e-8)
-        else:
-            hc = (pred - emb).pow(2).mean(-1)
-        kl = torch.where(mask, kl, torch.zeros_like(kl))
-        hc = torch.where(mask, hc, torch.zeros_like(hc))
-        loss_a, loss_hc = _masked_mean(kl, mask), _masked_mean(hc, mask)
-        return loss_a + loss_hc, {"distill_action": loss_a.item(), "distill_summary": loss_hc.item()}
+        losses = {}
+        if "action" in self.tasks:
+            kl = (torch.xlogy(target, target) - target * batch["action_logits"].log_softmax(-1)).sum(-1)
+            losses["action"] = kl
+        for task, (pred, goal) in self._text_blocks(batch["summary"], emb).items():
+            if self.summary_loss == "cosine":
+                losses[task] = 1.0 - F.cosine_similarity(pred, goal, dim=-1, eps=1e-8)
+            else:
+                losses[task] = (pred - goal).pow(2).mean(-1)
+        means = {t: _masked_mean(torch.where(mask, x, torch.zeros_like(x)), mask) for t, x in losses.items()}
+        return sum(means.values()), {f"distill_{t}": v.item() for t, v in means.items()}
 
     def state_dict(self) -> dict:
-        return {"norm_a": self.norm_a.state_dict(), "norm_hc": self.norm_hc.state_dict()}
+        return {f"norm_{_suffix(t)}": norm.state_dict() for t, norm in self.norms.items()}
 
     def load_state_dict(self, state: dict) -> None:
-        self.norm_a.load_state_dict(state["norm_a"])
-        self.norm_hc.load_state_dict(state["norm_hc"])
+        for t, norm in self.norms.items():
+            norm.load_state_dict(state[f"norm_{_suffix(t)}"])

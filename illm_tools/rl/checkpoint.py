@@ -279,6 +279,7 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.config import TrainConfig
     from illm_tools.rl.networks import MissionVocab, make_network
+    from illm_tools.tasks.registry import get_task
 
     run_dir = Path(run_dir)
     cfg = TrainConfig.from_dict(read_config(run_dir))
@@ -288,8 +289,9 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
         raise UsageError(f"the run was trained with actions {state['action_names']}, "
                          f"the environment offers {names}; use the same --action-space")
     vocab = MissionVocab(cfg.mission_max_len)
-    heads = "f_hc.2.weight" in state["model"]  # the method's bonus put the iLLM heads on the network
     method = get_method(cfg.mode)
+    text_heads = [get_task(t).head for t in cfg.text_tasks]  # the iLLM heads the method's bonus put on the network
+    dim = state["model"][f"{text_heads[0]}.2.weight"].shape[0] if text_heads else cfg.embedding_dim
     hop = None
     if cfg.obs_mode == "hop":
         from illm_tools.hop.context import HopContext, HopTracker
@@ -301,7 +303,7 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
                HopTracker(pool.num_envs, cfg.history_len, names))
     net = make_network(method, cfg.env_id, len(names), image_shape=tuple(state["image_shape"]),
                        vocab_size=len(vocab), network_options=cfg.network_options,
-                       embedding_dim=state["model"]["f_hc.2.weight"].shape[0] if heads else None,
+                       embedding_dim=dim if method.policy_heads else None, tasks=cfg.tasks,
                        head_hidden=cfg.head_hidden, context_dim=hop[0].hidden_size if hop else 0)
     net.load_state_dict(state["model"])
     return TrainedPolicy(net, vocab, name=f"run:{run_dir.name}@{state['global_step']}",

@@ -112,6 +112,14 @@ class TrainConfig:
     """Weight lambda of the action-generation bonus r^a (paper: 0.8)."""
     beta_hc: float = BONUS_PRESETS["paper"]["beta_hc"]
     """Weight beta of the history-compression bonus r^hc (paper: 0.5)."""
+    tasks: tuple[str, ...] = ("action", "summary")
+    """The language tasks the heads distil and the bonus pays for, any combination of action,
+    summary, goal and plan (paper Table 2; `illm_tools.tasks.registry`): each has its own head on
+    the policy's features and its own bonus, weighted by lambda_a (action), beta_hc (summary) or
+    `task_weights`. Methods with iLLM's heads only."""
+    task_weights: dict = field(default_factory=dict)
+    """Bonus weights of the tasks without a setting of their own by name (`--task-weight plan=0.3`);
+    unset ones weigh 0.5, as beta_hc (their heads are trained like f^hc, paper D.2)."""
     distill_coef: float = 1.0
     """Weight of the head distillation losses in the total loss."""
     distill_epochs: int = 1
@@ -195,6 +203,18 @@ class TrainConfig:
             raise UsageError(f"--live-mode must be {' or '.join(LIVE_MODES)}, got {self.live_mode!r}")
         if self.live_budget < 0 or self.threads <= 0 or self.llm_threads < 0:
             raise UsageError("--live-budget and --llm-threads must be >= 0 and --threads positive")
+        from illm_tools.tasks.registry import get_task, parse_tasks
+
+        self.tasks = parse_tasks(self.tasks, "--tasks")
+        for name, weight in self.task_weights.items():
+            if get_task(name).weight_setting is not None:
+                raise UsageError(f"the {name} task's weight is --{get_task(name).weight_setting.replace('_', '-')}, "
+                                 "not --task-weight")
+            if not isinstance(weight, (int, float)) or weight < 0:
+                raise UsageError(f"--task-weight {name}={weight!r}: a weight is a number >= 0")
+        if self.tasks != ("action", "summary") and not get_method(self.mode).policy_heads:
+            raise UsageError(f"--tasks chooses iLLM's heads; --method {self.mode} has none (it reads "
+                             f"{', '.join(get_method(self.mode).target_tasks) or 'no language task'})")
         get_method(self.mode).make_config(self.to_dict(), self.bonus_options)  # refuses unknown methods, options
         get_method(self.mode).network_options(self.network_options)
         for name in ("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",
@@ -280,9 +300,30 @@ class TrainConfig:
             return self.llm_threads
         return cores if self.live_mode == "sync" else max(1, cores - self.threads)
 
+    @property
+    def target_tasks(self) -> tuple[str, ...]:
+        """The language tasks whose cache rows the run reads: the heads' `tasks`, or those the
+        method's bonus reads (ELLM: goal)."""
+        return self.tasks if get_method(self.mode).policy_heads else get_method(self.mode).target_tasks
+
+    @property
+    def text_tasks(self) -> tuple[str, ...]:
+        """The text tasks among `tasks` (each a head of `embedding_dim` outputs)."""
+        from illm_tools.tasks.registry import text_tasks
+
+        return text_tasks(self.tasks) if get_method(self.mode).policy_heads else ()
+
+    def task_weight(self, task: str) -> float:
+        """A task's bonus weight: its own setting (lambda_a, beta_hc) or `task_weights`."""
+        from illm_tools.tasks.registry import DEFAULT_WEIGHT, get_task
+
+        setting = get_task(task).weight_setting
+        return float(getattr(self, setting)) if setting else float(self.task_weights.get(task, DEFAULT_WEIGHT))
+
     def to_dict(self) -> dict:
         """JSON-ready form (paths as strings)."""
         out = asdict(self)
+        out["tasks"] = list(self.tasks)
         out["run_dir"] = str(self.run_dir)
         out["cache"] = str(self.cache) if self.cache is not None else None
         return out

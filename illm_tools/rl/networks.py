@@ -87,7 +87,9 @@ class GridMissionNet(nn.Module):
 
     images: uint8/int [B, H, W, 3] MiniGrid encoding; missions: int64 [B, L] from `MissionVocab`;
     `image_shape` is one observation's shape.
-    `embedding_dim=None` builds no heads (plain PPO). Subclasses replace the torso
+    `embedding_dim=None` builds no heads (plain PPO); else one head per language task of `tasks`
+    (`illm_tools.tasks.registry`: f_a for action, f_hc for summary, f_goal, f_plan), each of
+    `head_hidden` units, the text heads of `embedding_dim` outputs. Subclasses replace the torso
     (`build_torso`, `features`); `Options` lists the settings a torso takes (`--network-option`).
     """
 
@@ -98,7 +100,7 @@ class GridMissionNet(nn.Module):
 
     def __init__(self, num_actions: int, *, vocab_size: int, embedding_dim: int | None = None,
                  head_hidden: int = 1024, image_shape: tuple[int, ...] = (7, 7, 3), heads_bf16: bool | None = None,
-                 hidden: int = 64, options=None, context_dim: int = 0):
+                 hidden: int = 64, options=None, context_dim: int = 0, tasks: tuple[str, ...] = ("action", "summary")):
         super().__init__()
         self.register_buffer("cell_sizes", torch.tensor(GRID_CHANNEL_SIZES), persistent=False)
         self.register_buffer("cell_offsets", torch.tensor(np.cumsum((0, *GRID_CHANNEL_SIZES[:-1]))),
@@ -111,13 +113,23 @@ class GridMissionNet(nn.Module):
         self.critic_int = mlp_head(self.feature_dim, hidden, 1, std=1.0)
         self.f_a = self.f_hc = None
         self.heads_bf16 = bf16_is_faster() if heads_bf16 is None else heads_bf16
+        self.head_tasks: tuple[str, ...] = ()
+        self.text_heads: tuple[str, ...] = ()
         if embedding_dim is not None:
-            self.f_a = mlp_head(self.feature_dim, head_hidden, num_actions, std=0.01, act=nn.ReLU)
-            self.f_hc = mlp_head(self.feature_dim, head_hidden, embedding_dim, std=1.0, act=nn.ReLU)
+            from illm_tools.tasks.registry import get_task
+
+            for task in tasks:  # f_a, then f_hc: the order (and the init) of the paper's two heads
+                spec = get_task(task)
+                if spec.kind == "ranking" and task != "action":
+                    raise ValueError(f"the policy carries one ranking head, the action task's; {task!r} is another")
+                out, std = (num_actions, 0.01) if spec.kind == "ranking" else (embedding_dim, 1.0)
+                setattr(self, spec.head, mlp_head(self.feature_dim, head_hidden, out, std=std, act=nn.ReLU))
+            self.head_tasks = tuple(tasks)
+            self.text_heads = tuple(get_task(t).head for t in tasks if get_task(t).kind == "text")
 
     @property
     def has_heads(self) -> bool:
-        return self.f_a is not None
+        return bool(self.head_tasks)
 
     def build_torso(self, *, vocab_size: int, image_shape: tuple[int, ...], options=None,
                     word_embed: int = 32, text_hidden: int = 128) -> int:
@@ -167,17 +179,19 @@ class GridMissionNet(nn.Module):
         return PolicyOutput(self.actor(f), self.critic_ext(f).squeeze(-1),
                             self.critic_int(f).squeeze(-1), f)
 
-    def heads(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(f^a logits [B, A], f^hc embedding [B, D])."""
-        if self.f_a is None:
+    def heads(self, features: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """(f^a logits [B, A] or None without the action task, the text heads' embeddings side by
+        side [B, K * D] in task order (f^hc's alone by default) or None without text tasks)."""
+        if not self.head_tasks:
             raise RuntimeError("this network was built without iLLM heads (mode ppo)")
         # the heads are most of the iLLM update's FLOPs: bf16 matmuls run ~2x faster on CPUs with
         # fast bf16 (AMD EPYC here), slower on others (an Intel Xeon here); `heads_bf16=None` lets
         # `bf16_is_faster` decide. Parameters, gradients and outputs stay float32
         with torch.autocast(features.device.type, dtype=torch.bfloat16,
                             enabled=self.heads_bf16 and features.device.type == "cpu"):
-            action, summary = self.f_a(features), self.f_hc(features)
-        return action.float(), summary.float()
+            action = self.f_a(features).float() if self.f_a is not None else None
+            texts = [getattr(self, head)(features).float() for head in self.text_heads]
+        return action, (texts[0] if len(texts) == 1 else torch.cat(texts, dim=-1)) if texts else None
 
 
 def conv_trunk(in_channels: int, height: int, width: int, out: int) -> tuple[nn.Sequential, int]:
@@ -264,7 +278,8 @@ class GlyphNet(GridMissionNet):
 
 def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[int, ...], vocab_size: int,
                  network_options: dict, embedding_dim: int | None, head_hidden: int,
-                 heads_bf16: bool | None = None, context_dim: int = 0) -> GridMissionNet:
+                 heads_bf16: bool | None = None, context_dim: int = 0,
+                 tasks: tuple[str, ...] = ("action", "summary")) -> GridMissionNet:
     """The policy network of a run: the method's own class (ChibiT) or else the suite's, checked to
     read the suite's kind of observation; `network_options` as the class's `Options`."""
     from illm_tools.envs import suite_of
@@ -283,7 +298,7 @@ def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[in
         extra = {"parts": spec.parts}
     return cls(num_actions, vocab_size=vocab_size, options=method.network_options(network_options, cls),
                embedding_dim=embedding_dim, head_hidden=head_hidden, image_shape=tuple(image_shape),
-               heads_bf16=heads_bf16, context_dim=context_dim, **extra)
+               heads_bf16=heads_bf16, context_dim=context_dim, tasks=tuple(tasks), **extra)
 
 
 @functools.lru_cache(maxsize=1)

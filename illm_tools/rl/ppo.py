@@ -85,7 +85,7 @@ class Trainer:
                                     vocab_size=len(self.vocab), network_options=cfg.network_options,
                                     embedding_dim=cfg.embedding_dim if method.policy_heads else None,
                                     head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16,
-                                    context_dim=self.hop.hidden_size if self.hop else 0)
+                                    context_dim=self.hop.hidden_size if self.hop else 0, tasks=cfg.tasks)
         self.visits = None  # per-cell visit counts where the env reports positions (MiniGrid; Figure 1)
         if getattr(self.obs, "positions", None) is not None:
             from illm_tools.rl.visitation import VisitCounts
@@ -178,7 +178,7 @@ class Trainer:
         (`EpisodeStats`), next values)."""
         cfg = self.cfg
         ro = Rollout.empty(cfg.num_steps, cfg.num_envs, self.image_shape, cfg.mission_max_len,
-                           len(self.action_names), cfg.embedding_dim if self.method.policy_heads else 0,
+                           len(self.action_names), cfg.embedding_dim * len(cfg.text_tasks),
                            self.net.feature_dim, self.image_dtype, self.net.context_dim)
         records: list[StateRecord] = []
         episodes: list = []
@@ -257,8 +257,10 @@ class Trainer:
         if self.method.policy_heads:
             f = batch["features"]
             action_logits, summary = self.net.heads(f.reshape(-1, f.shape[-1]))
-            batch["action_logits"] = action_logits.reshape(*f.shape[:-1], -1)
-            batch["summary"] = summary.reshape(*f.shape[:-1], -1)
+            if action_logits is not None:
+                batch["action_logits"] = action_logits.reshape(*f.shape[:-1], -1)
+            if summary is not None:
+                batch["summary"] = summary.reshape(*f.shape[:-1], -1)
         return batch
 
     @torch.no_grad()

@@ -29,8 +29,8 @@ def torch_threads(n: int):
 
 
 def make_provider(cfg: TrainConfig, num_actions: int):
-    """The target provider of a run whose bonus needs LLM targets, or None: `CachedTargets` (iLLM's
-    action and summary rows) or, for a bonus whose `target_tasks` are ("goal",), `GoalTargets`
+    """The target provider of a run whose bonus needs LLM targets, or None: `CachedTargets` (the rows
+    of iLLM's language tasks, `cfg.tasks`) or, for a bonus whose `target_tasks` are ("goal",), `GoalTargets`
     (ELLM's suggested goals). Returns (provider, cfg) where cfg carries the model's embedding
     dimension (iLLM's heads predict it)."""
     if not cfg.needs_targets:
@@ -45,7 +45,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     from illm_tools.rl.targets import CachedTargets, GoalTargets, check_setup
     from illm_tools.tasks.prompts import PromptBuilder
 
-    tasks = get_method(cfg.mode).target_tasks
+    tasks = cfg.target_tasks
 
     cache = AnnotationCache(cfg.cache)
     renderer = cfg.renderer  # the suite's text renderer, or the hop translation's settings
@@ -57,13 +57,14 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
         check_setup(cache, builder, model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant, tasks=tasks)
-    if tasks == ("goal",):
+    if not get_method(cfg.mode).policy_heads:  # ELLM: the goals themselves, no heads to distil into
         return GoalTargets(cache, builder, num_actions=num_actions, live=make_live(cfg, builder, cache, tasks)), cfg
     dim = backend_hidden_size(cfg.backend, cfg.model)
     if dim != cfg.embedding_dim:
         cfg = dataclasses.replace(cfg, embedding_dim=dim)
     provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
-                             embedding_dim=dim, action_target=cfg.action_target, live=make_live(cfg, builder, cache),
+                             embedding_dim=dim, action_target=cfg.action_target, tasks=tasks,
+                             live=make_live(cfg, builder, cache, tasks),
                              shuffle_seed=get_method(cfg.mode).target_shuffle)  # illm-shuffled: another state's
     return provider, cfg
 

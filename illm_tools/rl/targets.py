@@ -9,7 +9,8 @@ process and a later rollout finds its answers in the shared cache. States still 
 target (and so no bonus) and are counted. `check_setup` refuses a cache that holds annotations
 but none for this run's setup.
 
-`CachedTargets` serves iLLM (the `action` and `summary` rows); `GoalTargets` serves ELLM (the
+`CachedTargets` serves iLLM (the rows of the run's language tasks: action and summary by default,
+any of `illm_tools.tasks.registry`'s); `GoalTargets` serves ELLM (the
 `goal` rows: each state's suggested goals), with the same keys, look-up and live fallback.
 `CachedTargets(shuffle_seed=...)` serves the `illm-shuffled` control: each state gets the targets
 of another cached state, chosen by a fixed permutation (`ShuffledKeys`).
@@ -29,6 +30,7 @@ from illm_tools.cache.store import AnnotationCache
 from illm_tools.intrinsic.base import Targets
 from illm_tools.tasks.calibration import ACTION_TARGETS, action_target
 from illm_tools.tasks.prompts import Prompt, PromptBuilder
+from illm_tools.tasks.registry import DEFAULT_TASKS, get_task, parse_tasks, text_tasks
 from illm_tools.tasks.state import StateRecord
 
 ACTION_COLUMNS = ["cand_logprob_sum", "cand_token_count", "neutral_logprob_sum"]
@@ -36,17 +38,20 @@ _MEMO_LIMIT = 500_000
 
 
 class CachedTargets:
-    """`TargetProvider` over an `AnnotationCache`; `live` (`illm_tools.rl.live.SyncLive` or
-    `AsyncLive`, writing to the same cache) enables the live fallback. `action_target`: f^a's target is the
-    softmax of the calibrated scores (`distribution`) or the one-hot of their argmax (`argmax`,
-    the paper's choice). `shuffle_seed` (None: off) hands each state the targets of another cached
-    state of the same task and setup, its partner under the fixed permutation `ShuffledKeys` with
-    that seed; the mask stays the state's own (True where its own entries exist, as without the
-    shuffle, and its partner's too), so coverage and the live fallback are unchanged."""
+    """`TargetProvider` over an `AnnotationCache` for the language tasks `tasks` (iLLM's: action and
+    summary by default; any combination of the registered tasks, `illm_tools.tasks.registry`); `live`
+    (`illm_tools.rl.live.SyncLive` or `AsyncLive`, writing to the same cache) enables the live
+    fallback. A state has a target when the cache answers every task. The action task gives the
+    action distribution: the softmax of the calibrated scores (`distribution`) or the one-hot of
+    their argmax (`argmax`, the paper's choice); each text task its embedding, side by side in task
+    order ([B, K * embedding_dim]). `shuffle_seed` (None: off) hands each state the targets of
+    another cached state of the same task and setup, its partner under the fixed permutation
+    `ShuffledKeys` with that seed; the mask stays the state's own (True where its own entries exist,
+    as without the shuffle, and its partner's too), so coverage and the live fallback are unchanged."""
 
     def __init__(self, cache: AnnotationCache, builder: PromptBuilder, *, calibration: str,
                  num_actions: int, embedding_dim: int, action_target: str = "distribution", live=None,
-                 shuffle_seed: int | None = None):
+                 shuffle_seed: int | None = None, tasks: Sequence[str] = DEFAULT_TASKS):
         self.cache = cache
         self.builder = builder
         self.calibration = calibration
@@ -55,36 +60,37 @@ class CachedTargets:
         self.action_target = action_target
         self.num_actions = num_actions
         self.embedding_dim = embedding_dim
+        self.tasks = parse_tasks(tasks)
+        self.text = text_tasks(self.tasks)
         self.live = live
-        self.shuffle = ShuffledKeys(cache, builder, shuffle_seed) if shuffle_seed is not None else None
-        self._keys: dict[StateRecord, tuple[str, str]] = {}
+        self.shuffle = ShuffledKeys(cache, builder, shuffle_seed, self.tasks) if shuffle_seed is not None else None
+        self._keys: dict[StateRecord, tuple[str, ...]] = {}
         self._visits: Counter[StateRecord] = Counter()
         self._last: dict[str, float] = {"cache_hit_rate": 0.0, "target_coverage": 0.0, "live_annotations": 0.0}
 
-    def keys(self, records: Sequence[StateRecord]) -> tuple[list[str], list[str]]:
-        """(action keys, summary keys) of the records, memoised per distinct record."""
+    def keys(self, records: Sequence[StateRecord]) -> dict[str, list[str]]:
+        """Each task's keys of the records, memoised per distinct record."""
         if len(self._keys) > _MEMO_LIMIT:
             self._keys.clear()
-        out_a, out_s = [], []
+        rows = []
         for r in records:
-            pair = self._keys.get(r)
-            if pair is None:
-                pair = self._keys[r] = self.builder.state_keys(r)
-            out_a.append(pair[0])
-            out_s.append(pair[1])
-        return out_a, out_s
+            keys = self._keys.get(r)
+            if keys is None:
+                keys = self._keys[r] = self.builder.state_keys(r, self.tasks)
+            rows.append(keys)
+        return {task: [keys[i] for keys in rows] for i, task in enumerate(self.tasks)}
 
-    def _lookup(self, keys_a: list[str], keys_s: list[str]) -> tuple[dict, dict, np.ndarray]:
-        """One cache look-up per task: (action columns, summary columns, mask with both). With
-        the shuffle, the columns are the partners' and the mask also asks for the state's own."""
+    def _lookup(self, keys: dict[str, list[str]]) -> tuple[dict[str, dict], np.ndarray]:
+        """One cache look-up per task: (each task's columns, mask with all of them). With the
+        shuffle, the columns are the partners' and the mask also asks for the state's own."""
         own = None
         if self.shuffle is not None:
-            own = self.cache.contains(keys_a) & self.cache.contains(keys_s)
-            keys_a, keys_s = self.shuffle.partners("action", keys_a), self.shuffle.partners("summary", keys_s)
-        a = self.cache.get_columns(keys_a, ACTION_COLUMNS, task="action")
-        s = self.cache.get_columns(keys_s, ["embedding"], task="summary")
-        found = a["found"] & s["found"]
-        return a, s, found if own is None else found & own
+            own = np.logical_and.reduce([self.cache.contains(k) for k in keys.values()])
+            keys = {task: self.shuffle.partners(task, k) for task, k in keys.items()}
+        columns = {task: self.cache.get_columns(k, ACTION_COLUMNS if get_task(task).kind == "ranking" else ["embedding"],
+                                                task=task) for task, k in keys.items()}
+        found = np.logical_and.reduce([c["found"] for c in columns.values()])
+        return columns, found if own is None else found & own
 
     def _annotate_missing(self, records: Sequence[StateRecord], found: np.ndarray) -> int:
         """Live fallback: the distinct missing states, most visited over the run so far first,
@@ -120,21 +126,23 @@ class CachedTargets:
                       **(self.live.stats() if self.live is not None else {})}
 
     def targets(self, records: Sequence[StateRecord]) -> Targets:
-        keys_a, keys_s = self.keys(records)
+        keys = self.keys(records)
 
         def lookup():
-            a, s, found = self._lookup(keys_a, keys_s)
-            return (a, s), found
+            return self._lookup(keys)
 
-        (a, s), found, hits, live = self._with_live(records, lookup)
-        b = len(records)
+        columns, found, hits, live = self._with_live(records, lookup)
+        b, d = len(records), self.embedding_dim
         probs = np.zeros((b, self.num_actions), np.float32)
-        emb = np.zeros((b, self.embedding_dim), np.float32)
+        emb = np.zeros((b, d * len(self.text)), np.float32)
         idx = np.flatnonzero(found)
         if idx.size:
-            scores = [np.asarray([a[c][i] for i in idx], dtype=np.float64) for c in ACTION_COLUMNS]
-            probs[idx] = action_target(*scores, self.calibration, self.action_target)
-            emb[idx] = s["embedding"][idx]
+            if "action" in columns:
+                a = columns["action"]
+                scores = [np.asarray([a[c][i] for i in idx], dtype=np.float64) for c in ACTION_COLUMNS]
+                probs[idx] = action_target(*scores, self.calibration, self.action_target)
+            for j, task in enumerate(self.text):
+                emb[idx, j * d:(j + 1) * d] = columns[task]["embedding"][idx]
         self._record(b, idx.size, hits, live)
         return Targets(probs, emb, found)
 
@@ -160,7 +168,8 @@ class GoalTargets(CachedTargets):
     call, aligned with the records (t-major), None where the state has no row yet."""
 
     def __init__(self, cache: AnnotationCache, builder: PromptBuilder, *, num_actions: int, live=None):
-        super().__init__(cache, builder, calibration="sum", num_actions=num_actions, embedding_dim=0, live=live)
+        super().__init__(cache, builder, calibration="sum", num_actions=num_actions, embedding_dim=0, live=live,
+                         tasks=("goal",))
         self._goal_keys: dict[StateRecord, str] = {}
         self.goals: list[tuple[str, ...] | None] = []
         """Per record of the last `targets` call: the state's goals (possibly none), or None."""
@@ -215,17 +224,17 @@ class ShuffledKeys:
       from the same other state.
     The pool is read from the cache's shards as the manifest lists them, each shard once."""
 
-    TASKS = ("action", "summary")
     COLUMNS = ["key", "task", "prompt", "candidates", "goal", "history", "observation"]
 
-    def __init__(self, cache: AnnotationCache, builder: PromptBuilder, seed: int):
+    def __init__(self, cache: AnnotationCache, builder: PromptBuilder, seed: int, tasks: Sequence[str] = DEFAULT_TASKS):
         self.cache, self.builder, self.seed = cache, builder, int(seed)
+        self.tasks = tuple(tasks)
         self._salt = hashlib.sha256(f"illm-shuffled:{self.seed}".encode()).digest()[:16]
         self._reset()
 
     def _reset(self) -> None:
         self._shards: list[str] = []  # shards read, in manifest order
-        self._where: dict[str, dict[str, tuple]] = {t: {} for t in self.TASKS}  # key -> (group, rank)
+        self._where: dict[str, dict[str, tuple]] = {t: {} for t in self.tasks}  # key -> (group, rank)
         self._groups: dict[tuple, list[tuple[int, str]]] = {}  # (task, group) -> sorted (rank, key)
         self._unsorted: set[tuple] = set()
 
@@ -252,14 +261,13 @@ class ShuffledKeys:
             task, key = row["task"], row["key"]
             if task not in self._where or key in self._where[task]:
                 continue
-            cands = row["candidates"]
-            if task == "action":  # PromptBuilder.render's candidates: " " + each valid action (rows keep them stripped)
-                cands = [" " + c for c in cands or ()]
-            prompt = Prompt(task, row["prompt"], row["goal"], row["history"], row["observation"],
-                            tuple(cands) if task == "action" else None)
+            ranking = get_task(task).kind == "ranking"
+            # PromptBuilder.render's candidates: " " + each valid action (rows keep them stripped)
+            cands = tuple(" " + c for c in row["candidates"] or ()) if ranking else None
+            prompt = Prompt(task, row["prompt"], row["goal"], row["history"], row["observation"], cands)
             if self.builder.key(prompt) != key:  # another setup's entry (or another layout's)
                 continue
-            group = (task, tuple(row["candidates"] or ()))
+            group = (task, tuple(row["candidates"] or ()) if ranking else ())
             rank = self.rank(row["goal"], row["history"], row["observation"])
             self._where[task][key] = (group, rank)
             self._groups.setdefault(group, []).append((rank, key))
