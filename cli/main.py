@@ -79,7 +79,7 @@ def root(
 
 
 def _register() -> None:
-    from cli import annotate, cache, collect, data, envs, experiment, models, report, train
+    from cli import annotate, cache, collect, data, envs, experiment, models, report, serve, train
 
     envs.register(app)
     collect.register(app)
@@ -90,6 +90,7 @@ def _register() -> None:
     train.register(app)
     report.register(app)
     experiment.register(app)
+    serve.register(app)
 
 
 _register()

@@ -80,6 +80,7 @@ def test_task_settings_are_checked():
     assert TrainConfig(tasks="goal+plan").text_tasks == ("goal", "plan")
 
 
+@pytest.mark.slow  # 6 s: the fast tier's time is spent
 def test_every_task_annotates_and_trains_in_any_combination(tmp_path):
     traj, ann = tmp_path / "traj", tmp_path / "ann"
     ok(["collect", "--env", ENV, "--steps", 48, "--num-envs", 2, "--out", traj])

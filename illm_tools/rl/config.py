@@ -166,6 +166,9 @@ class TrainConfig:
     live_mode: str = "async"
     """sync: annotate in the trainer's process, which waits; async: a worker process beside the
     rollouts, whose answers later rollouts use (the trainer never waits)."""
+    annotator: str | None = None
+    """URL of an `illm serve` server (http://127.0.0.1:PORT) that annotates the run's missed states,
+    shared with other runs, instead of the run's own worker; `live_budget` states per rollout."""
     new_setup: bool = False
     """Accept a cache that holds annotations, none of them for this run's setup (model, dtype,
     quantisation, history length, layout, templates, renderer): live annotation starts it."""
@@ -201,6 +204,9 @@ class TrainConfig:
             raise UsageError(f"--action-target must be distribution or argmax, got {self.action_target!r}")
         if self.live_mode not in LIVE_MODES:
             raise UsageError(f"--live-mode must be {' or '.join(LIVE_MODES)}, got {self.live_mode!r}")
+        if self.annotator is not None and not self.annotator.startswith(("http://", "https://")):
+            raise UsageError(f"--annotator is the URL of an `illm serve` server (http://127.0.0.1:PORT), got "
+                             f"{self.annotator!r}")
         if self.live_budget < 0 or self.threads <= 0 or self.llm_threads < 0:
             raise UsageError("--live-budget and --llm-threads must be >= 0 and --threads positive")
         from illm_tools.tasks.registry import get_task, parse_tasks

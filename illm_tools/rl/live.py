@@ -1,5 +1,6 @@
 """Live annotation of the states a training run misses: in the trainer's process between rollouts
-(`sync`), or in a worker process beside the rollouts (`async`).
+(`sync`), in a worker process beside the rollouts (`async`), or by an `illm serve` server shared
+with other runs (`RemoteLive`, `--annotator URL`).
 
 Both take, after each rollout, the run's missed states ordered most visited first (visits
 counted over the run so far, `illm_tools.rl.targets`) and write their answers through the same
@@ -40,7 +41,7 @@ class SyncLive:
         self.threads = threads
         """Torch threads of the LLM calls (the policy runs on fewer); None keeps the current count."""
 
-    def submit(self, missing: Sequence[StateRecord]) -> int:
+    def submit(self, missing: Sequence[StateRecord], visits: Sequence[int] | None = None) -> int:
         """Annotate the first `budget` of `missing` (most visited first); returns how many."""
         from contextlib import nullcontext
 
@@ -177,7 +178,7 @@ class AsyncLive:
         self._start()
         return True
 
-    def submit(self, missing: Sequence[StateRecord]) -> int:
+    def submit(self, missing: Sequence[StateRecord], visits: Sequence[int] | None = None) -> int:
         """Hand the worker the first `budget` missed states (most visited first) in place of what
         it still had queued; returns at once (0: nothing is annotated before it returns)."""
         if self._check():
@@ -204,3 +205,98 @@ class AsyncLive:
         for q in (self._inbox, self._errors):
             q.close()
             q.cancel_join_thread()
+
+
+class RemoteLive:
+    """Live annotation by an `illm serve` server (`illm train --annotator URL`): after each rollout
+    the first `budget` missed states, with their visit counts, go to the server, which annotates
+    them for every trainer it serves into the shared cache; a later rollout finds the answers there.
+
+    The client is the standard library's `urllib` (one short JSON POST per rollout, no connection
+    kept: no reason for another dependency on the trainer's side). A server that cannot be reached
+    when the run starts is refused in one line; one that stops answering later is logged once,
+    and the run goes on with the targets the cache has (retrying each rollout)."""
+
+    waits = False
+
+    def __init__(self, url: str, *, client: str, setup: dict, budget: int, timeout: float = 10.0):
+        self.url = url.rstrip("/")
+        self.client, self.setup, self.budget, self.timeout = client, dict(setup), budget, timeout
+        self._landed = 0
+        self._queue = 0
+        self._down = False
+        info = self.server_stats(what="start")
+        if info.get("model_fingerprint") != setup["model_fingerprint"]:
+            from illm_tools.errors import UsageError
+
+            raise UsageError(f"the server at {self.url} annotates with {info.get('model')} (another model setup than "
+                             "this run's --model, --dtype, --quant): its answers would never be this run's targets; "
+                             "train with the server's model settings or start a server for this model")
+
+    def _call(self, path: str, body: dict | None = None) -> dict:
+        import json
+        import urllib.request
+
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(self.url + path, data=data, method="GET" if body is None else "POST",
+                                         headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(request, timeout=self.timeout) as response:
+            return json.loads(response.read())
+
+    def server_stats(self, what: str = "") -> dict:
+        """The server's GET /stats; at start (`what`), a server that does not answer is refused in one line."""
+        import urllib.error
+
+        try:
+            return self._call("/stats")
+        except (urllib.error.URLError, OSError, ValueError) as e:
+            from illm_tools.errors import UsageError
+
+            raise UsageError(f"no illm server answers at {self.url} ({getattr(e, 'reason', e)}): start one with "
+                             f"`illm serve --cache CACHE --model MODEL --port PORT`, or train without --annotator") from None
+
+    def submit(self, missing: Sequence[StateRecord], visits: Sequence[int] | None = None) -> int:
+        """Send the first `budget` missed states (most visited first) with their visit counts in
+        place of what this run still had queued there; returns at once with 0."""
+        import urllib.error
+
+        from illm_tools.serve import record_to_json
+
+        todo = list(missing[: self.budget])
+        counts = list(visits[: self.budget]) if visits is not None else [1] * len(todo)
+        states = [{**record_to_json(r), "visits": int(n)} for r, n in zip(todo, counts)]
+        try:
+            answer = self._call("/annotate", {**self.setup, "client": self.client, "states": states})
+        except urllib.error.HTTPError as e:  # the server refused the request: a bug on this side, said once
+            if not self._down:
+                log.warning("the annotation server refused this run's request (%s: %s); the run goes on with the "
+                            "targets the cache has", e.code, e.read().decode(errors="replace")[:300])
+            self._down = True
+            return 0
+        except (urllib.error.URLError, OSError, ValueError) as e:
+            if not self._down:
+                log.warning("the annotation server at %s does not answer (%s); the run goes on with the targets the "
+                            "cache has and tries again each rollout", self.url, getattr(e, "reason", e))
+            self._down = True
+            return 0
+        if self._down:
+            log.warning("the annotation server at %s answers again", self.url)
+        self._down = False
+        self._landed += int(answer.get("landed", 0))
+        self._queue = int(answer.get("queued", 0))
+        return 0
+
+    def landed(self) -> int:
+        """States of this run the server put in the cache since the last call (reported with each request)."""
+        landed, self._landed = self._landed, 0
+        return landed
+
+    def stats(self) -> dict[str, float]:
+        return {"live_queue": float(self._queue)}
+
+    def close(self) -> None:
+        """Withdraw this run's pending states from the server (best effort)."""
+        try:
+            self._call("/annotate", {**self.setup, "client": self.client, "states": []})
+        except Exception:  # noqa: BLE001 - the run is over; an absent server has nothing to withdraw
+            pass

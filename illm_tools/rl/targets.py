@@ -97,7 +97,7 @@ class CachedTargets:
         go to the live annotator (`illm_tools.rl.live`); returns the states it annotated."""
         missing = list(dict.fromkeys(r for r, f in zip(records, found) if not f))
         missing.sort(key=self._visits.__getitem__, reverse=True)  # stable: ties in rollout order
-        return self.live.submit(missing)
+        return self.live.submit(missing, [self._visits[r] for r in missing])
 
     def _count_visits(self, records: Sequence[StateRecord]) -> None:
         if len(self._visits) > _MEMO_LIMIT:  # keep the states seen more than once

@@ -1,0 +1,330 @@
+"""`illm serve`: one loaded LLM answering the live-annotation requests of many `illm train` runs.
+
+A trainer started with `--annotator http://HOST:PORT` posts, after each rollout, the states its
+cache lookup missed (most visited first, with their visit counts) instead of handing them to a
+worker of its own; the server annotates them through the same `Annotator` and cache API as
+`illm annotate` and the trainer's own worker, so the answers land in the shared cache, where the
+trainer finds them on a later rollout (as with its own asynchronous worker: the trainer never
+waits). One model in memory serves every trainer.
+
+Scheduling. Each client (a trainer, named by its run) has one pending list, replaced by its newest
+request (its priorities move as its run goes on, as the local worker keeps only the newest list).
+A batch takes `chunk` states across all clients, highest visit count first; a state two trainers
+both missed (same keys) is annotated once, with their visits summed. Each batch is written as one
+shard through the cache's locked manifest, whole or not at all.
+
+The HTTP side is aiohttp's server (an asyncio server from the package registry; the standard
+library's `http.server` handles one request at a time per thread and has no request size limit,
+body timeouts or graceful shutdown). The model runs in one executor thread, so requests and
+`/stats` are answered while a batch is being annotated.
+
+Endpoints (JSON):
+- `POST /annotate` {"client", "model_fingerprint", "env_id", "renderer", "history_len", "layout",
+  "tasks", "states": [{"mission", "history": [[obs, action], ...], "observation",
+  "valid_actions", "visits"}]} -> 202 {"queued", "queue", "landed"} (`landed`: the client's
+  states annotated since its previous request). An empty `states` list withdraws the client's
+  pending states. Malformed requests get a 4xx status and {"error": one line}: 400 bad JSON or
+  fields, 409 a model fingerprint that is not the server's (the keys would never meet), 413 too
+  large.
+- `GET /stats` -> the queue (states, clients), totals (states annotated, rows written, batches),
+  throughput (states/s over the annotating time and since start), the model and cache.
+A client that disconnects mid-request leaves nothing behind: a request is queued only once it
+has been read and checked whole. Text states only: a hop state carries its observation window as
+arrays, which the trainer's own worker (`--live-mode async`) annotates.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from illm_tools.tasks.state import StateRecord
+
+log = logging.getLogger(__name__)
+
+MAX_REQUEST_BYTES = 16 * 1024 * 1024
+"""Largest request body accepted (413 above): thousands of states with 3-step histories."""
+PROTOCOL = 1
+"""Version of the request format, answered by /stats (a client checks it when it starts)."""
+
+
+class RequestError(ValueError):
+    """A request the server refuses: its HTTP status and one line."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass(frozen=True)
+class Setup:
+    """What, besides the state, decides a request's keys: one prompt builder per setup."""
+
+    env_id: str
+    renderer: str
+    history_len: int
+    layout: str
+    tasks: tuple[str, ...]
+
+
+@dataclass
+class Pending:
+    """One state waiting, with the clients that asked for it and their summed visits."""
+
+    setup: Setup
+    record: StateRecord
+    visits: int
+    clients: set[str] = field(default_factory=set)
+
+
+def record_to_json(record: StateRecord) -> dict:
+    """A text state as the request carries it (the inverse of `parse_state`)."""
+    return {"mission": record.mission, "history": [list(pair) for pair in record.history],
+            "observation": record.observation, "valid_actions": list(record.valid_actions)}
+
+
+def _text(value, name: str) -> str:
+    if not isinstance(value, str):
+        raise RequestError(400, f"{name} must be a string, got {type(value).__name__}")
+    return value
+
+
+def parse_state(item) -> tuple[StateRecord, int]:
+    """(record, visits) of one entry of `states`; RequestError(400) naming what is wrong."""
+    if not isinstance(item, dict):
+        raise RequestError(400, "each state must be an object with mission, history, observation, valid_actions")
+    missing = [k for k in ("mission", "history", "observation", "valid_actions") if k not in item]
+    if missing:
+        raise RequestError(400, f"a state lacks {', '.join(missing)}")
+    history = item["history"]
+    if not isinstance(history, list) or not all(isinstance(p, list) and len(p) == 2 for p in history):
+        raise RequestError(400, "history must be a list of [observation, action] pairs")
+    actions = item["valid_actions"]
+    if not isinstance(actions, list) or not actions:
+        raise RequestError(400, "valid_actions must be a non-empty list of strings")
+    visits = item.get("visits", 1)
+    if not isinstance(visits, int) or isinstance(visits, bool) or visits < 0:
+        raise RequestError(400, f"visits must be a whole number >= 0, got {visits!r}")
+    record = StateRecord(_text(item["mission"], "mission"),
+                         tuple((_text(o, "a history observation"), _text(a, "a history action")) for o, a in history),
+                         _text(item["observation"], "observation"),
+                         tuple(_text(a, "a valid action") for a in actions))
+    return record, visits
+
+
+class AnnotationServer:
+    """The queue, the scheduler and the model behind `illm serve` (the HTTP layer is `make_app`)."""
+
+    def __init__(self, lm, cache, *, model: str, batch_size: int = 8, chunk: int = 16):
+        from illm_tools.cache.keys import fingerprint_hash
+        from illm_tools.llm.backend import as_backend
+
+        self.lm = as_backend(lm)
+        self.cache = cache
+        self.model = model
+        self.batch_size, self.chunk = batch_size, chunk
+        self.fingerprint = fingerprint_hash(self.lm.fingerprint)
+        self._annotators: dict[tuple, object] = {}
+        self._clients: dict[str, dict[tuple, Pending]] = {}  # client -> (setup, record) -> its pending entry
+        self._landed: dict[str, int] = {}
+        self._wake = asyncio.Event()
+        self.started = time.time()
+        self.totals = {"states": 0, "rows": 0, "batches": 0, "requests": 0, "refused": 0, "seconds": 0.0,
+                       "errors": 0}
+        self.last_error: str | None = None
+
+    # --- requests ------------------------------------------------------------------------------
+    def submit(self, body) -> dict:
+        """Queue a parsed request body for its client (replacing the client's pending list)."""
+        from illm_tools.tasks.prompts import LAYOUTS
+        from illm_tools.tasks.registry import parse_tasks
+
+        if not isinstance(body, dict):
+            raise RequestError(400, "the request body must be a JSON object")
+        missing = [k for k in ("client", "model_fingerprint", "env_id", "renderer", "history_len", "layout", "tasks",
+                               "states") if k not in body]
+        if missing:
+            raise RequestError(400, f"the request lacks {', '.join(missing)}")
+        client = _text(body["client"], "client")
+        if body["model_fingerprint"] != self.fingerprint:
+            raise RequestError(409, f"this server annotates with {self.model} (fingerprint {self.fingerprint}); the "
+                                    f"request's fingerprint {body['model_fingerprint']!r} is another model setup: train "
+                                    "with the server's --model, --dtype and --quant, or start a server for yours")
+        if body["layout"] not in LAYOUTS:
+            raise RequestError(400, f"layout must be one of {', '.join(LAYOUTS)}, got {body['layout']!r}")
+        history_len = body["history_len"]
+        if not isinstance(history_len, int) or isinstance(history_len, bool) or history_len < 0:
+            raise RequestError(400, f"history_len must be a whole number >= 0, got {history_len!r}")
+        renderer = _text(body["renderer"], "renderer")
+        if renderer.startswith("hop@"):
+            raise RequestError(400, "hop states carry arrays the server does not take: a hop run annotates live with "
+                                    "its own worker (--live-mode async, no --annotator)")
+        try:
+            tasks = parse_tasks(body["tasks"], "tasks")
+        except Exception as e:  # noqa: BLE001 - any bad task list is the client's error
+            raise RequestError(400, str(e)) from None
+        if not isinstance(body["states"], list):
+            raise RequestError(400, "states must be a list")
+        setup = Setup(_text(body["env_id"], "env_id"), renderer, history_len, body["layout"], tasks)
+        entries = {}
+        for item in body["states"]:
+            record, visits = parse_state(item)
+            if len(record.history) > history_len:
+                raise RequestError(400, f"a state has {len(record.history)} history steps, more than history_len "
+                                        f"{history_len}")
+            entry = entries.setdefault((setup, record), Pending(setup, record, 0, {client}))
+            entry.visits += visits
+        self.totals["requests"] += 1
+        if entries:
+            self._clients[client] = entries
+            self._wake.set()
+        else:
+            self._clients.pop(client, None)
+        landed = self._landed.pop(client, 0)
+        return {"queued": len(entries), "queue": self.queue_size(), "landed": landed}
+
+    def queue_size(self) -> int:
+        return len({k for entries in self._clients.values() for k in entries})
+
+    def stats(self) -> dict:
+        """The queue, totals and throughput (GET /stats)."""
+        busy = self.totals["seconds"]
+        up = time.time() - self.started
+        return {"protocol": PROTOCOL, "model": self.model, "model_fingerprint": self.fingerprint,
+                "cache": str(self.cache.root), "queue": self.queue_size(), "clients": len(self._clients),
+                "annotated_states": self.totals["states"], "rows": self.totals["rows"],
+                "batches": self.totals["batches"], "requests": self.totals["requests"],
+                "refused": self.totals["refused"], "errors": self.totals["errors"], "last_error": self.last_error,
+                "states_per_s": self.totals["states"] / busy if busy else 0.0,
+                "states_per_s_since_start": self.totals["states"] / up if up else 0.0, "uptime_s": up}
+
+    # --- the scheduler ---------------------------------------------------------------------------
+    def next_batch(self) -> list[Pending]:
+        """Take up to `chunk` pending states across clients, highest summed visits first; a state
+        asked by several clients is one entry with their visits summed."""
+        merged: dict[tuple, Pending] = {}
+        for entries in self._clients.values():
+            for key, entry in entries.items():
+                into = merged.get(key)
+                if into is None:
+                    merged[key] = Pending(entry.setup, entry.record, entry.visits, set(entry.clients))
+                else:
+                    into.visits += entry.visits
+                    into.clients |= entry.clients
+        batch = sorted(merged.values(), key=lambda p: -p.visits)[: self.chunk]  # stable: ties in arrival order
+        taken = {(p.setup, p.record) for p in batch}
+        for client in list(self._clients):
+            entries = self._clients[client]
+            for key in taken & entries.keys():
+                del entries[key]
+            if not entries:
+                del self._clients[client]
+        return batch
+
+    def annotator(self, setup: Setup):
+        from illm_tools.annotate.engine import Annotator
+
+        key = (setup.history_len, setup.layout, setup.tasks)
+        if key not in self._annotators:
+            self._annotators[key] = Annotator(self.lm, self.cache, model=self.model, tasks=setup.tasks,
+                                              history_len=setup.history_len, layout=setup.layout,
+                                              batch_size=self.batch_size, chunk=self.chunk)
+        return self._annotators[key]
+
+    def annotate(self, batch: Sequence[Pending]) -> tuple[int, int]:
+        """Annotate a batch (blocking; runs in the executor thread, touching no queue state): what
+        the cache lacks of it, one shard per setup; returns (states annotated, rows written)."""
+        self.cache.refresh()  # trainers and other servers may have written meanwhile
+        done = rows = 0
+        by_setup: dict[Setup, list[Pending]] = {}
+        for p in batch:
+            by_setup.setdefault(p.setup, []).append(p)
+        for setup, items in by_setup.items():
+            stats = self.annotator(setup).annotate_states([p.record for p in items], setup.env_id, setup.renderer)
+            done, rows = done + stats.annotated_states, rows + stats.rows
+        return done, rows
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Annotate batches until `stop` is set; the batch in progress is finished first."""
+        loop = asyncio.get_running_loop()
+        while not stop.is_set():
+            batch = self.next_batch()
+            if not batch:
+                self._wake.clear()
+                waiter = asyncio.ensure_future(self._wake.wait())
+                stopper = asyncio.ensure_future(stop.wait())
+                await asyncio.wait([waiter, stopper], return_when=asyncio.FIRST_COMPLETED)
+                waiter.cancel()
+                stopper.cancel()
+                continue
+            start = time.perf_counter()
+            try:
+                done = await loop.run_in_executor(None, self.annotate, batch)
+            except Exception as e:  # noqa: BLE001 - one bad batch must not stop the server
+                self.totals["errors"] += 1
+                self.last_error = f"{type(e).__name__}: {e}"
+                log.warning("a batch of %d states failed (%s); the server goes on", len(batch), self.last_error)
+                continue
+            self.totals["seconds"] += time.perf_counter() - start
+            self.totals["states"] += done[0]
+            self.totals["rows"] += done[1]
+            self.totals["batches"] += 1
+            for p in batch:  # in the cache now (annotated, or already there): landed for each asker
+                for client in p.clients:
+                    self._landed[client] = self._landed.get(client, 0) + 1
+
+
+def make_app(server: AnnotationServer):
+    """The aiohttp application of a server: POST /annotate, GET /stats."""
+    import json
+
+    from aiohttp import web
+
+    def error(status: int, message: str) -> web.Response:
+        server.totals["refused"] += 1
+        return web.json_response({"error": message}, status=status)
+
+    async def annotate(request: web.Request) -> web.Response:
+        try:
+            raw = await request.read()
+        except web.HTTPRequestEntityTooLarge:
+            return error(413, f"the request is larger than {MAX_REQUEST_BYTES // 2**20} MiB: send fewer states")
+        except (ConnectionError, asyncio.IncompleteReadError, OSError):  # the client went away mid-request
+            return web.Response(status=400)
+        try:
+            body = json.loads(raw)
+        except ValueError as e:
+            return error(400, f"the request body is not JSON ({e})")
+        try:
+            answer = server.submit(body)
+        except RequestError as e:
+            return error(e.status, str(e))
+        return web.json_response(answer, status=202)
+
+    async def stats(request: web.Request) -> web.Response:
+        return web.json_response(server.stats())
+
+    app = web.Application(client_max_size=MAX_REQUEST_BYTES)
+    app.router.add_post("/annotate", annotate)
+    app.router.add_get("/stats", stats)
+    return app
+
+
+async def serve(server: AnnotationServer, host: str, port: int, stop: asyncio.Event,
+                on_ready=None) -> None:
+    """Serve until `stop` is set, then finish the batch in progress (its shard is written whole)."""
+    from aiohttp import web
+
+    runner = web.AppRunner(make_app(server), access_log=None, handle_signals=False)
+    await runner.setup()
+    site = web.TCPSite(runner, host, port)
+    await site.start()
+    if on_ready is not None:
+        on_ready(runner.addresses)
+    try:
+        await server.run(stop)
+    finally:
+        await runner.cleanup()
