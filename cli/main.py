@@ -79,7 +79,7 @@ def root(
 
 
 def _register() -> None:
-    from cli import annotate, cache, collect, data, envs, experiment, models, report, serve, train
+    from cli import annotate, cache, collect, data, envs, experiment, models, probe, report, serve, train
 
     envs.register(app)
     collect.register(app)
@@ -91,6 +91,7 @@ def _register() -> None:
     report.register(app)
     experiment.register(app)
     serve.register(app)
+    probe.register(app)
 
 
 _register()

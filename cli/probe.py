@@ -1,0 +1,74 @@
+"""`illm probe`: what an LLM's next-action ranking knows about a BabyAI level, against its expert bot."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from cli.common import emit_json
+from cli.errors import friendly
+
+
+def register(app: typer.Typer) -> None:
+    @app.command(epilog="Example: illm probe --env BabyAI-GoToLocal-v0 --model smollm2-135m --states 400")
+    @friendly
+    def probe(
+        env: str = typer.Option("BabyAI-GoToLocal-v0", "--env", help="A BabyAI level (the expert is minigrid's BabyAI bot)."),
+        model: str = typer.Option("smollm2-135m", "--model", help="Alias (see `illm models`), hub id or local folder."),
+        states: int = typer.Option(400, "--states", help="States to probe, from the bot's episodes."),
+        history: int = typer.Option(0, "--history", help="Observation/action pairs of history in the prompt (as `illm annotate --history`)."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the episodes and of the random actions."),
+        epsilon: float = typer.Option(0.25, "--epsilon", help="Share of random actions in the bot's episodes (states off its path)."),
+        action_space: str = typer.Option("auto", "--action-space", help="original | augmented | irrelevant | auto (as `illm collect`)."),
+        layout: str = typer.Option("shared", "--layout", help="Prompt templates, as `illm annotate --layout`."),
+        dtype: str = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16."),
+        quant: str = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit."),
+        backend: str = typer.Option("transformers", "--backend", help="LLM backend: transformers | stub (no weights; for tests)."),
+        device: str = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto."),
+        batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
+        as_json: bool = typer.Option(False, "--json", help="Print the figures as JSON."),
+        out: Path = typer.Option(None, "--out", help="Also write the figures as JSON to this file."),
+    ) -> None:
+        """Agreement of the LLM's next-action ranking (calibrations sum, mean, pmi) with the BabyAI
+        expert bot, against always choosing the expert's most frequent action; mutual information
+        between state and ranking; log-loss; pairwise AUROC."""
+        import json
+
+        from illm_tools.llm.backend import check_backend
+        from illm_tools.probe import ProbeConfig, probe as run
+
+        check_backend(backend)
+        result = run(ProbeConfig(env_id=env, model=model, states=states, history=history, seed=seed, epsilon=epsilon,
+                                 action_space=action_space, layout=layout, dtype=dtype, quant=quant, backend=backend,
+                                 device=device, batch_size=batch_size))
+        figures = result.to_dict()
+        if out is not None:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(figures, indent=2) + "\n")
+        if as_json:
+            emit_json(figures)
+            return
+        b = result.baselines
+        typer.echo(f"probe {model} on {env}: {result.states} states ({result.distinct_states} distinct) from "
+                   f"{result.episodes} episodes of minigrid's BabyAI bot with {epsilon:.0%} random actions, "
+                   f"history {history}"
+                   + (f"; {result.skipped} states whose expert action is not a valid action left out" if result.skipped else "")
+                   + (f"; the bot gave up on {result.bot_failures} episodes" if result.bot_failures else ""))
+        typer.echo("expert's actions: " + ", ".join(f"{n} {s:.0%}" for n, s in
+                                                     sorted(result.expert_share.items(), key=lambda x: -x[1])))
+        typer.echo(f"{'':22s} {'agreement':>9s} {'log-loss':>8s} {'AUROC':>6s} {'MI bits':>7s}  LLM's top action")
+        for name, c in result.calibrations.items():
+            typer.echo(f"{'LLM, ' + name:22s} {c['agreement']:9.3f} {c['log_loss']:8.3f} {c['auroc']:6.3f} "
+                       f"{c['mutual_information_bits']:7.3f}  {c['top_action']} in {c['top_action_share']:.0%} of states")
+        typer.echo(f"{'always ' + b['majority_action']:22s} {b['majority_agreement']:9.3f} "
+                   f"{b['marginal_log_loss']:8.3f}      -       -  (log-loss: the expert's own frequencies)")
+        typer.echo(f"{'uniform chance':22s} {b['chance_agreement']:9.3f} {b['uniform_log_loss']:8.3f} {0.5:6.3f} "
+                   f"{0.0:7.3f}")
+        best = result.calibrations[result.best]
+        if best["agreement"] <= b["majority_agreement"]:
+            typer.echo(f"reading: no calibration beats always \"{b['majority_action']}\" "
+                       f"({b['majority_agreement']:.3f}); the best, {result.best}, agrees on {best['agreement']:.3f}")
+        else:
+            typer.echo(f"reading: {result.best} beats always \"{b['majority_action']}\" "
+                       f"({best['agreement']:.3f} against {b['majority_agreement']:.3f})")

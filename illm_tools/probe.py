@@ -1,0 +1,220 @@
+"""`illm probe`: how much an LLM knows about a BabyAI level before anyone annotates with it.
+
+States come from episodes played by minigrid's BabyAI expert bot (`minigrid.utils.baby_ai_bot`),
+with a share of uniformly random actions (`epsilon`, default 0.25) so states off the expert's path
+are probed too (the bot is told the action actually taken and replans). Each state is rendered
+and prompted exactly as `illm annotate` renders and prompts it (the suite's text renderer, the
+action task's template, `--history` pairs), its valid actions scored by the LLM as in
+annotation, and the scores calibrated as training calibrates them (`sum`, `mean`, `pmi`,
+`illm_tools.tasks.calibration`). Against the expert's action in each state:
+
+- agreement: the share of states where the LLM's top action is the expert's, beside always
+  choosing the expert's most frequent action (majority) and uniform chance;
+- mutual information between state and ranking, in bits: I = H(mean_s p(.|s)) - mean_s H(p(.|s))
+  over the LLM's softmax p, 0 when the distribution does not depend on the state; and the entropy
+  of the LLM's top choice across states;
+- log-loss: mean -log p(expert | s), nats, beside the expert actions' own frequencies (in
+  sample) and uniform;
+- pairwise AUROC: per state, the chance that the expert's action outscores another valid action
+  (ties count 1/2), averaged: 0.5 is chance, 1 a ranking that always puts the expert's first.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from illm_tools.errors import UsageError
+from illm_tools.tasks.calibration import CALIBRATIONS, action_distribution, action_scores
+from illm_tools.tasks.state import StateRecord
+
+
+# --- metrics: small pure functions over scores [N, A] and expert action indices [N] ---------------
+def agreement(scores: np.ndarray, expert: np.ndarray) -> float:
+    """Share of states whose highest score (ties to the first) is the expert's action."""
+    return float(np.mean(np.argmax(scores, axis=1) == expert))
+
+
+def entropy_bits(p: np.ndarray) -> np.ndarray:
+    """Entropy in bits along the last axis (0 log 0 = 0)."""
+    p = np.asarray(p, dtype=np.float64)
+    return -np.sum(np.where(p > 0, p * np.log2(np.where(p > 0, p, 1.0)), 0.0), axis=-1)
+
+
+def mutual_information_bits(probs: np.ndarray) -> float:
+    """I(state; action) under a uniform choice of the probed states: H(mean p) - mean H(p)."""
+    return float(max(entropy_bits(probs.mean(axis=0)) - entropy_bits(probs).mean(), 0.0))
+
+
+def top_choice_entropy_bits(scores: np.ndarray) -> float:
+    """Entropy (bits) of which action the LLM ranks first, across states."""
+    counts = np.bincount(np.argmax(scores, axis=1), minlength=scores.shape[1])
+    return float(entropy_bits(counts / counts.sum()))
+
+
+def log_loss(probs: np.ndarray, expert: np.ndarray) -> float:
+    """Mean -log p(expert action | state), nats."""
+    return float(-np.mean(np.log(np.clip(probs[np.arange(len(expert)), expert], 1e-12, None))))
+
+
+def pairwise_auroc(scores: np.ndarray, expert: np.ndarray) -> float:
+    """Per state, P(score of the expert's action > score of another valid action), ties 1/2; mean."""
+    n, a = scores.shape
+    mine = scores[np.arange(n), expert][:, None]
+    others = np.ones((n, a), bool)
+    others[np.arange(n), expert] = False
+    wins = ((mine > scores) & others).sum(1) + 0.5 * ((mine == scores) & others).sum(1)
+    return float(np.mean(wins / (a - 1)))
+
+
+# --- states ----------------------------------------------------------------------------------------
+@dataclass
+class ExpertStates:
+    """Probed states, the expert's action index in each, and the action names."""
+
+    records: list[StateRecord]
+    expert: np.ndarray
+    actions: tuple[str, ...]
+    episodes: int = 0
+    skipped: int = 0
+    """States whose expert action is not one of the valid actions (e.g. "done"), left out."""
+    bot_failures: int = 0
+    """Episodes the bot gave up on (it raises on some states a random action led to); cut there."""
+
+
+def expert_states(env_id: str, count: int, *, history: int = 0, seed: int = 0, epsilon: float = 0.25,
+                  action_space: str = "auto", max_episode_steps: int = 256) -> ExpertStates:
+    """`count` states of `env_id` played by minigrid's BabyAI bot, with `epsilon` random actions."""
+    from minigrid.utils.baby_ai_bot import BabyAIBot
+
+    from illm_tools.envs import make_env, suite_of
+    from illm_tools.envs.babyai import _MINIGRID_ACTION
+
+    if suite_of(env_id).name != "babyai" or not env_id.startswith("BabyAI-"):
+        raise UsageError(f"{env_id} has no expert to compare with: the probe uses minigrid's BabyAI bot, which "
+                         "solves BabyAI-* levels (e.g. BabyAI-GoToLocal-v0)")
+    if count <= 0 or history < 0 or not 0.0 <= epsilon <= 1.0:
+        raise UsageError("--states must be positive, --history >= 0 and --epsilon in [0, 1]")
+    env = make_env(env_id, action_space=action_space)
+    names = tuple(env.action_names)
+    to_name = {int(_MINIGRID_ACTION[n]): n for n in names}
+    rng = np.random.default_rng(seed)
+    out = ExpertStates([], np.zeros(0, np.int64), names)
+    labels: list[int] = []
+    try:
+        while len(out.records) < count:
+            _, info = env.reset(seed=seed + out.episodes)
+            out.episodes += 1
+            bot, taken = BabyAIBot(env), None
+            past: deque = deque(maxlen=history)
+            for _ in range(max_episode_steps):
+                try:
+                    suggested = bot.replan(taken)
+                except Exception:  # noqa: BLE001 - the bot asserts on some states; end its episode there
+                    out.bot_failures += 1
+                    break
+                record = StateRecord(info["mission"], tuple(past), info["text"], names)
+                name = to_name.get(int(suggested))
+                if name is None:
+                    out.skipped += 1
+                else:
+                    out.records.append(record)
+                    labels.append(names.index(name))
+                    if len(out.records) == count:
+                        break
+                act = names.index(name) if name is not None and rng.random() >= epsilon else int(rng.integers(len(names)))
+                taken = _MINIGRID_ACTION[names[act]]
+                _, _, terminated, truncated, info = env.step(act)
+                past.append((record.observation, names[act]))
+                if terminated or truncated:
+                    break
+    finally:
+        env.close()
+    out.expert = np.asarray(labels, np.int64)
+    return out
+
+
+# --- the probe -------------------------------------------------------------------------------------
+@dataclass
+class ProbeConfig:
+    env_id: str = "BabyAI-GoToLocal-v0"
+    model: str = "smollm2-135m"
+    states: int = 400
+    history: int = 0
+    seed: int = 0
+    epsilon: float = 0.25
+    action_space: str = "auto"
+    layout: str = "shared"
+    dtype: str = "bfloat16"
+    quant: str = "none"
+    backend: str = "transformers"
+    device: str = "cpu"
+    batch_size: int = 8
+
+
+@dataclass
+class ProbeResult:
+    config: dict
+    actions: tuple[str, ...]
+    states: int
+    distinct_states: int
+    episodes: int
+    skipped: int
+    bot_failures: int
+    expert_share: dict[str, float]
+    baselines: dict[str, float]
+    calibrations: dict[str, dict] = field(default_factory=dict)
+
+    @property
+    def best(self) -> str:
+        return max(self.calibrations, key=lambda c: (self.calibrations[c]["agreement"], self.calibrations[c]["auroc"]))
+
+    def to_dict(self) -> dict:
+        return {**self.__dict__, "actions": list(self.actions), "best": self.best}
+
+
+def probe(cfg: ProbeConfig) -> ProbeResult:
+    """Collect the expert's states, score their actions with the LLM, compute every metric."""
+    from illm_tools.annotate.bulk import resolve_device
+    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.envs import renderer_of
+    from illm_tools.llm.backend import load_backend
+    from illm_tools.tasks.prompts import PromptBuilder, neutral_prompt
+
+    data = expert_states(cfg.env_id, cfg.states, history=cfg.history, seed=cfg.seed, epsilon=cfg.epsilon,
+                         action_space=cfg.action_space)
+    lm = load_backend(cfg.backend, cfg.model, dtype=cfg.dtype, quant=cfg.quant, device=resolve_device(cfg.device))
+    builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer_of(cfg.env_id), model=cfg.model,
+                            model_fingerprint=fingerprint_hash(lm.fingerprint), history_len=cfg.history,
+                            layout=cfg.layout)
+    distinct = list(dict.fromkeys(data.records))  # a state the bot visits twice is scored once
+    prompts = [builder.render("action", r) for r in distinct]
+    answers = lm.score([p.text for p in prompts], [list(p.candidates) for p in prompts], batch_size=cfg.batch_size)
+    (neutral,) = lm.score([neutral_prompt()], [list(prompts[0].candidates)], batch_size=1)
+    where = {r: i for i, r in enumerate(distinct)}
+    rows = [where[r] for r in data.records]
+    sums = np.asarray([[float(s) for s in a.sums] for a in answers])[rows]
+    counts = np.asarray([[int(n) for n in a.token_counts] for a in answers])[rows]
+    neutral_sums = np.broadcast_to(np.asarray([float(s) for s in neutral.sums]), sums.shape)
+    expert, a = data.expert, len(data.actions)
+    freq = np.bincount(expert, minlength=a) / len(expert)
+    majority = int(np.argmax(freq))
+    result = ProbeResult(
+        config=dict(cfg.__dict__), actions=data.actions, states=len(expert), distinct_states=len(distinct),
+        episodes=data.episodes, skipped=data.skipped, bot_failures=data.bot_failures,
+        expert_share={n: float(f) for n, f in zip(data.actions, freq)},
+        baselines={"majority_action": data.actions[majority], "majority_agreement": float(freq[majority]),
+                   "chance_agreement": 1.0 / a, "marginal_log_loss": float(-np.mean(np.log(freq[expert]))),
+                   "uniform_log_loss": float(np.log(a))})
+    for calibration in CALIBRATIONS:
+        scores = action_scores(sums, counts, neutral_sums, calibration)
+        probs = action_distribution(sums, counts, neutral_sums, calibration).astype(np.float64)
+        top = np.bincount(np.argmax(scores, axis=1), minlength=a)
+        result.calibrations[calibration] = {
+            "agreement": agreement(scores, expert), "log_loss": log_loss(probs, expert),
+            "auroc": pairwise_auroc(scores, expert), "mutual_information_bits": mutual_information_bits(probs),
+            "top_choice_entropy_bits": top_choice_entropy_bits(scores),
+            "top_action": data.actions[int(np.argmax(top))], "top_action_share": float(top.max() / len(expert))}
+    return result
