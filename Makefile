@@ -63,6 +63,7 @@ bench: install
 	$(BIN)/python benchmarks/annotate.py
 	$(BIN)/python benchmarks/train.py
 	$(BIN)/python benchmarks/bonus.py
+	$(BIN)/python benchmarks/serve.py
 
 clean-demo:
 	rm -rf $(DEMO)

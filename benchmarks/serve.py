@@ -8,7 +8,7 @@ of the summed resident memory of every process involved (trainers, their workers
 sampled every 0.25 s with psutil. Prints both, the throughput ratio (server / own workers) and the
 memory saved.
 
-    python benchmarks/serve.py [--model smollm2-135m] [--frames 4096] [--backend transformers]
+    python benchmarks/serve.py [--model smollm2-135m] [--frames 16384] [--backend transformers]
 """
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def main() -> None:
     parser.add_argument("--backend", default="transformers")
     parser.add_argument("--dtype", default="float32")
     parser.add_argument("--env", default="BabyAI-GoToLocal-v0")
-    parser.add_argument("--frames", type=int, default=4096, help="per trainer")
+    parser.add_argument("--frames", type=int, default=16384, help="per trainer (the model loads take the first ~15 s)")
     parser.add_argument("--budget", type=int, default=16, help="missed states sent per rollout")
     parser.add_argument("--server-threads", type=int, default=0, help="torch threads of the server (0: every core)")
     args = parser.parse_args()
@@ -130,8 +130,9 @@ def main() -> None:
     for name, r in (("own workers", own), ("one server", shared)):
         print(f"{name:12s} wall {r['wall_s']:6.1f} s  states annotated {r['states']:5d}  "
               f"{r['states'] / r['wall_s']:.2f} states/s  peak memory {r['peak_rss_mb']:7.0f} MB")
-    ratio = (shared["states"] / shared["wall_s"]) / max(own["states"] / own["wall_s"], 1e-9)
-    print(f"throughput ratio (one server / own workers): {ratio:.2f}x; memory saved: "
+    ratio = f"{(shared['states'] / shared['wall_s']) / (own['states'] / own['wall_s']):.2f}x" if own["states"] else \
+        "n/a (the own workers annotated nothing: give more --frames)"
+    print(f"throughput ratio (one server / own workers): {ratio}; memory saved: "
           f"{own['peak_rss_mb'] - shared['peak_rss_mb']:.0f} MB ({1 - shared['peak_rss_mb'] / own['peak_rss_mb']:.0%}); "
           f"{os.cpu_count()} cores, model {args.model} ({args.backend}), {args.frames} frames per trainer")
 

@@ -154,3 +154,12 @@ def test_a_trainer_without_its_server_is_refused_in_one_line(tmp_path):
                               "--out", str(tmp_path / "run")])
     assert out.exit_code == 1 and "no illm server answers at http://127.0.0.1:9" in out.output
     assert len(out.output.strip().splitlines()) == 1
+
+
+def test_a_trainer_of_another_model_setup_is_refused_by_the_server_in_one_line(tmp_path, served):
+    url, _ = served
+    out = runner.invoke(app, ["train", "--env", ENV, "--method", "illm", "--cache", str(tmp_path / "ann"),
+                              "--backend", "stub", "--model", "stub:24", "--history", "0", "--num-envs", "2",
+                              "--num-steps", "16", "--frames", "32", "--annotator", url, "--out", str(tmp_path / "r")])
+    assert out.exit_code == 1 and "annotates with stub:16 (another model setup" in out.output
+    assert len(out.output.strip().splitlines()) == 1
