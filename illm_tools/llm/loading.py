@@ -210,11 +210,11 @@ def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
         with _quiet_transformers():
             model = AutoModelForCausalLM.from_pretrained(gguf_folder, gguf_file=spec.gguf_file, dtype=torch.float32)
             tokenizer = AutoTokenizer.from_pretrained(gguf_folder, gguf_file=spec.gguf_file)
-        model.hf_quantizer = None  # save_pretrained refuses a model that still carries its GGUF quantizer
-        if hasattr(model.config, "quantization_config"):
-            del model.config.quantization_config
-        model.save_pretrained(tmp)
-        tokenizer.save_pretrained(tmp)
+            model.hf_quantizer = None  # save_pretrained refuses a model that still carries its GGUF quantizer
+            if hasattr(model.config, "quantization_config"):
+                del model.config.quantization_config
+            model.save_pretrained(tmp)
+            tokenizer.save_pretrained(tmp)
         shutil.rmtree(tmp / "gguf", ignore_errors=True)
         files = {p.name: _sha256(p) for p in sorted(tmp.iterdir()) if p.is_file()}
         _write_json_atomic(tmp / SOURCE, {"model_id": spec.model_id, "gguf_sha256": sha, "gguf_file": spec.gguf_file,
@@ -320,14 +320,24 @@ def model_hidden_size(name: str, *, cache_dir: str | os.PathLike | None = None) 
 def _quiet_transformers() -> Iterator[None]:
     """Silence transformers' own progress bars and warnings (weight loading, GGUF de-quantising)
     while it loads: what a user reads is illm's output. Restores the previous settings."""
+    import functools
+
+    import transformers.modeling_gguf_pytorch_utils as gguf_utils
     from transformers.utils import logging as hf_logging
 
     bars, verbosity = hf_logging.is_progress_bar_enabled(), hf_logging.get_verbosity()
     hf_logging.disable_progress_bar()
     hf_logging.set_verbosity_error()
+    # the GGUF de-quantiser calls tqdm directly, past transformers' switch: its name there is
+    # bound to a silenced tqdm for the load (there is no setting for it)
+    own_tqdm = getattr(gguf_utils, "tqdm", None)
+    if own_tqdm is not None:
+        gguf_utils.tqdm = functools.partial(own_tqdm, disable=True)
     try:
         yield
     finally:
+        if own_tqdm is not None:
+            gguf_utils.tqdm = own_tqdm
         hf_logging.set_verbosity(verbosity)
         if bars:
             hf_logging.enable_progress_bar()

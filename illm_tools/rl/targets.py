@@ -205,10 +205,11 @@ class ShuffledKeys:
     `partners` maps each looked-up key to the key of another cached entry of the same task and
     setup, whose targets carry nothing of what the LLM said about the looked-up state.
 
-    The pool of a task is the cache's entries this run's `PromptBuilder` keys as they are keyed
-    (the key recomputed from the row's prompt and candidates equals the row's key: same task,
-    template and version, layout, renderer, model fingerprint and decoding); action entries are
-    grouped by their candidate list, so a partner's distribution covers the same valid actions.
+    The pool of a task (each of the run's `tasks`) is the cache's entries this run's
+    `PromptBuilder` keys as they are keyed (the key recomputed from the row's prompt and candidates
+    equals the row's key: same task, template and version, layout, renderer, model fingerprint and
+    decoding); a ranking task's entries (action) are grouped by their candidate list, so a
+    partner's distribution covers the same valid actions; a text task's form one group.
     Every entry is ranked by a keyed hash (blake2b, 64 bits, keyed with the seed) of its state's
     rendered inputs (mission, history, observation), ties broken by key; a key's partner is the
     entry after it in rank order within its group, the last one's the first. So:
@@ -219,9 +220,9 @@ class ShuffledKeys:
       copies of the cache;
     - as the cache grows it stays fixed but for the new entries: each new entry takes its place
       after its predecessor in rank order, changing the partner of that one state and no other;
-    - the action and summary entries of one state share their rank, so when both pools hold the
-      same states (as `illm annotate` and the live fallback write them) a state takes both targets
-      from the same other state.
+    - the entries of one state's tasks share their rank, so when the pools hold the same states (as
+      `illm annotate` and the live fallback write them) a state takes every target from the same
+      other state.
     The pool is read from the cache's shards as the manifest lists them, each shard once."""
 
     COLUMNS = ["key", "task", "prompt", "candidates", "goal", "history", "observation"]
