@@ -86,6 +86,7 @@ def test_z_h_batches_equal_single_windows_and_records_carry_the_window(tiny_lm):
     assert torch.allclose(alone[0], zs[-1][0], atol=1e-5)
 
 
+@pytest.mark.slow  # 15 s: keeps the fast tier under its 2 minutes
 def test_hop_annotate_train_resume_eval_on_minigrid_and_atari(tmp_path, tiny_lm):
     model = tiny_lm.spec.path
     for env_id, extra in (("MiniGrid-MultiRoom-N6-v0", []),
