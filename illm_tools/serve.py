@@ -21,7 +21,7 @@ body timeouts or graceful shutdown). The model runs in one executor thread, so r
 Endpoints (JSON):
 - `POST /annotate` {"client", "model_fingerprint", "env_id", "renderer", "history_len", "layout",
   "tasks", "states": [{"mission", "history": [[obs, action], ...], "observation",
-  "valid_actions", "visits"}]} -> 202 {"queued", "queue", "landed"} (`landed`: the client's
+  "valid_actions", "visits"[, "frames", "prev_actions" for a hop state]}]} -> 202 {"queued", "queue", "landed"} (`landed`: the client's
   states annotated since its previous request). An empty `states` list withdraws the client's
   pending states. Malformed requests get a 4xx status and {"error": one line}: 400 bad JSON or
   fields, 409 a model fingerprint that is not the server's (the keys would never meet), 413 too
@@ -29,8 +29,9 @@ Endpoints (JSON):
 - `GET /stats` -> the queue (states, clients), totals (states annotated, rows written, batches),
   throughput (states/s over the annotating time and since start), the model and cache.
 A client that disconnects mid-request leaves nothing behind: a request is queued only once it
-has been read and checked whole. Text states only: a hop state carries its observation window as
-arrays, which the trainer's own worker (`--live-mode async`) annotates.
+has been read and checked whole. A hop state (iLLM(hop)) also carries its observation window:
+each raw observation as shape, dtype and base64 bytes, and each step's previous action; the
+server checks them against the content names the state's keys are made of.
 """
 
 from __future__ import annotations
@@ -81,9 +82,56 @@ class Pending:
 
 
 def record_to_json(record: StateRecord) -> dict:
-    """A text state as the request carries it (the inverse of `parse_state`)."""
-    return {"mission": record.mission, "history": [list(pair) for pair in record.history],
-            "observation": record.observation, "valid_actions": list(record.valid_actions)}
+    """A state as the request carries it (the inverse of `parse_state`): its text fields, and for a
+    hop state its window: each raw observation (shape, dtype, base64 bytes) and previous action."""
+    out = {"mission": record.mission, "history": [list(pair) for pair in record.history],
+           "observation": record.observation, "valid_actions": list(record.valid_actions)}
+    frames = getattr(record, "frames", ())
+    if frames:
+        import base64
+
+        import numpy as np
+
+        out["frames"] = [{"shape": list(np.shape(f)), "dtype": np.asarray(f).dtype.str,
+                          "data": base64.b64encode(np.ascontiguousarray(f).tobytes()).decode()} for f in frames]
+        out["prev_actions"] = [int(a) for a in record.prev_actions]
+    return out
+
+
+def _hop_record(record: StateRecord, item: dict) -> StateRecord:
+    """The hop state of a request entry: its window decoded, and checked against the content names
+    its keys are made of (each step's name is the digest of its observation and previous action),
+    so a window that does not match its names never reaches the cache."""
+    import base64
+    import binascii
+
+    import numpy as np
+
+    from illm_tools.hop.context import HopRecord, step_name
+
+    frames, prev = item.get("frames"), item.get("prev_actions")
+    n = len(record.history) + 1
+    if not isinstance(frames, list) or not isinstance(prev, list) or len(frames) != n or len(prev) != n:
+        raise RequestError(400, f"a hop state needs frames and prev_actions for its {n} window steps")
+    raws = []
+    for f in frames:
+        try:
+            raw = np.frombuffer(base64.b64decode(f["data"], validate=True), dtype=np.dtype(f["dtype"]))
+            raws.append(raw.reshape([int(d) for d in f["shape"]]))
+        except (KeyError, TypeError, ValueError, binascii.Error) as e:
+            raise RequestError(400, f"a hop frame is not {{shape, dtype, base64 data}} ({e})") from None
+    actions = record.valid_actions
+    if not all(isinstance(a, int) and not isinstance(a, bool) and -1 <= a < len(actions) for a in prev):
+        raise RequestError(400, f"prev_actions must be action indices in -1..{len(actions) - 1}")
+    names = [name for name, _ in record.history] + [record.observation]
+    for j, (raw, a, name) in enumerate(zip(raws, prev, names)):
+        if step_name(raw, actions[a] if a >= 0 else None) != name:
+            raise RequestError(400, f"hop window step {j} does not match its content name: the frames or "
+                                    "previous actions are not the state's")
+        if j and record.history[j - 1][1] != actions[a]:
+            raise RequestError(400, f"hop window step {j}: its previous action is not the history's action")
+    return HopRecord(record.mission, record.history, record.observation, record.valid_actions,
+                     frames=tuple(raws), prev_actions=tuple(prev))
 
 
 def _text(value, name: str) -> str:
@@ -92,8 +140,9 @@ def _text(value, name: str) -> str:
     return value
 
 
-def parse_state(item) -> tuple[StateRecord, int]:
-    """(record, visits) of one entry of `states`; RequestError(400) naming what is wrong."""
+def parse_state(item, hop: bool = False) -> tuple[StateRecord, int]:
+    """(record, visits) of one entry of `states` (`hop`: with its observation window, a
+    `HopRecord`); RequestError(400) naming what is wrong."""
     if not isinstance(item, dict):
         raise RequestError(400, "each state must be an object with mission, history, observation, valid_actions")
     missing = [k for k in ("mission", "history", "observation", "valid_actions") if k not in item]
@@ -112,7 +161,7 @@ def parse_state(item) -> tuple[StateRecord, int]:
                          tuple((_text(o, "a history observation"), _text(a, "a history action")) for o, a in history),
                          _text(item["observation"], "observation"),
                          tuple(_text(a, "a valid action") for a in actions))
-    return record, visits
+    return (_hop_record(record, item) if hop else record), visits
 
 
 class AnnotationServer:
@@ -159,9 +208,15 @@ class AnnotationServer:
         if not isinstance(history_len, int) or isinstance(history_len, bool) or history_len < 0:
             raise RequestError(400, f"history_len must be a whole number >= 0, got {history_len!r}")
         renderer = _text(body["renderer"], "renderer")
-        if renderer.startswith("hop@"):
-            raise RequestError(400, "hop states carry arrays the server does not take: a hop run annotates live with "
-                                    "its own worker (--live-mode async, no --annotator)")
+        hop = renderer.startswith("hop@")
+        if hop:
+            from illm_tools.hop.context import parse_hop_renderer
+
+            try:
+                parse_hop_renderer(renderer)
+            except (KeyError, ValueError):
+                raise RequestError(400, f"renderer {renderer!r} is not a hop renderer (hop@1:seed=..:beta=..:window=..)") \
+                    from None
         try:
             tasks = parse_tasks(body["tasks"], "tasks")
         except Exception as e:  # noqa: BLE001 - any bad task list is the client's error
@@ -171,7 +226,7 @@ class AnnotationServer:
         setup = Setup(_text(body["env_id"], "env_id"), renderer, history_len, body["layout"], tasks)
         entries = {}
         for item in body["states"]:
-            record, visits = parse_state(item)
+            record, visits = parse_state(item, hop)
             if len(record.history) > history_len:
                 raise RequestError(400, f"a state has {len(record.history)} history steps, more than history_len "
                                         f"{history_len}")

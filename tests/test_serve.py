@@ -64,7 +64,7 @@ def test_the_scheduler_takes_the_most_visited_states_across_clients_once(tmp_pat
     ({"tasks": ["action", "riddle"]}, 400, "unknown tasks riddle"),
     ({"history_len": -1}, 400, "history_len must be a whole number"),
     ({"layout": "fancy"}, 400, "layout must be one of"),
-    ({"renderer": "hop@1:0:1.0:1"}, 400, "hop states"),
+    ({"renderer": "hop@1:0:1.0:1"}, 400, "is not a hop renderer"),
     ({"states": [{"mission": "m"}]}, 400, "a state lacks history, observation, valid_actions"),
     ({"states": [{**record_to_json(state(1)), "visits": "many"}]}, 400, "visits must be"),
 ])
@@ -163,3 +163,56 @@ def test_a_trainer_of_another_model_setup_is_refused_by_the_server_in_one_line(t
                               "--num-steps", "16", "--frames", "32", "--annotator", url, "--out", str(tmp_path / "r")])
     assert out.exit_code == 1 and "annotates with stub:16 (another model setup" in out.output
     assert len(out.output.strip().splitlines()) == 1
+
+
+def hop_states(n: int = 3):
+    """Hop records of one env's first steps, as a hop trainer builds them (window 2)."""
+    import numpy as np
+
+    from illm_tools.hop.context import HopTracker
+
+    tracker = HopTracker(1, 1, ACTIONS)
+    rng = np.random.default_rng(0)
+    out = []
+    for _ in range(n):
+        (record,) = tracker.records(["get to the green goal square"], [rng.integers(0, 9, (7, 7, 3), dtype=np.uint8)])
+        out.append(record)
+        tracker.push([2], [False])
+    return out
+
+
+def test_hop_states_travel_with_their_window_and_a_forged_one_is_refused(tmp_path):
+    from illm_tools.hop.context import hop_renderer
+
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), model=MODEL)
+    records = hop_states()
+    hop = {"renderer": hop_renderer(0, 1.0, 2), "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
+    body = request([(r, 1) for r in records], **hop)
+    body = json.loads(json.dumps(body))  # as it travels
+    assert server.submit(body)["queued"] == 3
+    batch = server.next_batch()
+    assert [p.record for p in batch] == records and all(len(p.record.frames) == len(r.frames)
+                                                        for p, r in zip(batch, records))
+    assert server.annotate(batch) == (3, 6)
+    forged = json.loads(json.dumps(request([(records[1], 1)], **hop)))
+    forged["states"][0]["prev_actions"][-1] = 0  # not the action the history says was taken
+    with pytest.raises(RequestError, match="does not match its content name"):
+        server.submit(forged)
+    with pytest.raises(RequestError, match="needs frames and prev_actions"):
+        server.submit(request([(state(1), 1)], **hop))
+
+
+@pytest.mark.slow  # 8 s
+def test_a_hop_run_annotates_through_the_server(tmp_path, served):
+    url, _ = served
+    out = runner.invoke(app, ["train", "--env", "MiniGrid-MultiRoom-N6-v0", "--mode", "hop", "--method", "illm",
+                              "--cache", str(tmp_path / "ann"), "--backend", "stub", "--model", MODEL, "--history", "0",
+                              "--num-envs", "2", "--num-steps", "16", "--frames", "96", "--live-budget", "8",
+                              "--annotator", url, "--out", str(tmp_path / "run")])
+    assert out.exit_code == 0, out.output
+    for _ in range(100):
+        stats = call(url + "/stats")[1]
+        if stats["annotated_states"] and not stats["queue"]:
+            break
+        time.sleep(0.1)
+    assert stats["annotated_states"] > 0 and stats["errors"] == 0 and stats["refused"] == 0

@@ -77,9 +77,6 @@ def make_live(cfg: TrainConfig, builder, cache, tasks: tuple[str, ...] = ("actio
     from illm_tools.rl.live import AsyncLive, RemoteLive, SyncLive, WorkerSpec
 
     if cfg.annotator is not None:
-        if cfg.obs_mode == "hop":
-            raise UsageError("--annotator serves text states; a hop run annotates live with its own worker "
-                             "(leave --annotator out)")
         setup = {"model_fingerprint": builder.model_fingerprint, "env_id": builder.env_id, "renderer": builder.renderer,
                  "history_len": builder.history_len, "layout": builder.layout, "tasks": list(tasks)}
         return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), setup=setup, budget=cfg.live_budget)
