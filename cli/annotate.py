@@ -33,8 +33,8 @@ def register(app: typer.Typer) -> None:
         device: str = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto; with several processes each takes its own GPU."),
         num_processes: int = typer.Option(1, "--num-processes", help="Annotate with N processes: runs `accelerate launch --num_processes N` on this command (the states are split between them)."),
     ) -> None:
-        """Annotate every distinct state once: next-action log-prob ranking and 64-token summary with embedding
-        (and, named in --tasks, the goals the LLM suggests and its 2-7 action plan: D.2's goal and plan tasks)."""
+        """Annotate every distinct state once with the LLM, into the shared cache: its next-action ranking
+        and 64-token summary, and the goal and plan tasks when --tasks names them."""
         from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset, distributed_state
 
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tasks,

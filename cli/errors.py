@@ -42,6 +42,9 @@ def friendly(fn: Callable) -> Callable:
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
+        except BrokenPipeError:  # the reader went away (`illm envs --json | head`): stop quietly, as SIGPIPE would
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's flush at exit must not fail
+            raise SystemExit(141) from None
         except tuple(EXIT_CODES) as exc:  # noqa: B030
             raise SystemExit(report(exc)) from None
 
