@@ -39,6 +39,10 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"  policy sees  {r['observation']} ({r['dtype']} {tuple(r['shape'])}, {r['kind']})")
             typer.echo(f"  text         {r['text'] or 'none (iLLM runs on it with --mode hop; text annotation refuses it)'}")
             typer.echo(f"  score        {r['score']}")
-            shown = r["env_ids"] if ids else r["env_ids"][:4]
-            more = "" if ids or len(r["env_ids"]) <= 4 else f" ... ({len(r['env_ids'])} ids; --ids lists them)"
-            typer.echo(f"  env ids      {', '.join(shown)}{more}")
+            if ids:  # one per line, to grep
+                typer.echo(f"  env ids      ({len(r['env_ids'])})")
+                for env_id in r["env_ids"]:
+                    typer.echo(f"    {env_id}")
+                continue
+            more = "" if len(r["env_ids"]) <= 4 else f" ... ({len(r['env_ids'])} ids; --ids lists them)"
+            typer.echo(f"  env ids      {', '.join(r['env_ids'][:4])}{more}")
