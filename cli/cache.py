@@ -73,7 +73,7 @@ def verify(
     if as_json:
         emit_json({**dataclasses.asdict(report), "ok": report.ok})
     else:
-        typer.echo(f"{path}: {report.schema or 'unknown schema'}, {report.shards} shards, {report.rows:,} rows, "
+        typer.echo(f"{path}: {report.schema or 'unknown schema'}, {report.shards} shard{"s" if report.shards != 1 else ""}, {report.rows:,} rows, "
                    f"{report.keys:,} keys")
         for problem in report.problems:
             typer.echo(f"  DAMAGED  {problem}")
@@ -100,7 +100,7 @@ def merge(
                f"{report.rows_skipped:,} already present, {len(report.shards_written)} new shards")
 
 
-@app.command("export", epilog="Example: illm cache export data/ann --format parquet --out shared/ann.parquet")
+@app.command("export", epilog="Example: illm cache export data/ann --format parquet --out data/share/ann.parquet")
 @friendly
 def export(
     path: Path = typer.Argument(..., help="Annotation cache folder (verified first; left untouched)."),
@@ -115,7 +115,7 @@ def export(
     typer.echo(f"exported {report.rows:,} rows from {report.shards} shards of {path} -> {report.path}")
 
 
-@app.command("import", epilog="Example: illm cache import shared/ann.parquet --into data/ann")
+@app.command("import", epilog="Example: illm cache import data/share/ann.parquet --into data/ann")
 @friendly
 def import_(
     path: Path = typer.Argument(..., help="Parquet file written by `illm cache export` (or `datasets`' to_parquet)."),
