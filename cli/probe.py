@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import emit_json
+from cli.common import emit_json, progress
 from cli.errors import friendly
 
 
@@ -39,32 +39,51 @@ def register(app: typer.Typer) -> None:
         from illm_tools.probe import ProbeConfig, probe as run
 
         check_backend(backend)
-        result = run(ProbeConfig(env_id=env, model=model, states=states, history=history, seed=seed, epsilon=epsilon,
-                                 action_space=action_space, layout=layout, dtype=dtype, quant=quant, backend=backend,
-                                 device=device, batch_size=batch_size))
+        config = ProbeConfig(env_id=env, model=model, states=states, history=history, seed=seed, epsilon=epsilon,
+                             action_space=action_space, layout=layout, dtype=dtype, quant=quant, backend=backend,
+                             device=device, batch_size=batch_size)
+        with progress(0, f"probe {model}", unit="states") as advance:
+            done = [0]
+
+            def on_progress(n: int, total: int) -> None:
+                advance(n - done[0], total=total)
+                done[0] = n
+
+            result = run(config, on_progress=on_progress)
         figures = result.to_dict()
-        if out is not None:
+        if out is not None:  # written whole or not at all
+            import os
+            import uuid
+
             out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_text(json.dumps(figures, indent=2) + "\n")
+            tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:8]}.tmp")
+            tmp.write_text(json.dumps(figures, indent=2, sort_keys=True) + "\n")
+            os.replace(tmp, out)
         if as_json:
             emit_json(figures)
             return
         b = result.baselines
-        typer.echo(f"probe {model} on {env}: {result.states} states ({result.distinct_states} distinct) from "
+        setup = dtype if quant == "none" else f"{dtype}, {quant}"
+        typer.echo(f"probe {model} ({setup}) on {env}: {result.states} states ({result.distinct_states} distinct) from "
                    f"{result.episodes} episodes of minigrid's BabyAI bot with {epsilon:.0%} random actions, "
                    f"history {history}"
                    + (f"; {result.skipped} states whose expert action is not a valid action left out" if result.skipped else "")
                    + (f"; the bot gave up on {result.bot_failures} episodes" if result.bot_failures else ""))
         typer.echo("expert's actions: " + ", ".join(f"{n} {s:.0%}" for n, s in
                                                      sorted(result.expert_share.items(), key=lambda x: -x[1])))
-        typer.echo(f"{'':22s} {'agreement':>9s} {'log-loss':>8s} {'AUROC':>6s} {'MI bits':>7s}  LLM's top action")
+        typer.echo(f"{'':22s} {'agreement':>9s} {'log-loss':>8s} {'AUROC':>6s} {'MI bits':>7s} {'top-1 H':>7s}"
+                   "  LLM's top action")
         for name, c in result.calibrations.items():
             typer.echo(f"{'LLM, ' + name:22s} {c['agreement']:9.3f} {c['log_loss']:8.3f} {c['auroc']:6.3f} "
-                       f"{c['mutual_information_bits']:7.3f}  {c['top_action']} in {c['top_action_share']:.0%} of states")
+                       f"{c['mutual_information_bits']:7.3f} {c['top_choice_entropy_bits']:7.3f}  "
+                       f"{c['top_action']} in {c['top_action_share']:.0%} of states")
         typer.echo(f"{'always ' + b['majority_action']:22s} {b['majority_agreement']:9.3f} "
-                   f"{b['marginal_log_loss']:8.3f}      -       -  (log-loss: the expert's own frequencies)")
+                   f"{b['marginal_log_loss']:8.3f} {'-':>6s} {0.0:7.3f} {0.0:7.3f}  "
+                   "(log-loss: the expert's own frequencies, in sample)")
         typer.echo(f"{'uniform chance':22s} {b['chance_agreement']:9.3f} {b['uniform_log_loss']:8.3f} {0.5:6.3f} "
-                   f"{0.0:7.3f}")
+                   f"{0.0:7.3f} {'-':>7s}")
+        typer.echo("MI bits: mutual information between the state and the LLM's distribution (0: it ignores the "
+                   "state); top-1 H: entropy of the LLM's top action across states, bits")
         best = result.calibrations[result.best]
         if best["agreement"] <= b["majority_agreement"]:
             typer.echo(f"reading: no calibration beats always \"{b['majority_action']}\" "

@@ -22,6 +22,7 @@ annotation, and the scores calibrated as training calibrates them (`sum`, `mean`
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,7 +41,7 @@ def agreement(scores: np.ndarray, expert: np.ndarray) -> float:
 def entropy_bits(p: np.ndarray) -> np.ndarray:
     """Entropy in bits along the last axis (0 log 0 = 0)."""
     p = np.asarray(p, dtype=np.float64)
-    return -np.sum(np.where(p > 0, p * np.log2(np.where(p > 0, p, 1.0)), 0.0), axis=-1)
+    return 0.0 - np.sum(np.where(p > 0, p * np.log2(np.where(p > 0, p, 1.0)), 0.0), axis=-1)  # 0, not -0
 
 
 def mutual_information_bits(probs: np.ndarray) -> float:
@@ -87,6 +88,7 @@ class ExpertStates:
 def expert_states(env_id: str, count: int, *, history: int = 0, seed: int = 0, epsilon: float = 0.25,
                   action_space: str = "auto", max_episode_steps: int = 256) -> ExpertStates:
     """`count` states of `env_id` played by minigrid's BabyAI bot, with `epsilon` random actions."""
+    from minigrid.core.actions import Actions
     from minigrid.utils.baby_ai_bot import BabyAIBot
 
     from illm_tools.envs import make_env, suite_of
@@ -99,12 +101,18 @@ def expert_states(env_id: str, count: int, *, history: int = 0, seed: int = 0, e
         raise UsageError("--states must be positive, --history >= 0 and --epsilon in [0, 1]")
     env = make_env(env_id, action_space=action_space)
     names = tuple(env.action_names)
-    to_name = {int(_MINIGRID_ACTION[n]): n for n in names}
+    # the expert's MiniGrid action -> its name here; "done" (the bot's "mission accomplished") is no
+    # valid action, even where the irrelevant action space maps sleep/do nothing/think onto it
+    to_name = {int(_MINIGRID_ACTION[n]): n for n in names if _MINIGRID_ACTION[n] != Actions.done}
     rng = np.random.default_rng(seed)
     out = ExpertStates([], np.zeros(0, np.int64), names)
     labels: list[int] = []
     try:
         while len(out.records) < count:
+            if out.episodes >= max(100, 10 * count):
+                raise UsageError(f"minigrid's BabyAI bot gave only {len(out.records)} states in {out.episodes} "
+                                 f"episodes of {env_id} ({out.bot_failures} failed, {out.skipped} states whose "
+                                 "expert action is no valid action): probe fewer --states or another level")
             _, info = env.reset(seed=seed + out.episodes)
             out.episodes += 1
             bot, taken = BabyAIBot(env), None
@@ -175,46 +183,91 @@ class ProbeResult:
         return {**self.__dict__, "actions": list(self.actions), "best": self.best}
 
 
-def probe(cfg: ProbeConfig) -> ProbeResult:
-    """Collect the expert's states, score their actions with the LLM, compute every metric."""
+def score_records(lm, builder, records, *, batch_size: int = 8, chunk: int = 64,
+                  on_progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The action task's raw scores of these states, as `illm annotate` computes them: each
+    distinct record rendered with `builder.render("action", record)` and its candidates scored by
+    the backend (a state visited twice is scored once), and the candidates' log-probs after the
+    neutral prompt once per candidate set (`Annotator.neutral_scores`). Returns per record the
+    summed log-probs [N, A], token counts [N, A] and neutral sums [N, A]; `on_progress(done, total)`
+    after each chunk of distinct states. States go to the backend `chunk` at a time, as the
+    annotator's chunks of 64 do: the backend batches by length within a call, and in bfloat16 a
+    different batching moves scores by rounding (a near tie can flip)."""
+    from illm_tools.tasks.prompts import neutral_prompt
+
+    distinct = list(dict.fromkeys(records))
+    prompts = [builder.render("action", r) for r in distinct]
+    answers: list = []
+    for i in range(0, len(prompts), chunk):
+        part = prompts[i:i + chunk]
+        answers += lm.score([p.text for p in part], [list(p.candidates) for p in part], batch_size=batch_size)
+        if on_progress is not None:
+            on_progress(len(answers), len(prompts))
+    neutral: dict[tuple[str, ...], list[float]] = {}
+    for p in prompts:
+        if p.candidates not in neutral:
+            (scores,) = lm.score([neutral_prompt()], [list(p.candidates)], batch_size=1)
+            neutral[p.candidates] = [float(x) for x in scores.sums]
+    where = {r: i for i, r in enumerate(distinct)}
+    rows = [where[r] for r in records]
+    sums = np.asarray([[float(x) for x in a.sums] for a in answers], dtype=np.float64)[rows]
+    counts = np.asarray([[int(n) for n in a.token_counts] for a in answers], dtype=np.int64)[rows]
+    neutral_sums = np.asarray([neutral[prompts[i].candidates] for i in rows], dtype=np.float64)
+    return sums, counts, neutral_sums
+
+
+def calibration_metrics(sums: np.ndarray, counts: np.ndarray, neutral_sums: np.ndarray, expert: np.ndarray,
+                        actions: tuple[str, ...], calibration: str) -> dict:
+    """Every metric of one calibration of the LLM's raw scores against the expert's actions."""
+    scores = action_scores(sums, counts, neutral_sums, calibration)
+    probs = action_distribution(sums, counts, neutral_sums, calibration).astype(np.float64)
+    top = np.bincount(np.argmax(scores, axis=1), minlength=len(actions))
+    return {"agreement": agreement(scores, expert), "log_loss": log_loss(probs, expert),
+            "auroc": pairwise_auroc(scores, expert), "mutual_information_bits": mutual_information_bits(probs),
+            "top_choice_entropy_bits": top_choice_entropy_bits(scores),
+            "top_action": actions[int(np.argmax(top))], "top_action_share": float(top.max() / len(expert))}
+
+
+def baselines(expert: np.ndarray, actions: tuple[str, ...]) -> dict:
+    """What needs no LLM: always the expert's most frequent action (agreement, and the log-loss of
+    the expert actions' own frequencies, in sample), and uniform chance."""
+    a = len(actions)
+    freq = np.bincount(expert, minlength=a) / len(expert)
+    majority = int(np.argmax(freq))
+    return {"majority_action": actions[majority], "majority_agreement": float(freq[majority]),
+            "chance_agreement": 1.0 / a, "marginal_log_loss": float(-np.mean(np.log(freq[expert]))),
+            "uniform_log_loss": float(np.log(a))}
+
+
+def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None = None,
+          on_progress: Callable[[int, int], None] | None = None) -> ProbeResult:
+    """Collect the expert's states, score their actions with the LLM, compute every metric.
+    `on_states` hears the collected states (before the model loads); `on_progress(done, total)`
+    the distinct states scored so far."""
     from illm_tools.annotate.bulk import resolve_device
     from illm_tools.cache.keys import fingerprint_hash
     from illm_tools.envs import renderer_of
     from illm_tools.llm.backend import load_backend
-    from illm_tools.tasks.prompts import PromptBuilder, neutral_prompt
+    from illm_tools.tasks.prompts import PromptBuilder
 
     data = expert_states(cfg.env_id, cfg.states, history=cfg.history, seed=cfg.seed, epsilon=cfg.epsilon,
                          action_space=cfg.action_space)
+    if on_states is not None:
+        on_states(data)
     lm = load_backend(cfg.backend, cfg.model, dtype=cfg.dtype, quant=cfg.quant, device=resolve_device(cfg.device))
     builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer_of(cfg.env_id), model=cfg.model,
                             model_fingerprint=fingerprint_hash(lm.fingerprint), history_len=cfg.history,
                             layout=cfg.layout)
-    distinct = list(dict.fromkeys(data.records))  # a state the bot visits twice is scored once
-    prompts = [builder.render("action", r) for r in distinct]
-    answers = lm.score([p.text for p in prompts], [list(p.candidates) for p in prompts], batch_size=cfg.batch_size)
-    (neutral,) = lm.score([neutral_prompt()], [list(prompts[0].candidates)], batch_size=1)
-    where = {r: i for i, r in enumerate(distinct)}
-    rows = [where[r] for r in data.records]
-    sums = np.asarray([[float(s) for s in a.sums] for a in answers])[rows]
-    counts = np.asarray([[int(n) for n in a.token_counts] for a in answers])[rows]
-    neutral_sums = np.broadcast_to(np.asarray([float(s) for s in neutral.sums]), sums.shape)
-    expert, a = data.expert, len(data.actions)
-    freq = np.bincount(expert, minlength=a) / len(expert)
-    majority = int(np.argmax(freq))
+    sums, counts, neutral_sums = score_records(lm, builder, data.records, batch_size=cfg.batch_size,
+                                               on_progress=on_progress)
+    expert = data.expert
+    freq = np.bincount(expert, minlength=len(data.actions)) / len(expert)
     result = ProbeResult(
-        config=dict(cfg.__dict__), actions=data.actions, states=len(expert), distinct_states=len(distinct),
-        episodes=data.episodes, skipped=data.skipped, bot_failures=data.bot_failures,
-        expert_share={n: float(f) for n, f in zip(data.actions, freq)},
-        baselines={"majority_action": data.actions[majority], "majority_agreement": float(freq[majority]),
-                   "chance_agreement": 1.0 / a, "marginal_log_loss": float(-np.mean(np.log(freq[expert]))),
-                   "uniform_log_loss": float(np.log(a))})
+        config=dict(cfg.__dict__), actions=data.actions, states=len(expert),
+        distinct_states=len(set(data.records)), episodes=data.episodes, skipped=data.skipped,
+        bot_failures=data.bot_failures, expert_share={n: float(f) for n, f in zip(data.actions, freq)},
+        baselines=baselines(expert, data.actions))
     for calibration in CALIBRATIONS:
-        scores = action_scores(sums, counts, neutral_sums, calibration)
-        probs = action_distribution(sums, counts, neutral_sums, calibration).astype(np.float64)
-        top = np.bincount(np.argmax(scores, axis=1), minlength=a)
-        result.calibrations[calibration] = {
-            "agreement": agreement(scores, expert), "log_loss": log_loss(probs, expert),
-            "auroc": pairwise_auroc(scores, expert), "mutual_information_bits": mutual_information_bits(probs),
-            "top_choice_entropy_bits": top_choice_entropy_bits(scores),
-            "top_action": data.actions[int(np.argmax(top))], "top_action_share": float(top.max() / len(expert))}
+        result.calibrations[calibration] = calibration_metrics(sums, counts, neutral_sums, expert, data.actions,
+                                                               calibration)
     return result
