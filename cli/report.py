@@ -57,12 +57,13 @@ def register(app: typer.Typer) -> None:
                 typer.echo(written, err=True)
             return
         frames = max((g["frames"] for g in groups.values()), key=len, default=[])
-        typer.echo("| env | method | seeds | " + " | ".join(f"{f / 1000:.4g}k" for f in frames)
+        typer.echo("| env | method | seeds | " + " | ".join(f"{f:,}" for f in frames)
                    + " | steps with a target |")
         typer.echo("|---" * (4 + len(frames)) + "|")
         for (env, method), g in groups.items():
             by_frame = dict(zip(g["frames"], zip(g["mean"], g["std"])))
             cells = ["-" if f not in by_frame or by_frame[f][0] != by_frame[f][0]  # nan: no episode ended there
+                     else f"{by_frame[f][0]:.2f}" if len(g["seeds"]) < 2  # one seed: no spread to show
                      else f"{by_frame[f][0]:.2f} ± {by_frame[f][1]:.2f}" for f in frames]
             cover = f"{g['coverage']:.1%}" if g["reads_targets"] else "-"
             typer.echo(f"| {env} | {method} | {len(g['seeds'])} | " + " | ".join(cells) + f" | {cover} |")

@@ -123,6 +123,7 @@ def register(app: typer.Typer) -> None:
         score_name = suite_of(env).score_name
         last: dict = {}
         coverage: list[float] = []
+        live_total = [0.0]  # states the live annotator (worker, server or this process) put in the cache
         with stop_on_signals("the current update, then writing a checkpoint") as stop, \
                 progress(cfg.num_updates * cfg.batch_size, f"train {method}", unit="steps") as advance:
             def on_metrics(m: dict) -> None:
@@ -130,6 +131,7 @@ def register(app: typer.Typer) -> None:
                 fields = {"score": _rate(m.get("charts/score"))}
                 if cfg.needs_targets:
                     coverage.append(m.get("charts/target_coverage", 0.0))
+                    live_total[0] += m.get("charts/live_annotations", 0.0)
                     fields["targets"] = f"{coverage[-1]:.2f}"
                     if "charts/live_queue" in m:
                         fields["live_queue"] = f"{m['charts/live_queue']:.0f}"
@@ -141,13 +143,16 @@ def register(app: typer.Typer) -> None:
                        "to do; pass a larger --frames with --resume to train on")
             return
         targets = f"; steps with an LLM target {sum(coverage) / len(coverage):.0%} on average" if coverage else ""
+        live = f"; {live_total[0]:,.0f} states annotated live" if cfg.needs_targets and cfg.live_budget else ""
         if result.get("stopped"):
             typer.echo(f"stopped at {result['global_step']:,} frames{targets}; resume with "
                        f"`illm train --out {out} --resume`")
             raise typer.Exit(stop.exit_code)
+        score = last.get("charts/score")
+        score = f"last {score_name} {_rate(score)}" if score is not None and score == score else \
+            f"no episode ended in the last update ({score_name} unknown)"
         typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames "
-                   f"({last.get('charts/sps', 0):,.0f} steps/s); last {score_name} "
-                   f"{_rate(last.get('charts/score'))}{targets} -> {out}")
+                   f"({last.get('charts/sps', 0):,.0f} steps/s); {score}{targets}{live} -> {out}")
 
     train.__signature__ = inspect.Signature(_train_parameters())
     app.command(epilog=EXAMPLE)(friendly(train))
@@ -179,5 +184,6 @@ def register(app: typer.Typer) -> None:
             success = "-" if r["success_rate"] != r["success_rate"] else f"{r['success_rate']:.3f}"
             typer.echo(f"| {r['run']} | {r['method']} | {r['env_id']} | {r['frames']:,} | {r['score']:.3f} "
                        f"({r['score_name']}) | {success} | {r['mean_return']:.3f} | {r['mean_length']:.1f} |")
-        typer.echo(f"\n{episodes} episodes per run (evaluation seed {seed}, the same episodes for every run), actions "
+        typer.echo(f"\n{episodes} episodes per run (--seed {seed}: env seeds from 2^40 + {seed}, apart from training's; "
+                   "the same episodes for every run), actions "
                    + ("greedy (the most likely)" if greedy else "sampled from the policy"))

@@ -71,7 +71,7 @@ def test_duplicate_seeds_are_refused_and_short_runs_are_named(tmp_path):
     assert missing.exit_code == 1 and "no run folder at" in missing.output
     table = [line for line in out.output.splitlines() if line.startswith("|")]
     assert len({line.count("|") for line in table}) == 1  # every row has the header's columns
-    assert "| 1 | 1.00 ± 0.00 | 50.0% |" in out.output
+    assert "| 1 | 1.00 | 50.0% |" in out.output  # one seed: no spread shown
 
 
 PNG = b"\x89PNG\r\n\x1a\n"

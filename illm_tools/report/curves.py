@@ -112,7 +112,15 @@ def load_curve(run_dir: Path, every: int) -> Curve:
 
 
 def _setting(value) -> str:
-    return f"{value:g}" if isinstance(value, float) else str(value)
+    """A setting's value as a label shows it: numbers plainly, lists joined with "+" (language tasks
+    as the paper's Table 2 writes them), dicts as key=value, nothing as "-"."""
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, (list, tuple)):
+        return "+".join(map(_setting, value)) or "-"
+    if isinstance(value, dict):
+        return ",".join(f"{k}={_setting(v)}" for k, v in sorted(value.items())) or "-"
+    return str(value)
 
 
 def _learned(cfg: dict) -> str:
