@@ -47,7 +47,7 @@ def register(app: typer.Typer) -> None:
         store = AnnotationCache(cache)  # refuses a folder that is not a cache before loading a model
         torch.set_num_threads(threads or os.cpu_count() or 1)
         lm = load_backend(backend, model, dtype=dtype, quant=quant, device=resolve_device(device))
-        server = AnnotationServer(lm, store, model=model, batch_size=batch_size, chunk=chunk)
+        server = AnnotationServer(lm, store, model=model, batch_size=batch_size, chunk=chunk, dtype=dtype, quant=quant)
 
         def ready(addresses) -> None:
             where = ", ".join(f"http://{a[0]}:{a[1]}" for a in addresses)

@@ -26,7 +26,7 @@ Endpoints (JSON):
   pending states. Malformed requests get a 4xx status and {"error": one line}: 400 bad JSON or
   fields, 409 a model fingerprint that is not the server's (the keys would never meet), 413 too
   large.
-- `GET /stats` -> the queue (states, clients), totals (states annotated, rows written, batches),
+- `GET /stats` -> the queue (states waiting, states being annotated now, clients), totals (states annotated, rows written, batches),
   throughput (states/s over the annotating time and since start), the model and cache.
 A client that disconnects mid-request leaves nothing behind: a request is queued only once it
 has been read and checked whole. A hop state (iLLM(hop)) also carries its observation window:
@@ -167,14 +167,19 @@ def parse_state(item, hop: bool = False) -> tuple[StateRecord, int]:
 class AnnotationServer:
     """The queue, the scheduler and the model behind `illm serve` (the HTTP layer is `make_app`)."""
 
-    def __init__(self, lm, cache, *, model: str, batch_size: int = 8, chunk: int = 16):
+    def __init__(self, lm, cache, *, model: str, batch_size: int = 8, chunk: int = 16, dtype: str = "",
+                 quant: str = ""):
         from illm_tools.cache.keys import fingerprint_hash
         from illm_tools.llm.backend import as_backend
 
         self.lm = as_backend(lm)
         self.cache = cache
         self.model = model
+        self.setup = {"model": model, "dtype": dtype, "quant": quant}
+        """The options the model was loaded with (for a trainer's message when its own differ)."""
         self.batch_size, self.chunk = batch_size, chunk
+        self.annotating = 0
+        """States in the batch being annotated now (0: idle)."""
         self.fingerprint = fingerprint_hash(self.lm.fingerprint)
         self._annotators: dict[tuple, object] = {}
         self._clients: dict[str, dict[tuple, Pending]] = {}  # client -> (setup, record) -> its pending entry
@@ -199,9 +204,9 @@ class AnnotationServer:
             raise RequestError(400, f"the request lacks {', '.join(missing)}")
         client = _text(body["client"], "client")
         if body["model_fingerprint"] != self.fingerprint:
-            raise RequestError(409, f"this server annotates with {self.model} (fingerprint {self.fingerprint}); the "
-                                    f"request's fingerprint {body['model_fingerprint']!r} is another model setup: train "
-                                    "with the server's --model, --dtype and --quant, or start a server for yours")
+            raise RequestError(409, f"this server annotates with {self._options()} (fingerprint {self.fingerprint}); "
+                                    f"the request's fingerprint {body['model_fingerprint']!r} is another model setup: "
+                                    "train with the server's --model, --dtype and --quant, or start a server for yours")
         if body["layout"] not in LAYOUTS:
             raise RequestError(400, f"layout must be one of {', '.join(LAYOUTS)}, got {body['layout']!r}")
         history_len = body["history_len"]
@@ -241,6 +246,9 @@ class AnnotationServer:
         landed = self._landed.pop(client, 0)
         return {"queued": len(entries), "queue": self.queue_size(), "landed": landed}
 
+    def _options(self) -> str:
+        return " ".join(f"--{k} {v}" for k, v in self.setup.items() if v)
+
     def queue_size(self) -> int:
         return len({k for entries in self._clients.values() for k in entries})
 
@@ -248,8 +256,9 @@ class AnnotationServer:
         """The queue, totals and throughput (GET /stats)."""
         busy = self.totals["seconds"]
         up = time.time() - self.started
-        return {"protocol": PROTOCOL, "model": self.model, "model_fingerprint": self.fingerprint,
-                "cache": str(self.cache.root), "queue": self.queue_size(), "clients": len(self._clients),
+        return {"protocol": PROTOCOL, "model": self.model, "model_options": self._options(),
+                "model_fingerprint": self.fingerprint, "cache": str(self.cache.root), "queue": self.queue_size(),
+                "annotating": self.annotating, "clients": len(self._clients),
                 "annotated_states": self.totals["states"], "rows": self.totals["rows"],
                 "batches": self.totals["batches"], "requests": self.totals["requests"],
                 "refused": self.totals["refused"], "errors": self.totals["errors"], "last_error": self.last_error,
@@ -316,6 +325,7 @@ class AnnotationServer:
                 stopper.cancel()
                 continue
             start = time.perf_counter()
+            self.annotating = len(batch)
             try:
                 done = await loop.run_in_executor(None, self.annotate, batch)
             except Exception as e:  # noqa: BLE001 - one bad batch must not stop the server
@@ -323,6 +333,8 @@ class AnnotationServer:
                 self.last_error = f"{type(e).__name__}: {e}"
                 log.warning("a batch of %d states failed (%s); the server goes on", len(batch), self.last_error)
                 continue
+            finally:
+                self.annotating = 0
             self.totals["seconds"] += time.perf_counter() - start
             self.totals["states"] += done[0]
             self.totals["rows"] += done[1]

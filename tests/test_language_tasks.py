@@ -75,6 +75,8 @@ def test_the_bonus_pays_and_distils_each_task_on_its_own_block():
 def test_task_settings_are_checked():
     with pytest.raises(UsageError, match="weight is --beta-hc, not --task-weight"):
         TrainConfig(tasks=("summary",), task_weights={"summary": 1.0})
+    with pytest.raises(UsageError, match="goal is not one of this run's --tasks"):
+        TrainConfig(tasks=("summary", "plan"), task_weights={"goal": 0.3})
     with pytest.raises(UsageError, match="--method rnd has none"):
         TrainConfig(mode="rnd", tasks=("plan",))
     assert TrainConfig(tasks="goal+plan").text_tasks == ("goal", "plan")

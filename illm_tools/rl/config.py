@@ -213,14 +213,18 @@ class TrainConfig:
 
         self.tasks = parse_tasks(self.tasks, "--tasks")
         for name, weight in self.task_weights.items():
+            if name not in self.tasks:
+                raise UsageError(f"--task-weight {name}=...: {name} is not one of this run's --tasks "
+                                 f"({','.join(self.tasks)})")
             if get_task(name).weight_setting is not None:
                 raise UsageError(f"the {name} task's weight is --{get_task(name).weight_setting.replace('_', '-')}, "
                                  "not --task-weight")
             if not isinstance(weight, (int, float)) or weight < 0:
                 raise UsageError(f"--task-weight {name}={weight!r}: a weight is a number >= 0")
         if self.tasks != ("action", "summary") and not get_method(self.mode).policy_heads:
-            raise UsageError(f"--tasks chooses iLLM's heads; --method {self.mode} has none (it reads "
-                             f"{', '.join(get_method(self.mode).target_tasks) or 'no language task'})")
+            reads = ", ".join(get_method(self.mode).target_tasks) if get_method(self.mode).needs_targets else ""
+            raise UsageError(f"--tasks chooses the language tasks of iLLM's heads; --method {self.mode} has none "
+                             f"(it reads {reads or 'no language task'})")
         get_method(self.mode).make_config(self.to_dict(), self.bonus_options)  # refuses unknown methods, options
         get_method(self.mode).network_options(self.network_options)
         for name in ("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",

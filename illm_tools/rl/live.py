@@ -219,7 +219,8 @@ class RemoteLive:
 
     waits = False
 
-    def __init__(self, url: str, *, client: str, setup: dict, budget: int, timeout: float = 10.0):
+    def __init__(self, url: str, *, client: str, setup: dict, budget: int, timeout: float = 10.0,
+                 options: str = "--model, --dtype, --quant"):
         self.url = url.rstrip("/")
         self.client, self.setup, self.budget, self.timeout = client, dict(setup), budget, timeout
         self._landed = 0
@@ -229,9 +230,9 @@ class RemoteLive:
         if info.get("model_fingerprint") != setup["model_fingerprint"]:
             from illm_tools.errors import UsageError
 
-            raise UsageError(f"the server at {self.url} annotates with {info.get('model')} (another model setup than "
-                             "this run's --model, --dtype, --quant): its answers would never be this run's targets; "
-                             "train with the server's model settings or start a server for this model")
+            raise UsageError(f"the server at {self.url} annotates with {info.get('model_options') or info.get('model')}, "
+                             f"another model setup than this run's {options}: its answers would never be this run's "
+                             "targets; train with the server's options or start a server for this model")
 
     def _call(self, path: str, body: dict | None = None) -> dict:
         import json

@@ -79,7 +79,8 @@ def make_live(cfg: TrainConfig, builder, cache, tasks: tuple[str, ...] = ("actio
     if cfg.annotator is not None:
         setup = {"model_fingerprint": builder.model_fingerprint, "env_id": builder.env_id, "renderer": builder.renderer,
                  "history_len": builder.history_len, "layout": builder.layout, "tasks": list(tasks)}
-        return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), setup=setup, budget=cfg.live_budget)
+        return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), setup=setup, budget=cfg.live_budget,
+                          options=f"--model {cfg.model} --dtype {cfg.model_dtype} --quant {cfg.quant}")
     if cfg.live_mode == "async":
         spec = WorkerSpec(cache=str(cfg.cache), model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant,
                           env_id=builder.env_id, renderer=builder.renderer, history_len=cfg.history_len,
