@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import progress, stop_on_signals
+from cli.common import BACKEND, DEVICE, DTYPE, MODEL, QUANT, progress, stop_on_signals
 from cli.errors import friendly
 
 
@@ -17,20 +17,20 @@ def register(app: typer.Typer) -> None:
     def annotate(
         data: Path = typer.Argument(..., help="Trajectory dataset written by `illm collect`."),
         cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache folder (shared across runs)."),
-        model: str = typer.Option("smollm2-135m", "--model", help="Alias (see `illm models`), hub id or local folder."),
+        model: str = MODEL,
         tasks: str = typer.Option("action,summary", "--tasks", help="Comma-separated, any combination of action, summary, goal, plan (paper Table 2; goal is also ELLM's)."),
         history: int = typer.Option(3, "--history", help="Observation/action pairs of history in the prompts."),
         layout: str = typer.Option("shared", "--layout", help="Templates: shared (history first, prefix computed once) or paper (as printed)."),
         batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
         limit: int = typer.Option(None, "--limit", help="Annotate the N most visited distinct states (those not cached yet); the same --limit again annotates nothing."),
         max_minutes: float = typer.Option(None, "--max-minutes", help="Stop after M minutes, keeping every finished chunk; run again to go on."),
-        dtype: str = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16."),
-        quant: str = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit."),
+        dtype: str = DTYPE,
+        quant: str = QUANT,
         mode: str = typer.Option("obs", "--mode", help="obs: the states' text | hop: the raw observations translated into the LLM's embedding space (iLLM(hop); any suite, Atari included)."),
         hop_seed: int = typer.Option(0, "--hop-seed", help="hop: seed of the translation's random projection (the run's --hop-seed)."),
         hop_beta: float = typer.Option(1.0, "--hop-beta", help="hop: inverse temperature of the Hopfield retrieval (the run's --hop-beta)."),
-        backend: str = typer.Option("transformers", "--backend", help="LLM backend: transformers | stub (deterministic answers from the prompt, no weights; for tests)."),
-        device: str = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto; with several processes each takes its own GPU."),
+        backend: str = BACKEND,
+        device: str = DEVICE,
         num_processes: int = typer.Option(1, "--num-processes", help="Annotate with N processes: runs `accelerate launch --num_processes N` on this command (the states are split between them)."),
     ) -> None:
         """Annotate every distinct state once with the LLM, into the shared cache: its next-action ranking

@@ -125,3 +125,13 @@ def stop_on_signals(what: str) -> Iterator[Stop]:
 def score_text(value: float | None) -> str:
     """A suite's score for people: "-" while no episode has ended (NaN), else 2 decimals."""
     return "-" if value is None or value != value else f"{value:.2f}"
+
+
+# The options that choose and place an LLM, shared by the commands that load one (annotate, serve,
+# probe): one definition each, so their flags, defaults and help never drift apart.
+MODEL = typer.Option("smollm2-135m", "--model", help="Alias (see `illm models`), hub id or local folder.")
+DTYPE = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16 (part of every cache key).")
+QUANT = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit (part of every cache key).")
+BACKEND = typer.Option("transformers", "--backend",
+                       help="LLM backend: transformers | stub (deterministic answers from the prompt, no weights; for tests).")
+DEVICE = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto (with several processes each takes its own GPU).")

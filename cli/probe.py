@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import emit_json, progress
+from cli.common import BACKEND, DEVICE, DTYPE, MODEL, QUANT, emit_json, progress
 from cli.errors import friendly
 
 
@@ -15,17 +15,17 @@ def register(app: typer.Typer) -> None:
     @friendly
     def probe(
         env: str = typer.Option("BabyAI-GoToLocal-v0", "--env", help="A BabyAI level (the expert is minigrid's BabyAI bot)."),
-        model: str = typer.Option("smollm2-135m", "--model", help="Alias (see `illm models`), hub id or local folder."),
+        model: str = MODEL,
         states: int = typer.Option(400, "--states", help="States to probe, from the bot's episodes."),
         history: int = typer.Option(0, "--history", help="Observation/action pairs of history in the prompt (as `illm annotate --history`)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the episodes and of the random actions."),
         epsilon: float = typer.Option(0.25, "--epsilon", help="Share of random actions in the bot's episodes (states off its path)."),
         action_space: str = typer.Option("auto", "--action-space", help="original | augmented | irrelevant | auto (as `illm collect`)."),
         layout: str = typer.Option("shared", "--layout", help="Prompt templates, as `illm annotate --layout`."),
-        dtype: str = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16."),
-        quant: str = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit."),
-        backend: str = typer.Option("transformers", "--backend", help="LLM backend: transformers | stub (no weights; for tests)."),
-        device: str = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto."),
+        dtype: str = DTYPE,
+        quant: str = QUANT,
+        backend: str = BACKEND,
+        device: str = DEVICE,
         batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
         as_json: bool = typer.Option(False, "--json", help="Print the figures as JSON."),
         out: Path = typer.Option(None, "--out", help="Also write the figures as JSON to this file."),

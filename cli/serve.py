@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import stop_on_signals
+from cli.common import BACKEND, DEVICE, DTYPE, MODEL, QUANT, stop_on_signals
 from cli.errors import friendly
 
 
@@ -16,13 +16,13 @@ def register(app: typer.Typer) -> None:
     @friendly
     def serve(
         cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache the answers go to (the trainers' --cache)."),
-        model: str = typer.Option("smollm2-135m", "--model", help="Alias (see `illm models`), hub id or local folder."),
+        model: str = MODEL,
         port: int = typer.Option(8765, "--port", help="TCP port (0: any free one, printed when ready)."),
         host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on (localhost by default: the server has no authentication)."),
-        dtype: str = typer.Option("bfloat16", "--dtype", help="Compute dtype (part of the keys: the trainers' --dtype)."),
-        quant: str = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit (the trainers' --quant)."),
-        backend: str = typer.Option("transformers", "--backend", help="LLM backend: transformers | stub (no weights; for tests)."),
-        device: str = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto."),
+        dtype: str = DTYPE,
+        quant: str = QUANT,
+        backend: str = BACKEND,
+        device: str = DEVICE,
         batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
         chunk: int = typer.Option(16, "--chunk", help="States taken per round across all trainers (highest visit counts first), written as one shard."),
         threads: int = typer.Option(0, "--threads", help="Torch threads of the model; 0: every core."),
