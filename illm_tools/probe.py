@@ -185,35 +185,29 @@ class ProbeResult:
 
 def score_records(lm, builder, records, *, batch_size: int = 8, chunk: int = 64,
                   on_progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The action task's raw scores of these states, as `illm annotate` computes them: each
-    distinct record rendered with `builder.render("action", record)` and its candidates scored by
-    the backend (a state visited twice is scored once), and the candidates' log-probs after the
-    neutral prompt once per candidate set (`Annotator.neutral_scores`). Returns per record the
-    summed log-probs [N, A], token counts [N, A] and neutral sums [N, A]; `on_progress(done, total)`
-    after each chunk of distinct states. States go to the backend `chunk` at a time, as the
-    annotator's chunks of 64 do: the backend batches by length within a call, and in bfloat16 a
-    different batching moves scores by rounding (a near tie can flip)."""
-    from illm_tools.tasks.prompts import neutral_prompt
+    """The action task's raw scores of these states, computed by the annotation engine itself
+    (`Annotator.annotate`, no cache: the rows `illm annotate` would write), each distinct record
+    once. Returns per record the summed log-probs [N, A], token counts [N, A] and neutral-prompt
+    sums [N, A]; `on_progress(done, total)` after each chunk of distinct states. States go to the
+    engine `chunk` at a time, as the annotator's chunks of 64 do: the backend batches by length
+    within a call, and in bfloat16 a different batching moves scores by rounding (a near tie can
+    flip)."""
+    from illm_tools.annotate.engine import Annotator, Job
 
+    annotator = Annotator(lm, None, model=builder.model, tasks=("action",), history_len=builder.history_len,
+                          layout=builder.layout, batch_size=batch_size)
     distinct = list(dict.fromkeys(records))
-    prompts = [builder.render("action", r) for r in distinct]
-    answers: list = []
-    for i in range(0, len(prompts), chunk):
-        part = prompts[i:i + chunk]
-        answers += lm.score([p.text for p in part], [list(p.candidates) for p in part], batch_size=batch_size)
+    rows: list[dict] = []
+    for i in range(0, len(distinct), chunk):
+        prompts = [(r, builder.render("action", r)) for r in distinct[i:i + chunk]]
+        rows += annotator.annotate([[Job(builder.key(p), p, builder, r)] for r, p in prompts])
         if on_progress is not None:
-            on_progress(len(answers), len(prompts))
-    neutral: dict[tuple[str, ...], list[float]] = {}
-    for p in prompts:
-        if p.candidates not in neutral:
-            (scores,) = lm.score([neutral_prompt()], [list(p.candidates)], batch_size=1)
-            neutral[p.candidates] = [float(x) for x in scores.sums]
+            on_progress(len(rows), len(distinct))
     where = {r: i for i, r in enumerate(distinct)}
-    rows = [where[r] for r in records]
-    sums = np.asarray([[float(x) for x in a.sums] for a in answers], dtype=np.float64)[rows]
-    counts = np.asarray([[int(n) for n in a.token_counts] for a in answers], dtype=np.int64)[rows]
-    neutral_sums = np.asarray([neutral[prompts[i].candidates] for i in rows], dtype=np.float64)
-    return sums, counts, neutral_sums
+    picked = [rows[where[r]] for r in records]
+    return (np.asarray([r["cand_logprob_sum"] for r in picked], dtype=np.float64),
+            np.asarray([r["cand_token_count"] for r in picked], dtype=np.int64),
+            np.asarray([r["neutral_logprob_sum"] for r in picked], dtype=np.float64))
 
 
 def calibration_metrics(sums: np.ndarray, counts: np.ndarray, neutral_sums: np.ndarray, expert: np.ndarray,

@@ -37,10 +37,14 @@ server checks them against the content names the state's keys are made of.
 from __future__ import annotations
 
 import asyncio
+import base64
+import binascii
 import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from illm_tools.tasks.state import StateRecord
 
@@ -88,10 +92,6 @@ def record_to_json(record: StateRecord) -> dict:
            "observation": record.observation, "valid_actions": list(record.valid_actions)}
     frames = getattr(record, "frames", ())
     if frames:
-        import base64
-
-        import numpy as np
-
         out["frames"] = [{"shape": list(np.shape(f)), "dtype": np.asarray(f).dtype.str,
                           "data": base64.b64encode(np.ascontiguousarray(f).tobytes()).decode()} for f in frames]
         out["prev_actions"] = [int(a) for a in record.prev_actions]
@@ -102,11 +102,6 @@ def _hop_record(record: StateRecord, item: dict) -> StateRecord:
     """The hop state of a request entry: its window decoded, and checked against the content names
     its keys are made of (each step's name is the digest of its observation and previous action),
     so a window that does not match its names never reaches the cache."""
-    import base64
-    import binascii
-
-    import numpy as np
-
     from illm_tools.hop.context import HopRecord, step_name
 
     frames, prev = item.get("frames"), item.get("prev_actions")

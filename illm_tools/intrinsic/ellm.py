@@ -6,7 +6,7 @@ Method `ellm` (registry.py); settings `ELLMConfig` (`illm train --method ellm --
 KEY=VALUE`). Declares `needs_targets` with `target_tasks = ("goal",)`: the run's provider is a
 `illm_tools.rl.targets.GoalTargets`, which reads each state's goals from the annotation cache
 (`illm annotate --tasks goal`: the paper's Appendix D.2 goal prompt, generated greedily and parsed
-into a list, `illm_tools.tasks.prompts.parse_goals`) with the same keys and live fallback as iLLM's
+into a list, `illm_tools.tasks.goals.parse_goals`) with the same keys and live fallback as iLLM's
 targets. Reads `images`, `actions`, `next_images`, `ends` and `target_mask` (see base.py), and the
 provider's per-step goals, handed to the bonus with `use_provider`; no policy heads.
 

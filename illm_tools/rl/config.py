@@ -323,13 +323,6 @@ class TrainConfig:
 
         return text_tasks(self.tasks) if get_method(self.mode).policy_heads else ()
 
-    def task_weight(self, task: str) -> float:
-        """A task's bonus weight: its own setting (lambda_a, beta_hc) or `task_weights`."""
-        from illm_tools.tasks.registry import DEFAULT_WEIGHT, get_task
-
-        setting = get_task(task).weight_setting
-        return float(getattr(self, setting)) if setting else float(self.task_weights.get(task, DEFAULT_WEIGHT))
-
     def to_dict(self) -> dict:
         """JSON-ready form (paths as strings)."""
         out = asdict(self)

@@ -164,7 +164,7 @@ class GoalTargets(CachedTargets):
 
     `targets` answers only the mask (the state has a goal row; its action distribution and
     embedding are empty: [B, A] zeros and [B, 0]); the goals themselves, parsed at annotation time
-    (`illm_tools.tasks.prompts.parse_goals`, the row's `candidates`), are in `goals` after each
+    (`illm_tools.tasks.goals.parse_goals`, the row's `candidates`), are in `goals` after each
     call, aligned with the records (t-major), None where the state has no row yet."""
 
     def __init__(self, cache: AnnotationCache, builder: PromptBuilder, *, num_actions: int, live=None):

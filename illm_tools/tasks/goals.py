@@ -24,7 +24,7 @@ _COPIES = ("you see ", "you carry ")
 
 def parse_goals(text: str, truncated: bool = False) -> list[str]:
     """The goal strings of a generated answer to the `goal` prompt (version `GOAL_PARSER_VERSION`);
-    `truncated`: the generation was cut at `GOAL_TOKENS` (not ended by the model).
+    `truncated`: the generation was cut at the goal task's token limit (not ended by the model).
 
     1. Lines are read in order; a blank line after the first goal, or a line that starts a prompt
        of its own ("You are an expert player", "Recent player's history", "Observation N:",
