@@ -64,6 +64,7 @@ bench: install
 	$(BIN)/python benchmarks/train.py
 	$(BIN)/python benchmarks/bonus.py
 	$(BIN)/python benchmarks/serve.py
+	$(BIN)/python benchmarks/oracle.py
 
 clean-demo:
 	rm -rf $(DEMO)

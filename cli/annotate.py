@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import BACKEND, DEVICE, DTYPE, MODEL, QUANT, progress, stop_on_signals
+from cli.common import BACKEND, DEVICE, DTYPE, MODEL, ORACLE_NOISE, QUANT, progress, stop_on_signals
 from cli.errors import friendly
 
 
@@ -18,6 +18,7 @@ def register(app: typer.Typer) -> None:
         data: Path = typer.Argument(..., help="Trajectory dataset written by `illm collect`."),
         cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache folder (shared across runs)."),
         model: str = MODEL,
+        oracle_noise: float = ORACLE_NOISE,
         tasks: str = typer.Option("action,summary", "--tasks", help="Comma-separated, any combination of action, summary, goal, plan (paper Table 2; goal is also ELLM's)."),
         history: int = typer.Option(3, "--history", help="Observation/action pairs of history in the prompts."),
         layout: str = typer.Option("shared", "--layout", help="Templates: shared (history first, prefix computed once) or paper (as printed)."),
@@ -36,7 +37,9 @@ def register(app: typer.Typer) -> None:
         """Annotate every distinct state once with the LLM, into the shared cache: its next-action ranking
         and 64-token summary, and the goal and plan tasks when --tasks names them."""
         from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset, distributed_state
+        from illm_tools.llm.backend import resolve_model
 
+        model = resolve_model(backend, model, oracle_noise=oracle_noise)
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tasks,
                                 history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
                                 dtype=dtype, quant=quant, mode=mode, hop_seed=hop_seed, hop_beta=hop_beta,
@@ -64,7 +67,7 @@ def annotate_and_report(config) -> None:
     """The main process's annotation with its progress bar and closing lines."""
     from illm_tools.annotate.bulk import annotate_dataset
 
-    model, cache = config.model, config.cache
+    model, cache = config.llm_model, config.cache
     with stop_on_signals("the chunk in progress (written whole)") as stop, \
             progress(0, f"annotate {model}", unit="states") as advance:
         def on_plan(stats, todo: int) -> None:

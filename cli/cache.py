@@ -30,7 +30,7 @@ def info(
 
     if not (path / "manifest.json").is_file():
         raise UsageError(f"no annotation cache at {path}: run `illm annotate DATA --cache {path}` first")
-    from illm_tools.llm.loading import model_options
+    from illm_tools.llm.backend import model_options
     from illm_tools.tasks.prompts import layouts_of
 
     cache = AnnotationCache(path)

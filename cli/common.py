@@ -129,9 +129,15 @@ def score_text(value: float | None) -> str:
 
 # The options that choose and place an LLM, shared by the commands that load one (annotate, serve,
 # probe): one definition each, so their flags, defaults and help never drift apart.
-MODEL = typer.Option("smollm2-135m", "--model", help="Alias (see `illm models`), hub id or local folder.")
+MODEL = typer.Option(None, "--model", show_default=False,
+                     help="Alias (see `illm models`), hub id or local folder; default: the backend's "
+                          "(smollm2-135m for transformers, oracle for oracle).")
+ORACLE_NOISE = typer.Option(0.0, "--oracle-noise",
+                            help="oracle: the share of states (fixed, keyed by the state) answered at random; "
+                                 "1 is an annotator that knows nothing (part of every key).")
 DTYPE = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16 (part of every cache key).")
 QUANT = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit (part of every cache key).")
 BACKEND = typer.Option("transformers", "--backend",
-                       help="LLM backend: transformers | stub (deterministic answers from the prompt, no weights; for tests).")
+                       help="LLM backend: transformers | oracle (a rule-based annotator that knows BabyAI/MiniGrid: "
+                            "the positive control) | stub (deterministic answers from the prompt, no weights; for tests).")
 DEVICE = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto (with several processes each takes its own GPU).")

@@ -79,6 +79,8 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
             if typing.get_origin(hint) is tuple:  # a tuple of names: one comma-separated option
                 hint = str
                 help_text += " Comma-separated."
+            elif typing.get_origin(hint) in (typing.Union, types.UnionType):  # e.g. int | str: the config parses it
+                hint = str
             annotation = hint if not nullable else typing.Optional[hint]  # noqa: UP007 - Typer reads Optional
             if hint is bool and nullable:
                 annotation = typing.Optional[bool]  # noqa: UP007

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import BACKEND, DEVICE, DTYPE, MODEL, QUANT, emit_json, progress
+from cli.common import BACKEND, DEVICE, DTYPE, MODEL, ORACLE_NOISE, QUANT, emit_json, progress
 from cli.errors import friendly
 
 
@@ -16,6 +16,7 @@ def register(app: typer.Typer) -> None:
     def probe(
         env: str = typer.Option("BabyAI-GoToLocal-v0", "--env", help="A BabyAI level (the expert is minigrid's BabyAI bot)."),
         model: str = MODEL,
+        oracle_noise: float = ORACLE_NOISE,
         states: int = typer.Option(400, "--states", help="States to probe, from the bot's episodes."),
         history: int = typer.Option(0, "--history", help="Observation/action pairs of history in the prompt (as `illm annotate --history`)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the episodes and of the random actions."),
@@ -35,10 +36,11 @@ def register(app: typer.Typer) -> None:
         between state and ranking; log-loss; pairwise AUROC."""
         import json
 
-        from illm_tools.llm.backend import check_backend
+        from illm_tools.llm.backend import check_backend, resolve_model
         from illm_tools.probe import ProbeConfig, probe as run
 
         check_backend(backend)
+        model = resolve_model(backend, model, oracle_noise=oracle_noise)
         config = ProbeConfig(env_id=env, model=model, states=states, history=history, seed=seed, epsilon=epsilon,
                              action_space=action_space, layout=layout, dtype=dtype, quant=quant, backend=backend,
                              device=device, batch_size=batch_size)

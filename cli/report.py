@@ -24,6 +24,9 @@ def register(app: typer.Typer) -> None:
                                          "of its last this many curve points."),
         bootstrap: int = typer.Option(2000, "--bootstrap", help="With --out: bootstrap resamples of the 95% "
                                       "intervals (rliable's stratified bootstrap, seeded)."),
+        probe: list[Path] = typer.Option(None, "--probe", help="With --out: an `illm probe --out` file "
+                                         "(repeatable): final score against the annotator's probe agreement "
+                                         "(quality.png); probes of models not trained with are marked on it."),
     ) -> None:
         """The suite's score against frames (success rate; Crafter score; Atari's mean return), mean ±
         std over seeds, one row per configuration (a markdown table), then what was grouped: runs
@@ -49,7 +52,9 @@ def register(app: typer.Typer) -> None:
         if out is not None:
             from illm_tools.report.build import build_report
 
-            build_report(list(runs), out, every, final_points=final_points, reps=bootstrap)
+            build_report(list(runs), out, every, final_points=final_points, reps=bootstrap, probes=probe or [])
+        elif probe:
+            raise UsageError("--probe adds the quality curve to a report folder: pass --out DIR too")
         written = f"report written to {out / 'report.md'} (figures and results.json beside it)" if out else ""
         if as_json:
             emit_json([{"env_id": env, "label": label, **g} for (env, label), g in groups.items()])

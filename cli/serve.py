@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import BACKEND, DEVICE, DTYPE, MODEL, QUANT, stop_on_signals
+from cli.common import BACKEND, DEVICE, DTYPE, MODEL, ORACLE_NOISE, QUANT, stop_on_signals
 from cli.errors import friendly
 
 
@@ -17,6 +17,7 @@ def register(app: typer.Typer) -> None:
     def serve(
         cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache the answers go to (the trainers' --cache)."),
         model: str = MODEL,
+        oracle_noise: float = ORACLE_NOISE,
         port: int = typer.Option(8765, "--port", help="TCP port (0: any free one, printed when ready)."),
         host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on (localhost by default: the server has no authentication)."),
         dtype: str = DTYPE,
@@ -38,10 +39,11 @@ def register(app: typer.Typer) -> None:
         from illm_tools.annotate.bulk import resolve_device
         from illm_tools.cache.store import AnnotationCache
         from illm_tools.errors import UsageError
-        from illm_tools.llm.backend import check_backend, load_backend
+        from illm_tools.llm.backend import check_backend, load_backend, resolve_model
         from illm_tools.serve import AnnotationServer, serve as run
 
         check_backend(backend)
+        model = resolve_model(backend, model, oracle_noise=oracle_noise)
         if batch_size <= 0 or chunk <= 0 or threads < 0 or not 0 <= port < 65536:
             raise UsageError("--batch-size and --chunk must be positive, --threads >= 0, --port in 0..65535")
         store = AnnotationCache(cache)  # refuses a folder that is not a cache before loading a model

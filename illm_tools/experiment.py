@@ -10,6 +10,8 @@ A spec (YAML; experiments/specs/ holds the paper's tables at CPU budgets):
     methods: [ppo, rnd, illm]
     grid:                         # every combination of these values (TrainConfig fields, or
       num_dists: [4, 8, 16]       # env_options.KEY for an env option)
+    method_grid:                  # per method, more values crossed with `grid` (e.g. the oracle's
+      illm: {oracle_noise: [0, 0.5, 1]}   # quality for illm alone)
     settings:                     # for every run (TrainConfig fields)
       num_envs: 16
     method_settings:              # per method, over `settings`
@@ -37,7 +39,8 @@ from typing import Any
 
 from illm_tools.errors import IllmError, UsageError
 
-TOP_KEYS = ("name", "frames", "seeds", "envs", "methods", "grid", "settings", "method_settings", "description")
+TOP_KEYS = ("name", "frames", "seeds", "envs", "methods", "grid", "method_grid", "settings", "method_settings",
+            "description")
 REQUIRED = ("envs", "methods")
 SPEC_COPY = "spec.yaml"
 
@@ -65,6 +68,8 @@ class Spec:
     envs: list[str]
     methods: list[str]
     grid: dict[str, list] = field(default_factory=dict)
+    method_grid: dict[str, dict[str, list]] = field(default_factory=dict)
+    """Per method, more grid values crossed with `grid` for that method's runs alone."""
     settings: dict[str, Any] = field(default_factory=dict)
     method_settings: dict[str, dict] = field(default_factory=dict)
     lines: dict[tuple, int] = field(default_factory=dict)
@@ -138,21 +143,28 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
         raise UsageError(f"{path} line {spec_lines.get(('seeds',), '?')}: seeds must be a count or a list of "
                          "non-negative integers")
     grid = data.get("grid") or {}
+    method_grid = data.get("method_grid") or {}
     settings = data.get("settings") or {}
     per_method = data.get("method_settings") or {}
-    for key, value in (("grid", grid), ("settings", settings), ("method_settings", per_method)):
+    for key, value in (("grid", grid), ("method_grid", method_grid), ("settings", settings),
+                       ("method_settings", per_method)):
         if not isinstance(value, dict):
             raise UsageError(f"{path} line {spec_lines.get((key,), '?')}: {key} must be a mapping")
-    for key, values in grid.items():
-        if not isinstance(values, list) or not values:
-            raise UsageError(f"{path} line {spec_lines.get(('grid', key), '?')}: grid.{key} must be a non-empty list "
-                             "of values")
+    grids = [(("grid",), grid)] + [(("method_grid", m), g) for m, g in method_grid.items()]
+    for where, values_of in grids:
+        if not isinstance(values_of, dict):
+            raise UsageError(f"{path} line {spec_lines.get(where, '?')}: {'.'.join(where)} must be a mapping of "
+                             "setting -> list of values")
+        for key, values in values_of.items():
+            if not isinstance(values, list) or not values:
+                raise UsageError(f"{path} line {spec_lines.get((*where, key), '?')}: {'.'.join(where)}.{key} must be "
+                                 "a non-empty list of values")
     total = frames if frames is not None else data.get("frames", 50_000)
     if not isinstance(total, int) or total <= 0:
         raise UsageError(f"{path} line {spec_lines.get(('frames',), '?')}: frames must be a positive integer")
     return Spec(name=str(data.get("name") or path.stem), path=path, text=text, frames=total, seeds=seed_list,
                 envs=[str(e) for e in as_list("envs")], methods=[str(m) for m in as_list("methods")], grid=grid,
-                settings=settings, method_settings=per_method, lines=spec_lines)
+                method_grid=method_grid, settings=settings, method_settings=per_method, lines=spec_lines)
 
 
 def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> None:
@@ -180,6 +192,25 @@ def _label(method: str, combo: dict) -> str:
     return "-".join([method, *(f"{k.split('.')[-1]}={v}" for k, v in combo.items())])
 
 
+def _combos(spec: Spec) -> list[tuple[dict, dict]]:
+    """Every combination of grid values, each with where its names are written in the spec: the
+    grid's alone, and for a method with a `method_grid`, the grid's crossed with its own (marked
+    with the method, so that only its runs take them; `plan` drops the plain grid's combinations
+    for that method)."""
+    def product(grids: dict[str, tuple]) -> list[dict]:
+        return [dict(zip(grids, values)) for values in itertools.product(*(g[1] for g in grids.values()))]
+
+    plain = {k: (("grid",), v) for k, v in spec.grid.items()}
+    out = []
+    for combo in product(plain):
+        out.append(({**combo, "__method__": None}, {k: plain[k][0] for k in combo}))
+    for method, extra in spec.method_grid.items():
+        grids = {**plain, **{k: (("method_grid", method), v) for k, v in extra.items()}}
+        for combo in product(grids):
+            out.append(({**combo, "__method__": method}, {k: grids[k][0] for k in combo}))
+    return out
+
+
 def plan(spec: Spec, results: str | Path) -> list[Run]:
     """Every run of the grid with its TrainConfig (all built now: a bad value is refused before
     anything runs) and its status from its folder."""
@@ -199,15 +230,17 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
             suite_of(env_id)
         except IllmError as e:
             raise UsageError(f"{spec.line('envs', i)}: {e}") from None
-    for method in spec.method_settings:
-        if method not in spec.methods:
-            raise UsageError(f"{spec.line('method_settings', method)}: method_settings names {method!r}, which is "
-                             f"not among the spec's methods ({', '.join(spec.methods)})")
-    keys = list(spec.grid)
+    for key in ("method_settings", "method_grid"):
+        for method in getattr(spec, key):
+            if method not in spec.methods:
+                raise UsageError(f"{spec.line(key, method)}: {key} names {method!r}, which is not among the spec's "
+                                 f"methods ({', '.join(spec.methods)})")
     runs = []
-    for env_id, method, values in itertools.product(spec.envs, spec.methods,
-                                                    itertools.product(*spec.grid.values())):
-        combo = dict(zip(keys, values))
+    for env_id, method, (combo, where) in itertools.product(spec.envs, spec.methods, _combos(spec)):
+        owner = combo["__method__"]  # None: the plain grid's, for the methods without a grid of their own
+        if owner != method and (owner is not None or method in spec.method_grid):
+            continue
+        combo = {k: v for k, v in combo.items() if k != "__method__"}
         label = _label(method, combo)
         base: dict = {}
         for name, value in spec.settings.items():
@@ -215,7 +248,7 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
         for name, value in (spec.method_settings.get(method) or {}).items():
             _apply(base, name, value, spec, ("method_settings", method, name))
         for name, value in combo.items():
-            _apply(base, name, value, spec, ("grid", name))
+            _apply(base, name, value, spec, (*where[name], name))
         weights = bonus_weights(base.pop("bonus_preset", None) or get_method(method).preset,
                                 **{w: base.pop(w, None) for w in ("lambda_a", "beta_hc", "ext_coef", "int_coef")})
         for seed in spec.seeds:

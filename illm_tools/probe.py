@@ -148,7 +148,8 @@ def expert_states(env_id: str, count: int, *, history: int = 0, seed: int = 0, e
 @dataclass
 class ProbeConfig:
     env_id: str = "BabyAI-GoToLocal-v0"
-    model: str = "smollm2-135m"
+    model: str | None = None
+    """None: the backend's own (smollm2-135m for transformers, oracle for oracle)."""
     states: int = 400
     history: int = 0
     seed: int = 0
@@ -241,15 +242,17 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
     from illm_tools.annotate.bulk import resolve_device
     from illm_tools.cache.keys import fingerprint_hash
     from illm_tools.envs import renderer_of
-    from illm_tools.llm.backend import load_backend
+    from illm_tools.llm.backend import check_backend_use, load_backend, resolve_model
     from illm_tools.tasks.prompts import PromptBuilder
 
     data = expert_states(cfg.env_id, cfg.states, history=cfg.history, seed=cfg.seed, epsilon=cfg.epsilon,
                          action_space=cfg.action_space)
     if on_states is not None:
         on_states(data)
-    lm = load_backend(cfg.backend, cfg.model, dtype=cfg.dtype, quant=cfg.quant, device=resolve_device(cfg.device))
-    builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer_of(cfg.env_id), model=cfg.model,
+    model = resolve_model(cfg.backend, cfg.model)
+    check_backend_use(cfg.backend, cfg.env_id, renderer_of(cfg.env_id))
+    lm = load_backend(cfg.backend, model, dtype=cfg.dtype, quant=cfg.quant, device=resolve_device(cfg.device))
+    builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer_of(cfg.env_id), model=model,
                             model_fingerprint=fingerprint_hash(lm.fingerprint), history_len=cfg.history,
                             layout=cfg.layout)
     sums, counts, neutral_sums = score_records(lm, builder, data.records, batch_size=cfg.batch_size,

@@ -90,3 +90,22 @@ def test_a_partly_finished_grid_skips_resumes_and_starts(tmp_path):
     other = write(tmp_path, TINY.replace("seeds: 2", "seeds: 3"), "other.yaml")
     refused = runner.invoke(app, ["experiment", str(other), "--out", str(results)])
     assert refused.exit_code == 1 and "holds the results of another spec" in refused.output
+
+
+def test_a_method_grid_crosses_values_for_that_method_alone(tmp_path):
+    spec = write(tmp_path, TINY.replace("methods: [ppo]", "methods: [ppo, illm]") + """\
+method_grid:
+  illm: {oracle_noise: [0, 0.5]}
+method_settings:
+  illm: {backend: oracle, cache: data/ann, history_len: 0, live_budget: all, live_mode: sync}
+""")
+    runs = plan(load_spec(spec), tmp_path / "results")
+    labels = sorted({r.label for r in runs})
+    assert labels == ["illm-num_dists=1-oracle_noise=0", "illm-num_dists=1-oracle_noise=0.5",
+                      "illm-num_dists=2-oracle_noise=0", "illm-num_dists=2-oracle_noise=0.5",
+                      "ppo-num_dists=1", "ppo-num_dists=2"]
+    noisy = [r.config for r in runs if r.label.endswith("oracle_noise=0.5")]
+    assert noisy and all(c.llm_model == "oracle:noise=0.5" and c.live_budget == "all" for c in noisy)
+    bad = write(tmp_path, TINY + "method_grid:\n  rnd: {lambda_a: [1]}\n", "bad.yaml")
+    with pytest.raises(UsageError, match="line 14: method_grid names 'rnd', which is not among the spec's methods"):
+        plan(load_spec(bad), tmp_path / "r2")

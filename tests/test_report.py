@@ -161,3 +161,52 @@ def test_report_folder_tables_figures_and_grouping(tmp_path):
     expected = [np.mean([(0 * 2 + f / 2 * 2) / 4, (f * 1 + f * 3) / 4]) for f in finals["illm"]]
     assert [s["score"] for s in illm["final"]["per_seed"]] == pytest.approx(expected)
     assert illm["final"]["points"] == [100, 200]
+
+
+def test_the_quality_curve_places_each_configuration_at_its_annotators_probe_agreement(tmp_path):
+    """`illm report --probe FILE`: an illm row sits at the agreement of the probe of its env, backend,
+    model (oracle noise included), history and layout; ppo is a reference line; a probe no run used
+    (an LLM) is a marker; a file that is not a probe is refused in one line."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    def probe_file(name, model, backend, agreement):
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps({
+            "config": {"env_id": "BabyAI-UnlockLocal-v0", "model": model, "backend": backend, "history": 0,
+                       "layout": "shared"},
+            "calibrations": {c: {"agreement": agreement} for c in ("sum", "mean", "pmi")},
+            "baselines": {"chance_agreement": 1 / 6, "majority_agreement": 0.49, "majority_action": "go forward"}}))
+        return path
+
+    runs = []
+    for noise, final in ((0, 0.9), (0.5, 0.5), (1, 0.1)):
+        for seed in range(2):
+            runs.append(tmp_path / f"illm-{noise}-s{seed}")
+            fake_run(runs[-1], seed, [(100, final, 2), (200, final, 2)], env_id="BabyAI-UnlockLocal-v0")
+            cfg = json.loads((runs[-1] / "config.json").read_text())
+            cfg.update(backend="oracle", oracle_noise=noise, history_len=0)
+            (runs[-1] / "config.json").write_text(json.dumps(cfg))
+    runs.append(tmp_path / "ppo-s0")
+    fake_run(runs[-1], 0, [(100, 0.2, 2), (200, 0.2, 2)], mode="ppo", env_id="BabyAI-UnlockLocal-v0")
+    probes = [probe_file("o0", "oracle", "oracle", 0.85), probe_file("o5", "oracle:noise=0.5", "oracle", 0.6),
+              probe_file("o1", "oracle:noise=1", "oracle", 0.3), probe_file("smol", "smollm2-135m", "transformers", 0.25)]
+    out = tmp_path / "rep"
+    result = CliRunner().invoke(app, ["report", *map(str, runs), "--every", "100", "--out", str(out), "--bootstrap",
+                                      "200", *[x for p in probes for x in ("--probe", str(p))]])
+    assert result.exit_code == 0, result.output
+    quality = json.loads((out / "results.json").read_text())["quality"]
+    points = {p["label"]: (p["agreement"], p["final"]["iqm"]) for p in quality["points"]}
+    assert points == {"illm (oracle_noise 0)": (0.85, pytest.approx(0.9)), "illm (oracle_noise 0.5)": (0.6, pytest.approx(0.5)),
+                      "illm (oracle_noise 1)": (0.3, pytest.approx(0.1))}
+    assert [line["label"] for line in quality["lines"]] == ["ppo"]
+    assert [(m["model"], m["agreement"]) for m in quality["markers"]] == [("smollm2-135m", 0.25)]
+    assert (out / "quality.png").read_bytes()[:8] == PNG
+    md = (out / "report.md").read_text()
+    assert "## Annotator quality" in md and "| BabyAI-UnlockLocal-v0 | illm (oracle_noise 0.5) | 0.600 |" in md
+
+    bad = tmp_path / "bad.json"
+    bad.write_text("{}")
+    refused = CliRunner().invoke(app, ["report", *map(str, runs), "--out", str(tmp_path / "r2"), "--probe", str(bad)])
+    assert refused.exit_code == 1 and "is not a probe file" in refused.output and "Traceback" not in refused.output

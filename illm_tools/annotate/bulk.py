@@ -12,6 +12,10 @@ from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS
 from illm_tools.tasks.registry import get_task, parse_tasks
 
 
+DEFAULT_CHUNK = 32
+"""States per written shard for a backend that names none (an LLM: about 20 s on 2 CPU cores)."""
+
+
 @dataclass
 class AnnotateConfig:
     """Everything that determines a bulk annotation run."""
@@ -20,10 +24,12 @@ class AnnotateConfig:
     """Trajectory dataset written by `illm collect`."""
     cache: Path = Path("data/ann")
     """Annotation cache folder (created if absent; shared by every run that reads it)."""
-    model: str = "smollm2-135m"
-    """Model alias (see `illm models`), hub id or local folder."""
+    model: str | None = None
+    """Model alias (see `illm models`), hub id or local folder; None: the backend's own
+    (`illm_tools.llm.backend.resolve_model`: smollm2-135m for transformers, oracle for oracle)."""
     backend: str = "transformers"
-    """LLM backend (`illm_tools.llm.backend`): transformers, or stub (deterministic, no weights)."""
+    """LLM backend (`illm_tools.llm.backend`): transformers, oracle (knows BabyAI/MiniGrid), or stub
+    (deterministic, no weights)."""
     tasks: tuple[str, ...] = DEFAULT_TASKS
     """Language tasks (`illm_tools.tasks.registry`): action (next-action ranking), summary (64-token
     history compression), goal (suggested goals: ELLM's, and a head of iLLM's), plan (a 2-7 action
@@ -53,22 +59,31 @@ class AnnotateConfig:
     device: str = "cpu"
     """Where the model runs: cpu, cuda, cuda:N or auto (a GPU when there is one). Under
     `accelerate launch` (or --num-processes) each process takes its own device for cuda/auto."""
-    chunk: int = 32
+    chunk: int | None = None
     """States per written shard: a killed run loses at most one chunk, and `max_minutes` is
-    checked between chunks (a chunk takes about 20 s on 2 CPU cores at history 0)."""
+    checked between chunks. None: the backend's (`chunk_states`: 32 for an LLM, about 20 s on 2
+    CPU cores at history 0; 2,048 for the oracle, about 2 s)."""
+
+    @property
+    def llm_model(self) -> str:
+        """The model spec the backend serves (`model`, or the backend's default)."""
+        from illm_tools.llm.backend import resolve_model
+
+        return resolve_model(self.backend, self.model)
 
     def __post_init__(self) -> None:
         self.data, self.cache = Path(self.data), Path(self.cache)
         self.tasks = parse_tasks(self.tasks)
         if self.layout not in LAYOUTS:
             raise UsageError(f"unknown --layout {self.layout!r}: use {' or '.join(LAYOUTS)}")
-        if self.batch_size <= 0 or self.chunk <= 0:
+        if self.batch_size <= 0 or (self.chunk is not None and self.chunk <= 0):
             raise UsageError("--batch-size and --chunk must be positive")
         if self.limit is not None and self.limit < 0:
             raise UsageError(f"--limit must be 0 or more, got {self.limit}")
-        from illm_tools.llm.backend import check_backend
+        from illm_tools.llm.backend import check_backend, resolve_model
 
         check_backend(self.backend)
+        resolve_model(self.backend, self.model)  # refuses a model the backend does not serve
         if self.mode not in ("obs", "hop"):
             raise UsageError(f"--mode must be obs or hop, got {self.mode!r}")
         unfit = [t for t in self.tasks if not get_task(t).hop]
@@ -170,10 +185,11 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
         records, env_ids = records_from_table(table, config.history)
         renderers = table.column("renderer").to_pylist()
     state = distributed_state()
-    lm = load_backend(config.backend, config.model, dtype=config.dtype, quant=config.quant,
+    lm = load_backend(config.backend, config.llm_model, dtype=config.dtype, quant=config.quant,
                       device=resolve_device(config.device, state))
-    annotator = Annotator(lm, cache, model=config.model, tasks=config.tasks, history_len=config.history,
-                          layout=config.layout, batch_size=config.batch_size, chunk=config.chunk)
+    annotator = Annotator(lm, cache, model=config.llm_model, tasks=config.tasks, history_len=config.history,
+                          layout=config.layout, batch_size=config.batch_size,
+                          chunk=config.chunk or getattr(lm, "chunk_states", DEFAULT_CHUNK))
     visited = annotator.visited(records, env_ids, renderers)
     selected = visited.top(config.limit)
     stats = Stats()

@@ -101,6 +101,9 @@ class Annotator:
     def builder(self, env_id: str, renderer: str) -> PromptBuilder:
         key = (env_id, renderer)
         if key not in self._builders:
+            check = getattr(type(self.lm), "check_use", None)  # a backend refuses what it cannot read (the oracle: hop)
+            if check is not None:
+                check(env_id, renderer)
             self._builders[key] = PromptBuilder(env_id=env_id, renderer=renderer, model=self.model,
                                                 model_fingerprint=self.model_fingerprint,
                                                 history_len=self.history_len, layout=self.layout)

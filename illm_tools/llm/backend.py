@@ -17,7 +17,13 @@ summary embedding's width) and `device`, and answers:
 name is refused in one line), `backend_fingerprint` / `backend_hidden_size` answer without loading
 weights. `transformers` (the default: `illm_tools.llm.transformers_backend`) runs real models;
 `stub` (`illm_tools.llm.stub`) answers deterministically from the prompt, for tests and
-benchmarks of everything around the LLM. A third backend is one new file plus one entry here.
+benchmarks of everything around the LLM; `oracle` (`illm_tools.llm.oracle`) answers BabyAI and
+MiniGrid prompts as a player who knows the game, the positive control. Another backend is one new
+file plus one entry here.
+
+Optional, on a backend class: `default_model` (the model when none is named: `resolve_model`) and
+`check_use(env_id, renderer)` (refuse, in one line, envs or hop states it cannot read:
+`check_backend_use`).
 """
 from __future__ import annotations
 
@@ -31,6 +37,7 @@ from illm_tools.errors import UsageError
 BACKENDS: dict[str, str | type] = {
     "transformers": "illm_tools.llm.transformers_backend:TransformersBackend",
     "stub": "illm_tools.llm.stub:StubBackend",
+    "oracle": "illm_tools.llm.oracle:OracleBackend",
 }
 """Backend name -> its class ("module:Class", imported on first use, or the class)."""
 DEFAULT_BACKEND = "transformers"
@@ -87,6 +94,61 @@ def backend_class(name: str) -> type:
         module, attr = entry.split(":")
         entry = getattr(importlib.import_module(module), attr)
     return entry
+
+
+def resolve_model(backend: str, model: str | None, *, oracle_noise: float = 0.0) -> str:
+    """The model spec a backend serves: `model`, or the backend's default when None (smollm2-135m
+    for transformers); the oracle's `--oracle-noise` goes into its spec ("oracle:noise=0.5")."""
+    cls = backend_class(backend)
+    if oracle_noise and backend != "oracle":
+        raise UsageError(f"--oracle-noise is the oracle backend's quality knob: add --backend oracle "
+                         f"(this command uses --backend {backend})")
+    if backend == "oracle":
+        from illm_tools.llm.oracle import oracle_spec, parse_spec
+
+        if model is not None and parse_spec(model) and oracle_noise:
+            raise UsageError(f"--model {model} already sets the oracle's noise: leave --oracle-noise out")
+        return model if model is not None and parse_spec(model) else oracle_spec(oracle_noise)
+    if model is not None:
+        return model
+    from illm_tools.llm.registry import DEFAULT_MODEL
+
+    return getattr(cls, "default_model", DEFAULT_MODEL)
+
+
+def check_backend_use(backend: str, env_id: str, renderer: str) -> None:
+    """Refuse in one line an env (or hop states: a renderer "hop@...") the backend cannot read."""
+    check = getattr(backend_class(backend), "check_use", None)
+    if check is not None:
+        check(env_id, renderer)
+
+
+def model_options(model: str, fingerprint: str) -> str:
+    """The options that select the setup of a cache row (its `model` and fingerprint hash): "--backend
+    oracle --oracle-noise 0.5", "--backend stub --model stub:64 --dtype float32 --quant none", or
+    `illm_tools.llm.loading.model_options`' "--model A --dtype D --quant Q" for a transformers model."""
+    from illm_tools.cache.keys import fingerprint_hash
+
+    for name in BACKENDS:
+        if name == "transformers":
+            continue
+        cls = backend_class(name)
+        for dtype in ("bfloat16", "float32", "float16"):
+            for quant in ("none", "4bit", "8bit"):
+                try:
+                    if fingerprint_hash(cls.model_fingerprint(model, dtype=dtype, quant=quant)) != fingerprint:
+                        continue
+                except Exception:  # noqa: BLE001 - not a model this backend serves
+                    break
+                if name == "oracle":
+                    from illm_tools.llm.oracle import parse_spec
+
+                    noise = parse_spec(model)
+                    return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
+                return f"--backend {name} --model {model} --dtype {dtype} --quant {quant}"
+    from illm_tools.llm.loading import model_options as transformers_options
+
+    return transformers_options(model, fingerprint)
 
 
 def load_backend(name: str, model: str, *, dtype: str = "bfloat16", quant: str = "none", device: str = "cpu",

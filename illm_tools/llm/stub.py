@@ -38,6 +38,7 @@ def _rng(*parts: str) -> np.random.Generator:
 class StubBackend:
     name = "stub"
     device = "cpu"
+    default_model = "stub"
 
     def __init__(self, model: str = "stub", *, dtype: str = "bfloat16", quant: str = "none"):
         self.model = model

@@ -13,6 +13,7 @@ from illm_tools.llm.loading import LoadedModel
 
 class TransformersBackend:
     name = "transformers"
+    default_model = "smollm2-135m"
 
     def __init__(self, lm: LoadedModel):
         self.lm = lm

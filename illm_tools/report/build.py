@@ -4,7 +4,8 @@ DIR/report.md (markdown tables: per env, each configuration's final score as IQM
 mean ± std over seeds; a methods × envs table when there are several envs; what was grouped),
 DIR/curves-<env>.png (learning curves with bootstrap bands), DIR/final.png (final scores with
 their intervals), DIR/visitation-<env>-<label>.png (per configuration, for runs that saved
-visitation.npy, summed over seeds) and DIR/results.json (every number behind them).
+visitation.npy, summed over seeds), DIR/quality.png (with probe files: final score against the
+annotator's probe agreement, `quality.py`) and DIR/results.json (every number behind them).
 
 A seed's final score is the mean of its last `final_points` curve points (`curves.summarise`: the
 points every seed of the row has, so a row's final frame is its shortest seed's last point).
@@ -92,14 +93,17 @@ def _visitation(row: dict, out: Path, taken: set[str]) -> None:
 
 
 def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int = 1,
-                 reps: int = DEFAULT_BOOTSTRAP, seed: int = BOOTSTRAP_SEED) -> dict:
-    """Write the report folder `out` (see the module docstring) and return results.json's content."""
+                 reps: int = DEFAULT_BOOTSTRAP, seed: int = BOOTSTRAP_SEED, probes: list[Path] = ()) -> dict:
+    """Write the report folder `out` (see the module docstring) and return results.json's content.
+    `probes` (`illm probe --out` files) add the annotator-quality curve (`illm_tools.report.quality`)."""
     from illm_tools.report.markdown import render
+    from illm_tools.report.quality import load_probes
 
     if final_points <= 0:
         raise UsageError(f"--final-points must be at least 1, got {final_points}")
     if reps <= 0:
         raise UsageError(f"--bootstrap must be at least 1 resample, got {reps}")
+    probe_figures = load_probes(list(probes))
     groups = summarise(list(run_dirs), every)
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -125,12 +129,24 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
     if any(r["final"]["iqm"] is not None for r in rows):
         final_file = "final.png"
         plots.final_png(panels, out / final_file)
+    quality_file, quality_result = None, None
+    if probe_figures:
+        from illm_tools.report.quality import quality, quality_png
+
+        configs = {key: json.loads((Path(g["runs"][0]) / "config.json").read_text())
+                   for key, g in groups.items() if g["runs"]}
+        quality_result = quality([r for r in rows if (r["env_id"], r["label"]) in configs], configs, probe_figures)
+        if quality_result["points"]:
+            quality_file = "quality.png"
+            plots_names = {env: score_name(env) for env in envs}
+            quality_png(quality_result, plots_names, out / quality_file)
     results = _clean({
         "settings": {"every": every, "final_points": final_points, "bootstrap_reps": reps, "bootstrap_seed": seed,
                      "confidence": stats.CONFIDENCE,
                      "interval": "percentile, stratified bootstrap over seeds (rliable)"},
         "envs": envs, "rows": rows,
-        "files": {"report": "report.md", "curves": curve_files, "final": final_file,
+        "quality": quality_result,
+        "files": {"report": "report.md", "curves": curve_files, "final": final_file, "quality": quality_file,
                   "visitation": {f"{r['env_id']} / {r['label']}": r["visitation"]["png"]
                                  for r in rows if r["visitation"]}},
     })

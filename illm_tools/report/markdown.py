@@ -136,5 +136,9 @@ def render(results: dict) -> str:
         lines += _wide(results)
     if results["files"]["final"]:
         lines += [f"Final scores with their intervals: ![final scores]({results['files']['final']})", ""]
+    if results.get("quality"):
+        from illm_tools.report.quality import quality_markdown
+
+        lines += quality_markdown(results["quality"])
     lines += _grouped(results)
     return "\n".join(lines)

@@ -299,7 +299,7 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
         from illm_tools.llm.backend import load_backend
 
         obs_dim = int(np.prod(pool.suite.raw_obs(np.zeros(state["image_shape"], dtype=np.uint8)).shape))
-        lm = load_backend(cfg.backend, cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+        lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant)
         hop = (HopContext(lm, obs_dim, len(names), seed=cfg.hop_seed, beta=cfg.hop_beta),
                HopTracker(pool.num_envs, cfg.history_len, names))
     net = make_network(method, cfg.env_id, len(names), image_shape=tuple(state["image_shape"]),

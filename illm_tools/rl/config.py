@@ -22,6 +22,19 @@ BONUS_PRESETS = {  # `illm train --bonus-preset`: bonus weights and advantage we
 }
 
 
+def parse_budget(value: int | str) -> int | str:
+    """A live budget: a whole number >= 0, or "all"."""
+    if isinstance(value, str) and value.strip().lower() == "all":
+        return "all"
+    try:
+        budget = int(value)
+    except (TypeError, ValueError):
+        budget = -1
+    if budget < 0 or (isinstance(value, float) and value != budget):
+        raise UsageError(f"--live-budget is a number of states >= 0 or 'all', got {value!r}")
+    return budget
+
+
 def bonus_weights(preset: str, **given: float | None) -> dict[str, float]:
     """lambda_a, beta_hc, ext_coef and int_coef of a BONUS_PRESETS entry; `given` values not None win."""
     if preset not in BONUS_PRESETS:
@@ -144,11 +157,16 @@ class TrainConfig:
     # --- LLM targets -----------------------------------------------------------------------
     cache: Path | None = None
     """Annotation cache the targets are read from (and live annotations written back to)."""
-    model: str = "smollm2-135m"
-    """LLM whose annotations are the targets: its fingerprint is part of every cache key."""
+    model: str | None = None
+    """LLM whose annotations are the targets (its fingerprint is part of every cache key); None: the
+    backend's own (smollm2-135m for transformers, oracle for oracle)."""
     backend: str = "transformers"
-    """LLM backend serving `model` (`illm_tools.llm.backend`): transformers, or stub (deterministic
-    answers from the prompt, no weights: for tests and benchmarks)."""
+    """LLM backend serving `model` (`illm_tools.llm.backend`): transformers, oracle (a rule-based
+    annotator that knows BabyAI/MiniGrid: the positive control), or stub (deterministic answers from
+    the prompt, no weights: for tests and benchmarks)."""
+    oracle_noise: float = 0.0
+    """oracle: the share of states (fixed, keyed by the state) whose answers are random (1: an
+    annotator that knows nothing); part of the oracle's fingerprint."""
     model_dtype: str = "bfloat16"
     """Compute dtype of that LLM (part of its fingerprint, as in `illm annotate --dtype`)."""
     quant: str = "none"
@@ -160,9 +178,11 @@ class TrainConfig:
     action_target: str = "distribution"
     """f^a's target: distribution (softmax of the calibrated scores) or argmax (the one-hot of the
     best one: the paper's Algorithm 1 line 7 and Appendix A select the highest log-probability)."""
-    live_budget: int = 16
+    live_budget: int | str = 16
     """Missed states handed to the live LLM after each rollout, most visited first: sync annotates
-    them before the update; async gives them to the worker in place of its queue. 0: cache only."""
+    them before the update; async gives them to the worker in place of its queue. 0: cache only;
+    all: every missed state (with sync, a target on every step: for fast annotators such as the
+    oracle, or an LLM on a GPU)."""
     live_mode: str = "async"
     """sync: annotate in the trainer's process, which waits; async: a worker process beside the
     rollouts, whose answers later rollouts use (the trainer never waits)."""
@@ -207,8 +227,9 @@ class TrainConfig:
         if self.annotator is not None and not self.annotator.startswith(("http://", "https://")):
             raise UsageError(f"--annotator is the URL of an `illm serve` server (http://127.0.0.1:PORT), got "
                              f"{self.annotator!r}")
-        if self.live_budget < 0 or self.threads <= 0 or self.llm_threads < 0:
-            raise UsageError("--live-budget and --llm-threads must be >= 0 and --threads positive")
+        self.live_budget = parse_budget(self.live_budget)
+        if self.threads <= 0 or self.llm_threads < 0:
+            raise UsageError("--llm-threads must be >= 0 and --threads positive")
         from illm_tools.tasks.registry import get_task, parse_tasks
 
         self.tasks = parse_tasks(self.tasks, "--tasks")
@@ -246,9 +267,10 @@ class TrainConfig:
         if self.action_similarity not in ("tv", "bhattacharyya"):
             raise UsageError("action_similarity must be tv or bhattacharyya, "
                              f"got {self.action_similarity!r}")
-        from illm_tools.llm.backend import check_backend
+        from illm_tools.llm.backend import check_backend, resolve_model
 
         check_backend(self.backend)
+        resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise)  # refuses a bad model or noise
         if self.obs_mode not in OBS_MODES:
             raise UsageError(f"--mode is the observation mode, {' or '.join(OBS_MODES)}; got {self.obs_mode!r} "
                              "(the method is --method)")
@@ -287,6 +309,18 @@ class TrainConfig:
     def pays_bonus(self) -> bool:
         """Whether the intrinsic rewards reach the advantages."""
         return get_method(self.mode).pays
+
+    @property
+    def llm_model(self) -> str:
+        """The model spec the backend serves: `model` or the backend's default, with the oracle's noise."""
+        from illm_tools.llm.backend import resolve_model
+
+        return resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise)
+
+    @property
+    def live_limit(self) -> int | None:
+        """The live budget as a number of states per rollout; None: all of them."""
+        return None if self.live_budget == "all" else int(self.live_budget)
 
     @property
     def renderer(self) -> str:

@@ -116,7 +116,7 @@ class Trainer:
         from illm_tools.llm.backend import load_backend
 
         cfg = self.cfg
-        lm = load_backend(cfg.backend, cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
+        lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant)
         raw = np.asarray(self.suite.raw_obs(self.obs.images[0]))
         self.hop_tracker = HopTracker(cfg.num_envs, cfg.history_len, self.action_names)
         self._hop_now = None  # (records, Z_h) of the current observations, computed once

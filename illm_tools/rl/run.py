@@ -40,7 +40,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "see `illm annotate`), or use --method ppo")
     from illm_tools.cache.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
-    from illm_tools.llm.backend import backend_fingerprint, backend_hidden_size
+    from illm_tools.llm.backend import backend_fingerprint, backend_hidden_size, check_backend_use
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.targets import CachedTargets, GoalTargets, check_setup
     from illm_tools.tasks.prompts import PromptBuilder
@@ -49,17 +49,19 @@ def make_provider(cfg: TrainConfig, num_actions: int):
 
     cache = AnnotationCache(cfg.cache)
     renderer = cfg.renderer  # the suite's text renderer, or the hop translation's settings
-    fp = fingerprint_hash(backend_fingerprint(cfg.backend, cfg.model, dtype=cfg.model_dtype, quant=cfg.quant))
-    builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=cfg.model, model_fingerprint=fp,
+    model = cfg.llm_model
+    check_backend_use(cfg.backend, cfg.env_id, renderer)
+    fp = fingerprint_hash(backend_fingerprint(cfg.backend, model, dtype=cfg.model_dtype, quant=cfg.quant))
+    builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=model, model_fingerprint=fp,
                             history_len=cfg.history_len, layout=cfg.layout)
     if len(cache) == 0 and cfg.live_budget == 0:
         raise CacheError(f"the cache {cfg.cache} is empty and --live-budget is 0: nothing would give targets; "
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
-        check_setup(cache, builder, model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant, tasks=tasks)
+        check_setup(cache, builder, model=model, dtype=cfg.model_dtype, quant=cfg.quant, tasks=tasks)
     if not get_method(cfg.mode).policy_heads:  # ELLM: the goals themselves, no heads to distil into
         return GoalTargets(cache, builder, num_actions=num_actions, live=make_live(cfg, builder, cache, tasks)), cfg
-    dim = backend_hidden_size(cfg.backend, cfg.model)
+    dim = backend_hidden_size(cfg.backend, model)
     if dim != cfg.embedding_dim:
         cfg = dataclasses.replace(cfg, embedding_dim=dim)
     provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
@@ -79,20 +81,21 @@ def make_live(cfg: TrainConfig, builder, cache, tasks: tuple[str, ...] = ("actio
     if cfg.annotator is not None:
         setup = {"model_fingerprint": builder.model_fingerprint, "env_id": builder.env_id, "renderer": builder.renderer,
                  "history_len": builder.history_len, "layout": builder.layout, "tasks": list(tasks)}
-        return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), setup=setup, budget=cfg.live_budget,
-                          options=f"--model {cfg.model} --dtype {cfg.model_dtype} --quant {cfg.quant}")
+        return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), setup=setup, budget=cfg.live_limit,
+                          options=f"--model {cfg.llm_model} --dtype {cfg.model_dtype} --quant {cfg.quant}")
     if cfg.live_mode == "async":
-        spec = WorkerSpec(cache=str(cfg.cache), model=cfg.model, dtype=cfg.model_dtype, quant=cfg.quant,
+        spec = WorkerSpec(cache=str(cfg.cache), model=cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant,
                           env_id=builder.env_id, renderer=builder.renderer, history_len=cfg.history_len,
                           layout=cfg.layout, threads=cfg.live_threads, tasks=tuple(tasks), backend=cfg.backend)
-        return AsyncLive(spec, budget=cfg.live_budget)
+        return AsyncLive(spec, budget=cfg.live_limit)
     from illm_tools.annotate.engine import Annotator
     from illm_tools.llm.backend import load_backend
 
-    lm = load_backend(cfg.backend, cfg.model, dtype=cfg.model_dtype, quant=cfg.quant)
-    annotator = Annotator(lm, cache, model=cfg.model, tasks=tasks, history_len=cfg.history_len,
-                          layout=cfg.layout)
-    return SyncLive(annotator, builder.env_id, builder.renderer, cfg.live_budget, threads=cfg.live_threads)
+    lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant)
+    # one shard per rollout: a budget of "all" hands over a rollout's every missed state at once
+    annotator = Annotator(lm, cache, model=cfg.llm_model, tasks=tasks, history_len=cfg.history_len,
+                          layout=cfg.layout, chunk=4096)
+    return SyncLive(annotator, builder.env_id, builder.renderer, cfg.live_limit, threads=cfg.live_threads)
 
 
 def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,

@@ -304,10 +304,19 @@ _FLAGS = {"history_len": "--history", "layout": "--layout", "renderer": "rendere
 
 def _describe(setup: dict, fields: list[str], model: str | None) -> str:
     """The differing settings of a setup as the flags that select them."""
-    from illm_tools.llm.loading import model_options
+    from illm_tools.llm.backend import model_options
 
     return ", ".join((model or model_options(setup["model"], setup["model_fingerprint"]))
                      if f == "model_fingerprint" else f"{_FLAGS[f]} {setup[f]}" for f in fields)
+
+
+def _run_options(builder: PromptBuilder, model: str, dtype: str, quant: str) -> str:
+    """The run's model options as flags: a transformers model's as given, another backend's as its
+    fingerprint reads ("--backend oracle --oracle-noise 0.5")."""
+    from illm_tools.llm.backend import model_options
+
+    options = model_options(model, builder.model_fingerprint)
+    return options if options.startswith("--backend") else f"--model {model} --dtype {dtype} --quant {quant}"
 
 
 def check_setup(cache: AnnotationCache, builder: PromptBuilder, *, model: str, dtype: str, quant: str,
@@ -342,5 +351,5 @@ def check_setup(cache: AnnotationCache, builder: PromptBuilder, *, model: str, d
         raise CacheError(
             f"the cache {cache.root} holds no {task} annotations for this run's setup: it holds "
             f"{_describe(theirs, fields, None)} annotations ({closest['entries']:,} entries); this run asks for "
-            f"{_describe(want, fields, f'--model {model} --dtype {dtype} --quant {quant}')}. Train with the "
+            f"{_describe(want, fields, _run_options(builder, model, dtype, quant))}. Train with the "
             "cache's settings, or pass --new-setup to start this setup in the cache")

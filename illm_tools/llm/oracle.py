@@ -1,0 +1,271 @@
+"""The oracle backend: an annotator that knows BabyAI and MiniGrid, for a positive control of iLLM.
+
+`--backend oracle` answers every language task from the rendered prompt alone (the mission, the
+history of observations and actions, the valid actions; never the environment's state) with the
+rule-based planner of `illm_tools.llm.oracle_planner`, as an LLM that knows the game would:
+
+- `action` (ranking): each valid action's log-probability is log softmax(-KAPPA * cost), the cost
+  being the planner's count of steps left after the action (the best actions share most of the
+  mass: a step worse is e^-2 as likely). One "token" per candidate, so `--action-score sum`,
+  `mean` and `pmi` (the neutral prompt scores every action alike) rank the same, and
+  `--action-target argmax` and `distribution` both work.
+- text tasks: `summary` a short deterministic account of the history (the step at hand, what the
+  agent did, where the step's objects are, what it carries, what blocks it), `goal` the step at
+  hand and those after it ("pick up the yellow key, open the door"), `plan` the next actions of
+  the plan ("go forward, turn left, pick up"); the task is read from the prompt's instruction
+  line, and a task the oracle does not know gets the summary. The texts are embedded with
+  all-MiniLM-L6-v2 (`illm_tools.llm.sentence`, the sentence model ELLM already uses; unit vectors
+  of 384, the run's `embedding_dim`): a goal or plan whole, a summary as the normalised mean of its
+  sentences' embeddings (one fact a sentence, so the sentence model runs once per distinct
+  sentence: annotation stays above 1,000 states/s on one core; `benchmarks/oracle.py`).
+
+The quality knob (`--oracle-noise P`, the model spec "oracle:noise=P"): a fixed, keyed share P of
+the states (a keyed hash of the state, not of the task's prompt, so all of a state's tasks go
+together) gets a random answer instead: random action costs, and a summary, goal and plan made
+of random words of the same grammar. Both the choice and the random answer are deterministic per
+state, so P = 1 is an annotator that knows nothing and answers each state the same way every time.
+
+Its fingerprint carries the planner's version, this file's answer version, the noise and the
+sentence model's package version, never a dtype or quantisation (the oracle has neither), so its
+rows never mix with an LLM's and every `--dtype` reads them. It refuses text suites other than
+BabyAI/MiniGrid and `--mode hop` (it reads text, it has no embedding space) in one line.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import random
+import re
+from collections.abc import Sequence
+
+import numpy as np
+
+from illm_tools.errors import UsageError
+from illm_tools.llm.oracle_planner import (COLOURS, GAMES, MOVES, PLANNER_VERSION, NotAScene, Planner,
+                                           Scene, parse_prompt, plan_text, summary_text)
+
+ORACLE_VERSION = 1
+"""Version of how the planner's reading becomes answers (KAPPA, the texts' use, the noise scheme)."""
+KAPPA = 2.0
+"""Inverse temperature of the ranking: log P(a) = log softmax(-KAPPA * cost(a))."""
+NAME = "oracle"
+NOISE_KEY = b"illm-oracle-noise@1"
+_SPEC = re.compile(r"^oracle(?::noise=(?P<noise>[0-9.eE+-]+))?$")
+
+
+def oracle_spec(noise: float = 0.0) -> str:
+    """The model spec of the oracle at a noise level ("oracle", "oracle:noise=0.5")."""
+    if not 0.0 <= noise <= 1.0:
+        raise UsageError(f"--oracle-noise must lie in [0, 1], got {noise}")
+    return NAME if noise == 0 else f"{NAME}:noise={noise:g}"
+
+
+def parse_spec(model: str) -> float:
+    """The noise of an oracle model spec; anything else is refused in one line."""
+    m = _SPEC.match(model or "")
+    if m is None:
+        raise UsageError(f"the oracle backend serves the model 'oracle' (with --oracle-noise P), not {model!r}: "
+                         "leave --model out or pass --model oracle")
+    noise = float(m.group("noise") or 0.0)
+    oracle_spec(noise)
+    return noise
+
+
+def _embedder():
+    from illm_tools.llm.sentence import shared_embedder
+
+    return shared_embedder()
+
+
+def _embedding_dim() -> int:
+    from illm_tools.llm.sentence import model_dir
+
+    return int(json.loads((model_dir() / "config.json").read_text())["hidden_size"])
+
+
+class OracleBackend:
+    """The oracle behind the `Backend` protocol (see the module docstring)."""
+
+    name = NAME
+    device = "cpu"
+    shares_prefix = False
+    default_model = NAME
+    chunk_states = 2048
+    """States per written shard in bulk annotation (an LLM's chunk of 32 would write a shard every 30 ms)."""
+
+    def __init__(self, model: str = NAME):
+        self.model = model
+        self.noise = parse_spec(model)
+        self.fingerprint = self.model_fingerprint(model)
+        self.hidden_size = _embedding_dim()
+        self.planner = Planner()
+        self._tokens: dict[str, int] = {}
+
+    # --- building ------------------------------------------------------------------------------
+    @classmethod
+    def load(cls, model: str = NAME, *, dtype: str = "float32", quant: str = "none", device: str = "cpu",
+             cache_dir=None) -> OracleBackend:
+        return cls(model)
+
+    @staticmethod
+    def model_fingerprint(model: str, *, dtype: str = "float32", quant: str = "none") -> dict:
+        from illm_tools.llm.sentence import MODEL_NAME, PIP_NAME, package_version
+
+        return {"model_id": NAME, "source": "oracle", "sha256": None,
+                "revision": f"planner@{PLANNER_VERSION}+answers@{ORACLE_VERSION}", "noise": parse_spec(model),
+                "embedder": f"{MODEL_NAME}@{PIP_NAME}-{package_version()}", "dtype": "float32", "quant": "none"}
+
+    @staticmethod
+    def model_hidden_size(model: str) -> int:
+        return _embedding_dim()
+
+    @staticmethod
+    def check_use(env_id: str, renderer: str) -> None:
+        """Refuse what the oracle cannot read, in one line: hop states and other suites' text."""
+        if renderer.startswith("hop@"):
+            raise UsageError("the oracle backend reads the text of BabyAI/MiniGrid states; --mode hop translates "
+                             "observations into an LLM's embedding space, which the oracle does not have: use "
+                             "--mode obs, or an LLM backend for hop")
+        if not env_id.startswith(tuple(f"{g}-" for g in GAMES)):
+            raise UsageError(f"the oracle backend knows BabyAI and MiniGrid only, not {env_id}: use an LLM backend "
+                             "(--backend transformers) for other suites")
+
+    # --- reading prompts -----------------------------------------------------------------------
+    def _scene(self, text: str, actions: Sequence[str] = ()) -> Scene:
+        try:
+            scene = parse_prompt(text)
+        except NotAScene as e:
+            raise UsageError(f"the oracle backend cannot read this prompt ({e}): it answers the prompts illm "
+                             "renders for BabyAI/MiniGrid states") from None
+        if scene.game not in GAMES:
+            raise UsageError(f"the oracle backend knows BabyAI and MiniGrid only, not {scene.game}: use an LLM "
+                             "backend (--backend transformers) for other suites")
+        return Scene(scene.game, scene.mission, scene.history, scene.observation, tuple(actions) or scene.actions)
+
+    def _noised(self, scene: Scene) -> random.Random | None:
+        """The state's random stream when it is in the noised share, else None (both keyed by the state)."""
+        if self.noise <= 0:
+            return None
+        digest = hashlib.blake2b(scene.state_id.encode(), key=NOISE_KEY, digest_size=16).digest()
+        if int.from_bytes(digest[:8], "big") / 2**64 >= self.noise:
+            return None
+        return random.Random(int.from_bytes(digest[8:], "big"))
+
+    # --- text ----------------------------------------------------------------------------------
+    def _ranking(self, context: str, candidates: Sequence[str]):
+        from illm_tools.llm.scoring import CandidateScores
+
+        names = [c.strip() for c in candidates]
+        if context.strip() == _neutral():  # PMI's neutral prompt: no state, every action alike
+            return CandidateScores.from_logprobs([[-math.log(len(names))] for _ in names])
+        scene = self._scene(context, names)
+        rng = self._noised(scene)
+        costs = [rng.uniform(0.0, 2.0) for _ in names] if rng is not None else \
+            [self.planner.answer(scene).costs[n] for n in names]
+        logits = -KAPPA * np.asarray(costs, dtype=np.float64)
+        logp = logits - (logits.max() + np.log(np.exp(logits - logits.max()).sum()))
+        return CandidateScores.from_logprobs([[float(x)] for x in logp])
+
+    def _text(self, prompt: str) -> str:
+        scene = self._scene(prompt)
+        task = _task_of(prompt)
+        rng = self._noised(scene)
+        if rng is not None:
+            return _random_text(task, rng, len(scene.history))
+        answer = self.planner.answer(scene)
+        if task == "goal":
+            return answer.goal
+        if task == "plan":
+            return plan_text(answer)
+        return summary_text(scene, answer)
+
+    def score(self, contexts, candidates, *, batch_size: int = 8):
+        return [self._ranking(c, cands) for c, cands in zip(contexts, candidates)]
+
+    def generate(self, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
+        from illm_tools.llm.generation import Generation
+
+        texts = [self._text(p) for p in prompts]
+        embeddings = self._embed_answers(texts, [_task_of(p) == "summary" for p in prompts])
+        out = []
+        for text, emb in zip(texts, embeddings):
+            words = text.split()
+            cut = len(words) > max_new_tokens  # the oracle's "tokens" are words
+            text = " ".join(words[:max_new_tokens]) if cut else text
+            out.append(Generation(text, list(range(min(len(words), max_new_tokens))), not cut, emb))
+        return out
+
+    def score_and_generate(self, contexts, candidates, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
+        return self.score(contexts, candidates), self.generate(prompts, max_new_tokens=max_new_tokens)
+
+    def embed(self, texts, *, batch_size: int = 8):
+        return _embedder().encode(list(texts))
+
+    def _embed_answers(self, texts: Sequence[str], by_sentence: Sequence[bool]) -> np.ndarray:
+        """The answers' embeddings: a summary's is the L2-normalised mean of its sentences' (one fact
+        a sentence: the sentence model then runs once per distinct sentence, not per distinct
+        summary), a goal's and a plan's the whole text's."""
+        parts = [_SENTENCE.split(t) if whole else [t] for t, whole in zip(texts, by_sentence)]
+        flat = list(dict.fromkeys(p for ps in parts for p in ps))
+        if not flat:
+            return np.zeros((len(texts), self.hidden_size), np.float32)
+        table = dict(zip(flat, self.embed(flat)))
+        out = np.stack([np.mean([table[p] for p in ps], axis=0) for ps in parts]).astype(np.float32)
+        return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+
+    # --- no embedding space (iLLM(hop)) --------------------------------------------------------
+    def _no_hop(self, *_args, **_kwargs):
+        self.check_use("", "hop@")
+
+    input_embeddings = last_hidden = spliced = _no_hop
+
+
+_SENTENCE = re.compile(r"(?<=\.) (?=[A-Z])")
+
+
+def _neutral() -> str:
+    from illm_tools.tasks.prompts import neutral_prompt
+
+    return neutral_prompt().strip()
+
+
+_TASK_LINES = (("Summarize the main points", "summary"), ("Suggest the next goal", "goal"),
+               ("Suggest the best sequence of actions", "plan"))
+
+
+def _task_of(prompt: str) -> str:
+    """The text task a prompt asks for, from its instruction line (the summary for any other)."""
+    for marker, task in _TASK_LINES:
+        if marker in prompt:
+            return task
+    return "summary"
+
+
+_VERBS = ("go to", "pick up", "open", "put")
+_KINDS = ("key", "ball", "box", "door")
+_PLACES = ("adjacent in front", "near, ahead", "near, ahead on the left", "near, ahead on the right", "far, ahead",
+           "far, ahead on the left", "far, ahead on the right", "near to the left", "near to the right")
+
+
+def _random_text(task: str, rng: random.Random, history: int) -> str:
+    """A random answer of the task's grammar (the noised share of `--oracle-noise`)."""
+    def thing() -> str:
+        return f"{rng.choice(COLOURS)} {rng.choice(_KINDS)}"
+
+    def step() -> str:
+        verb = rng.choice(_VERBS)
+        return f"put the {thing()} next to the {thing()}" if verb == "put" else f"{verb} the {thing()}"
+
+    if task == "goal":
+        return ", ".join(step() for _ in range(rng.randint(1, 2)))
+    if task == "plan":
+        return ", ".join(rng.choice(MOVES + ("pick up", "drop", "toggle")) for _ in range(rng.randint(2, 7)))
+    parts = [f"The agent must {step()}."]
+    if history:
+        parts.append(f"It {', then '.join(rng.choice(('turned left', 'turned right', 'went forward')) for _ in range(history))}.")
+    parts.append(f"The {thing()} is {rng.choice(_PLACES)}." if rng.random() < 0.7 else "Nothing it needs is in view.")
+    parts.append(f"It carries a {thing()}." if rng.random() < 0.3 else "It carries nothing.")
+    return " ".join(parts)
+
