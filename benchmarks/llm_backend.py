@@ -1,6 +1,6 @@
 """Benchmark of the LLM backend on this machine: model load, candidate scoring, generation.
 
-Every figure is reported next to a baseline measured in the same run (DESIGN.md habit 9):
+Every figure is reported next to a baseline measured in the same run:
 scoring with the context KV cache reused vs one full forward per candidate, batched (sorted by
 length) vs one state at a time; generation batched vs transformers' own `generate`.
 

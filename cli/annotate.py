@@ -29,7 +29,7 @@ def register(app: typer.Typer) -> None:
         quant: str = QUANT,
         mode: str = typer.Option("obs", "--mode", help="obs: the states' text | hop: the raw observations translated into the LLM's embedding space (iLLM(hop); any suite, Atari included)."),
         hop_seed: int = typer.Option(0, "--hop-seed", help="hop: seed of the translation's random projection (the run's --hop-seed)."),
-        hop_beta: float = typer.Option(1.0, "--hop-beta", help="hop: inverse temperature of the Hopfield retrieval (the run's --hop-beta)."),
+        hop_beta: float = typer.Option(100.0, "--hop-beta", help="hop: inverse temperature of the Hopfield retrieval (the run's --hop-beta)."),
         backend: str = BACKEND,
         device: str = DEVICE,
         num_processes: int = typer.Option(1, "--num-processes", help="Annotate with N processes: runs `accelerate launch --num_processes N` on this command (the states are split between them)."),

@@ -135,7 +135,9 @@ MODEL = typer.Option(None, "--model", show_default=False,
 ORACLE_NOISE = typer.Option(0.0, "--oracle-noise",
                             help="oracle: the share of states (fixed, keyed by the state) answered at random; "
                                  "1 is an annotator that knows nothing (part of every key).")
-DTYPE = typer.Option("bfloat16", "--dtype", help="Compute dtype: bfloat16 | float32 | float16 (part of every cache key).")
+DTYPE = typer.Option("auto", "--dtype", help="Compute dtype: auto | bfloat16 | float32 | float16; auto: bfloat16 on CUDA, and "
+                     "on a CPU where a timed matmul says it is faster than float32, else float32 (measured once per "
+                     "machine). The resolved dtype is part of every cache key.")
 QUANT = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit (part of every cache key).")
 BACKEND = typer.Option("transformers", "--backend",
                        help="LLM backend: transformers | oracle (a rule-based annotator that knows BabyAI/MiniGrid: "

@@ -50,10 +50,13 @@ def coverage(
     path: Path = typer.Argument(..., help="Folder of a trajectory dataset."),
     cache: Path = typer.Option(None, "--cache", help="Annotation cache to measure (leave out to see only the costs)."),
     history: list[int] = typer.Option([0, 1, 3], "--history", help="History lengths to measure (repeat the option)."),
-    model: str = typer.Option("smollm2-135m", "--model", help="LLM whose annotations count (as in `illm annotate`)."),
+    model: str = typer.Option(None, "--model", show_default=False,
+                              help="LLM whose annotations count (as in `illm annotate`; default: the backend's)."),
+    backend: str = typer.Option("transformers", "--backend", help="LLM backend (as in `illm annotate`)."),
+    oracle_noise: float = typer.Option(0.0, "--oracle-noise", help="oracle: its noise (as in `illm annotate`)."),
     tasks: str = typer.Option("action,summary", "--tasks", help="Tasks a state needs to count as covered."),
     layout: str = typer.Option("shared", "--layout", help="Prompt layout (as in `illm annotate`)."),
-    dtype: str = typer.Option("bfloat16", "--dtype", help="LLM compute dtype (as in `illm annotate`)."),
+    dtype: str = typer.Option("auto", "--dtype", help="LLM compute dtype (as in `illm annotate`; auto: this machine's choice)."),
     quant: str = typer.Option("none", "--quant", help="LLM quantisation (as in `illm annotate`)."),
     as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
 ) -> None:
@@ -62,9 +65,10 @@ def coverage(
     data), and a held-out estimate of what they reach on a run's new episodes (the top k of half
     the episodes against the other half's steps)."""
     from illm_tools.annotate.coverage import TOP_K, measure_coverage
+    from illm_tools.llm.backend import resolve_model
 
-    rows = measure_coverage(path, cache=cache, histories=history, model=model, dtype=dtype, quant=quant,
-                            layout=layout, tasks=tasks)
+    rows = measure_coverage(path, cache=cache, histories=history, model=resolve_model(backend, model, oracle_noise=oracle_noise),
+                            dtype=dtype, quant=quant, layout=layout, tasks=tasks, backend=backend)
     if as_json:
         emit_json(rows)
         return

@@ -65,7 +65,8 @@ def register(app: typer.Typer) -> None:
             emit_json(figures)
             return
         b = result.baselines
-        setup = dtype if quant == "none" else f"{dtype}, {quant}"
+        resolved = result.config["dtype"]
+        setup = f"{backend} backend" if backend != "transformers" else resolved if quant == "none" else f"{resolved}, {quant}"
         typer.echo(f"probe {model} ({setup}) on {env}: {result.states} states ({result.distinct_states} distinct) from "
                    f"{result.episodes} episodes of minigrid's BabyAI bot with {epsilon:.0%} random actions, "
                    f"history {history}"

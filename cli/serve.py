@@ -48,7 +48,11 @@ def register(app: typer.Typer) -> None:
             raise UsageError("--batch-size and --chunk must be positive, --threads >= 0, --port in 0..65535")
         store = AnnotationCache(cache)  # refuses a folder that is not a cache before loading a model
         torch.set_num_threads(threads or os.cpu_count() or 1)
-        lm = load_backend(backend, model, dtype=dtype, quant=quant, device=resolve_device(device))
+        from illm_tools.llm.backend import backend_dtype
+
+        device = resolve_device(device)
+        dtype = backend_dtype(backend, dtype, device)
+        lm = load_backend(backend, model, dtype=dtype, quant=quant, device=device)
         server = AnnotationServer(lm, store, model=model, batch_size=batch_size, chunk=chunk, dtype=dtype, quant=quant)
 
         def ready(addresses) -> None:

@@ -100,7 +100,7 @@ def _train_parameters() -> list[inspect.Parameter]:
                                default=typer.Option(None, "--bonus-preset", help=(
                                    " | ".join(f"{k} ({', '.join(f'{n} {v:g}' for n, v in w.items())})"
                                               for k, w in BONUS_PRESETS.items())
-                                   + "; default: the method's own (rnd: rnd, others: paper); explicit weights win.")))
+                                   + "; default: the method's own (rnd: rnd, ngu: ngu, others: paper); explicit weights win.")))
     ctx = inspect.Parameter("ctx", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=typer.Context)
     return [ctx, *params, preset]
 

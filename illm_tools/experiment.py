@@ -16,6 +16,16 @@ A spec (YAML; experiments/specs/ holds the paper's tables at CPU budgets):
       num_envs: 16
     method_settings:              # per method, over `settings`
       illm: {cache: data/ann, history_len: 0, live_budget: 16}
+    paper:                        # what the paper sets (not run; checked by the test suite): its
+      source: Table 1             # rows, grid values, frames and seeds, and `differs`: each setting
+      methods: [rnd, illm]        # this spec sets otherwise, with the reason
+      grid: {num_dists: [4, 8, 16]}
+      frames: 100000000
+      seeds: 10
+      differs: {frames: "a CPU budget", seeds: "a CPU budget"}
+
+A grid value may be a mapping: a bundle of settings applied together, named by its `name` key (the
+label's value), e.g. `annotator: [{name: oracle, backend: oracle}, {name: gpt2, model: gpt2}]`.
 
 Everything is checked before anything runs: the top-level keys, the method names, the env ids, the
 setting names (each a field of `illm_tools.rl.config.TrainConfig`, or `env_options.<name>`, which
@@ -40,7 +50,7 @@ from typing import Any
 from illm_tools.errors import IllmError, UsageError
 
 TOP_KEYS = ("name", "frames", "seeds", "envs", "methods", "grid", "method_grid", "settings", "method_settings",
-            "description")
+            "description", "paper")
 REQUIRED = ("envs", "methods")
 SPEC_COPY = "spec.yaml"
 
@@ -72,6 +82,8 @@ class Spec:
     """Per method, more grid values crossed with `grid` for that method's runs alone."""
     settings: dict[str, Any] = field(default_factory=dict)
     method_settings: dict[str, dict] = field(default_factory=dict)
+    paper: dict = field(default_factory=dict)
+    """What the paper sets for this table (documentation, checked by tests/test_experiment.py)."""
     lines: dict[tuple, int] = field(default_factory=dict)
     """(key, subkey, ...) -> line number in the file, for errors."""
 
@@ -159,12 +171,22 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
             if not isinstance(values, list) or not values:
                 raise UsageError(f"{path} line {spec_lines.get((*where, key), '?')}: {'.'.join(where)}.{key} must be "
                                  "a non-empty list of values")
+            for value in values:
+                if isinstance(value, dict) and not value.get("name"):
+                    raise UsageError(f"{path} line {spec_lines.get((*where, key), '?')}: a bundle of settings in "
+                                     f"{'.'.join(where)}.{key} needs a name (its label), e.g. {{name: oracle, backend: "
+                                     "oracle}")
+    paper = data.get("paper")
+    if paper is not None and not isinstance(paper, dict):
+        raise UsageError(f"{path} line {spec_lines.get(('paper',), '?')}: paper must be a mapping (what the paper "
+                         "sets: source, methods, grid, frames, seeds, differs)")
     total = frames if frames is not None else data.get("frames", 50_000)
     if not isinstance(total, int) or total <= 0:
         raise UsageError(f"{path} line {spec_lines.get(('frames',), '?')}: frames must be a positive integer")
     return Spec(name=str(data.get("name") or path.stem), path=path, text=text, frames=total, seeds=seed_list,
                 envs=[str(e) for e in as_list("envs")], methods=[str(m) for m in as_list("methods")], grid=grid,
-                method_grid=method_grid, settings=settings, method_settings=per_method, lines=spec_lines)
+                method_grid=method_grid, settings=settings, method_settings=per_method, paper=paper or {},
+                lines=spec_lines)
 
 
 def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> None:
@@ -189,7 +211,8 @@ def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> Non
 
 
 def _label(method: str, combo: dict) -> str:
-    return "-".join([method, *(f"{k.split('.')[-1]}={v}" for k, v in combo.items())])
+    return "-".join([method, *(f"{k.split('.')[-1]}={v['name'] if isinstance(v, dict) else v}"
+                               for k, v in combo.items())])
 
 
 def _combos(spec: Spec) -> list[tuple[dict, dict]]:
@@ -248,7 +271,12 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
         for name, value in (spec.method_settings.get(method) or {}).items():
             _apply(base, name, value, spec, ("method_settings", method, name))
         for name, value in combo.items():
-            _apply(base, name, value, spec, (*where[name], name))
+            if isinstance(value, dict):  # a bundle of settings, named by its `name`
+                for key, setting in value.items():
+                    if key != "name":
+                        _apply(base, key, setting, spec, (*where[name], name))
+            else:
+                _apply(base, name, value, spec, (*where[name], name))
         weights = bonus_weights(base.pop("bonus_preset", None) or get_method(method).preset,
                                 **{w: base.pop(w, None) for w in ("lambda_a", "beta_hc", "ext_coef", "int_coef")})
         for seed in spec.seeds:

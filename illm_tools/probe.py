@@ -156,7 +156,8 @@ class ProbeConfig:
     epsilon: float = 0.25
     action_space: str = "auto"
     layout: str = "shared"
-    dtype: str = "bfloat16"
+    dtype: str = "auto"
+    """bfloat16, float32, float16, or auto (this machine's choice, `illm_tools.llm.dtype`)."""
     quant: str = "none"
     backend: str = "transformers"
     device: str = "cpu"
@@ -251,7 +252,11 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
         on_states(data)
     model = resolve_model(cfg.backend, cfg.model)
     check_backend_use(cfg.backend, cfg.env_id, renderer_of(cfg.env_id))
-    lm = load_backend(cfg.backend, model, dtype=cfg.dtype, quant=cfg.quant, device=resolve_device(cfg.device))
+    from illm_tools.llm.backend import backend_dtype
+
+    device = resolve_device(cfg.device)
+    lm = load_backend(cfg.backend, model, dtype=backend_dtype(cfg.backend, cfg.dtype, device), quant=cfg.quant,
+                      device=device)
     builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer_of(cfg.env_id), model=model,
                             model_fingerprint=fingerprint_hash(lm.fingerprint), history_len=cfg.history,
                             layout=cfg.layout)
@@ -260,7 +265,8 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
     expert = data.expert
     freq = np.bincount(expert, minlength=len(data.actions)) / len(expert)
     result = ProbeResult(
-        config=dict(cfg.__dict__), actions=data.actions, states=len(expert),
+        config={**cfg.__dict__, "model": model, "dtype": lm.fingerprint.get("dtype", cfg.dtype)},  # as resolved
+        actions=data.actions, states=len(expert),
         distinct_states=len(set(data.records)), episodes=data.episodes, skipped=data.skipped,
         bot_failures=data.bot_failures, expert_share={n: float(f) for n, f in zip(data.actions, freq)},
         baselines=baselines(expert, data.actions))

@@ -110,3 +110,27 @@ def test_usage_errors():
         pool.step(np.zeros(3, dtype=np.int64))
     with pytest.raises(UsageError):
         EnvPool(ENV, 0, seed=0)
+
+
+def test_a_seed_list_fixes_the_layouts_every_env_cycles_through():
+    """--env-seeds: episode k of env i takes seeds[(i + k * num_envs) % len(seeds)]; one seed is one
+    MultiRoom map for every episode (paper Figure 1's heatmap of one map)."""
+    pool = EnvPool("MiniGrid-MultiRoom-N6-v0", 3, seed=100, episode_seeds=(7,), render=False)
+    first = pool.reset()
+    assert first.seeds.tolist() == [7, 7, 7]
+    assert pool.episode_seed(2, 5) == 7
+    grids = {tuple(map(tuple, pool.envs.envs[i].unwrapped.grid.encode()[:, :, 0])) for i in range(3)}
+    assert len(grids) == 1  # the same layout in every env
+    seen, rng = set(), np.random.default_rng(0)
+    for _ in range(300):
+        seen.update(pool.step(rng.integers(0, 3, size=3)).obs.seeds.tolist())
+    assert seen == {7}
+    pool.close()
+    two = EnvPool("BabyAI-GoToLocal-v0", 2, seed=0, episode_seeds=(4, 9), render=False)
+    assert [two.episode_seed(i, k) for k in range(2) for i in range(2)] == [4, 9, 4, 9]
+    two.close()
+    from illm_tools.rl.config import TrainConfig
+
+    assert TrainConfig(env_seeds="3, 5").env_seeds == (3, 5)
+    with pytest.raises(UsageError, match="--env-seeds takes whole numbers"):
+        TrainConfig(env_seeds="a")

@@ -109,3 +109,44 @@ method_settings:
     bad = write(tmp_path, TINY + "method_grid:\n  rnd: {lambda_a: [1]}\n", "bad.yaml")
     with pytest.raises(UsageError, match="line 14: method_grid names 'rnd', which is not among the spec's methods"):
         plan(load_spec(bad), tmp_path / "r2")
+
+
+def _value(cfg, key: str):
+    """A run's value of a paper setting: the model as served, an env option, or the field."""
+    if key == "model":
+        return cfg.llm_model
+    if key.startswith("env_options."):
+        return cfg.env_options.get(key.split(".", 1)[1], 0.0)
+    value = getattr(cfg, key)
+    return "+".join(value) if key == "tasks" else value
+
+
+@pytest.mark.parametrize("spec", [s for s in SPECS if "\npaper:" in s.read_text()], ids=lambda p: p.stem)
+def test_a_spec_sets_what_the_paper_sets_or_says_why_not(spec, tmp_path):
+    """Each table's spec records the paper's setting (`paper:`): its rows, grid values, envs, frames,
+    seeds and settings. Where the spec does not list a reason under `differs`, it must set the same;
+    where it does, it must really differ (no stale reasons)."""
+    loaded = load_spec(spec)
+    paper = dict(loaded.paper)
+    differs = paper.pop("differs", {})
+    source, methods, envs, grid = paper.pop("source"), paper.pop("methods"), paper.pop("envs", None), paper.pop("grid", {})
+    method_grid = paper.pop("method_grid", {})
+    grid_keys = {*grid, *(k for g in method_grid.values() for k in g)}
+    assert source and set(differs) <= {"methods", "envs", "frames", "seeds", *grid_keys, *paper}, differs
+    runs = [r for r in plan(loaded, tmp_path / "results") if r.config.mode in methods]
+
+    def same(key: str, equal: bool) -> None:
+        assert equal != (key in differs), f"{spec.name}: {key} {'differs without a reason' if not equal else 'is listed as differing but is the same'}"
+
+    same("methods", set(methods) <= set(loaded.methods))
+    if envs is not None:
+        same("envs", set(envs) == set(loaded.envs))
+    same("frames", loaded.frames == paper.pop("frames"))
+    same("seeds", len(loaded.seeds) == paper.pop("seeds"))
+    for key, values in grid.items():
+        same(key, {str(_value(r.config, key)) for r in runs} == {str(v) for v in values})
+    for method, values_of in method_grid.items():
+        for key, values in values_of.items():
+            same(key, {str(_value(r.config, key)) for r in runs if r.config.mode == method} == {str(v) for v in values})
+    for key, value in paper.items():
+        same(key, all(_value(r.config, key) == value for r in runs))

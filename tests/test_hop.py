@@ -69,6 +69,69 @@ def test_hop_keys_change_with_the_observations_and_settings_and_nothing_else():
                          model="m", history_len=1).state_keys(_records([(frame, 0), (frame, 1)])[1]) != base
 
 
+def _multiroom_frames(steps: int = 30):
+    """Hop frames and previous actions of a random-policy MultiRoom-N6 episode (what the trainer translates)."""
+    from illm_tools.envs import make_env, suite_of
+
+    suite, env = suite_of("MiniGrid-MultiRoom-N6-v0"), make_env("MiniGrid-MultiRoom-N6-v0", render_text=False)
+    obs, _ = env.reset(seed=0)
+    rng, out, prev = np.random.default_rng(0), [], -1
+    for _ in range(steps):
+        out.append((suite.hop_input(suite.policy_obs(obs)), prev))
+        prev = int(rng.integers(3))
+        obs, *_ = env.step(prev)
+    return out
+
+
+def _gaps(embeddings: torch.Tensor, frames, beta: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """1 - cos between the translations of each pair of different (frame, previous action) steps,
+    and the translation of the frames twice."""
+    obs = torch.as_tensor(np.stack([f.reshape(-1) for f, _ in frames]))
+    prev = torch.as_tensor([a for _, a in frames])
+    hop = FrozenHopfield(embeddings, obs.shape[1], 3, seed=0, beta=beta)
+    x = torch.nn.functional.normalize(hop(obs, prev).double(), dim=1)
+    pairs = [(i, j) for i in range(len(frames)) for j in range(i + 1, len(frames))
+             if not (np.array_equal(frames[i][0], frames[j][0]) and frames[i][1] == frames[j][1])]
+    return torch.tensor([1 - float(x[i] @ x[j]) for i, j in pairs]), hop(obs, prev) - hop(obs, prev)
+
+
+def test_different_observations_translate_apart_and_the_same_one_the_same():
+    """At the default beta (HELM's 100) different MultiRoom views translate to different x_t and
+    one view always to the same; stand-in embeddings (the stub's 256 x 576)."""
+    from illm_tools.llm.stub import StubBackend
+
+    gaps, again = _gaps(StubBackend().input_embeddings(), _multiroom_frames(), FrozenHopfield.__init__.__kwdefaults__["beta"])
+    assert float(again.abs().max()) == 0.0
+    assert float(gaps.median()) > 0.05
+
+
+@pytest.mark.slow  # loads SmolLM2-135M's embedding matrix (de-quantised once: about 20 s)
+def test_smollm2s_translation_keeps_the_observation_at_beta_100_and_loses_it_at_1(tmp_path):
+    """SmolLM2-135M's real embeddings (49,152 tokens) on MultiRoom-N6: measured with
+    experiments/hop_translation.py, 1 - cos between different observations has a median of 1.0 at
+    beta 100 and 4e-6 at beta 1 (rounding is about 1e-7). Threshold: 0.05, far from both."""
+    from illm_tools.llm.backend import load_backend
+
+    embeddings = load_backend("transformers", "smollm2-135m", dtype="float32").input_embeddings().detach().float()
+    frames = _multiroom_frames()
+    gaps, again = _gaps(embeddings, frames, 100.0)
+    assert float(gaps.median()) > 0.05 and float(again.abs().max()) == 0.0
+    assert float(_gaps(embeddings, frames, 1.0)[0].median()) < 1e-4  # HELM's signature default: nearly uniform
+
+
+def test_crafters_pictures_are_grey_scaled_before_the_translation():
+    from illm_tools.envs import suite_of
+    from illm_tools.envs.crafter import grey
+
+    rgb = np.zeros((2, 2, 3), np.uint8)
+    rgb[0, 0] = (255, 0, 0)
+    rgb[1, 1] = (255, 255, 255)
+    assert grey(rgb).tolist() == [[76, 0], [0, 255]]  # ITU-R 601 luma, as OpenCV's and ALE's grey
+    assert suite_of("CrafterReward-v1").hop_frame(rgb).shape == (2, 2)
+    frame = np.arange(12, dtype=np.uint8).reshape(2, 2, 3)
+    assert suite_of("MiniGrid-MultiRoom-N6-v0").hop_frame(frame) is frame  # symbolic codes: as they are
+
+
 def test_z_h_batches_equal_single_windows_and_records_carry_the_window(tiny_lm):
     context = HopContext(tiny_lm, 16, 3, seed=0, beta=1.0)
     tracker = HopTracker(2, 2, ACTIONS)

@@ -15,7 +15,7 @@ from illm_tools.tasks.state import HistoryTracker, StateRecord, records_from_tab
 
 # Changing a template's text must bump its version in VERSIONS and the hash here.
 PINNED = {
-    ("action.paper", 1): "6bb4e298db731814",
+    ("action.paper", 2): "8797f2a94cc4ff38",  # 2: as printed (B.2), without the "Answer:" cue of version 1
     ("action.shared", 1): "e26ba63753ebba15",
     ("summary", 1): "176b9227a05ae00e",
     ("goal", 1): "237d50b4c0e62685",
@@ -59,6 +59,28 @@ def test_prompts_carry_the_paper_text_and_candidates():
     s = b.render("summary", record())
     assert "Summarize the main points of the player's history into a short text:" in s.text
     assert s.candidates is None
+
+
+def test_the_paper_layout_is_the_printed_prompt():
+    """Paper B.2's action and summary prompts as printed, {task}, {possible actions ...} and {agent
+    history} filled in; what differs is in the README ("Prompts"): the printed ''Eat door'' (LaTeX
+    quotes) is written "Eat door", the summary prompt's "history::" has one colon, and the printed
+    line breaks inside the instruction are the typesetting's."""
+    rec = record(history=[("You see a wall 2 steps forward", "turn left")])
+    b = builder(layout="paper", history_len=1)
+    assert b.render("action", rec).text == (
+        "You are an expert player playing BabyAI. The goal is: go to the red ball.\n"
+        "Valid actions: turn left, turn right, go forward, pick up, drop, toggle\n"
+        "You see: \nObservation 0: You see a wall 2 steps forward\nAction 0: turn left\n"
+        "Observation 1: You see a red ball 1 step forward\n"
+        "Suggest the best action the player can take. Do not recommend actions that are not possible or not "
+        "desirable, such as \"Eat door\". Prioritize actions which involve the object you are facing or which the "
+        "agent has not achieved before. What do you do?")
+    assert b.render("summary", rec).text == (
+        "You are an expert player playing BabyAI. The goal is: go to the red ball.\n"
+        "Recent player's history: \nObservation 0: You see a wall 2 steps forward\nAction 0: turn left\n"
+        "Observation 1: You see a red ball 1 step forward\n"
+        "Summarize the main points of the player's history into a short text:")
 
 
 def test_shared_layout_puts_the_history_in_a_common_prefix():

@@ -45,8 +45,9 @@ class AnnotateConfig:
     (None: all). The same limit again annotates nothing."""
     max_minutes: float | None = None
     """Stop after this many minutes, between chunks, with every finished chunk written."""
-    dtype: str = "bfloat16"
-    """Compute dtype (bfloat16 is the fast path on CPUs with fast bf16; part of every cache key)."""
+    dtype: str = "auto"
+    """Compute dtype: bfloat16, float32, float16, or auto (`illm_tools.llm.dtype`: bfloat16 on CUDA,
+    on a CPU where a timed matmul says it is faster than float32); the resolved one is in every key."""
     quant: str = "none"
     """bitsandbytes quantisation: none, 4bit or 8bit."""
     mode: str = "obs"
@@ -54,7 +55,7 @@ class AnnotateConfig:
     (iLLM(hop), `illm_tools.hop`; any suite, Atari included)."""
     hop_seed: int = 0
     """hop: seed of the translation's random projection (the training run's --hop-seed)."""
-    hop_beta: float = 1.0
+    hop_beta: float = 100.0
     """hop: inverse temperature of the Hopfield retrieval (the training run's --hop-beta)."""
     device: str = "cpu"
     """Where the model runs: cpu, cuda, cuda:N or auto (a GPU when there is one). Under
@@ -81,7 +82,10 @@ class AnnotateConfig:
         if self.limit is not None and self.limit < 0:
             raise UsageError(f"--limit must be 0 or more, got {self.limit}")
         from illm_tools.llm.backend import check_backend, resolve_model
+        from illm_tools.llm.dtype import CHOICES
 
+        if self.dtype not in CHOICES:
+            raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.dtype!r}")
         check_backend(self.backend)
         resolve_model(self.backend, self.model)  # refuses a model the backend does not serve
         if self.mode not in ("obs", "hop"):
@@ -168,7 +172,7 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     `max_minutes` have passed or `should_stop()` says so; report the coverage."""
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.data.trajectories import open_table, require_text
-    from illm_tools.llm.backend import load_backend
+    from illm_tools.llm.backend import backend_dtype, load_backend
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
     if config.mode == "hop":
@@ -185,8 +189,9 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
         records, env_ids = records_from_table(table, config.history)
         renderers = table.column("renderer").to_pylist()
     state = distributed_state()
-    lm = load_backend(config.backend, config.llm_model, dtype=config.dtype, quant=config.quant,
-                      device=resolve_device(config.device, state))
+    device = resolve_device(config.device, state)
+    lm = load_backend(config.backend, config.llm_model, dtype=backend_dtype(config.backend, config.dtype, device),
+                      quant=config.quant, device=device)
     annotator = Annotator(lm, cache, model=config.llm_model, tasks=config.tasks, history_len=config.history,
                           layout=config.layout, batch_size=config.batch_size,
                           chunk=config.chunk or getattr(lm, "chunk_states", DEFAULT_CHUNK))

@@ -116,9 +116,9 @@ def heldout_curve(records: Sequence[StateRecord], env_ids: Sequence[str], render
     return out
 
 
-def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), model: str = "smollm2-135m",
-                     dtype: str = "bfloat16", quant: str = "none", layout: str = "shared",
-                     tasks: Sequence[str] = ("action", "summary")) -> list[dict]:
+def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), model: str | None = None,
+                     dtype: str = "auto", quant: str = "none", layout: str = "shared",
+                     tasks: Sequence[str] = ("action", "summary"), backend: str = "transformers") -> list[dict]:
     """`illm data coverage`: per history length, the dataset's distinct states, the share of its
     steps the cache answers (for this model setup), the top-k curve and its held-out estimate
     (`heldout_curve`). No model is loaded: the keys need only the model's fingerprint."""
@@ -126,7 +126,7 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.data.trajectories import open_table, require_text
     from illm_tools.errors import UsageError
-    from illm_tools.llm.loading import model_fingerprint
+    from illm_tools.llm.backend import backend_dtype, backend_fingerprint, resolve_model
     from illm_tools.tasks.registry import parse_tasks
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
@@ -138,7 +138,8 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
     if cache is not None and not (Path(cache) / "manifest.json").is_file():
         raise UsageError(f"no annotation cache at {cache}: check the path, or leave --cache out to see only the costs")
     ann = AnnotationCache(cache) if cache is not None else None
-    fp = fingerprint_hash(model_fingerprint(model, dtype=dtype, quant=quant))
+    fp = fingerprint_hash(backend_fingerprint(backend, resolve_model(backend, model),
+                                              dtype=backend_dtype(backend, dtype), quant=quant))
     renderers = table.column("renderer").to_pylist()
     episodes = table.column("episode_id").to_pylist()
     out = []

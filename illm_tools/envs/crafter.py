@@ -89,6 +89,13 @@ class CrafterEnv(gym.Env):
         return obs, float(reward), terminated, truncated, self._info(out)
 
 
+def grey(rgb: np.ndarray) -> np.ndarray:
+    """ITU-R 601 luma of an [H, W, 3] uint8 picture, rounded to uint8 [H, W]: the grey-scaling of
+    OpenCV's COLOR_RGB2GRAY and ALE's grey screen, which Atari's frames go through (paper B.1:
+    the Hopfield module reads grey-scaled observations)."""
+    return np.rint(rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)).clip(0, 255).astype(np.uint8)
+
+
 class CrafterSuite(Suite):
     name = "crafter"
     prefixes = ("Crafter",)
@@ -96,6 +103,9 @@ class CrafterSuite(Suite):
     vector = "async"
     network = "illm_tools.rl.networks:FrameNet"
     description = "Crafter (crafter), 64x64 RGB picture; text written by illm; Crafter score"
+
+    def hop_frame(self, raw: np.ndarray) -> np.ndarray:
+        return grey(raw)  # paper B.1: the Hopfield module reads grey-scaled observations, as Atari's frames
 
     @property
     def renderer(self) -> str:  # type: ignore[override]

@@ -10,7 +10,9 @@ the first state of env i's next episode; the step's reward/terminated/truncated 
 - `EpisodeSeeds`, a wrapper that reseeds every episode: env i's k-th episode (k = 0, 1, ...) is
   reset with seed `seed + i + k * num_envs`, so the pool's episodes use the distinct seeds seed,
   seed + 1, ..., and every episode's seed depends only on (seed, num_envs, i, k), never on which
-  env finished first (gymnasium's vector envs seed only the first reset);
+  env finished first (gymnasium's vector envs seed only the first reset). Given a list of
+  `episode_seeds`, episode k of env i takes `episode_seeds[(i + k * num_envs) % len]` instead: a
+  fixed set of layouts (one seed: one MultiRoom map, as in paper Figure 1's heatmap);
 - `PolicyObservation`, a wrapper giving the suite's policy array as the observation (the vector
   env batches it), the env's own observation staying in the suite's hands;
 - the bookkeeping of episode returns, lengths and the suite's success and extras.
@@ -72,12 +74,15 @@ class EpisodeSeeds(gym.Wrapper):
     """Reset k (k = 0, 1, ...) of env `index` of `num_envs` uses seed `base + index + k * num_envs`,
     whatever seed the caller passes; `info["episode_seed"]` says which."""
 
-    def __init__(self, env: gym.Env, base: int, index: int, num_envs: int):
+    def __init__(self, env: gym.Env, base: int, index: int, num_envs: int, cycle: tuple[int, ...] = ()):
         super().__init__(env)
         self.base, self.index, self.num_envs, self.episodes = base, index, num_envs, 0
+        self.cycle = tuple(cycle)
+        """Seeds to cycle through instead (a fixed set of layouts); empty: a new seed each episode."""
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        seed = self.base + self.index + self.episodes * self.num_envs
+        k = self.index + self.episodes * self.num_envs
+        seed = self.cycle[k % len(self.cycle)] if self.cycle else self.base + k
         self.episodes += 1
         obs, info = self.env.reset(seed=seed, options=options)
         info["episode_seed"] = seed
@@ -98,12 +103,12 @@ class PolicyObservation(gym.ObservationWrapper):
 
 
 def _make_one(env_id: str, index: int, base: int, num_envs: int, render: bool, action_space: str,
-              options: dict) -> gym.Env:
+              options: dict, cycle: tuple[int, ...] = ()) -> gym.Env:
     """Env `index` of a pool (module-level so AsyncVectorEnv can pickle it into its workers)."""
     suite = suite_of(env_id)
     env = make_env(env_id, render_text=render, action_space=action_space, **options)
     example = suite.policy_obs(env.observation_space.sample())
-    return EpisodeSeeds(PolicyObservation(env, suite, example), base, index, num_envs)
+    return EpisodeSeeds(PolicyObservation(env, suite, example), base, index, num_envs, cycle)
 
 
 def _take(info: dict, key: str, i: int, default: Any = None) -> Any:
@@ -121,7 +126,7 @@ class EnvPool:
     """N environments of one id, stepped together (see the module docstring)."""
 
     def __init__(self, env_id: str, num_envs: int, seed: int, *, render: bool = True, vector: str = "auto",
-                 **options: Any):
+                 episode_seeds: tuple[int, ...] = (), **options: Any):
         if num_envs <= 0:
             raise UsageError(f"num_envs must be positive, got {num_envs}")
         if vector not in VECTOR_MODES:
@@ -130,13 +135,15 @@ class EnvPool:
         self.suite = suite_of(env_id)
         self.num_envs = int(num_envs)
         self.seed = int(seed)
+        self.episode_seeds = tuple(int(s) for s in episode_seeds)
+        """Seeds the episodes cycle through (a fixed set of layouts); empty: seed + i + k * num_envs."""
         self.render = render and self.suite.renderer is not None
         # the resolved action space ("auto" never appears here): what a run or dataset records
         self.action_space_name = resolve_action_space(env_id, options.pop("action_space", "auto"))
         options = {k: v for k, v in options.items() if not (k == "num_dists" and v is None)}
         check_options(env_id, options, self.suite.options(env_id))  # here, not in an async worker
-        fns = [partial(_make_one, env_id, i, self.seed, self.num_envs, self.render, self.action_space_name, options)
-               for i in range(self.num_envs)]
+        fns = [partial(_make_one, env_id, i, self.seed, self.num_envs, self.render, self.action_space_name, options,
+                       self.episode_seeds) for i in range(self.num_envs)]
         mode = self.suite.vector if vector == "auto" else vector
         same_step = gym.vector.AutoresetMode.SAME_STEP
         if mode == "async" and self.num_envs > 1:
@@ -154,7 +161,8 @@ class EnvPool:
 
     def episode_seed(self, env_index: int, episode_index: int) -> int:
         """The seed of env `env_index`'s `episode_index`-th episode (see the module docstring)."""
-        return self.seed + env_index + episode_index * self.num_envs
+        k = env_index + episode_index * self.num_envs
+        return self.episode_seeds[k % len(self.episode_seeds)] if self.episode_seeds else self.seed + k
 
     def _obs(self, images: np.ndarray, info: dict) -> PoolObs:
         n = self.num_envs

@@ -157,6 +157,16 @@ class Suite:
         """What a trajectory row keeps of one policy array (default: all of it)."""
         return array
 
+    def hop_frame(self, raw: np.ndarray) -> np.ndarray:
+        """What iLLM(hop)'s Hopfield translation reads of a raw observation (`raw_obs`): the paper's
+        grey-scaled observation (B.1); default the raw observation itself (symbolic grids and glyphs
+        have no colour channels; Atari's frames are grey already)."""
+        return raw
+
+    def hop_input(self, array: np.ndarray) -> np.ndarray:
+        """`hop_frame` of one policy array (the trainer's and evaluator's path)."""
+        return self.hop_frame(self.raw_obs(array))
+
     # --- episodes -----------------------------------------------------------------------------
     def episode_info(self, info: dict) -> dict:
         """What to keep of an episode's last info for `episode_metrics` (default: nothing)."""

@@ -27,8 +27,9 @@ import torch
 from illm_tools.hop.translate import FrozenHopfield
 from illm_tools.tasks.state import StateRecord
 
-HOP_VERSION = 1
-"""Version of the hop record format and translation; part of every hop cache key (bump on change)."""
+HOP_VERSION = 2
+"""Version of the hop record format and translation; part of every hop cache key (bump on change).
+2: Crafter's pictures are grey-scaled before the translation (`Suite.hop_frame`)."""
 START = "start"
 """The previous action of an episode's first step."""
 
@@ -76,6 +77,7 @@ def hop_records_from_table(table, history_len: int) -> tuple[list[HopRecord], li
     preceding rows of the same episode, as `HopTracker` builds it in training), and each row's env
     id, in the table's row order. Rows without raw observations (collected with --no-raw) are
     refused in one line."""
+    from illm_tools.envs import suite_of
     from illm_tools.errors import UsageError
 
     cols = {name: table.column(name).to_pylist() for name in RAW_COLUMNS}
@@ -94,7 +96,7 @@ def hop_records_from_table(table, history_len: int) -> tuple[list[HopRecord], li
             tracker.reset()
         episode, prev_step = ep, step
         raw = np.frombuffer(cols["obs_raw"][i], dtype=np.dtype(cols["obs_dtype"][i])).reshape(cols["obs_shape"][i])
-        (records[i],) = tracker.records([cols["mission"][i]], [raw])
+        (records[i],) = tracker.records([cols["mission"][i]], [suite_of(cols["env_id"][i]).hop_frame(raw)])
         tracker.push([int(cols["action"][i])], [False])
     return records, cols["env_id"]  # type: ignore[return-value]
 

@@ -243,8 +243,8 @@ register(Method("chibit", "policy torso from the LLM's pretrained blocks, no bon
                 network="illm_tools.rl.chibit:ChibiTNet"))
 register(Method("ellm", "ELLM: reward for reaching a goal the LLM suggested (cache task goal)",
                 "illm_tools.intrinsic.ellm:ELLMBonus"))
-register(Method("ngu", "Never Give Up: episodic kNN novelty x RND life-long factor",
-                "illm_tools.intrinsic.ngu:NGUBonus"))
+register(Method("ngu", "Never Give Up: episodic kNN novelty x RND life-long factor; intrinsic weight 0.3",
+                "illm_tools.intrinsic.ngu:NGUBonus", preset="ngu"))
 register(Method("apt", "Active Pre-Training: kNN particle entropy in the rollout", "illm_tools.intrinsic.apt:APTBonus"))
 register(Method("illm-shuffled", "iLLM on another cached state's targets (fixed permutation): control",
                 "illm_tools.intrinsic.illm:ILLMBonus", target_shuffle=0))

@@ -81,8 +81,8 @@ class RNDConfig:
     hidden: int = 256
     """Hidden units of the target and predictor MLPs (on pictures the predictor's layers have 512,
     as CleanRL's)."""
-    output_dim: int = 128
-    """Size of the random features the predictor regresses."""
+    output_dim: int = 512
+    """Size of the random features the predictor regresses (RND's paper and CleanRL: 512)."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.update_proportion <= 1.0:

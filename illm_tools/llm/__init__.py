@@ -1,8 +1,9 @@
 """The LLM backend: model registry and loading, candidate scoring, greedy generation, embeddings.
 
 Importing this package is cheap: torch and transformers are imported inside the functions that
-need them. The three backend calls of DESIGN.md are `score_candidates`, `generate` and
-`embed_texts`; `extend` / `score_continuations` expose the KV-cache step underneath them.
+need them. The transformers backend's three calls are `score_candidates`, `generate` and
+`embed_texts`; `extend` / `score_continuations` expose the KV-cache step underneath them. The
+protocol every backend implements is `illm_tools.llm.backend`.
 """
 
 from illm_tools.llm.generation import Generation, embed_texts, generate

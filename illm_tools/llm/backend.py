@@ -116,6 +116,17 @@ def resolve_model(backend: str, model: str | None, *, oracle_noise: float = 0.0)
     return getattr(cls, "default_model", DEFAULT_MODEL)
 
 
+def backend_dtype(backend: str, dtype: str, device: str = "cpu") -> str:
+    """The concrete compute dtype of a backend's model (`illm_tools.llm.dtype.resolve_dtype`); a
+    backend without one (`computes = False`: the oracle) takes float32 and measures nothing."""
+    from illm_tools.llm.dtype import resolve_dtype
+
+    if not getattr(backend_class(backend), "computes", True):
+        resolve_dtype(dtype if dtype != "auto" else "float32")  # still refuses a dtype that is no dtype
+        return "float32"
+    return resolve_dtype(dtype, device)
+
+
 def check_backend_use(backend: str, env_id: str, renderer: str) -> None:
     """Refuse in one line an env (or hop states: a renderer "hop@...") the backend cannot read."""
     check = getattr(backend_class(backend), "check_use", None)

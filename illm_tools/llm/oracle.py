@@ -92,6 +92,8 @@ class OracleBackend:
     device = "cpu"
     shares_prefix = False
     default_model = NAME
+    computes = False
+    """No dtype: `--dtype` is ignored (and `auto` measures nothing)."""
     chunk_states = 2048
     """States per written shard in bulk annotation (an LLM's chunk of 32 would write a shard every 30 ms)."""
 

@@ -246,13 +246,14 @@ class TrainedPolicy:
     """A trained run's actor, acting on the pool's `PoolObs` (sampled, or greedy)."""
 
     def __init__(self, net, vocab, *, name: str, greedy: bool = False, seed: int = 0, frames: int = 0,
-                 hop=None, raw_obs=None):
+                 hop=None, hop_input=None):
         self.net, self.vocab, self.name, self.greedy = net.eval(), vocab, name, greedy
         self.frames = frames
         """Frames the policy was trained for."""
         self.generator = torch.Generator().manual_seed(seed)
-        self.hop, self.raw_obs = hop, raw_obs
-        """iLLM(hop) runs: (HopContext, HopTracker) giving Z_h, and the suite's raw observation."""
+        self.hop, self.hop_input = hop, hop_input
+        """iLLM(hop) runs: (HopContext, HopTracker) giving Z_h, and what the translation reads of a
+        policy array (the suite's `hop_input`)."""
         self._last: np.ndarray | None = None
 
     @torch.no_grad()
@@ -264,7 +265,7 @@ class TrainedPolicy:
             hop, tracker = self.hop
             if self._last is not None:
                 tracker.push(self._last.tolist(), (np.asarray(obs.steps) == 0).tolist())
-            tracker.records(obs.missions, [self.raw_obs(img) for img in obs.images])
+            tracker.records(obs.missions, [self.hop_input(img) for img in obs.images])
             context = hop.step(tracker)
         logits = self.net(images, missions, context).logits
         if self.greedy:
@@ -298,7 +299,7 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
         from illm_tools.hop.context import HopContext, HopTracker
         from illm_tools.llm.backend import load_backend
 
-        obs_dim = int(np.prod(pool.suite.raw_obs(np.zeros(state["image_shape"], dtype=np.uint8)).shape))
+        obs_dim = int(np.prod(pool.suite.hop_input(np.zeros(state["image_shape"], dtype=np.uint8)).shape))
         lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant)
         hop = (HopContext(lm, obs_dim, len(names), seed=cfg.hop_seed, beta=cfg.hop_beta),
                HopTracker(pool.num_envs, cfg.history_len, names))
@@ -309,4 +310,4 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     net.load_state_dict(state["model"])
     return TrainedPolicy(net, vocab, name=f"run:{run_dir.name}@{state['global_step']}",
                          greedy=greedy, seed=seed, frames=int(state["global_step"]), hop=hop,
-                         raw_obs=pool.suite.raw_obs)
+                         hop_input=pool.suite.hop_input)

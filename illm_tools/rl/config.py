@@ -6,6 +6,7 @@ validates it in `__post_init__` and derives the rest as properties, never by pat
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -19,6 +20,7 @@ OBS_MODES = ("obs", "hop")
 BONUS_PRESETS = {  # `illm train --bonus-preset`: bonus weights and advantage weights together
     "paper": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0},  # Appendix B
     "rnd": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 2.0, "int_coef": 1.0},    # CleanRL RND's advantage weights
+    "ngu": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 0.3},    # NGU's r = r_e + 0.3 r_i
 }
 
 
@@ -33,6 +35,18 @@ def parse_budget(value: int | str) -> int | str:
     if budget < 0 or (isinstance(value, float) and value != budget):
         raise UsageError(f"--live-budget is a number of states >= 0 or 'all', got {value!r}")
     return budget
+
+
+def parse_seeds(value) -> tuple[int, ...]:
+    """Episode seeds from "0,3" or a sequence: whole numbers >= 0."""
+    items = value.split(",") if isinstance(value, str) else list(value or ())
+    try:
+        seeds = tuple(int(str(s).strip()) for s in items if str(s).strip())
+    except ValueError:
+        seeds = (-1,)
+    if any(s < 0 for s in seeds):
+        raise UsageError(f"--env-seeds takes whole numbers >= 0 separated by commas, got {value!r}")
+    return seeds
 
 
 def bonus_weights(preset: str, **given: float | None) -> dict[str, float]:
@@ -115,8 +129,9 @@ class TrainConfig:
     policy also reads Z_h, the LLM's state after the translated window; paper Algorithm 1)."""
     hop_seed: int = 0
     """hop: seed of the translation's fixed random projection P (part of every hop cache key)."""
-    hop_beta: float = 1.0
-    """hop: inverse temperature of the Hopfield retrieval (not beta_hc; part of every hop cache key)."""
+    hop_beta: float = 100.0
+    """hop: inverse temperature of the Hopfield retrieval (not beta_hc; part of every hop cache key):
+    HELM's 100; at 1 every observation translates to nearly the same embedding."""
     history_len: int = 3
     """(observation, action) pairs before the current observation handed to the LLM (paper: 3)."""
     embedding_dim: int = 576
@@ -140,7 +155,8 @@ class TrainConfig:
     of the update on CPU; later epochs train the policy alone)."""
     heads_bf16: bool | None = None
     """Run the heads' matmuls in bfloat16 on CPU (float32 parameters and losses); None: when a
-    timed matmul says bf16 is faster on this CPU (it is on some, not on others)."""
+    timed matmul says bf16 is faster on this CPU (it is on some, not on others; `illm_tools.llm.dtype`).
+    The run records the answer in config.json and keeps it on resume, on any machine."""
     summary_loss: str = "cosine"
     """Distillation loss of f^hc: cosine (1 - cos) or mse."""
     action_similarity: str = "tv"
@@ -167,8 +183,10 @@ class TrainConfig:
     oracle_noise: float = 0.0
     """oracle: the share of states (fixed, keyed by the state) whose answers are random (1: an
     annotator that knows nothing); part of the oracle's fingerprint."""
-    model_dtype: str = "bfloat16"
-    """Compute dtype of that LLM (part of its fingerprint, as in `illm annotate --dtype`)."""
+    model_dtype: str = "auto"
+    """Compute dtype of that LLM (part of its fingerprint, as in `illm annotate --dtype`): bfloat16,
+    float32, float16, or auto (bfloat16 on CUDA; on a CPU bfloat16 only where a timed matmul says
+    it is faster, `illm_tools.llm.dtype`). The run records the resolved dtype in config.json."""
     quant: str = "none"
     """Quantisation of that LLM (part of its fingerprint, as in `illm annotate --quant`)."""
     layout: str = "shared"
@@ -208,6 +226,10 @@ class TrainConfig:
     """Continue from run_dir/checkpoint.pt instead of starting fresh."""
     tensorboard: bool = True
     """Also write TensorBoard events beside metrics.jsonl."""
+    env_seeds: tuple[int, ...] = ()
+    """Episode seeds the envs cycle through instead of a new seed every episode: a fixed set of
+    layouts (one seed: one MultiRoom map, so a visitation heatmap shows one map, as paper Figure 1);
+    evaluation then plays the same layouts. Empty: every episode its own seed."""
     env_options: dict = field(default_factory=dict)
     """Options of the environment, its suite's (`--env-option KEY=VALUE`, e.g. max_episode_steps;
     `illm envs` lists the suites)."""
@@ -228,6 +250,7 @@ class TrainConfig:
             raise UsageError(f"--annotator is the URL of an `illm serve` server (http://127.0.0.1:PORT), got "
                              f"{self.annotator!r}")
         self.live_budget = parse_budget(self.live_budget)
+        self.env_seeds = parse_seeds(self.env_seeds)
         if self.threads <= 0 or self.llm_threads < 0:
             raise UsageError("--llm-threads must be >= 0 and --threads positive")
         from illm_tools.tasks.registry import get_task, parse_tasks
@@ -268,7 +291,10 @@ class TrainConfig:
             raise UsageError("action_similarity must be tv or bhattacharyya, "
                              f"got {self.action_similarity!r}")
         from illm_tools.llm.backend import check_backend, resolve_model
+        from illm_tools.llm.dtype import CHOICES
 
+        if self.model_dtype not in CHOICES:
+            raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.model_dtype!r}")
         check_backend(self.backend)
         resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise)  # refuses a bad model or noise
         if self.obs_mode not in OBS_MODES:
@@ -278,6 +304,22 @@ class TrainConfig:
             raise UsageError(f"--hop-beta must be positive, got {self.hop_beta}")
         if self.checkpoint_every < 0:
             raise UsageError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
+
+    def resolved(self) -> "TrainConfig":
+        """This config with the machine's choices made, as the run records them in config.json (and
+        keeps on resume, on any machine): `model_dtype` auto -> the dtype `illm_tools.llm.dtype`
+        measures (when the run uses an LLM), `heads_bf16` None -> whether bf16 is faster for the heads
+        (when the method has them)."""
+        from illm_tools.llm.backend import backend_dtype
+
+        changes: dict = {}
+        if self.model_dtype == "auto" and (self.needs_targets or self.obs_mode == "hop"):
+            changes["model_dtype"] = backend_dtype(self.backend, "auto", "cpu")
+        if self.heads_bf16 is None and self.uses_heads:
+            from illm_tools.rl.networks import bf16_is_faster
+
+            changes["heads_bf16"] = bf16_is_faster()
+        return dataclasses.replace(self, **changes) if changes else self
 
     # --- derived values ----------------------------------------------------------------------
     @property
@@ -361,6 +403,7 @@ class TrainConfig:
         """JSON-ready form (paths as strings)."""
         out = asdict(self)
         out["tasks"] = list(self.tasks)
+        out["env_seeds"] = list(self.env_seeds)
         out["run_dir"] = str(self.run_dir)
         out["cache"] = str(self.cache) if self.cache is not None else None
         return out

@@ -303,19 +303,8 @@ def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[in
 
 @functools.lru_cache(maxsize=1)
 def bf16_is_faster() -> bool:
-    """Whether a head-sized bf16 matmul beats float32 on this CPU, timed once per process (a few
-    tens of ms). Measured, not read from CPU flags: on this project's machines bf16 was 4x faster
-    than float32 on an AMD EPYC and 1.6x slower on an Intel Xeon with AVX512-BF16."""
-    import time
+    """Whether the heads' bf16 matmuls beat float32 on this CPU (`illm_tools.llm.dtype`: measured
+    once per machine; the trainer records the answer in the run's config.json)."""
+    from illm_tools.llm.dtype import HEADS_SHAPE, bf16_is_faster as probe
 
-    def seconds(dtype) -> float:
-        a, b = torch.full((512, 512), 0.5, dtype=dtype), torch.full((512, 1024), 0.25, dtype=dtype)  # no RNG use
-        a @ b
-        best = float("inf")
-        for _ in range(3):
-            start = time.perf_counter()
-            a @ b
-            best = min(best, time.perf_counter() - start)
-        return best
-
-    return seconds(torch.bfloat16) < seconds(torch.float32)
+    return probe(HEADS_SHAPE)

@@ -50,7 +50,7 @@ def make_pool(cfg: TrainConfig):
         if space == "auto":  # the run's own action space, as its config recorded it
             space = state["config"].get("action_space", space)
     return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets and cfg.obs_mode == "obs",
-                   action_space=space,
+                   action_space=space, episode_seeds=cfg.env_seeds,
                    num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
 
 
@@ -67,6 +67,7 @@ class Trainer:
             raise UsageError(f"the pool has {pool.num_envs} envs, the config asks for {cfg.num_envs}")
         if cfg.action_space == "auto" and getattr(pool, "action_space_name", None):
             cfg = dataclasses.replace(cfg, action_space=pool.action_space_name)  # the run records the resolved name
+        cfg = cfg.resolved()  # and its measured dtypes
         self.cfg, self.pool, self.on_metrics = cfg, pool, on_metrics
         self.suite = suite_of(cfg.env_id)
         self.provider = provider if method.needs_targets else None
@@ -117,14 +118,14 @@ class Trainer:
 
         cfg = self.cfg
         lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant)
-        raw = np.asarray(self.suite.raw_obs(self.obs.images[0]))
+        raw = np.asarray(self.suite.hop_input(self.obs.images[0]))
         self.hop_tracker = HopTracker(cfg.num_envs, cfg.history_len, self.action_names)
         self._hop_now = None  # (records, Z_h) of the current observations, computed once
         return HopContext(lm, raw.size, len(self.action_names), seed=cfg.hop_seed, beta=cfg.hop_beta)
 
     def _hop_state(self, obs) -> tuple[list, torch.Tensor]:
         """The hop records and Z_h [N, H] of the pool's current observations."""
-        records = self.hop_tracker.records(obs.missions, [self.suite.raw_obs(img) for img in obs.images])
+        records = self.hop_tracker.records(obs.missions, [self.suite.hop_input(img) for img in obs.images])
         return records, self.hop.step(self.hop_tracker)
 
     # --- run directory ----------------------------------------------------------------------

@@ -35,6 +35,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     dimension (iLLM's heads predict it)."""
     if not cfg.needs_targets:
         return None, cfg
+    cfg = cfg.resolved()
     if cfg.cache is None:
         raise UsageError(f"--method {cfg.mode} reads LLM targets: pass --cache DIR (an annotation cache, "
                          "see `illm annotate`), or use --method ppo")
@@ -105,6 +106,7 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
     from illm_tools.rl.ppo import Trainer, make_pool
 
     with torch_threads(cfg.threads):
+        cfg = cfg.resolved()  # auto dtypes measured with the run's own thread count, recorded in config.json
         pool = make_pool(cfg)
         provider, cfg = make_provider(cfg, len(pool.action_names))
         try:
@@ -130,6 +132,7 @@ def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy:
     cfg = TrainConfig.from_dict(read_config(run_dir))
     num_envs = min(num_envs, episodes)
     pool = EnvPool(cfg.env_id, num_envs, EVAL_SEED_OFFSET + seed, render=False, action_space=cfg.action_space,
+                   episode_seeds=cfg.env_seeds,  # a fixed-layout run is evaluated on its layouts
                    num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
     policy = load_policy(run_dir, pool, greedy=greedy, seed=seed)
     finished = []

@@ -337,7 +337,9 @@ def check_setup(cache: AnnotationCache, builder: PromptBuilder, *, model: str, d
         def differs(r: dict) -> list[str]:
             out = [f for f in ("model_fingerprint", "history_len", "template_version", "renderer", "decoding")
                    if r[f] != want[f]]
-            return out + (["layout"] if want["layout"] not in r["layouts"] else [])
+            if want["layout"] not in r["layouts"]:  # each layout has its template versions: the layout says it
+                return [f for f in out if f != "template_version"] + ["layout"]
+            return out
 
         if any(not differs(r) for r in rows):
             continue

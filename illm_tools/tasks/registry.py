@@ -119,7 +119,7 @@ def _register_builtin() -> None:
     from illm_tools.tasks.goals import GOAL_PARSER_VERSION, parse_goals
 
     register_task(LanguageTask(
-        "action", "ranking", {"paper": ("action.paper", 1), "shared": ("action.shared", 1)}, head="f_a",
+        "action", "ranking", {"paper": ("action.paper", 2), "shared": ("action.shared", 1)}, head="f_a",
         weight_setting="lambda_a", description="action generation: the LLM's ranking of the valid actions (B.2)"))
     register_task(LanguageTask(
         "summary", "text", {"paper": ("summary", 1), "shared": ("summary", 1)}, max_new_tokens=64, head="f_hc",
