@@ -43,10 +43,18 @@ def register(app: typer.Typer) -> None:
         from illm_tools.serve import AnnotationServer, serve as run
 
         check_backend(backend)
+        store = AnnotationCache(cache)  # refuses a folder that is not a cache before loading a model
+        if model is None and backend == "transformers" and dtype == "auto" and quant == "none" and not oracle_noise:
+            from illm_tools.annotate.setups import adopt_model
+
+            held = adopt_model(store)  # no model options: the cache's model setup
+            if held is not None:
+                backend, model, dtype, quant = held["backend"], held["model"], held["dtype"], held["quant"]
+                typer.echo(f"serving the cache's model setup: --backend {backend} --model {model} --dtype {dtype} "
+                           f"--quant {quant} (give model options to choose another)", err=True)
         model = resolve_model(backend, model, oracle_noise=oracle_noise)
         if batch_size <= 0 or chunk <= 0 or threads < 0 or not 0 <= port < 65536:
             raise UsageError("--batch-size and --chunk must be positive, --threads >= 0, --port in 0..65535")
-        store = AnnotationCache(cache)  # refuses a folder that is not a cache before loading a model
         torch.set_num_threads(threads or os.cpu_count() or 1)
         from illm_tools.llm.backend import backend_dtype
 

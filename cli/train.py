@@ -81,7 +81,29 @@ def train_config(ctx: typer.Context, options: dict):
     fields["tasks"] = list(parse_tasks(options["tasks"]))  # as config.json keeps them
     if options["resume"]:
         return resumed_config(ctx, fields["run_dir"], fields)
-    return TrainConfig(**fields)
+    cfg = TrainConfig(**fields)
+    return adopted(ctx, cfg)
+
+
+def adopted(ctx: typer.Context, cfg):
+    """`cfg` with its cache's setup adopted (`illm_tools.annotate.setups`) when the run reads targets
+    from a cache and none of the model options was given; says which in one line."""
+    import dataclasses
+
+    from illm_tools.annotate.setups import ADOPTED, adopt
+
+    if not cfg.needs_targets or cfg.cache is None or _given(ctx) & set(ADOPTED) or \
+            not (cfg.cache / "manifest.json").is_file():
+        return cfg
+    from illm_tools.cache.store import AnnotationCache
+
+    renderer = "hop@" if cfg.obs_mode == "hop" else cfg.renderer
+    setup = adopt(AnnotationCache(cfg.cache), cfg.target_tasks, renderer)
+    if setup is None:
+        return cfg
+    typer.echo(f"adopting the cache's setup: {setup.options()} ({setup.entries:,} entries; give any of these "
+               "options to choose another)", err=True)
+    return dataclasses.replace(cfg, **setup.fields())
 
 
 def _train_parameters() -> list[inspect.Parameter]:
@@ -114,13 +136,18 @@ def register(app: typer.Typer) -> None:
 
         cfg = train_config(ctx, options)
         out, method, env = cfg.run_dir, cfg.mode, cfg.env_id
+        from illm_tools.envs import suite_of
+
+        score_name = suite_of(env).score_name  # an unknown env is refused before anything else is said
+        resumed_at = None
+        if cfg.resume and (out / "checkpoint.pt").exists():
+            from illm_tools.rl.checkpoint import load_checkpoint
+
+            resumed_at = int(load_checkpoint(out)["global_step"])
         if cfg.num_updates * cfg.batch_size != cfg.total_steps:
             typer.echo(f"--frames {cfg.total_steps:,} is not a whole number of rollouts ({cfg.num_envs} envs × "
                        f"{cfg.num_steps} steps = {cfg.batch_size:,} frames each): the run trains "
                        f"{cfg.num_updates * cfg.batch_size:,} frames", err=True)
-        from illm_tools.envs import suite_of
-
-        score_name = suite_of(env).score_name
         last: dict = {}
         coverage: list[float] = []
         live_total = [0.0]  # states the live annotator (worker, server or this process) put in the cache
@@ -151,7 +178,8 @@ def register(app: typer.Typer) -> None:
         score = last.get("charts/score")
         score = f"last {score_name} {_rate(score)}" if score is not None and score == score else \
             f"no episode ended in the last update ({score_name} unknown)"
-        typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames "
+        since = f", resumed at {resumed_at:,}" if resumed_at is not None else ""
+        typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames{since} "
                    f"({last.get('charts/sps', 0):,.0f} steps/s); {score}{targets}{live} -> {out}")
 
     train.__signature__ = inspect.Signature(_train_parameters())

@@ -132,8 +132,15 @@ def describe(image: np.ndarray) -> list[str]:
 
 
 def render_text(image: np.ndarray) -> str:
-    """The BabyAI-Text description of one view: `describe`'s sentences joined with ", "."""
-    return ", ".join(describe(image))
+    """The BabyAI-Text description of one view: `describe`'s sentences joined with ", ". Rendered
+    once per distinct view (memoised by its bytes: a run sees the same views again and again)."""
+    view = np.ascontiguousarray(image, dtype=np.uint8)
+    return _render(view.tobytes(), view.shape)
+
+
+@functools.lru_cache(maxsize=65536)
+def _render(data: bytes, shape: tuple[int, ...]) -> str:
+    return ", ".join(describe(np.frombuffer(data, dtype=np.uint8).reshape(shape)))
 
 
 def _check_done_is_noop(action_space: str) -> None:

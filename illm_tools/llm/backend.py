@@ -134,32 +134,39 @@ def check_backend_use(backend: str, env_id: str, renderer: str) -> None:
         check(env_id, renderer)
 
 
-def model_options(model: str, fingerprint: str) -> str:
-    """The options that select the setup of a cache row (its `model` and fingerprint hash): "--backend
-    oracle --oracle-noise 0.5", "--backend stub --model stub:64 --dtype float32 --quant none", or
-    `illm_tools.llm.loading.model_options`' "--model A --dtype D --quant Q" for a transformers model."""
+def describe_model(model: str, fingerprint: str) -> dict | None:
+    """{"backend", "model", "dtype", "quant"} whose fingerprint hash is `fingerprint` (what a cache
+    row stores with its `model`), or None when no backend here reproduces it (another revision or
+    file, or a model not available on this machine)."""
     from illm_tools.cache.keys import fingerprint_hash
 
     for name in BACKENDS:
-        if name == "transformers":
-            continue
         cls = backend_class(name)
         for dtype in ("bfloat16", "float32", "float16"):
             for quant in ("none", "4bit", "8bit"):
                 try:
-                    if fingerprint_hash(cls.model_fingerprint(model, dtype=dtype, quant=quant)) != fingerprint:
-                        continue
-                except Exception:  # noqa: BLE001 - not a model this backend serves
+                    if fingerprint_hash(cls.model_fingerprint(model, dtype=dtype, quant=quant)) == fingerprint:
+                        return {"backend": name, "model": model, "dtype": dtype, "quant": quant}
+                except Exception:  # noqa: BLE001 - not a model this backend serves (or not here)
                     break
-                if name == "oracle":
-                    from illm_tools.llm.oracle import parse_spec
+    return None
 
-                    noise = parse_spec(model)
-                    return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
-                return f"--backend {name} --model {model} --dtype {dtype} --quant {quant}"
-    from illm_tools.llm.loading import model_options as transformers_options
 
-    return transformers_options(model, fingerprint)
+def model_options(model: str, fingerprint: str) -> str:
+    """The options that select the model of a cache row (its `model` and fingerprint hash): "--backend
+    oracle --oracle-noise 0.5", "--backend stub --model stub:64 --dtype float32 --quant none",
+    "--model smollm2-135m --dtype bfloat16 --quant none", or the model alone, said to be another
+    file or revision, when no backend here reproduces the fingerprint."""
+    found = describe_model(model, fingerprint)
+    if found is None:
+        return f"--model {model} (another file or revision)"
+    if found["backend"] == "oracle":
+        from illm_tools.llm.oracle import parse_spec
+
+        noise = parse_spec(model)
+        return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
+    prefix = "" if found["backend"] == DEFAULT_BACKEND else f"--backend {found['backend']} "
+    return f"{prefix}--model {model} --dtype {found['dtype']} --quant {found['quant']}"
 
 
 def load_backend(name: str, model: str, *, dtype: str = "bfloat16", quant: str = "none", device: str = "cpu",

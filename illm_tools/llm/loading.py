@@ -292,22 +292,6 @@ def model_fingerprint(name: str, *, dtype: str = "bfloat16", quant: str = "none"
     return _folder_and_fingerprint(resolve(name), dtype, quant, cache_root(cache_dir))[1]
 
 
-def model_options(alias: str, fingerprint: str) -> str:
-    """`--model A --dtype D --quant Q` whose fingerprint hash is `fingerprint` (as annotation rows
-    store it), or the alias alone when no dtype/quantisation of the model here matches (another
-    revision or file) or the model is not available here."""
-    from illm_tools.cache.keys import fingerprint_hash
-
-    for dtype in ("bfloat16", "float32", "float16"):
-        for quant in QUANTS:
-            try:
-                if fingerprint_hash(model_fingerprint(alias, dtype=dtype, quant=quant)) == fingerprint:
-                    return f"--model {alias} --dtype {dtype} --quant {quant}"
-            except Exception:  # noqa: BLE001 - a model not available here is only described by name
-                return f"--model {alias} (another file or revision)"
-    return f"--model {alias} (another file or revision)"
-
-
 def model_hidden_size(name: str, *, cache_dir: str | os.PathLike | None = None) -> int:
     """The hidden size (summary embedding dimension) from the model's config, without weights."""
     from transformers import AutoConfig

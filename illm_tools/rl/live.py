@@ -188,11 +188,15 @@ class AsyncLive:
 
     def landed(self) -> int:
         """States the worker annotated since the last call."""
+        if not hasattr(self, "_done"):  # closed
+            return 0
         done = self._done.value
         landed, self._reported = done - self._reported, done
         return landed
 
     def stats(self) -> dict[str, float]:
+        if not hasattr(self, "_queued"):  # closed
+            return self._last_stats
         return {"live_queue": float(self._queued.value), "live_worker_restarts": float(self.restarts)}
 
     def close(self, timeout: float = 30.0) -> None:
@@ -205,7 +209,16 @@ class AsyncLive:
             self.process.join(5.0)
         for q in (self._inbox, self._errors):
             q.close()
-            q.cancel_join_thread()
+            q.cancel_join_thread()  # a worker gone without reading leaves data in the pipe: do not wait for it
+        self.process.close()
+        # Release the shared objects' semaphores now: left to interpreter shutdown, their finalizers may
+        # run after the resource tracker's check, which then warns about "leaked semaphore objects".
+        self._last_stats = self.stats()
+        for name in ("_inbox", "_errors", "_stop", "_queued", "_done"):
+            delattr(self, name)
+        import gc
+
+        gc.collect()
 
 
 class RemoteLive:
