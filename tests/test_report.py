@@ -210,3 +210,18 @@ def test_the_quality_curve_places_each_configuration_at_its_annotators_probe_agr
     bad.write_text("{}")
     refused = CliRunner().invoke(app, ["report", *map(str, runs), "--out", str(tmp_path / "r2"), "--probe", str(bad)])
     assert refused.exit_code == 1 and "is not a probe file" in refused.output and "Traceback" not in refused.output
+
+
+def test_curves_are_small_multiples_of_the_settings_methods_share():
+    """A paper table's grid (Table 1: distractors for every method) gives one panel per value; a
+    setting of one method alone (illm's obs_mode, the oracle's noise) stays in the line's name."""
+    from illm_tools.report.plots import panels
+
+    rows = [{"method": m, "settings": {"num_dists": n, **extra}} for n in ("4", "8")
+            for m, extra in (("ppo", {}), ("illm", {"obs_mode": "hop"}), ("illm", {"obs_mode": "obs"}))]
+    keys, placed = panels(rows)
+    assert keys == ["num_dists"]
+    assert placed[:3] == [("num_dists 4", "ppo"), ("num_dists 4", "illm (obs_mode hop)"),
+                          ("num_dists 4", "illm (obs_mode obs)")]
+    keys, placed = panels([{"method": "ppo", "settings": {}}, {"method": "illm", "settings": {"oracle_noise": "0.5"}}])
+    assert keys == [] and placed == [("", "ppo"), ("", "illm (oracle_noise 0.5)")]

@@ -69,7 +69,8 @@ def _row(env_id: str, label: str, group: dict, every: int, final_points: int, re
                  per_seed=[{"seed": c.seed, "run": c.run, "score": s} for c, s in zip(curves, finals.tolist())],
                  no_score=[c.run for c, s in zip(curves, finals) if np.isnan(s)])
     trained = {c.run: c.last_step for c in curves} | dict(group["short_runs"])
-    return {"env_id": env_id, "label": label, "method": group["method"], "score_name": score_name(env_id),
+    return {"env_id": env_id, "label": label, "method": group["method"], "settings": group["settings"],
+            "score_name": score_name(env_id),
             "seeds": group["seeds"], "runs": group["runs"], "short_runs": group["short_runs"],
             "trained_frames": trained, "frames": group["frames"], "mean": mean, "std": group["std"],
             "band_low": low, "band_high": high, "final": final, "visitation": None,
@@ -113,12 +114,15 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
     envs = list(dict.fromkeys(r["env_id"] for r in rows))
     taken: set[str] = set()
     curve_files = {}
+    # one colour per line (a method and its settings other than the panels') in every figure
+    colour = plots.colours(list(dict.fromkeys(line for env in envs for _, line in
+                                              plots.panels([r for r in rows if r["env_id"] == env])[1])))
     for env in envs:
         plotted = [r for r in rows if r["env_id"] == env and r["frames"]]
         if not plotted:  # every run of the env too short for a point
             continue
         name = f"curves-{slug(env)}.png"
-        plots.curves_png(env, score_name(env), plotted, out / name)
+        plots.curves_png(env, score_name(env), plotted, out / name, colour)
         curve_files[env] = name
         taken.add(name)
     for row in rows:
@@ -128,7 +132,7 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
     final_file = None
     if any(r["final"]["iqm"] is not None for r in rows):
         final_file = "final.png"
-        plots.final_png(panels, out / final_file)
+        plots.final_png(panels, out / final_file, colour)
     quality_file, quality_result = None, None
     if probe_figures:
         from illm_tools.report.quality import quality, quality_png

@@ -128,18 +128,24 @@ def _learned(cfg: dict) -> str:
     return json.dumps({k: v for k, v in cfg.items() if k not in NOT_LEARNED}, sort_keys=True, default=str)
 
 
-def group_labels(configs: list[dict]) -> list[str]:
-    """Each run's group label: its method, plus the settings in which its configuration differs
-    from other configurations of the same env and method ("illm (ext_coef 2, lambda_a 0.1)")."""
+def group_settings(configs: list[dict]) -> list[dict[str, str]]:
+    """Per run, the settings in which its configuration differs from other configurations of the
+    same env and method, as labels show them ({"ext_coef": "2", "lambda_a": "0.1"})."""
     method = [c.get("mode", c.get("method", "?")) for c in configs]
-    labels = []
+    out = []
     for i, cfg in enumerate(configs):
         peers = [c for j, c in enumerate(configs) if c["env_id"] == cfg["env_id"] and method[j] == method[i]]
         varying = sorted({k for c in peers for k in set(c) | set(cfg)
                           if k not in NOT_LEARNED and c.get(k) != cfg.get(k)})
-        shown = [f"{k} {_setting(cfg.get(k))}" for k in varying]
-        labels.append(method[i] + (f" ({', '.join(shown)})" if shown else ""))
-    return labels
+        out.append({k: _setting(cfg.get(k)) for k in varying})
+    return out
+
+
+def group_labels(configs: list[dict]) -> list[str]:
+    """Each run's group label: its method, plus the settings in which its configuration differs
+    from other configurations of the same env and method ("illm (ext_coef 2, lambda_a 0.1)")."""
+    return [c.get("mode", c.get("method", "?")) + (f" ({', '.join(f'{k} {v}' for k, v in s.items())})" if s else "")
+            for c, s in zip(configs, group_settings(configs))]
 
 
 def _reads_targets(cfg: dict) -> bool:
@@ -160,6 +166,7 @@ def summarise(run_dirs: list[Path], every: int) -> dict:
     if not curves:
         raise UsageError("no run folders given: pass folders written by `illm train`")
     labels = group_labels([c.config for c in curves])
+    settings = dict(zip(labels, group_settings([c.config for c in curves])))
     groups: dict[tuple[str, str], list[Curve]] = {}
     for curve, label in zip(curves, labels):
         groups.setdefault((curve.env_id, label), []).append(curve)
@@ -178,7 +185,8 @@ def summarise(run_dirs: list[Path], every: int) -> dict:
         with np.errstate(all="ignore"), warnings.catch_warnings():  # windows with no finished episode stay NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             mean, std = (np.nanmean(table, 0), np.nanstd(table, 0)) if long else (np.zeros(0), np.zeros(0))
-        out[key] = {"method": members[0].config.get("mode", "?"), "reads_targets": _reads_targets(members[0].config),
+        out[key] = {"method": members[0].config.get("mode", "?"), "settings": settings[key[1]],
+                    "reads_targets": _reads_targets(members[0].config),
                     "frames": frames, "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in long),
                     "runs": [c.run for c in long], "short_runs": {c.run: c.last_step for c in members if not c.frames},
                     "coverage": float(np.mean([c.coverage for c in members])),

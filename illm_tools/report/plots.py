@@ -21,49 +21,103 @@ def _nan(values) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in values], dtype=float)
 
 
-def curves_png(env_id: str, score_name: str, rows: list[dict], path: Path) -> Path:
-    """One env's learning curves: per row ({"label", "frames", "mean", "band_low", "band_high"}) its
-    mean over seeds against frames, shaded between the band's ends where it has one."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=100)
+def colours(labels: list[str]) -> dict[str, tuple]:
+    """One colour per line label, the same in every figure of a report (seaborn's colorblind
+    palette, as rliable's figures use)."""
+    import seaborn as sns
+
+    palette = sns.color_palette("colorblind", n_colors=max(len(labels), 1))
+    return {label: tuple(palette[i % len(palette)]) for i, label in enumerate(labels)}
+
+
+def panels(rows: list[dict]) -> tuple[list[str], list[tuple[str, str]]]:
+    """The small multiples of an env's rows: the settings two or more methods vary in (a paper
+    table's columns: Table 1's distractor counts) make the panels, and each row is drawn in its
+    panel as a line named by its method and its other settings. Returns (panel keys, per row
+    (panel title, line label))."""
+    by_key: dict[str, set[str]] = {}
     for row in rows:
-        frames, mean = np.array(row["frames"], dtype=float), _nan(row["mean"])
-        (line,) = ax.plot(frames, mean, marker="o" if len(frames) < 3 else None, markersize=3,
-                          label=f"{row['label']} ({len(row['seeds'])} seed{'s' * (len(row['seeds']) != 1)})")
-        low, high = _nan(row["band_low"]), _nan(row["band_high"])
-        if np.isfinite(low).any():
-            ax.fill_between(frames, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
-    ax.set_xlabel("frames")
-    ax.set_ylabel(score_name)
-    ax.set_title(f"{env_id}: mean over seeds, 95% bootstrap band", fontsize=9)
-    ax.grid(alpha=0.3)
-    if rows:
-        ax.legend(fontsize=7)
+        for key in row.get("settings", {}):
+            by_key.setdefault(key, set()).add(row["method"])
+    keys = sorted(k for k, methods in by_key.items() if len(methods) > 1)
+    out = []
+    for row in rows:
+        settings = row.get("settings", {})
+        title = ", ".join(f"{k} {settings[k]}" for k in keys if k in settings)
+        rest = [f"{k} {v}" for k, v in settings.items() if k not in keys]
+        out.append((title, row["method"] + (f" ({', '.join(rest)})" if rest else "")))
+    return keys, out
+
+
+def curves_png(env_id: str, score_name: str, rows: list[dict], path: Path, colour: dict[str, tuple] | None = None) -> Path:
+    """One env's learning curves, one panel per setting that several methods share (small multiples,
+    `panels`), one colour per line across panels: each row's ({"label", "method", "settings",
+    "frames", "mean", "band_low", "band_high"}) mean over seeds against frames, shaded between the
+    band's ends where it has one."""
+    plt = _pyplot()
+    _, placed = panels(rows)
+    titles = list(dict.fromkeys(t for t, _ in placed))
+    lines = list(dict.fromkeys(line for _, line in placed))
+    colour = {**colours(lines), **(colour or {})}
+    fig, axes = plt.subplots(1, len(titles), figsize=(4.6 * len(titles) + 1.8, 3.8), dpi=100, squeeze=False,
+                             sharey=True)
+    for ax, title in zip(axes[0], titles):
+        for row, (where, line) in zip(rows, placed):
+            if where != title:
+                continue
+            frames, mean = np.array(row["frames"], dtype=float), _nan(row["mean"])
+            ax.plot(frames, mean, marker="o" if len(frames) < 3 else None, markersize=3, color=colour[line],
+                    label=f"{line} ({len(row['seeds'])} seed{'s' * (len(row['seeds']) != 1)})")
+            low, high = _nan(row["band_low"]), _nan(row["band_high"])
+            if np.isfinite(low).any():
+                ax.fill_between(frames, low, high, color=colour[line], alpha=0.2, linewidth=0)
+        ax.set_xlabel("frames")
+        ax.set_title(title or env_id, fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel(f"{score_name} (mean over seeds, 95% bootstrap band)", fontsize=8)
+    handles = {}
+    for ax in axes[0]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab.rsplit(" (", 1)[0] if lab.endswith("seeds)") or lab.endswith("seed)") else lab, h)
+    fig.legend(list(handles.values()), list(handles), loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=7,
+               frameon=False)
+    if len(titles) > 1 or titles[0]:
+        fig.suptitle(env_id, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path)
+    fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
     return path
 
 
-def final_png(panels: list[dict], path: Path) -> Path:
-    """Final scores, one panel per env ({"env_id", "score_name", "rows": [{"label", "final"}]}):
-    each row's IQM as a dot with its 95% interval as a bar."""
+def final_png(panels_: list[dict], path: Path, colour: dict[str, tuple] | None = None) -> Path:
+    """Final scores drawn as rliable draws interval estimates (`plot_interval_estimates`): per env a
+    panel, per configuration a bar spanning its 95% interval with a black tick at its IQM, each
+    configuration in its colour of the report's curves; configurations without a score in an env
+    are left out of its panel."""
     plt = _pyplot()
-    height = max(2.0, 0.45 * max(len(p["rows"]) for p in panels) + 1.2)
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), height), dpi=100, squeeze=False)
-    for ax, panel in zip(axes[0], panels):
+    labels = list(dict.fromkeys(r["label"] for p in panels_ for r in p["rows"]))
+    colour = colour or colours(labels)
+    shown = [p for p in panels_ if any(r["final"]["iqm"] is not None for r in p["rows"])]
+    height = max(2.0, 0.42 * max(len(p["rows"]) for p in shown) + 1.1)
+    fig, axes = plt.subplots(1, len(shown), figsize=(4.6 * len(shown), height), dpi=100, squeeze=False)
+    for ax, panel in zip(axes[0], shown):
         rows = [r for r in panel["rows"] if r["final"]["iqm"] is not None]
         for y, row in enumerate(rows):
             final = row["final"]
-            if final["ci_low"] is not None:
-                ax.plot([final["ci_low"], final["ci_high"]], [y, y], linewidth=5, alpha=0.4, color=f"C{y % 10}")
-            ax.plot([final["iqm"]], [y], "o", color=f"C{y % 10}")
-        ax.set_yticks(range(len(rows)), [r["label"] for r in rows], fontsize=7)
-        ax.set_ylim(-0.7, len(rows) - 0.3)
+            low = final["ci_low"] if final["ci_low"] is not None else final["iqm"]
+            high = final["ci_high"] if final["ci_high"] is not None else final["iqm"]
+            ax.barh(y, max(high - low, 1e-3), left=low, height=0.6, color=colour.get(row["label"], "C0"), alpha=0.75)
+            ax.vlines(final["iqm"], y - 0.28, y + 0.28, color="black", alpha=0.6)
+        ax.set_yticks(range(len(rows)), [r["label"] for r in rows], fontsize=8)
+        ax.set_ylim(-0.6, len(rows) - 0.4)
         ax.invert_yaxis()
-        ax.set_xlabel(f"final {panel['score_name']} (IQM, 95% CI)", fontsize=8)
+        if panel["score_name"] in ("success rate",):
+            ax.set_xlim(-0.02, 1.02)
+        ax.set_xlabel(f"final {panel['score_name']}: IQM (tick), 95% CI (bar)", fontsize=8)
         ax.set_title(panel["env_id"], fontsize=9)
         ax.grid(axis="x", alpha=0.3)
+        for side in ("top", "right", "left"):
+            ax.spines[side].set_visible(False)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
