@@ -54,13 +54,10 @@ def register(app: typer.Typer) -> None:
             result = run(config, on_progress=on_progress)
         figures = result.to_dict()
         if out is not None:  # written whole or not at all
-            import os
-            import uuid
+            from illm_tools import durable
 
             out.parent.mkdir(parents=True, exist_ok=True)
-            tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:8]}.tmp")
-            tmp.write_text(json.dumps(figures, indent=2, sort_keys=True) + "\n")
-            os.replace(tmp, out)
+            durable.write_text(out, json.dumps(figures, indent=2, sort_keys=True) + "\n")
         if as_json:
             emit_json(figures)
             return

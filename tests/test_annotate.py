@@ -13,7 +13,7 @@ from conftest import collect_babyai
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.cache.verify import verify
-from illm_tools.collect import CollectConfig, RandomPolicy, collect
+from illm_tools.collect import RandomPolicy
 from illm_tools.llm.generation import generate
 from illm_tools.llm.joint import score_and_generate
 from illm_tools.llm.scoring import score_candidates

@@ -25,11 +25,10 @@ from typer.testing import CliRunner
 from cli.main import app
 from illm_tools.envs import make_env
 from illm_tools.envs.babyai import ACTION_SPACES
-from illm_tools.envs.captions import ACTION_NAMES, CAPTIONER_VERSION, NOTHING, caption, caption_transitions
+from illm_tools.envs.captions import ACTION_NAMES, CAPTIONER_VERSION, NOTHING, caption
 from illm_tools.intrinsic import BonusContext, Targets
 from illm_tools.intrinsic.ellm import ELLMBonus, ELLMConfig
 from illm_tools.intrinsic.registry import get_method
-from illm_tools.tasks import prompts
 from illm_tools.tasks.prompts import PromptBuilder, parse_goals
 from illm_tools.tasks.registry import LANGUAGE_TASKS
 from illm_tools.tasks.state import StateRecord

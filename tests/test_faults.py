@@ -223,7 +223,7 @@ def test_cache_verify_and_repair_agree_on_one_path_to_a_usable_cache(tmp_path):
     assert (root / shards[0]).is_file()  # nothing moved without the flag
     out = runner.invoke(app, ["cache", "repair", str(root), "--drop-damaged"])
     assert out.exit_code == 0, out.output
-    assert f"dropped 1 damaged shards (4 entries" in out.output and out.output.rstrip().endswith("ok")
+    assert "dropped 1 damaged shards (4 entries" in out.output and out.output.rstrip().endswith("ok")
     assert (root / "damaged" / shards[0]).is_file() and not (root / shards[0]).exists()
     cache = AnnotationCache(root)
     assert len(cache) == 4 and cache.contains(["%064x" % 10]).all()
@@ -245,28 +245,41 @@ def test_repair_rebuilds_an_unreadable_manifest_from_the_shards(tmp_path):
 
 
 def _disk_full_after(half: bool):
-    """A `_write_durable` that writes part of the data, then fails as a full disk does."""
+    """`illm_tools.durable.staged` whose file takes part of the data, then fails as a full disk does."""
+    import contextlib
     import errno
 
-    def write(path, data):
-        path.write_bytes(data[:len(data) // 2] if half else b"")
-        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+    from illm_tools import durable
 
-    return write
+    real = durable.staged
+
+    @contextlib.contextmanager
+    def staged(path, mode="wb", *, tmp=None):
+        with real(path, mode, tmp=tmp) as fh:
+            class Full:
+                name = fh.name
+
+                def write(self, data):
+                    fh.write(data[:len(data) // 2] if half else b"")
+                    raise OSError(errno.ENOSPC, "No space left on device", str(fh.name))
+
+            yield Full()
+
+    return staged
 
 
 def test_a_full_disk_midway_leaves_the_cache_and_the_run_folder_readable(tmp_path, monkeypatch):
     import errno
 
     from cli.errors import report
-    from illm_tools.cache import layout
+    from illm_tools import durable
     from illm_tools.cache.verify import verify
     from illm_tools.rl.checkpoint import load_checkpoint, save_checkpoint
 
     root = _cache(tmp_path)
     before = sorted(p.name for p in root.iterdir())
     row = AnnotationCache(root).lookup(["%064x" % 0])["%064x" % 0]
-    monkeypatch.setattr(layout, "_write_durable", _disk_full_after(half=True))
+    monkeypatch.setattr(durable, "staged", _disk_full_after(half=True))
     with pytest.raises(OSError) as err:
         AnnotationCache(root).write([{**row, "key": "%064x" % 99}])
     monkeypatch.undo()

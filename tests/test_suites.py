@@ -10,7 +10,7 @@ import pytest
 
 from illm_tools.collect import CollectConfig, collect
 from illm_tools.data.trajectories import open_table
-from illm_tools.envs import SUITES, _load, known_env_ids, make_env, register_suite, renderer_of, suite_of
+from illm_tools.envs import SUITES, known_env_ids, make_env, register_suite, renderer_of, suite_of
 from illm_tools.envs.pool import EnvPool
 from illm_tools.envs.suite import ObsSpec, Suite
 from illm_tools.errors import UnknownEnvError, UsageError
@@ -76,8 +76,7 @@ def tiny():
     try:
         yield
     finally:
-        SUITES.pop("tiny")
-        _load.cache_clear()
+        del SUITES["tiny"]
 
 
 def test_a_suite_registered_from_a_test_file_runs_every_stage(tiny, tmp_path):

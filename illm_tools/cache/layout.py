@@ -30,6 +30,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 import schemas
+from illm_tools import durable
 from illm_tools.cache.index import parse_keys
 from illm_tools.errors import CacheError, SchemaError
 
@@ -150,38 +151,20 @@ def check_shard_schema(found: pa.Schema, where: str) -> None:
         raise CacheError(f"{where} does not match schema {KIND} v{version}: columns {diff} differ")
 
 
-def fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _write_durable(path: Path, data: bytes) -> None:
-    with open(path, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-
-
 def _write_or_remove(path: Path, data: bytes) -> None:
-    """`_write_durable`, removing the partial file when the write fails (e.g. a full disk)."""
-    try:
-        _write_durable(path, data)
-    except BaseException:
-        path.unlink(missing_ok=True)
-        raise
+    """Write `path` itself (a temporary name) and fsync it, removing it when the write fails (e.g. a
+    full disk); `durable.commit` renames it."""
+    with durable.staged(path, tmp=path) as fh:
+        fh.write(data)
 
 
 def write_manifest(root: Path, manifest: dict, checkpoint: Checkpoint | None = None) -> None:
-    """Replace the manifest atomically: temp file, fsync, rename, fsync the directory."""
+    """Replace the manifest atomically: temp file, fsync, rename, fsync the directory (`illm_tools.durable`)."""
     tmp = root / f"{TMP_PREFIX}{MANIFEST}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     _write_or_remove(tmp, (json.dumps(manifest, indent=1) + "\n").encode())
     if checkpoint:
         checkpoint("manifest-temp-written")
-    os.replace(tmp, root / MANIFEST)
-    fsync_dir(root)
+    durable.commit(tmp, root / MANIFEST)
 
 
 @contextlib.contextmanager
@@ -213,8 +196,7 @@ def write_shard(root: Path, table: pa.Table, checkpoint: Checkpoint | None = Non
     _write_or_remove(tmp, data)
     if checkpoint:
         checkpoint("shard-temp-written")
-    os.replace(tmp, root / name)
-    fsync_dir(root)
+    durable.commit(tmp, root / name)
     if checkpoint:
         checkpoint("shard-renamed")
     return manifest_entry(name, table.num_rows, hashlib.sha256(data).hexdigest(), len(data))

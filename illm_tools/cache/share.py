@@ -18,7 +18,6 @@ Publishing on the Hugging Face Hub (where the network allows) goes through this 
 from __future__ import annotations
 
 import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import schemas
+from illm_tools import durable
 from illm_tools.cache import layout
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import CacheError, OutputExistsError, SchemaError, UsageError
@@ -62,17 +62,13 @@ def export(root: str | os.PathLike, out: str | os.PathLike, *, fmt: str = "parqu
     manifest = layout.read_manifest(root)
     schema = layout.arrow_schema(int(manifest["version"]))
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:8]}.tmp")
     rows = 0
-    try:
-        with pq.ParquetWriter(str(tmp), schema, compression="zstd") as writer:
-            for entry in manifest["shards"]:
-                table = layout.read_shard(root / entry["name"])
-                writer.write_table(table.cast(schema))
-                rows += table.num_rows
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with durable.staged(out) as fh, pq.ParquetWriter(fh, schema, compression="zstd") as writer:
+        for entry in manifest["shards"]:
+            table = layout.read_shard(root / entry["name"])
+            writer.write_table(table.cast(schema))
+            rows += table.num_rows
+    durable.commit(fh.name, out)
     return ShareReport(str(out), rows=rows, shards=len(manifest["shards"]))
 
 

@@ -38,12 +38,9 @@ INFO = "dataset_info.json"
 
 
 def _fsync_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    from illm_tools import durable
+
+    durable.write_text(path, text)
 
 
 def _recollect(root: Path) -> str:
@@ -174,16 +171,15 @@ class TrajectoryWriter:
         batch = pa.RecordBatch.from_pydict(head, schema=self.arrow_schema)
         index = len(self._old_files) + len(self._new_files)
         name = f"data-{index:05d}-{uuid.uuid4().hex[:6]}.arrow"
-        tmp = self.workdir / f".{name}.tmp"
-        with pa.OSFile(str(tmp), "wb") as sink, pa.ipc.new_stream(sink, self.arrow_schema) as writer:
-            writer.write_batch(batch)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
+        from illm_tools import durable
         from illm_tools.cache.layout import sha256_file
 
+        with durable.staged(self.workdir / name) as fh, pa.ipc.new_stream(fh, self.arrow_schema) as writer:
+            writer.write_batch(batch)
+        tmp = Path(fh.name)
         self._entries[name] = {"filename": name, "illm_bytes": tmp.stat().st_size, "illm_sha256": sha256_file(tmp),
                                "illm_rows": n, **({"illm_part": self.part} if self.part else {})}
-        os.replace(tmp, self.workdir / name)
+        durable.commit(tmp, self.workdir / name)
         self._new_files.append(name)
         self.rows_written += n
         self._buffer = {k: v[n:] for k, v in self._buffer.items()}

@@ -10,42 +10,39 @@ in a tiny one from the test file).
 from __future__ import annotations
 
 import difflib
-import functools
-import importlib
 from typing import TYPE_CHECKING, Any
 
 from illm_tools.errors import UnknownEnvError, UsageError
+from illm_tools.registry import Registry
 
 if TYPE_CHECKING:
     import gymnasium as gym
 
     from illm_tools.envs.suite import Suite
 
-SUITES: dict[str, Any] = {
-    "babyai": "illm_tools.envs.babyai:SUITE",
-    "minihack": "illm_tools.envs.minihack:SUITE",
-    "crafter": "illm_tools.envs.crafter:SUITE",
-    "atari": "illm_tools.envs.atari:SUITE",
-}
-"""Suite name -> "module:attribute" of its `Suite` instance (or the instance itself)."""
+def _suite_problem(obj) -> str | None:
+    from illm_tools.envs.suite import Suite
+
+    return None if isinstance(obj, Suite) else "is not a Suite instance"
+
+
+SUITES: Registry = Registry("suite", "illm.suites", check=_suite_problem)
+"""Suite name -> "module:attribute" of its `Suite` instance (or the instance itself); installed
+packages add theirs through `illm.suites` entry points."""
+SUITES.register("babyai", "illm_tools.envs.babyai:SUITE")
+SUITES.register("minihack", "illm_tools.envs.minihack:SUITE")
+SUITES.register("crafter", "illm_tools.envs.crafter:SUITE")
+SUITES.register("atari", "illm_tools.envs.atari:SUITE")
 
 
 def register_suite(suite: Suite | str, name: str | None = None) -> None:
     """Add a suite (an instance, or "module:attribute" with `name`); a name already taken is refused."""
-    name = name or suite.name
-    if name in SUITES:
-        raise UsageError(f"a suite named {name!r} is already registered")
-    SUITES[name] = suite
-    _load.cache_clear()
+    SUITES.register(name or suite.name, suite)
 
 
-@functools.lru_cache(maxsize=None)
 def _load(name: str) -> Suite:
-    entry = SUITES[name]
-    if isinstance(entry, str):
-        module, attr = entry.split(":")
-        entry = getattr(importlib.import_module(module), attr)
-    return entry
+    return SUITES.load(name)
+
 
 
 def suites() -> tuple[Suite, ...]:

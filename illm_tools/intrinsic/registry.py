@@ -30,7 +30,6 @@ options, as checkpoints and reports know them); every other field takes `TrainCo
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import typing
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -38,6 +37,7 @@ from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 from illm_tools.errors import UsageError
+from illm_tools.registry import Registry, load_reference
 
 if TYPE_CHECKING:
     from illm_tools.intrinsic.base import BonusContext, IntrinsicBonus
@@ -172,10 +172,7 @@ class Method:
 
 def _entry_point(ref: str | type, base: type, what: str) -> type:
     """The class `ref` names ("module:Class", imported now) or is, checked to subclass `base`."""
-    cls = ref
-    if isinstance(cls, str):
-        module, _, attr = cls.partition(":")
-        cls = getattr(importlib.import_module(module), attr)
+    cls = load_reference(ref) if isinstance(ref, str) else ref
     if not (isinstance(cls, type) and issubclass(cls, base)):
         raise TypeError(f"{what} {ref!r} is not a {base.__name__} subclass")
     return cls
@@ -208,24 +205,21 @@ def _typed(name: str, hint: Any, value: Any) -> Any:
     return value  # other types: the config's own validation decides
 
 
-METHODS: dict[str, Method] = {}
-"""Every method by name, in registration order (a live view: methods registered later count)."""
+METHODS: Registry[Method] = Registry("method (mode)", "illm.methods", check=Method, hint="--method")
+"""Every method by name, in registration order (a live view: methods registered later count, and
+installed packages' `illm.methods` entry points, each a `Method`)."""
 
 
 def register(method: Method, *, replace: bool = False) -> Method:
     """Add a method to `METHODS`; a taken name is refused unless `replace`."""
-    if method.name in METHODS and not replace:
-        raise UsageError(f"a method named {method.name!r} is already registered")
-    METHODS[method.name] = method
-    return method
+    return METHODS.register(method.name, method, replace=replace)
 
 
 def get_method(name: str) -> Method:
     """The method called `name`; one line listing the known ones otherwise."""
-    try:
-        return METHODS[name]
-    except (KeyError, TypeError):
-        raise UsageError(f"unknown method (mode) {name!r}; choose one of {', '.join(METHODS)}") from None
+    if not isinstance(name, str):
+        raise UsageError(METHODS.unknown(name))
+    return METHODS.load(name)
 
 
 def method_help() -> str:

@@ -27,19 +27,27 @@ Optional, on a backend class: `default_model` (the model when none is named: `re
 """
 from __future__ import annotations
 
-import importlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 from illm_tools.errors import UsageError
+from illm_tools.registry import Registry
 
-BACKENDS: dict[str, str | type] = {
-    "transformers": "illm_tools.llm.transformers_backend:TransformersBackend",
-    "stub": "illm_tools.llm.stub:StubBackend",
-    "oracle": "illm_tools.llm.oracle:OracleBackend",
-}
-"""Backend name -> its class ("module:Class", imported on first use, or the class)."""
+def _backend_problem(cls) -> str | None:
+    """What keeps a class from being a backend: the class methods loading calls."""
+    if not isinstance(cls, type):
+        return "is not a class"
+    missing = [m for m in ("load", "model_fingerprint", "model_hidden_size") if not callable(getattr(cls, m, None))]
+    return f"has no {', '.join(missing)} (see the Backend protocol)" if missing else None
+
+
+BACKENDS: Registry = Registry("LLM backend", "illm.backends", check=_backend_problem, hint="--backend")
+"""Backend name -> its class ("module:Class", imported on first use, or the class); installed
+packages add theirs through `illm.backends` entry points."""
+BACKENDS.register("transformers", "illm_tools.llm.transformers_backend:TransformersBackend")
+BACKENDS.register("stub", "illm_tools.llm.stub:StubBackend")
+BACKENDS.register("oracle", "illm_tools.llm.oracle:OracleBackend")
 DEFAULT_BACKEND = "transformers"
 
 
@@ -83,17 +91,12 @@ class Backend(Protocol):
 def check_backend(name: str) -> None:
     """Refuse an unknown backend name in one line (nothing is imported)."""
     if name not in BACKENDS:
-        raise UsageError(f"unknown LLM backend {name!r}; choose one of {', '.join(BACKENDS)}")
+        raise UsageError(BACKENDS.unknown(name))
 
 
 def backend_class(name: str) -> type:
     """The class registered as `name`; an unknown name is refused in one line."""
-    check_backend(name)
-    entry = BACKENDS[name]
-    if isinstance(entry, str):
-        module, attr = entry.split(":")
-        entry = getattr(importlib.import_module(module), attr)
-    return entry
+    return BACKENDS.load(name)
 
 
 def resolve_model(backend: str, model: str | None, *, oracle_noise: float = 0.0) -> str:

@@ -80,10 +80,10 @@ def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
 
 
 def _write_json_atomic(path: Path, payload: dict) -> None:
+    from illm_tools import durable
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}")
-    tmp.write_text(json.dumps(payload, sort_keys=True))
-    os.replace(tmp, path)
+    durable.write_text(path, json.dumps(payload, sort_keys=True))
 
 
 def _memo(path: Path, root: Path) -> tuple[Path, dict]:

@@ -21,13 +21,12 @@ import hashlib
 import io
 import json
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from illm_tools.cache.layout import fsync_dir
+from illm_tools import durable
 from illm_tools.errors import DamagedFileError, UsageError
 
 log = logging.getLogger(__name__)
@@ -99,9 +98,7 @@ class MetricsLog:
         for path, lines in ((self.path, [r + "\n" for r in rows]),
                             (self.csv_path, [",".join(CSV_COLUMNS) + "\n"]
                              + [",".join(map(str, csv_row(json.loads(r)))) + "\n" for r in rows])):
-            tmp = path.with_name(path.name + ".tmp")
-            tmp.write_text("".join(lines))
-            os.replace(tmp, path)
+            durable.write_text(path, "".join(lines))
 
     def write(self, metrics: dict) -> None:
         self._fh.write(json.dumps(metrics) + "\n")
@@ -129,21 +126,12 @@ def save_checkpoint(run_dir: Path, state: dict) -> Path:
     buffer = io.BytesIO()
     torch.save(state, buffer)
     payload = buffer.getvalue()
-    try:
-        with open(tmp, "wb") as fh:
-            torch.save({"format_version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(payload).hexdigest(),
-                        "state": payload}, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-    except BaseException:  # e.g. a full disk: the checkpoints in place stay as they were
-        tmp.unlink(missing_ok=True)
-        raise
+    with durable.staged(path, tmp=tmp) as fh:  # e.g. a full disk: the checkpoints in place stay as they were
+        torch.save({"format_version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(payload).hexdigest(),
+                    "state": payload}, fh)
     if path.exists():
-        os.replace(path, previous)
-        fsync_dir(run_dir)
-    os.replace(tmp, path)
-    fsync_dir(run_dir)
-    return path
+        durable.commit(path, previous)
+    return durable.commit(tmp, path)
 
 
 def _read_checkpoint(path: Path) -> dict:
@@ -198,13 +186,7 @@ def load_checkpoint(run_dir: Path) -> dict:
 
 def write_config(run_dir: Path, config: dict) -> None:
     """Write run_dir/config.json atomically (temporary file, fsync, rename)."""
-    path = Path(run_dir) / CONFIG_NAME
-    tmp = path.with_name(f".{CONFIG_NAME}.tmp")
-    with open(tmp, "w") as fh:
-        fh.write(json.dumps(config, indent=2))
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    durable.write_text(Path(run_dir) / CONFIG_NAME, json.dumps(config, indent=2))
 
 
 def read_config(run_dir: Path) -> dict:

@@ -9,7 +9,6 @@ growing as needed; the trainer saves it as `visitation.npy` in the run folder wi
 from __future__ import annotations
 
 import os
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -41,12 +40,12 @@ class VisitCounts:
 
     def save(self, run_dir: str | os.PathLike) -> Path:
         """Write run_dir/visitation.npy atomically."""
+        from illm_tools import durable
+
         path = Path(run_dir) / FILE
-        tmp = path.with_name(f".{FILE}.{uuid.uuid4().hex[:8]}.tmp")
-        with open(tmp, "wb") as fh:
+        with durable.staged(path) as fh:
             np.save(fh, self._counts)
-        os.replace(tmp, path)
-        return path
+        return durable.commit(fh.name, path)
 
     @classmethod
     def load(cls, run_dir: str | os.PathLike) -> VisitCounts:

@@ -25,6 +25,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from illm_tools.errors import UsageError
+from illm_tools.registry import Registry
 
 KINDS = ("ranking", "text")
 
@@ -77,26 +78,22 @@ DEFAULT_WEIGHT = 0.5
 """Bonus weight of a text task without a setting of its own (goal, plan): beta_hc's paper value,
 as their heads are trained like the history-compression head (D.2)."""
 
-LANGUAGE_TASKS: dict[str, LanguageTask] = {}
-"""Every language task by name (what `--tasks` accepts), in registration order."""
+LANGUAGE_TASKS: Registry[LanguageTask] = Registry("language task", "illm.tasks", check=LanguageTask, hint="--tasks")
+"""Every language task by name (what `--tasks` accepts), in registration order; installed packages
+add theirs through `illm.tasks` entry points (each a `LanguageTask` with its own `template_dir`)."""
 
 DEFAULT_TASKS = ("action", "summary")
 """The tasks annotated and distilled when none are named: iLLM's two (paper: 2 tasks by default)."""
 
 
 def register_task(task: LanguageTask) -> LanguageTask:
-    """Add a task (its templates must exist under templates/); refuses a second task of one name."""
-    if task.name in LANGUAGE_TASKS:
-        raise ValueError(f"language task {task.name!r} is already registered")
-    LANGUAGE_TASKS[task.name] = task
-    return task
+    """Add a task (its templates must exist under templates/ or its `template_dir`); refuses a
+    second task of one name."""
+    return LANGUAGE_TASKS.register(task.name, task)
 
 
 def get_task(name: str) -> LanguageTask:
-    try:
-        return LANGUAGE_TASKS[name]
-    except KeyError:
-        raise UsageError(f"unknown language task {name!r}: use one of {', '.join(LANGUAGE_TASKS)}") from None
+    return LANGUAGE_TASKS.load(name)
 
 
 def parse_tasks(tasks, option: str = "--tasks") -> tuple[str, ...]:

@@ -1,0 +1,76 @@
+"""Durable writes, for every file illm writes: the new content goes to a temporary file beside the
+target, which is flushed and fsynced, renamed over the target, and the folder fsynced. A crash at
+any point leaves the old file or the new one, whole, never a mix; a write that fails (a full disk)
+removes its temporary file and leaves the old file as it was. This is the annotation cache's write
+path (`illm_tools.cache.layout`), shared: shards, manifests, checkpoints, configs, metrics, state
+files, exports and reports all go through here.
+
+- `write_bytes(path, data)` / `write_text(path, text)`: the whole file at once;
+- `staged(path)`: a context manager yielding an open temporary file for writers that stream
+  (torch.save, numpy, parquet); the file is fsynced on exit and removed if the block raises;
+  `commit(tmp, path)` renames it over the target and fsyncs the folder (kept apart so a caller can
+  do something in between: checkpoints keep the previous file, the cache hooks crash tests in);
+- `fsync_dir(path)`: make a rename in `path` durable.
+Temporary names start with "." and end with ".tmp", so listings and cleanup tell them apart.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO
+
+TMP_SUFFIX = ".tmp"
+
+
+def temp_path(path: Path, prefix: str = ".") -> Path:
+    """A temporary name beside `path`, unique to this process and call."""
+    return path.with_name(f"{prefix}{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}{TMP_SUFFIX}")
+
+
+def fsync_dir(path: str | os.PathLike) -> None:
+    """fsync a folder, so the renames in it survive a crash."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def staged(path: str | os.PathLike, mode: str = "wb", *, tmp: Path | None = None) -> Iterator[IO]:
+    """An open temporary file beside `path` (or at `tmp`), flushed and fsynced when the block ends,
+    removed if it raises; `handle.name` is its path, for `commit`."""
+    path = Path(path)
+    tmp = tmp or temp_path(path)
+    try:
+        with open(tmp, mode) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def commit(tmp: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Rename a staged file over `path` and fsync the folder."""
+    path = Path(path)
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+    return path
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Replace `path` with `data`, durably (see the module docstring)."""
+    with staged(path) as fh:
+        fh.write(data)
+    return commit(fh.name, path)
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Replace `path` with `text` (UTF-8), durably."""
+    return write_bytes(path, text.encode("utf-8"))
