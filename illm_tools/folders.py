@@ -14,12 +14,16 @@ from pathlib import Path
 
 from illm_tools.errors import OutputExistsError
 
+STATE = "state.json"
+"""The file a trajectory dataset writes last (`illm_tools.data.trajectories`)."""
+MANIFEST = "manifest.json"
+"""The annotation cache's list of shards (`illm_tools.cache.layout`)."""
+FORMAT = "illm.annotation-cache"
+"""The `format` of a cache's manifest."""
+
 
 def owner(folder: str | Path) -> str | None:
     """"trajectory dataset", "annotation cache", "training run", or None (absent, empty, other)."""
-    from illm_tools.cache.layout import FORMAT, MANIFEST
-    from illm_tools.data.trajectories import STATE
-
     folder = Path(folder)
     if not folder.is_dir():
         return None

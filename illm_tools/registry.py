@@ -43,6 +43,14 @@ def load_reference(ref: str) -> Any:
     return target
 
 
+def load_class(ref: str | type, base: type, what: str) -> type:
+    """The class `ref` names ("module:Class", imported now) or is, checked to subclass `base`."""
+    cls = load_reference(ref) if isinstance(ref, str) else ref
+    if not (isinstance(cls, type) and issubclass(cls, base)):
+        raise TypeError(f"{what} {ref!r} is not a {base.__name__} subclass")
+    return cls
+
+
 class Registry(MutableMapping, Generic[T]):
     """Named plug-ins of one kind (see the module docstring)."""
 

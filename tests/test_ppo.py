@@ -245,9 +245,10 @@ def test_real_babyai_pool_short_run_and_load_policy(tmp_path):
 
 def test_choosing_the_heads_dtype_leaves_the_seeded_rng_alone():
     """The bf16-or-float32 timing runs inside the seeded network init: it must draw no numbers."""
+    from illm_tools.llm import dtype
     from illm_tools.rl.networks import bf16_is_faster
 
-    bf16_is_faster.cache_clear()
+    dtype._measured.cache_clear()
     before = torch.random.get_rng_state()
     assert isinstance(bf16_is_faster(), bool)
     assert torch.equal(before, torch.random.get_rng_state())

@@ -31,9 +31,10 @@ import pyarrow.compute as pc
 import schemas
 from illm_tools.data import schema as schema_check
 from illm_tools.errors import DamagedFileError, OutputExistsError, UsageError
+from illm_tools.folders import STATE  # the stage markers live with `folders`
 
 KIND = "trajectory"
-STATE = "state.json"
+
 INFO = "dataset_info.json"
 
 
@@ -65,7 +66,7 @@ def _shard_files(root: Path) -> list[str]:
 
 def _read_shard(root: Path, entry: dict) -> pa.Table:
     """One shard, checked against its state.json entry when it has one; damage -> one line."""
-    from illm_tools.cache.layout import sha256_file
+    from illm_tools.durable import sha256_file
 
     path = root / entry["filename"]
     if not path.is_file():
@@ -172,7 +173,7 @@ class TrajectoryWriter:
         index = len(self._old_files) + len(self._new_files)
         name = f"data-{index:05d}-{uuid.uuid4().hex[:6]}.arrow"
         from illm_tools import durable
-        from illm_tools.cache.layout import sha256_file
+        from illm_tools.durable import sha256_file
 
         with durable.staged(self.workdir / name) as fh, pa.ipc.new_stream(fh, self.arrow_schema) as writer:
             writer.write_batch(batch)

@@ -37,7 +37,7 @@ from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 from illm_tools.errors import UsageError
-from illm_tools.registry import Registry, load_reference
+from illm_tools.registry import Registry, load_class, load_reference
 
 if TYPE_CHECKING:
     from illm_tools.intrinsic.base import BonusContext, IntrinsicBonus
@@ -70,17 +70,16 @@ class Method:
     `shuffle_seed`, `illm_tools.rl.targets.ShuffledKeys`: the `illm-shuffled` control)."""
 
     @cached_property
-    def network_class(self) -> type:
-        """The method's own policy network class (the grid policy when it names none; a run uses
-        its suite's then, `illm_tools.rl.networks.make_network`)."""
-        from illm_tools.rl.networks import GridMissionNet
-
-        return _entry_point(self.network or GridMissionNet, GridMissionNet, f"method {self.name}: network")
+    def network_class(self) -> type | None:
+        """The method's own policy network class, loaded (None: it names none, and a run uses its
+        suite's, `illm_tools.rl.networks.make_network`, which checks the class)."""
+        return load_reference(self.network) if isinstance(self.network, str) else self.network
 
     def network_options(self, options: Mapping[str, Any], network: type | None = None):
         """The options dataclass of `network` (default: the method's own) from `--network-option`
-        values (None: it takes none); unknown or ill-typed options are refused in one line."""
-        cls = (network or self.network_class).Options
+        values (None: it takes none; so does a method without a network of its own); unknown or
+        ill-typed options are refused in one line."""
+        cls = getattr(network or self.network_class, "Options", None)
         if cls is None:
             if options:
                 raise UsageError(f"--method {self.name} takes no network option ({', '.join(options)})")
@@ -100,7 +99,7 @@ class Method:
 
         if self.entry_point is None:
             return NoBonus
-        return _entry_point(self.entry_point, IntrinsicBonus, f"method {self.name}: bonus")
+        return load_class(self.entry_point, IntrinsicBonus, f"method {self.name}: bonus")
 
     @property
     def config_class(self) -> type | None:
@@ -168,14 +167,6 @@ class Method:
         if not self.pays_reward:
             bonus.pays_reward = False
         return bonus
-
-
-def _entry_point(ref: str | type, base: type, what: str) -> type:
-    """The class `ref` names ("module:Class", imported now) or is, checked to subclass `base`."""
-    cls = load_reference(ref) if isinstance(ref, str) else ref
-    if not (isinstance(cls, type) and issubclass(cls, base)):
-        raise TypeError(f"{what} {ref!r} is not a {base.__name__} subclass")
-    return cls
 
 
 def _typed(name: str, hint: Any, value: Any) -> Any:

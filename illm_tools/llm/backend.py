@@ -28,10 +28,10 @@ Optional, on a backend class: `default_model` (the model when none is named: `re
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 from illm_tools.errors import UsageError
+from illm_tools.llm.spliced import SplicedPrompt  # noqa: F401  (part of the protocol: re-exported)
 from illm_tools.registry import Registry
 
 def _backend_problem(cls) -> str | None:
@@ -49,17 +49,6 @@ BACKENDS.register("transformers", "illm_tools.llm.transformers_backend:Transform
 BACKENDS.register("stub", "illm_tools.llm.stub:StubBackend")
 BACKENDS.register("oracle", "illm_tools.llm.oracle:OracleBackend")
 DEFAULT_BACKEND = "transformers"
-
-
-@dataclass(frozen=True)
-class SplicedPrompt:
-    """One hop prompt: text before the history, the window's input embeddings [L, d] (a tensor),
-    text after it; `candidates` to score (the action task) or None (the summary: generate)."""
-
-    head: str
-    window: Any
-    tail: str
-    candidates: tuple[str, ...] | None = None
 
 
 @runtime_checkable
@@ -189,9 +178,8 @@ def backend_hidden_size(name: str, model: str) -> int:
 
 
 def as_backend(lm):
-    """A backend for `lm`: itself, or a loaded transformers model (`LoadedModel`) wrapped."""
+    """A backend for `lm`: itself, or a loaded transformers model (`LoadedModel`) wrapped by the
+    backend registered as transformers."""
     if isinstance(lm, Backend):
         return lm
-    from illm_tools.llm.transformers_backend import TransformersBackend
-
-    return TransformersBackend(lm)
+    return backend_class(DEFAULT_BACKEND)(lm)

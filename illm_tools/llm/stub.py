@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from illm_tools.llm.backend import SplicedPrompt
+from illm_tools.llm.spliced import SplicedPrompt
 
 DEFAULT_HIDDEN = 576
 STUB_VOCAB = 256

@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 
-from illm_tools.llm.backend import SplicedPrompt
+from illm_tools.llm.spliced import SplicedPrompt
 from illm_tools.llm.loading import LoadedModel
 
 

@@ -121,6 +121,22 @@ def _grouped(results: dict) -> list[str]:
     return out + [""]
 
 
+def quality_markdown(result: dict) -> list[str]:
+    """The quality section of report.md."""
+    if not result["points"]:
+        return []
+    out = ["## Annotator quality", "",
+           "Final score against the annotator's agreement with minigrid's BabyAI bot (`illm probe`, the run's "
+           "action calibration): each row's probe is the one of its env, backend, model, history and layout. "
+           "Methods on other states' targets or on none are references.", ""]
+    rows = [[p["env_id"], p["label"], f"{p['agreement']:.3f}", iqm_cell(p["final"])] for p in result["points"]]
+    rows += [[line["env_id"], line["label"], "-", iqm_cell(line["final"])] for line in result["lines"]]
+    rows += [[m["env_id"], f"{m['model']} ({m['backend']}), probed only", f"{m['agreement']:.3f}", "-"]
+             for m in result["markers"]]
+    out += _table(["env", "configuration", "probe agreement", "final IQM [95% CI]"], rows)
+    return out + ["", "![final score against annotator quality](quality.png)", ""]
+
+
 def render(results: dict) -> str:
     settings, rows = results["settings"], results["rows"]
     runs, short = sum(len(r["runs"]) for r in rows), sum(len(r["short_runs"]) for r in rows)
@@ -137,8 +153,6 @@ def render(results: dict) -> str:
     if results["files"]["final"]:
         lines += [f"Final scores with their intervals: ![final scores]({results['files']['final']})", ""]
     if results.get("quality"):
-        from illm_tools.report.quality import quality_markdown
-
         lines += quality_markdown(results["quality"])
     lines += _grouped(results)
     return "\n".join(lines)

@@ -143,21 +143,3 @@ def quality_png(result: dict, score_names: dict[str, str], path: Path) -> Path:
     fig.savefig(path)
     plt.close(fig)
     return path
-
-
-def quality_markdown(result: dict) -> list[str]:
-    """The quality section of report.md."""
-    from illm_tools.report.markdown import _table, iqm_cell
-
-    if not result["points"]:
-        return []
-    out = ["## Annotator quality", "",
-           "Final score against the annotator's agreement with minigrid's BabyAI bot (`illm probe`, the run's "
-           "action calibration): each row's probe is the one of its env, backend, model, history and layout. "
-           "Methods on other states' targets or on none are references.", ""]
-    rows = [[p["env_id"], p["label"], f"{p['agreement']:.3f}", iqm_cell(p["final"])] for p in result["points"]]
-    rows += [[line["env_id"], line["label"], "-", iqm_cell(line["final"])] for line in result["lines"]]
-    rows += [[m["env_id"], f"{m['model']} ({m['backend']}), probed only", f"{m['agreement']:.3f}", "-"]
-             for m in result["markers"]]
-    out += _table(["env", "configuration", "probe agreement", "final IQM [95% CI]"], rows)
-    return out + ["", "![final score against annotator quality](quality.png)", ""]

@@ -46,7 +46,7 @@ class SyncLive:
         """Annotate the first `budget` of `missing` (most visited first); returns how many."""
         from contextlib import nullcontext
 
-        from illm_tools.rl.run import torch_threads
+        from illm_tools.rl.threads import torch_threads
 
         todo = list(missing[: self.budget])
         if not todo:

@@ -16,7 +16,6 @@ do not fit (`kinds`).
 
 from __future__ import annotations
 
-import functools
 import re
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -284,12 +283,12 @@ def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[in
     read the suite's kind of observation; `network_options` as the class's `Options`."""
     from illm_tools.envs import suite_of
     from illm_tools.errors import UsageError
-    from illm_tools.intrinsic.registry import _entry_point
+    from illm_tools.registry import load_class
 
     suite = suite_of(env_id)
     spec = suite.obs_spec(env_id)
-    cls = method.network_class if method.network else _entry_point(suite.network, GridMissionNet,
-                                                                    f"suite {suite.name}: network")
+    cls = load_class(method.network, GridMissionNet, f"method {method.name}: network") if method.network else \
+        load_class(suite.network, GridMissionNet, f"suite {suite.name}: network")
     if spec.kind not in cls.kinds:
         raise UsageError(f"--method {method.name}'s network {cls.__name__} reads {', '.join(cls.kinds)} "
                          f"observations; {env_id} gives {spec.kind} ({spec.description}): use another method")
@@ -301,7 +300,6 @@ def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[in
                heads_bf16=heads_bf16, context_dim=context_dim, tasks=tuple(tasks), **extra)
 
 
-@functools.lru_cache(maxsize=1)
 def bf16_is_faster() -> bool:
     """Whether the heads' bf16 matmuls beat float32 on this CPU (`illm_tools.llm.dtype`: measured
     once per machine; the trainer records the answer in the run's config.json)."""

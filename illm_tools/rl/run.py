@@ -5,27 +5,16 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from illm_tools.errors import CacheError, UsageError
 from illm_tools.rl.config import TrainConfig
+from illm_tools.rl.threads import torch_threads  # noqa: F401  (re-exported: where callers found it)
 
 EVAL_SEED_OFFSET = 2**40
 """Evaluation episodes use seeds from here on: training seeds (seed + steps) never get this far."""
-
-
-@contextmanager
-def torch_threads(n: int):
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def make_provider(cfg: TrainConfig, num_actions: int):

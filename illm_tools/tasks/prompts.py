@@ -27,13 +27,11 @@ from pathlib import Path
 from illm_tools.cache.keys import canonical_json, make_key
 from illm_tools.errors import UsageError
 from illm_tools.tasks.goals import parse_goals  # noqa: F401  (re-exported: where the goal task's parser was)
-from illm_tools.tasks.registry import DEFAULT_TASKS, LANGUAGE_TASKS, get_task
+from illm_tools.tasks.registry import DEFAULT_TASKS, LANGUAGE_TASKS, NEUTRAL_VERSION, get_task  # noqa: F401
 from illm_tools.tasks.state import StateRecord
 
 TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
 LAYOUTS = ("shared", "paper")
-NEUTRAL_VERSION = 1
-"""Version of the neutral prompt of PMI calibration (templates/neutral.txt), in every action key."""
 SUMMARY_TOKENS = LANGUAGE_TASKS["summary"].max_new_tokens
 """The paper's L = 64 tokens of a summary."""
 

@@ -28,6 +28,8 @@ from illm_tools.errors import UsageError
 from illm_tools.registry import Registry
 
 KINDS = ("ranking", "text")
+NEUTRAL_VERSION = 1
+"""Version of the neutral prompt of PMI calibration (templates/neutral.txt), in every ranking key."""
 
 
 @dataclass(frozen=True)
@@ -67,8 +69,6 @@ class LanguageTask:
 
     def decoding(self) -> dict:
         """The decoding parameters every key of the task carries."""
-        from illm_tools.tasks.prompts import NEUTRAL_VERSION
-
         if self.kind == "ranking":
             return {"method": "candidate-logprob", "neutral": f"neutral@{NEUTRAL_VERSION}"}
         return {"method": "greedy", "max_new_tokens": self.max_new_tokens, **self.decoding_extra}
