@@ -241,7 +241,7 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
     `on_states` hears the collected states (before the model loads); `on_progress(done, total)`
     the distinct states scored so far."""
     from illm_tools.annotate.bulk import resolve_device
-    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.keys import fingerprint_hash
     from illm_tools.envs import renderer_of
     from illm_tools.llm.backend import check_backend_use, load_backend, resolve_model
     from illm_tools.tasks.prompts import PromptBuilder

@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from illm_tools.annotate.wire import record_to_json  # noqa: F401  (the request format: re-exported)
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
@@ -83,19 +84,6 @@ class Pending:
     record: StateRecord
     visits: int
     clients: set[str] = field(default_factory=set)
-
-
-def record_to_json(record: StateRecord) -> dict:
-    """A state as the request carries it (the inverse of `parse_state`): its text fields, and for a
-    hop state its window: each raw observation (shape, dtype, base64 bytes) and previous action."""
-    out = {"mission": record.mission, "history": [list(pair) for pair in record.history],
-           "observation": record.observation, "valid_actions": list(record.valid_actions)}
-    frames = getattr(record, "frames", ())
-    if frames:
-        out["frames"] = [{"shape": list(np.shape(f)), "dtype": np.asarray(f).dtype.str,
-                          "data": base64.b64encode(np.ascontiguousarray(f).tobytes()).decode()} for f in frames]
-        out["prev_actions"] = [int(a) for a in record.prev_actions]
-    return out
 
 
 def _hop_record(record: StateRecord, item: dict) -> StateRecord:
@@ -164,7 +152,7 @@ class AnnotationServer:
 
     def __init__(self, lm, cache, *, model: str, batch_size: int = 8, chunk: int = 16, dtype: str = "",
                  quant: str = ""):
-        from illm_tools.cache.keys import fingerprint_hash
+        from illm_tools.keys import fingerprint_hash
         from illm_tools.llm.backend import as_backend
 
         self.lm = as_backend(lm)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from illm_tools.cache.keys import canonical_json, fingerprint_hash, make_key
+from illm_tools.keys import canonical_json, fingerprint_hash, make_key
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -40,7 +40,7 @@ def test_key_is_the_hard_coded_digest_in_this_process():
 
 def test_key_is_the_same_in_a_fresh_process_with_another_hash_seed():
     code = (
-        "from illm_tools.cache.keys import make_key, fingerprint_hash;"
+        "from illm_tools.keys import make_key, fingerprint_hash;"
         f"print(make_key(**{INPUTS!r}));print(fingerprint_hash({FINGERPRINT!r}))"
     )
     out = subprocess.run(

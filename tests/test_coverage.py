@@ -122,7 +122,7 @@ def test_data_coverage_reports_costs_and_what_the_cache_answers(trajectories, tm
 
 
 def _builder(lm, history: int = 0) -> PromptBuilder:
-    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.keys import fingerprint_hash
 
     return PromptBuilder(env_id=ENV, renderer="babyai-text@1", model=lm.spec.path,
                          model_fingerprint=fingerprint_hash(lm.fingerprint), history_len=history)

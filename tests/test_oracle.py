@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
-from illm_tools.cache.keys import fingerprint_hash
+from illm_tools.keys import fingerprint_hash
 from illm_tools.errors import UsageError
 from illm_tools.llm.backend import backend_fingerprint, load_backend, resolve_model
 from illm_tools.llm.oracle import OracleBackend, oracle_spec

@@ -80,7 +80,7 @@ def test_auroc_counts_ties_as_half_per_state():
 def test_the_probes_scores_are_the_annotators(tiny_lm):
     """The probe renders and scores each state exactly as `illm annotate --tasks action` would."""
     from illm_tools.annotate.engine import Annotator, Job
-    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.keys import fingerprint_hash
     from illm_tools.llm.backend import as_backend
     from illm_tools.probe import score_records
     from illm_tools.tasks.prompts import PromptBuilder

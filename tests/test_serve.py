@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from illm_tools.cache import AnnotationCache, verify
-from illm_tools.cache.keys import fingerprint_hash
+from illm_tools.keys import fingerprint_hash
 from illm_tools.llm.stub import StubBackend
 from illm_tools.serve import AnnotationServer, RequestError, record_to_json
 from illm_tools.tasks.state import StateRecord

@@ -122,7 +122,7 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
     """`illm data coverage`: per history length, the dataset's distinct states, the share of its
     steps the cache answers (for this model setup), the top-k curve and its held-out estimate
     (`heldout_curve`). No model is loaded: the keys need only the model's fingerprint."""
-    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.data.trajectories import open_table, require_text
     from illm_tools.errors import UsageError

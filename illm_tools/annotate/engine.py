@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from illm_tools.annotate.coverage import VisitedStates
-from illm_tools.cache.keys import canonical_json, fingerprint_hash
+from illm_tools.keys import canonical_json, fingerprint_hash
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.tasks.prompts import DEFAULT_TASKS, Prompt, PromptBuilder, format_history, neutral_prompt

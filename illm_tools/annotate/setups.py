@@ -129,7 +129,7 @@ def adopt_model(cache) -> dict | None:
 
 
 def _hash(model: dict) -> str:
-    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.keys import fingerprint_hash
     from illm_tools.llm.backend import backend_fingerprint
 
     return fingerprint_hash(backend_fingerprint(model["backend"], model["model"], dtype=model["dtype"],

@@ -5,7 +5,7 @@ directory (``layout`` is its on-disk format, ``index`` its in-memory key index),
 and merges whole caches. Nothing here imports the LLM, tasks or RL code.
 """
 
-from illm_tools.cache.keys import canonical_json, fingerprint_hash, make_key
+from illm_tools.keys import canonical_json, fingerprint_hash, make_key
 from illm_tools.cache.store import AdoptReport, AnnotationCache
 from illm_tools.cache.verify import MergeReport, VerifyReport, merge, verify
 

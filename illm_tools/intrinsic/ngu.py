@@ -69,7 +69,7 @@ from illm_tools.errors import UsageError
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer, RunningMeanStd
 from illm_tools.intrinsic.rnd import RNDBonus, RNDConfig
-from illm_tools.rl.networks import GRID_CHANNEL_SIZES, NUM_GLYPHS, channels_first, chw_shape, conv_trunk
+from illm_tools.envs.encoding import GRID_CHANNEL_SIZES, NUM_GLYPHS, channels_first, chw_shape, conv_trunk
 
 EXACT = "donot_use_mm_for_euclid_dist"
 """`torch.cdist` mode that gives exactly 0 between equal rows (the matmul form leaves ~1e-3), so a

@@ -130,7 +130,7 @@ def describe_model(model: str, fingerprint: str) -> dict | None:
     """{"backend", "model", "dtype", "quant"} whose fingerprint hash is `fingerprint` (what a cache
     row stores with its `model`), or None when no backend here reproduces it (another revision or
     file, or a model not available on this machine)."""
-    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.keys import fingerprint_hash
 
     for name in BACKENDS:
         cls = backend_class(name)

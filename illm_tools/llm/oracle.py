@@ -160,7 +160,7 @@ class OracleBackend:
         from illm_tools.llm.scoring import CandidateScores
 
         names = [c.strip() for c in candidates]
-        if context.strip() == _neutral():  # PMI's neutral prompt: no state, every action alike
+        if not context.startswith("You are an expert player"):  # no state's prompt (PMI's neutral one): every action alike
             return CandidateScores.from_logprobs([[-math.log(len(names))] for _ in names])
         scene = self._scene(context, names)
         rng = self._noised(scene)
@@ -225,12 +225,6 @@ class OracleBackend:
 
 
 _SENTENCE = re.compile(r"(?<=\.) (?=[A-Z])")
-
-
-def _neutral() -> str:
-    from illm_tools.tasks.prompts import neutral_prompt
-
-    return neutral_prompt().strip()
 
 
 _TASK_LINES = (("Summarize the main points", "summary"), ("Suggest the next goal", "goal"),

@@ -275,7 +275,7 @@ class RemoteLive:
         place of what this run still had queued there; returns at once with 0."""
         import urllib.error
 
-        from illm_tools.serve import record_to_json
+        from illm_tools.annotate.wire import record_to_json
 
         todo = list(missing[: self.budget])
         counts = list(visits[: self.budget]) if visits is not None else [1] * len(todo)

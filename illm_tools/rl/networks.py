@@ -24,6 +24,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from illm_tools.envs.encoding import (GRID_CHANNEL_SIZES, NUM_GLYPHS, channels_first, chw_shape,  # noqa: F401
+                                      conv_trunk, layer_init)
+
 # Words of BabyAI's instruction grammar (minigrid.envs.babyai.core.verifier) and the fixed
 # missions of the MiniGrid levels. Order fixes the ids: append only, never reorder.
 MISSION_WORDS = (
@@ -35,8 +38,6 @@ MISSION_WORDS = (
     "locked closed opened room corridor"
 ).split()
 PAD, UNK = 0, 1
-# Sizes of minigrid's OBJECT_TO_IDX, COLOR_TO_IDX and STATE_TO_IDX.
-GRID_CHANNEL_SIZES = (11, 6, 3)
 
 
 class MissionVocab:
@@ -62,12 +63,6 @@ class MissionVocab:
     def encode(self, missions: Sequence[str]) -> np.ndarray:
         """[B, max_len] int64 word ids."""
         return np.stack([self.encode_one(m) for m in missions])
-
-
-def layer_init(layer: nn.Linear, std: float = float(np.sqrt(2)), bias: float = 0.0) -> nn.Linear:
-    nn.init.orthogonal_(layer.weight, std)
-    nn.init.constant_(layer.bias, bias)
-    return layer
 
 
 def mlp_head(inp: int, hidden: int, out: int, *, std: float, act: type[nn.Module] = nn.Tanh) -> nn.Sequential:
@@ -193,35 +188,6 @@ class GridMissionNet(nn.Module):
         return action, (texts[0] if len(texts) == 1 else torch.cat(texts, dim=-1)) if texts else None
 
 
-def conv_trunk(in_channels: int, height: int, width: int, out: int) -> tuple[nn.Sequential, int]:
-    """The Nature CNN (Mnih et al. 2015): 32 8x8/4, 64 4x4/2, 64 3x3/1 convolutions, ReLU, then
-    Linear(., out) - ReLU; returns it and `out`. Input: float [B, C, H, W] (84x84 as in the paper;
-    any size from 36x36 works, Crafter's 64x64 included)."""
-    convs = nn.Sequential(
-        nn.Conv2d(in_channels, 32, 8, stride=4), nn.ReLU(),
-        nn.Conv2d(32, 64, 4, stride=2), nn.ReLU(),
-        nn.Conv2d(64, 64, 3, stride=1), nn.ReLU(), nn.Flatten(),
-    )
-    with torch.no_grad():
-        flat = convs(torch.zeros(1, in_channels, height, width)).shape[1]
-    return nn.Sequential(*convs, layer_init(nn.Linear(flat, out)), nn.ReLU()), out
-
-
-def channels_first(images: torch.Tensor, kind: str) -> torch.Tensor:
-    """[B, C, H, W] float in [0, 1] from "frames" ([B, C, H, W] uint8) or "image" ([B, H, W, C] uint8)."""
-    x = images.float() / 255.0
-    return x.permute(0, 3, 1, 2) if kind == "image" else x
-
-
-def chw_shape(image_shape: tuple[int, ...], kind: str) -> tuple[int, int, int]:
-    """(C, H, W) of one "frames" or "image" observation."""
-    if kind == "image":
-        h, w, c = image_shape
-        return c, h, w
-    c, h, w = image_shape
-    return c, h, w
-
-
 class FrameNet(GridMissionNet):
     """The Nature CNN torso (512 features) on pixels: Atari's 4 stacked grey 84x84 frames ("frames")
     or Crafter's 64x64 RGB picture ("image"); these suites have no instruction, so `missions` is
@@ -239,10 +205,6 @@ class FrameNet(GridMissionNet):
 
     def features(self, images: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
         return self.trunk(channels_first(images, self.kind))
-
-
-NUM_GLYPHS = 5976
-"""NetHack's glyph count (nle.nethack.MAX_GLYPH), the size of the glyph embedding."""
 
 
 class GlyphNet(GridMissionNet):

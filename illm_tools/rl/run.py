@@ -28,7 +28,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     if cfg.cache is None:
         raise UsageError(f"--method {cfg.mode} reads LLM targets: pass --cache DIR (an annotation cache, "
                          "see `illm annotate`), or use --method ppo")
-    from illm_tools.cache.keys import fingerprint_hash
+    from illm_tools.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.llm.backend import backend_fingerprint, backend_hidden_size, check_backend_use
     from illm_tools.intrinsic.registry import get_method

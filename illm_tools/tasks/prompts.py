@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from pathlib import Path
 
-from illm_tools.cache.keys import canonical_json, make_key
+from illm_tools.keys import canonical_json, make_key
 from illm_tools.errors import UsageError
 from illm_tools.tasks.goals import parse_goals  # noqa: F401  (re-exported: where the goal task's parser was)
 from illm_tools.tasks.registry import DEFAULT_TASKS, LANGUAGE_TASKS, NEUTRAL_VERSION, get_task  # noqa: F401
