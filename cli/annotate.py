@@ -10,6 +10,10 @@ from cli.common import BACKEND, DEVICE, DTYPE, MODEL, ORACLE_NOISE, QUANT, progr
 from cli.errors import friendly
 
 
+MAX_PROCESSES = 4096
+"""More annotating processes than any one launch starts (a typo, not a cluster)."""
+
+
 def register(app: typer.Typer) -> None:
     @app.command(epilog="Example: illm annotate data/traj/gotolocal --cache data/ann --model smollm2-135m "
                         "--tasks action,summary")
@@ -37,7 +41,11 @@ def register(app: typer.Typer) -> None:
         """Annotate every distinct state once with the LLM, into the shared cache: its next-action ranking
         and 64-token summary, and the goal and plan tasks when --tasks names them."""
         from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset, distributed_state
+        from illm_tools.errors import UsageError
         from illm_tools.llm.backend import resolve_model
+
+        if not 1 <= num_processes <= MAX_PROCESSES:
+            raise UsageError(f"--num-processes must be between 1 and {MAX_PROCESSES:,}, got {num_processes}")
 
         model = resolve_model(backend, model, oracle_noise=oracle_noise)
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tasks,
@@ -46,10 +54,6 @@ def register(app: typer.Typer) -> None:
                                 device=device, backend=backend)
         if num_processes > 1 and distributed_state() is None:
             raise typer.Exit(launch(num_processes, device))
-        if num_processes < 1:
-            from illm_tools.errors import UsageError
-
-            raise UsageError(f"--num-processes must be at least 1, got {num_processes}")
         state = distributed_state()
         if state is None:
             return annotate_and_report(config)

@@ -65,7 +65,13 @@ def coverage(
     data), and a held-out estimate of what they reach on a run's new episodes (the top k of half
     the episodes against the other half's steps)."""
     from illm_tools.annotate.coverage import TOP_K, measure_coverage
+    from illm_tools.errors import UsageError
     from illm_tools.llm.backend import resolve_model
+
+    if not path.is_dir():
+        raise UsageError(f"no trajectory dataset at {path}: pass a folder `illm collect` wrote")
+    if cache is not None and not cache.is_dir():
+        raise UsageError(f"no annotation cache at {cache}: check the path, or leave --cache out to see only the costs")
 
     rows = measure_coverage(path, cache=cache, histories=history, model=resolve_model(backend, model, oracle_noise=oracle_noise),
                             dtype=dtype, quant=quant, layout=layout, tasks=tasks, backend=backend)

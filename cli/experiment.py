@@ -23,8 +23,13 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Train every run of a spec's grid (methods x envs x settings x seeds) into one results folder;
         finished runs are skipped, unfinished ones resumed, so the same command continues a grid."""
+        from illm_tools.errors import UsageError
         from illm_tools.experiment import load_spec, plan, run_experiment
+        from illm_tools.settings import check_folder
 
+        if jobs < 1:
+            raise UsageError(f"--jobs must be at least 1, got {jobs}")
+        check_folder(out, "--out")
         loaded = load_spec(spec, frames=frames, seeds=seeds)
         results = out or Path("results") / loaded.name
         runs = plan(loaded, results)

@@ -39,6 +39,11 @@ def register(app: typer.Typer) -> None:
 
         from illm_tools.errors import UsageError
 
+        if every <= 0 or final_points <= 0 or bootstrap <= 0:
+            raise UsageError(f"--every, --final-points and --bootstrap must be positive, got {every}, {final_points} "
+                             f"and {bootstrap}")
+        if out is not None and out.exists() and not out.is_dir():
+            raise UsageError(f"--out {out} is a file: pass a folder for the report")
         missing = [str(r) for r in runs if not r.is_dir()]
         if missing:
             raise UsageError(f"no run folder at {', '.join(missing[:3])}: pass folders written by `illm train`")

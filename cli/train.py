@@ -200,8 +200,11 @@ def register(app: typer.Typer) -> None:
         from illm_tools.errors import UsageError
         from illm_tools.rl.run import evaluate as run
 
-        if episodes <= 0:
-            raise UsageError(f"--episodes must be positive, got {episodes}")
+        if episodes <= 0 or seed < 0:
+            raise UsageError(f"--episodes must be positive and --seed 0 or more, got {episodes} and {seed}")
+        missing = [str(r) for r in runs if not (r / "config.json").is_file()]
+        if missing:
+            raise UsageError(f"no training run at {', '.join(missing[:3])}: pass folders written by `illm train`")
         results = [run(r, episodes=episodes, seed=seed, greedy=greedy) for r in runs]
         if as_json:
             emit_json(results)

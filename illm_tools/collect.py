@@ -55,11 +55,11 @@ class CollectConfig:
     """Vector env: sync (all envs in this process), async (a process each), auto (the suite's)."""
 
     def __post_init__(self) -> None:
+        from illm_tools.settings import check_folder, check_numbers
+
         self.out = Path(self.out)
-        if self.steps <= 0:
-            raise UsageError(f"--steps must be positive, got {self.steps}")
-        if self.num_envs <= 0:
-            raise UsageError(f"--num-envs must be positive, got {self.num_envs}")
+        check_numbers(self, positive=("steps", "num_envs", "shard_rows"), non_negative=("seed", "num_dists"))
+        check_folder(self.out, "--out")
         if self.mode not in ("new", "append", "overwrite"):
             raise UsageError(f"unknown mode {self.mode!r}")
 

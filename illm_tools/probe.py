@@ -147,21 +147,39 @@ def expert_states(env_id: str, count: int, *, history: int = 0, seed: int = 0, e
 # --- the probe -------------------------------------------------------------------------------------
 @dataclass
 class ProbeConfig:
+    """An `illm probe` run: which level and annotator, and how many of the bot's states."""
+
     env_id: str = "BabyAI-GoToLocal-v0"
+    """A BabyAI level (the expert is minigrid's BabyAI bot)."""
     model: str | None = None
-    """None: the backend's own (smollm2-135m for transformers, oracle for oracle)."""
+    """The LLM; None: the backend's own (smollm2-135m for transformers, oracle for oracle)."""
     states: int = 400
+    """States to probe, from the bot's episodes."""
     history: int = 0
+    """Observation/action pairs of history in the prompt (as `illm annotate --history`)."""
     seed: int = 0
+    """Seed of the episodes and of the random actions."""
     epsilon: float = 0.25
+    """Share of random actions in the bot's episodes (states off its path)."""
     action_space: str = "auto"
+    """original | augmented | irrelevant | auto (as `illm collect`)."""
     layout: str = "shared"
+    """Prompt templates, as `illm annotate --layout`."""
     dtype: str = "auto"
     """bfloat16, float32, float16, or auto (this machine's choice, `illm_tools.llm.dtype`)."""
     quant: str = "none"
+    """bitsandbytes quantisation: none, 4bit or 8bit."""
     backend: str = "transformers"
+    """LLM backend (`illm_tools.llm.backend`)."""
     device: str = "cpu"
+    """Where the model runs."""
     batch_size: int = 8
+    """States per LLM batch."""
+
+    def __post_init__(self) -> None:
+        from illm_tools.settings import check_numbers
+
+        check_numbers(self, positive=("states", "batch_size"), non_negative=("history", "seed"), unit=("epsilon",))
 
 
 @dataclass

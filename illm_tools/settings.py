@@ -25,3 +25,45 @@ def parse_pairs(values: Iterable[str] | None, option: str) -> dict[str, Any]:
         except ValueError:
             out[key.strip()] = rest
     return out
+
+
+INT_LIMIT = 2**62
+"""The largest whole number a setting may hold (counts, seeds): past it numpy and torch overflow."""
+
+
+def flag_of(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def check_numbers(config: Any, *, positive: Iterable[str] = (), non_negative: Iterable[str] = (),
+                  unit: Iterable[str] = (), flags: dict[str, str] | None = None) -> None:
+    """Refuse in one line a setting of `config` (a dataclass) that is not a finite number in its
+    range: `positive` (> 0), `non_negative` (>= 0), `unit` ([0, 1]); None is left alone (an unset
+    optional). Every whole number must also fit `INT_LIMIT`. `flags` names an option whose flag is
+    not the field's name (`{"total_steps": "--frames"}`)."""
+    import math
+
+    flags = flags or {}
+    for kind, names in (("positive", positive), ("non_negative", non_negative), ("unit", unit)):
+        for name in names:
+            value = getattr(config, name)
+            if value is None:
+                continue
+            flag = flags.get(name, flag_of(name))
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                    (isinstance(value, float) and not math.isfinite(value)):
+                raise UsageError(f"{flag} must be a finite number, got {value!r}")
+            if isinstance(value, int) and abs(value) > INT_LIMIT:
+                raise UsageError(f"{flag} is too large: {value:,} (at most {INT_LIMIT:,})")
+            if (kind == "positive" and value <= 0) or (kind == "non_negative" and value < 0) or \
+                    (kind == "unit" and not 0 <= value <= 1):
+                want = {"positive": "positive", "non_negative": "0 or more", "unit": "between 0 and 1"}[kind]
+                raise UsageError(f"{flag} must be {want}, got {value}")
+
+
+def check_folder(path: Any, flag: str) -> None:
+    """Refuse a path a command would write a folder at when a file is there."""
+    from pathlib import Path
+
+    if path is not None and Path(path).exists() and not Path(path).is_dir():
+        raise UsageError(f"{flag} {path} is a file: pass a folder")

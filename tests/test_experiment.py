@@ -51,7 +51,7 @@ def test_every_shipped_spec_plans(spec, tmp_path):
     (TINY.replace("  num_envs: 2", "  num_env: 2"), "line 9: unknown setting 'num_env' (did you mean num_envs?)"),
     (TINY.replace("grid:", "gird:"), "line 6: unknown key 'gird' (did you mean grid?)"),
     (TINY.replace("  num_dists: [1, 2]", "  num_dists: 3"), "line 7: grid.num_dists must be a non-empty list"),
-    (TINY.replace("  num_steps: 16", "  num_steps: -1"), "num_steps must be positive"),
+    (TINY.replace("  num_steps: 16", "  num_steps: -1"), "--num-steps must be positive"),
     (TINY.replace("  num_envs: 2", "  seed: 2"), "line 9: seed is set by the grid itself"),
     (TINY + "  num_dists: [: bad\n", "is not valid YAML"),
     (TINY.replace("envs: [BabyAI-GoToLocal-v0]", "envs: []"), "needs a non-empty 'envs' list"),

@@ -73,14 +73,17 @@ class AnnotateConfig:
         return resolve_model(self.backend, self.model)
 
     def __post_init__(self) -> None:
+        from illm_tools.settings import check_folder, check_numbers
+
         self.data, self.cache = Path(self.data), Path(self.cache)
+        check_numbers(self, positive=("batch_size", "chunk", "max_minutes", "hop_beta"),
+                      non_negative=("limit", "history", "hop_seed"))
+        if not self.data.is_dir():
+            raise UsageError(f"no trajectory dataset at {self.data}: pass a folder `illm collect` wrote")
+        check_folder(self.cache, "--cache")
         self.tasks = parse_tasks(self.tasks)
         if self.layout not in LAYOUTS:
             raise UsageError(f"unknown --layout {self.layout!r}: use {' or '.join(LAYOUTS)}")
-        if self.batch_size <= 0 or (self.chunk is not None and self.chunk <= 0):
-            raise UsageError("--batch-size and --chunk must be positive")
-        if self.limit is not None and self.limit < 0:
-            raise UsageError(f"--limit must be 0 or more, got {self.limit}")
         from illm_tools.llm.backend import check_backend, resolve_model
         from illm_tools.llm.dtype import CHOICES
 
@@ -95,8 +98,6 @@ class AnnotateConfig:
             raise UsageError(f"the {', '.join(unfit)} task has no hop form: annotate hop data with other --tasks")
         if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
             raise UsageError(f"--device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
-        if self.max_minutes is not None and self.max_minutes <= 0:
-            raise UsageError(f"--max-minutes must be positive, got {self.max_minutes}")
 
 
 @dataclass

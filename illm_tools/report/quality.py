@@ -123,10 +123,18 @@ def quality_png(result: dict, score_names: dict[str, str], path: Path) -> Path:
                        label=f"{line['label']}: {line['final']['iqm']:.2f}")
             if line["final"]["ci_low"] is not None:
                 ax.axhspan(line["final"]["ci_low"], line["final"]["ci_high"], color=colour, alpha=0.08)
-        for marker in (m for m in result["markers"] if m["env_id"] == env):
-            ax.axvline(marker["agreement"], linestyle=":", color="black", linewidth=1)
-            ax.annotate(f"{marker['model']} {marker['agreement']:.2f}", (marker["agreement"], 1.0),
-                        xycoords=("data", "axes fraction"), rotation=90, va="top", ha="right", fontsize=7)
+        groups: list[list[dict]] = []  # markers closer than 0.03 share one label
+        for marker in sorted((m for m in result["markers"] if m["env_id"] == env), key=lambda m: m["agreement"]):
+            if groups and marker["agreement"] - groups[-1][-1]["agreement"] < 0.03:
+                groups[-1].append(marker)
+            else:
+                groups.append([marker])
+        for group in groups:
+            for marker in group:
+                ax.axvline(marker["agreement"], linestyle=":", color="black", linewidth=1)
+            text = ", ".join(f"{m['model']} {m['agreement']:.2f}" for m in group)
+            ax.annotate(text, (group[0]["agreement"], 1.0), xycoords=("data", "axes fraction"), rotation=90,
+                        va="top", ha="right", fontsize=7)
         ref = result["references"].get(env)
         if ref:
             for x, text in ((ref["chance"], "chance"), (ref["majority"], f"always {ref['majority_action']}")):

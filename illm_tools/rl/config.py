@@ -238,8 +238,20 @@ class TrainConfig:
     Crafter), auto (the suite's choice)."""
 
     def __post_init__(self) -> None:
+        from illm_tools.settings import check_folder, check_numbers
+
         self.run_dir = Path(self.run_dir)
         self.cache = Path(self.cache) if self.cache is not None else None
+        check_numbers(self, positive=("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",
+                                      "mission_max_len", "head_hidden", "embedding_dim", "learning_rate", "clip_coef",
+                                      "max_grad_norm", "target_kl", "hop_beta", "checkpoint_minutes", "threads"),
+                      non_negative=("seed", "num_dists", "hop_seed", "history_len", "lambda_a", "beta_hc", "ext_coef",
+                                    "int_coef", "distill_coef", "distill_epochs", "ent_coef", "vf_coef", "llm_threads",
+                                    "checkpoint_every"),
+                      unit=("gamma", "gae_lambda", "int_gamma", "oracle_noise"),
+                      flags={"total_steps": "--frames", "history_len": "--history", "run_dir": "--out"})
+        check_folder(self.run_dir, "--out")
+        check_folder(self.cache, "--cache")
         if self.action_score not in CALIBRATIONS:
             raise UsageError(f"--action-score must be {', '.join(CALIBRATIONS)}, got {self.action_score!r}")
         if self.action_target not in ACTION_TARGETS:
@@ -251,8 +263,6 @@ class TrainConfig:
                              f"{self.annotator!r}")
         self.live_budget = parse_budget(self.live_budget)
         self.env_seeds = parse_seeds(self.env_seeds)
-        if self.threads <= 0 or self.llm_threads < 0:
-            raise UsageError("--llm-threads must be >= 0 and --threads positive")
         from illm_tools.tasks.registry import get_task, parse_tasks
 
         self.tasks = parse_tasks(self.tasks, "--tasks")
@@ -271,20 +281,9 @@ class TrainConfig:
                              f"(it reads {reads or 'no language task'})")
         get_method(self.mode).make_config(self.to_dict(), self.bonus_options)  # refuses unknown methods, options
         get_method(self.mode).network_options(self.network_options)
-        for name in ("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",
-                     "mission_max_len", "head_hidden", "embedding_dim"):
-            if getattr(self, name) <= 0:
-                raise UsageError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.distill_epochs < 0:
-            raise UsageError(f"distill_epochs must be >= 0, got {self.distill_epochs}")
-        if self.history_len < 0:
-            raise UsageError(f"history_len must be >= 0, got {self.history_len}")
         if self.batch_size % self.num_minibatches:
             raise UsageError(f"num_envs * num_steps = {self.batch_size} is not divisible by "
                              f"num_minibatches = {self.num_minibatches}")
-        for name in ("gamma", "gae_lambda", "int_gamma"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise UsageError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         if self.summary_loss not in ("cosine", "mse"):
             raise UsageError(f"summary_loss must be cosine or mse, got {self.summary_loss!r}")
         if self.action_similarity not in ("tv", "bhattacharyya"):
@@ -300,10 +299,6 @@ class TrainConfig:
         if self.obs_mode not in OBS_MODES:
             raise UsageError(f"--mode is the observation mode, {' or '.join(OBS_MODES)}; got {self.obs_mode!r} "
                              "(the method is --method)")
-        if self.hop_beta <= 0:
-            raise UsageError(f"--hop-beta must be positive, got {self.hop_beta}")
-        if self.checkpoint_every < 0:
-            raise UsageError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
 
     def resolved(self) -> "TrainConfig":
         """This config with the machine's choices made, as the run records them in config.json (and
@@ -407,6 +402,36 @@ class TrainConfig:
         out["run_dir"] = str(self.run_dir)
         out["cache"] = str(self.cache) if self.cache is not None else None
         return out
+
+    @classmethod
+    def comparable(cls, data: dict) -> dict:
+        """A run's config.json as runs are compared (`illm report`): every setting at its value, or
+        its default where an older run lacks it, without the settings the run's method and mode
+        ignore: the hop translation's in obs mode, the LLM's dtype and quantisation under a backend
+        that has none (the oracle), every LLM and target setting for a method that reads no targets
+        and is not in hop mode, and iLLM's bonus weights for a method without its heads. A config
+        this version cannot read is returned as it is."""
+        try:
+            cfg = cls.from_dict({**{k: v for k, v in data.items() if k in cls.__dataclass_fields__}, "resume": False})
+        except Exception:  # noqa: BLE001 - another version's run: compared as written
+            return dict(data)
+        out = {**data, **cfg.to_dict()}
+        drop = set()
+        if cfg.obs_mode == "obs":
+            drop |= {"hop_seed", "hop_beta"}
+        if not cfg.needs_targets and cfg.obs_mode != "hop":
+            drop |= {"model", "backend", "model_dtype", "quant", "oracle_noise", "history_len", "layout",
+                     "action_score", "action_target", "tasks", "task_weights", "live_budget", "live_mode", "annotator",
+                     "embedding_dim"}
+        else:
+            from illm_tools.llm.backend import backend_class
+
+            if not getattr(backend_class(cfg.backend), "computes", True):
+                drop |= {"model_dtype", "quant"}
+        if not cfg.uses_heads:
+            drop |= {"lambda_a", "beta_hc", "distill_coef", "distill_epochs", "summary_loss", "action_similarity",
+                     "head_hidden"}
+        return {k: v for k, v in out.items() if k not in drop}
 
     @classmethod
     def from_dict(cls, data: dict) -> "TrainConfig":
