@@ -179,7 +179,7 @@ def test_bonus_presets_and_explicit_flags_win():
     assert bonus_weights("rnd", int_coef=0.5, lambda_a=None) == {"lambda_a": 0.8, "beta_hc": 0.5,
                                                                  "ext_coef": 2.0, "int_coef": 0.5}
     assert bonus_weights("ngu")["int_coef"] == 0.3  # NGU's r = r_e + beta r_i, beta 0.3 (Badia et al. 2020)
-    with pytest.raises(UsageError, match="paper, rnd, ngu"):
+    with pytest.raises(UsageError, match="paper, rnd, ngu, small"):
         bonus_weights("apt")
 
 
