@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import BACKEND, DEVICE, DTYPE, MODEL, ORACLE_NOISE, QUANT, progress, stop_on_signals
+from cli.common import API_KEY_ENV, BACKEND, DEVICE, DTYPE, ENDPOINT, MODEL, ORACLE_NOISE, QUANT, progress, stop_on_signals
 from cli.errors import friendly
 
 
@@ -23,6 +23,8 @@ def register(app: typer.Typer) -> None:
         cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache folder (shared across runs)."),
         model: str = MODEL,
         oracle_noise: float = ORACLE_NOISE,
+        endpoint: str = ENDPOINT,
+        api_key_env: str = API_KEY_ENV,
         tasks: str = typer.Option("action,summary", "--tasks", help="Comma-separated, any combination of action, summary, goal, plan (paper Table 2; goal is also ELLM's)."),
         history: int = typer.Option(3, "--history", help="Observation/action pairs of history in the prompts."),
         layout: str = typer.Option("shared", "--layout", help="Templates: shared (history first, prefix computed once) or paper (as printed)."),
@@ -47,7 +49,7 @@ def register(app: typer.Typer) -> None:
         if not 1 <= num_processes <= MAX_PROCESSES:
             raise UsageError(f"--num-processes must be between 1 and {MAX_PROCESSES:,}, got {num_processes}")
 
-        model = resolve_model(backend, model, oracle_noise=oracle_noise)
+        model = resolve_model(backend, model, oracle_noise=oracle_noise, endpoint=endpoint, api_key_env=api_key_env)
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tasks,
                                 history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
                                 dtype=dtype, quant=quant, mode=mode, hop_seed=hop_seed, hop_beta=hop_beta,

@@ -141,5 +141,10 @@ DTYPE = typer.Option("auto", "--dtype", help="Compute dtype: auto | bfloat16 | f
 QUANT = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit (part of every cache key).")
 BACKEND = typer.Option("transformers", "--backend",
                        help="LLM backend: transformers | oracle (a rule-based annotator that knows BabyAI/MiniGrid: "
-                            "the positive control) | stub (deterministic answers from the prompt, no weights; for tests).")
+                            "the positive control) | openai (an OpenAI-compatible server: vLLM, ...; with --endpoint) | "
+                            "stub (deterministic answers from the prompt, no weights; for tests).")
+ENDPOINT = typer.Option(None, "--endpoint", help="openai: the server's OpenAI base URL, e.g. http://127.0.0.1:8000/v1 "
+                                                 "(--model is the model as it serves it).")
+API_KEY_ENV = typer.Option(None, "--api-key-env", help="openai: the environment variable holding the server's API key "
+                                                       "(default OPENAI_API_KEY).")
 DEVICE = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto (with several processes each takes its own GPU).")

@@ -54,6 +54,7 @@ def coverage(
                               help="LLM whose annotations count (as in `illm annotate`; default: the backend's)."),
     backend: str = typer.Option("transformers", "--backend", help="LLM backend (as in `illm annotate`)."),
     oracle_noise: float = typer.Option(0.0, "--oracle-noise", help="oracle: its noise (as in `illm annotate`)."),
+    endpoint: str = typer.Option(None, "--endpoint", help="openai: the server's URL (as in `illm annotate`)."),
     tasks: str = typer.Option("action,summary", "--tasks", help="Tasks a state needs to count as covered."),
     layout: str = typer.Option("shared", "--layout", help="Prompt layout (as in `illm annotate`)."),
     dtype: str = typer.Option("auto", "--dtype", help="LLM compute dtype (as in `illm annotate`; auto: this machine's choice)."),
@@ -73,7 +74,7 @@ def coverage(
     if cache is not None and not cache.is_dir():
         raise UsageError(f"no annotation cache at {cache}: check the path, or leave --cache out to see only the costs")
 
-    rows = measure_coverage(path, cache=cache, histories=history, model=resolve_model(backend, model, oracle_noise=oracle_noise),
+    rows = measure_coverage(path, cache=cache, histories=history, model=resolve_model(backend, model, oracle_noise=oracle_noise, endpoint=endpoint),
                             dtype=dtype, quant=quant, layout=layout, tasks=tasks, backend=backend)
     if as_json:
         emit_json(rows)

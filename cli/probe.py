@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import BACKEND, DEVICE, DTYPE, MODEL, ORACLE_NOISE, QUANT, emit_json, progress
+from cli.common import API_KEY_ENV, BACKEND, DEVICE, DTYPE, ENDPOINT, MODEL, ORACLE_NOISE, QUANT, emit_json, progress
 from cli.errors import friendly
 
 
@@ -17,6 +17,8 @@ def register(app: typer.Typer) -> None:
         env: str = typer.Option("BabyAI-GoToLocal-v0", "--env", help="A BabyAI level (the expert is minigrid's BabyAI bot)."),
         model: str = MODEL,
         oracle_noise: float = ORACLE_NOISE,
+        endpoint: str = ENDPOINT,
+        api_key_env: str = API_KEY_ENV,
         states: int = typer.Option(400, "--states", help="States to probe, from the bot's episodes."),
         history: int = typer.Option(0, "--history", help="Observation/action pairs of history in the prompt (as `illm annotate --history`)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the episodes and of the random actions."),
@@ -40,7 +42,7 @@ def register(app: typer.Typer) -> None:
         from illm_tools.probe import ProbeConfig, probe as run
 
         check_backend(backend)
-        model = resolve_model(backend, model, oracle_noise=oracle_noise)
+        model = resolve_model(backend, model, oracle_noise=oracle_noise, endpoint=endpoint, api_key_env=api_key_env)
         config = ProbeConfig(env_id=env, model=model, states=states, history=history, seed=seed, epsilon=epsilon,
                              action_space=action_space, layout=layout, dtype=dtype, quant=quant, backend=backend,
                              device=device, batch_size=batch_size)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import BACKEND, DEVICE, DTYPE, MODEL, ORACLE_NOISE, QUANT, stop_on_signals
+from cli.common import API_KEY_ENV, BACKEND, DEVICE, DTYPE, ENDPOINT, MODEL, ORACLE_NOISE, QUANT, stop_on_signals
 from cli.errors import friendly
 
 
@@ -18,6 +18,8 @@ def register(app: typer.Typer) -> None:
         cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache the answers go to (the trainers' --cache)."),
         model: str = MODEL,
         oracle_noise: float = ORACLE_NOISE,
+        endpoint: str = ENDPOINT,
+        api_key_env: str = API_KEY_ENV,
         port: int = typer.Option(8765, "--port", help="TCP port (0: any free one, printed when ready)."),
         host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on (localhost by default: the server has no authentication)."),
         dtype: str = DTYPE,
@@ -52,7 +54,7 @@ def register(app: typer.Typer) -> None:
                 backend, model, dtype, quant = held["backend"], held["model"], held["dtype"], held["quant"]
                 typer.echo(f"serving the cache's model setup: --backend {backend} --model {model} --dtype {dtype} "
                            f"--quant {quant} (give model options to choose another)", err=True)
-        model = resolve_model(backend, model, oracle_noise=oracle_noise)
+        model = resolve_model(backend, model, oracle_noise=oracle_noise, endpoint=endpoint, api_key_env=api_key_env)
         if batch_size <= 0 or chunk <= 0 or threads < 0 or not 0 <= port < 65536:
             raise UsageError("--batch-size and --chunk must be positive, --threads >= 0, --port in 0..65535")
         torch.set_num_threads(threads or os.cpu_count() or 1)

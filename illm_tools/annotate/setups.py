@@ -42,11 +42,11 @@ class Setup:
 
     def options(self) -> str:
         """The flags that select it ("--backend oracle --history 0 --layout shared")."""
-        if self.backend == "oracle":
-            from illm_tools.llm.oracle import parse_spec
+        if self.backend in ("oracle", "openai"):
+            from illm_tools.keys import fingerprint_hash
+            from illm_tools.llm.backend import backend_fingerprint, model_options
 
-            noise = parse_spec(self.model)
-            model = "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
+            model = model_options(self.model, fingerprint_hash(backend_fingerprint(self.backend, self.model)))
         else:
             model = ("" if self.backend == "transformers" else f"--backend {self.backend} ") + \
                 f"--model {self.model} --dtype {self.dtype} --quant {self.quant}"

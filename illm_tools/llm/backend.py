@@ -48,6 +48,7 @@ packages add theirs through `illm.backends` entry points."""
 BACKENDS.register("transformers", "illm_tools.llm.transformers_backend:TransformersBackend")
 BACKENDS.register("stub", "illm_tools.llm.stub:StubBackend")
 BACKENDS.register("oracle", "illm_tools.llm.oracle:OracleBackend")
+BACKENDS.register("openai", "illm_tools.llm.openai:OpenAIBackend")
 DEFAULT_BACKEND = "transformers"
 
 
@@ -88,10 +89,24 @@ def backend_class(name: str) -> type:
     return BACKENDS.load(name)
 
 
-def resolve_model(backend: str, model: str | None, *, oracle_noise: float = 0.0) -> str:
+def resolve_model(backend: str, model: str | None, *, oracle_noise: float = 0.0, endpoint: str | None = None,
+                  api_key_env: str | None = None) -> str:
     """The model spec a backend serves: `model`, or the backend's default when None (smollm2-135m
-    for transformers); the oracle's `--oracle-noise` goes into its spec ("oracle:noise=0.5")."""
+    for transformers); the oracle's `--oracle-noise` goes into its spec ("oracle:noise=0.5"), an
+    endpoint's URL and key variable into the openai backend's ("NAME@URL#VAR")."""
     cls = backend_class(backend)
+    if (endpoint or api_key_env) and backend != "openai":
+        raise UsageError(f"--endpoint and --api-key-env are the openai backend's: add --backend openai (this command "
+                         f"uses --backend {backend})")
+    if backend == "openai":
+        from illm_tools.llm.openai import openai_spec, parse_spec
+
+        if model is None:
+            raise UsageError("--backend openai needs --model, the model's name as the server serves it")
+        if "@" in model and endpoint is None:
+            parse_spec(model)
+            return model
+        return openai_spec(model, endpoint, api_key_env)
     if oracle_noise and backend != "oracle":
         raise UsageError(f"--oracle-noise is the oracle backend's quality knob: add --backend oracle "
                          f"(this command uses --backend {backend})")
@@ -157,6 +172,11 @@ def model_options(model: str, fingerprint: str) -> str:
 
         noise = parse_spec(model)
         return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
+    if found["backend"] == "openai":
+        from illm_tools.llm.openai import parse_spec as endpoint_of
+
+        name, url, _ = endpoint_of(model)
+        return f"--backend openai --model {name} --endpoint {url}"
     prefix = "" if found["backend"] == DEFAULT_BACKEND else f"--backend {found['backend']} "
     return f"{prefix}--model {model} --dtype {found['dtype']} --quant {found['quant']}"
 

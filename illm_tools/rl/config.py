@@ -185,6 +185,10 @@ class TrainConfig:
     oracle_noise: float = 0.0
     """oracle: the share of states (fixed, keyed by the state) whose answers are random (1: an
     annotator that knows nothing); part of the oracle's fingerprint."""
+    endpoint: str | None = None
+    """openai: the server's OpenAI base URL (http://host:8000/v1); `model` is the model as it serves it."""
+    api_key_env: str | None = None
+    """openai: the environment variable holding the server's API key (default OPENAI_API_KEY)."""
     model_dtype: str = "auto"
     """Compute dtype of that LLM (part of its fingerprint, as in `illm annotate --dtype`): bfloat16,
     float32, float16, or auto (bfloat16 on CUDA; on a CPU bfloat16 only where a timed matmul says
@@ -297,7 +301,9 @@ class TrainConfig:
         if self.model_dtype not in CHOICES:
             raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.model_dtype!r}")
         check_backend(self.backend)
-        resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise)  # refuses a bad model or noise
+        if self.needs_targets or self.obs_mode == "hop":  # refuses a bad model, noise or endpoint
+            resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
+                          api_key_env=self.api_key_env)
         if self.obs_mode not in OBS_MODES:
             raise UsageError(f"--mode is the observation mode, {' or '.join(OBS_MODES)}; got {self.obs_mode!r} "
                              "(the method is --method)")
@@ -354,7 +360,8 @@ class TrainConfig:
         """The model spec the backend serves: `model` or the backend's default, with the oracle's noise."""
         from illm_tools.llm.backend import resolve_model
 
-        return resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise)
+        return resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
+                             api_key_env=self.api_key_env)
 
     @property
     def live_limit(self) -> int | None:

@@ -1,0 +1,274 @@
+"""The openai backend: annotation through an OpenAI-compatible completions endpoint, so the LLM can
+run on a serving engine built for it (vLLM, SGLang, TGI, llama.cpp's server: continuous batching,
+prefix caching, a model sharded over GPUs) instead of in illm's own process.
+
+`--backend openai --model NAME --endpoint URL [--api-key-env VAR]`: NAME is the model as the server
+serves it (`GET /v1/models`), URL the server's OpenAI base (`http://host:8000/v1`), VAR the
+environment variable holding its API key (default OPENAI_API_KEY; none needed for a local
+server). The model spec is "NAME@URL" (and "#VAR"), so every place that names a model names it.
+
+- Ranking (`score`): one `POST /v1/completions` per state with its candidates as a list of
+  prompts, context + candidate each, `echo: true, logprobs: 1, max_tokens: 1, temperature: 0`:
+  the engine returns every prompt token's log-probability with its character offset, and a
+  candidate's score is the sum over the tokens that end after the context (context and candidate
+  tokenised together, as `illm_tools.llm.scoring` does). The candidates of a state share their
+  context, so an engine's prefix cache computes it once. Which engines give prompt log-probs this
+  way, as their documentation reads: vLLM (`echo` with `logprobs` on /v1/completions; also its
+  `prompt_logprobs` extension); TGI only in its native API (`decoder_input_details`), not its OpenAI
+  one; llama.cpp's server and SGLang: check the version in use (illm refuses an answer without
+  prompt log-probs in one line).
+- Text tasks (`generate`): greedy completions (`temperature: 0`) of at most the task's tokens, a
+  batch of prompts per request; `finish_reason` "length" marks a cut text.
+- Embeddings of the texts: from the same model's pooling endpoint (`POST /v1/embeddings`) where the
+  engine offers one, else from the local sentence model (all-MiniLM-L6-v2): either is a deviation
+  from the paper's mean-pooled hidden state over the generated tokens (the transformers backend's),
+  which a completions endpoint does not return; the fingerprint says which embedder was used.
+- The fingerprint carries the served model's name, the engine and its version (`GET /version`,
+  vLLM's; else the `Server` header), the embedder, and never the URL (the same engine and model on
+  another host answer the same) nor the key.
+- Requests go `concurrency` at a time (threads: the waiting is on the network), each with a
+  timeout; 429 and 5xx answers and lost connections are retried with exponential backoff
+  (`retries` times), then refused in one line. Annotation writes a chunk only when all of its
+  answers are in, so a failure leaves nothing half-written in the cache.
+
+Hop mode is refused: an endpoint takes text, not input embeddings.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from illm_tools.errors import IllmError, UsageError
+
+NAME = "openai"
+DEFAULT_KEY_ENV = "OPENAI_API_KEY"
+_SPEC = re.compile(r"^(?P<model>[^@#\s]+)@(?P<url>https?://[^#\s]+?)/?(?:#(?P<key>[A-Za-z_][A-Za-z0-9_]*))?$")
+_FINGERPRINTS: dict[str, dict] = {}
+
+
+class EndpointError(IllmError):
+    """The endpoint failed a request after its retries, or answered something illm cannot use."""
+
+
+def openai_spec(model: str, endpoint: str | None, api_key_env: str | None = None) -> str:
+    """The model spec "NAME@URL[#VAR]" of a served model."""
+    if not endpoint:
+        raise UsageError("--backend openai needs --endpoint URL (the server's OpenAI base, e.g. http://127.0.0.1:8000/v1)")
+    if not endpoint.startswith(("http://", "https://")):
+        raise UsageError(f"--endpoint must be an http(s) URL, got {endpoint!r}")
+    spec = f"{model}@{endpoint.rstrip('/')}" + (f"#{api_key_env}" if api_key_env else "")
+    parse_spec(spec)
+    return spec
+
+
+def parse_spec(spec: str) -> tuple[str, str, str]:
+    """(served model name, base URL, key variable) of a spec; anything else refused in one line."""
+    m = _SPEC.match(spec or "")
+    if m is None:
+        raise UsageError(f"--backend openai names its model as the server serves it, with --endpoint URL (model spec "
+                         f"NAME@URL), not {spec!r}")
+    return m.group("model"), m.group("url"), m.group("key") or DEFAULT_KEY_ENV
+
+
+class Client:
+    """JSON over HTTP to one endpoint, with a timeout and retries (urllib: a few short calls per
+    batch need no more)."""
+
+    def __init__(self, url: str, key_env: str = DEFAULT_KEY_ENV, *, timeout: float = 120.0, retries: int = 4,
+                 backoff: float = 0.5):
+        self.url, self.key, self.timeout, self.retries, self.backoff = url, os.environ.get(key_env), timeout, retries, backoff
+
+    def call(self, path: str, body: dict | None = None, *, root: bool = False) -> tuple[dict, dict]:
+        """(JSON answer, headers) of GET (body None) or POST `path` under the base URL (or its root)."""
+        base = re.sub(r"/v1$", "", self.url) if root else self.url
+        headers = {"Content-Type": "application/json", **({"Authorization": f"Bearer {self.key}"} if self.key else {})}
+        data = None if body is None else json.dumps(body).encode()
+        last = ""
+        for attempt in range(self.retries + 1):
+            request = urllib.request.Request(base + path, data=data, headers=headers,
+                                             method="GET" if body is None else "POST")
+            try:
+                with urllib.request.urlopen(request, timeout=self.timeout) as response:
+                    return json.loads(response.read() or b"{}"), dict(response.headers)
+            except urllib.error.HTTPError as e:
+                detail = e.read().decode(errors="replace")[:200]
+                if e.code != 429 and e.code < 500:
+                    raise EndpointError(f"{base + path} refused the request ({e.code}: {detail})") from None
+                last = f"{e.code}: {detail}"
+            except (urllib.error.URLError, OSError, TimeoutError) as e:
+                last = str(getattr(e, "reason", e))
+            except ValueError as e:
+                raise EndpointError(f"{base + path} answered what is not JSON ({e})") from None
+            if attempt < self.retries:
+                time.sleep(self.backoff * 2 ** attempt)
+        raise EndpointError(f"{base + path} failed {self.retries + 1} times (last: {last}): check the server, or "
+                            "annotate later; nothing of this chunk was written")
+
+
+def _fingerprint(spec: str) -> dict:
+    """The served model's fingerprint (memoised per process: it asks the server)."""
+    if spec not in _FINGERPRINTS:
+        model, url, key = parse_spec(spec)
+        client = Client(url, key, timeout=20.0, retries=1)
+        try:
+            models, headers = client.call("/models")
+        except EndpointError as e:
+            raise UsageError(f"no OpenAI-compatible server answers at {url} ({e}): start one (README: serving "
+                             "Llama-3-8B with vLLM) or check --endpoint") from None
+        served = [m.get("id") for m in models.get("data", [])]
+        if model not in served:
+            raise UsageError(f"the server at {url} serves {', '.join(map(str, served)) or 'no model'}, not {model!r}: "
+                             "pass --model as it names it")
+        try:
+            version, _ = client.call("/version", root=True)
+            engine = f"version {version.get('version', '?')}"
+        except EndpointError:
+            engine = headers.get("Server", "unknown")
+        dim = None
+        try:
+            answer, _ = client.call("/embeddings", {"model": model, "input": ["probe"]})
+            dim = len(answer["data"][0]["embedding"])
+        except (EndpointError, KeyError, IndexError, TypeError):
+            pass
+        if dim:
+            embedder = f"endpoint /v1/embeddings ({dim})"
+        else:
+            from illm_tools.llm.sentence import MODEL_NAME, PIP_NAME, package_version
+
+            embedder = f"{MODEL_NAME}@{PIP_NAME}-{package_version()} (local: the endpoint has no embeddings)"
+        _FINGERPRINTS[spec] = {"model_id": model, "source": "openai", "engine": engine, "sha256": None,
+                               "revision": None, "embedder": embedder, "embedding_dim": dim, "dtype": "served",
+                               "quant": "served"}
+    return dict(_FINGERPRINTS[spec])
+
+
+class OpenAIBackend:
+    """The backend protocol over an OpenAI-compatible endpoint (see the module docstring)."""
+
+    name = NAME
+    device = "remote"
+    shares_prefix = False
+    computes = False
+    """The dtype and quantisation are the server's: `--dtype`/`--quant` are ignored."""
+    chunk_states = 256
+    """States per written shard in bulk annotation (an engine answers hundreds a second on a GPU)."""
+
+    def __init__(self, spec: str, *, concurrency: int = 16, timeout: float = 120.0, retries: int = 4):
+        self.model = spec
+        self.served, url, key = parse_spec(spec)
+        self.fingerprint = {k: v for k, v in _fingerprint(spec).items() if k != "embedding_dim"}
+        dim = _fingerprint(spec)["embedding_dim"]
+        self.client = Client(url, key, timeout=timeout, retries=retries)
+        self.concurrency = concurrency
+        self.remote_embeddings = dim is not None
+        self.hidden_size = int(dim) if dim else self._local_dim()
+
+    @staticmethod
+    def _local_dim() -> int:
+        from illm_tools.llm.oracle import _embedding_dim
+
+        return _embedding_dim()
+
+    @classmethod
+    def load(cls, model: str, *, dtype: str = "float32", quant: str = "none", device: str = "cpu", cache_dir=None):
+        return cls(model)
+
+    @staticmethod
+    def model_fingerprint(model: str, *, dtype: str = "float32", quant: str = "none") -> dict:
+        return {k: v for k, v in _fingerprint(model).items() if k != "embedding_dim"}
+
+    @staticmethod
+    def model_hidden_size(model: str) -> int:
+        dim = _fingerprint(model)["embedding_dim"]
+        return int(dim) if dim else OpenAIBackend._local_dim()
+
+    @staticmethod
+    def check_use(env_id: str, renderer: str) -> None:
+        if renderer.startswith("hop@"):
+            raise UsageError("--backend openai sends text; --mode hop splices input embeddings into the model, which an "
+                             "endpoint does not take: use --backend transformers for hop")
+
+    # --- requests ----------------------------------------------------------------------------------
+    def _map(self, fn, items: Sequence) -> list:
+        if len(items) <= 1 or self.concurrency <= 1:
+            return [fn(x) for x in items]
+        with ThreadPoolExecutor(max_workers=min(self.concurrency, len(items))) as pool:
+            return list(pool.map(fn, items))
+
+    def _ranking(self, item):
+        from illm_tools.llm.scoring import CandidateScores
+
+        context, candidates = item
+        prompts = [context + c for c in candidates]
+        answer, _ = self.client.call("/completions", {"model": self.served, "prompt": prompts, "max_tokens": 1,
+                                                      "temperature": 0, "echo": True, "logprobs": 1})
+        choices = sorted(answer.get("choices", []), key=lambda c: c.get("index", 0))
+        if len(choices) != len(prompts):
+            raise EndpointError(f"{self.client.url}/completions answered {len(choices)} choices for {len(prompts)} prompts")
+        out = []
+        for prompt, choice in zip(prompts, choices):
+            lp = choice.get("logprobs") or {}
+            offsets, logprobs = lp.get("text_offset"), lp.get("token_logprobs")
+            if not offsets or logprobs is None:
+                raise EndpointError(f"{self.client.url}/completions gave no prompt log-probabilities (echo with logprobs): "
+                                    "this engine cannot rank candidates; vLLM can (README)")
+            ends = list(offsets[1:]) + [len(prompt) + 10**9]
+            token_lp = [float(logprobs[i]) for i in range(len(offsets))
+                        if offsets[i] < len(prompt) and ends[i] > len(context) and logprobs[i] is not None]
+            out.append(token_lp)
+        return CandidateScores.from_logprobs(out)
+
+    def score(self, contexts, candidates, *, batch_size: int = 8):
+        return self._map(self._ranking, list(zip(contexts, [list(c) for c in candidates])))
+
+    def _completion(self, item):
+        prompts, max_new_tokens = item
+        answer, _ = self.client.call("/completions", {"model": self.served, "prompt": prompts, "temperature": 0,
+                                                      "max_tokens": max_new_tokens, "logprobs": 0})
+        choices = sorted(answer.get("choices", []), key=lambda c: c.get("index", 0))
+        if len(choices) != len(prompts):
+            raise EndpointError(f"{self.client.url}/completions answered {len(choices)} choices for {len(prompts)} prompts")
+        return [(c.get("text", ""), len((c.get("logprobs") or {}).get("tokens") or []),
+                 c.get("finish_reason") != "length") for c in choices]
+
+    def generate(self, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
+        from illm_tools.llm.generation import Generation
+
+        batches = [(list(prompts[i:i + batch_size]), max_new_tokens) for i in range(0, len(prompts), batch_size)]
+        texts = [t for batch in self._map(self._completion, batches) for t in batch]
+        embeddings = self.embed([t for t, _, _ in texts])
+        return [Generation(text, list(range(n)), finished, emb) for (text, n, finished), emb in zip(texts, embeddings)]
+
+    def score_and_generate(self, contexts, candidates, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
+        return (self.score(contexts, candidates, batch_size=batch_size),
+                self.generate(prompts, max_new_tokens=max_new_tokens, batch_size=batch_size))
+
+    def embed(self, texts, *, batch_size: int = 32):
+        texts = list(texts)
+        if not texts:
+            return np.zeros((0, self.hidden_size), np.float32)
+        if not self.remote_embeddings:
+            from illm_tools.llm.sentence import shared_embedder
+
+            return shared_embedder().encode(texts)
+
+        def call(chunk):
+            answer, _ = self.client.call("/embeddings", {"model": self.served, "input": chunk})
+            return [d["embedding"] for d in sorted(answer["data"], key=lambda d: d.get("index", 0))]
+
+        chunks = [texts[i:i + batch_size] for i in range(0, len(texts), batch_size)]
+        return np.asarray([e for part in self._map(call, chunks) for e in part], dtype=np.float32)
+
+    def _no_hop(self, *_args, **_kwargs):
+        self.check_use("", "hop@")
+
+    input_embeddings = last_hidden = spliced = _no_hop

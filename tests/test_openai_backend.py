@@ -1,0 +1,154 @@
+"""The openai backend against a small OpenAI-compatible server started here, which answers from the
+transformers backend on a tiny model (as vLLM would from its own): the same scores and summaries as
+the transformers backend on the same states, the same keys' setup apart from the model's identity,
+retries on 429/5xx, one line and nothing written when the server keeps failing."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from illm_tools.annotate.engine import Annotator
+from illm_tools.cache.store import AnnotationCache
+from illm_tools.errors import UsageError
+from illm_tools.llm.backend import load_backend, resolve_model
+from illm_tools.llm.openai import EndpointError, OpenAIBackend
+from illm_tools.llm.transformers_backend import TransformersBackend
+from illm_tools.tasks.state import StateRecord
+
+pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")
+ACTIONS = ("turn left", "turn right", "go forward")
+
+
+class Server:
+    """/v1/models, /version, /v1/completions (echo + logprobs, or greedy completion) and
+    /v1/embeddings, answered by `lm` (a LoadedModel); `fail` answers that many requests with 503."""
+
+    def __init__(self, lm, name: str = "tiny"):
+        from aiohttp import web
+
+        self.lm, self.name, self.fail, self.requests = lm, name, 0, 0
+        self.backend = TransformersBackend(lm)
+        app = web.Application()
+        app.router.add_get("/v1/models", lambda r: web.json_response({"data": [{"id": self.name}]}))
+        app.router.add_get("/version", lambda r: web.json_response({"version": "test-1"}))
+        app.router.add_post("/v1/completions", self.completions)
+        app.router.add_post("/v1/embeddings", self.embeddings)
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        self.loop = asyncio.new_event_loop()
+        runner = web.AppRunner(app)
+        self.loop.run_until_complete(runner.setup())
+        self.loop.run_until_complete(web.TCPSite(runner, "127.0.0.1", self.port).start())
+        threading.Thread(target=self.loop.run_forever, daemon=True).start()
+        self.url = f"http://127.0.0.1:{self.port}/v1"
+
+    def _echo(self, prompt: str) -> dict:
+        tok = self.lm.tokenizer(prompt, add_special_tokens=False, return_offsets_mapping=True)
+        ids, offsets = tok["input_ids"], [start for start, _ in tok["offset_mapping"]]
+        full = [*self.lm.bos_ids, *ids]
+        with torch.inference_mode():
+            logprobs = torch.log_softmax(self.lm.model(input_ids=torch.tensor([full])).logits[0].float(), -1)
+        skip = len(self.lm.bos_ids)
+        token_lp = [None if skip + i == 0 else float(logprobs[skip + i - 1, t]) for i, t in enumerate(ids)]
+        return {"text": prompt + " x", "finish_reason": "length",
+                "logprobs": {"tokens": ["?"] * (len(ids) + 1), "token_logprobs": token_lp + [-1.0],
+                             "text_offset": offsets + [len(prompt)]}}
+
+    async def completions(self, request):
+        from aiohttp import web
+
+        self.requests += 1
+        if self.fail:
+            self.fail -= 1
+            return web.json_response({"error": "busy"}, status=503)
+        body = await request.json()
+        prompts = body["prompt"] if isinstance(body["prompt"], list) else [body["prompt"]]
+        if body.get("echo"):
+            choices = [self._echo(p) for p in prompts]
+        else:
+            gens = self.backend.generate(prompts, max_new_tokens=body["max_tokens"])
+            choices = [{"text": g.text, "finish_reason": "stop" if g.finished else "length",
+                        "logprobs": {"tokens": ["?"] * len(g.token_ids)}} for g in gens]
+        return web.json_response({"choices": [{**c, "index": i} for i, c in enumerate(choices)]})
+
+    async def embeddings(self, request):
+        from aiohttp import web
+
+        body = await request.json()
+        vectors = self.backend.embed(body["input"])
+        return web.json_response({"data": [{"index": i, "embedding": v.tolist()} for i, v in enumerate(vectors)]})
+
+
+@pytest.fixture(scope="module")
+def server(tiny_lm):
+    return Server(tiny_lm)
+
+
+def _records() -> list[StateRecord]:
+    return [StateRecord(f"go to the {c} ball", (), f"You see a {c} ball {k} steps forward", ACTIONS)
+            for c in ("red", "blue") for k in range(1, 4)]
+
+
+def _rows(lm, tmp_path, name: str) -> dict:
+    """The rows one annotation of `_records()` writes, by (task, prompt)."""
+    import json
+
+    from illm_tools.cache import layout
+
+    cache = AnnotationCache(tmp_path / name)
+    Annotator(lm, cache, model=lm.model, history_len=0).annotate_states(_records(), "BabyAI-GoToLocal-v0",
+                                                                        "babyai-text@1")
+    manifest = json.loads((tmp_path / name / "manifest.json").read_text())
+    rows = [r for s in manifest["shards"] for r in layout.read_shard(tmp_path / name / s["name"]).to_pylist()]
+    return {(r["task"], r["prompt"]): r for r in rows}
+
+
+def test_annotation_through_the_endpoint_equals_the_transformers_backends(server, tiny_lm, tmp_path):
+    spec = resolve_model("openai", "tiny", endpoint=server.url)
+    remote = load_backend("openai", spec)
+    assert isinstance(remote, OpenAIBackend) and remote.fingerprint["engine"] == "version test-1"
+    assert remote.fingerprint["embedder"].startswith("endpoint /v1/embeddings")
+    local = _rows(TransformersBackend(tiny_lm), tmp_path, "local")
+    served = _rows(remote, tmp_path, "remote")
+    assert set(local) == set(served) and len(local) == 2 * len(_records())
+    for key, row in local.items():
+        other = served[key]
+        if row["task"] == "action":
+            assert np.allclose(row["cand_logprob_sum"], other["cand_logprob_sum"], atol=1e-4), key
+            assert row["cand_token_count"] == other["cand_token_count"]
+        else:
+            assert row["text"] == other["text"]  # greedy: the same summary
+            assert len(other["embedding"]) == tiny_lm.hidden_size  # the endpoint's pooling (a documented deviation)
+
+
+def test_failures_are_retried_then_refused_in_one_line_with_nothing_written(server, tmp_path):
+    spec = resolve_model("openai", "tiny", endpoint=server.url)
+    lm = OpenAIBackend(spec, retries=2)
+    lm.client.backoff = 0.01
+    server.fail = 2  # two 503s, then answers: retried
+    assert len(lm.score(["Answer:"], [[" go", " stop"]])[0].sums) == 2
+    server.fail = 10**6
+    cache = AnnotationCache(tmp_path / "ann")
+    with pytest.raises(EndpointError, match="failed 3 times .*503"):
+        Annotator(lm, cache, model=spec, history_len=0).annotate_states(_records(), "BabyAI-GoToLocal-v0",
+                                                                        "babyai-text@1")
+    server.fail = 0
+    assert len(AnnotationCache(tmp_path / "ann")) == 0  # nothing half-written
+
+
+def test_bad_endpoints_and_models_are_refused_in_one_line(server):
+    with pytest.raises(UsageError, match="needs --endpoint"):
+        resolve_model("openai", "tiny")
+    with pytest.raises(UsageError, match="serves tiny, not 'llama'"):
+        load_backend("openai", resolve_model("openai", "llama", endpoint=server.url))
+    with pytest.raises(UsageError, match="no OpenAI-compatible server answers"):
+        load_backend("openai", resolve_model("openai", "tiny", endpoint="http://127.0.0.1:9/v1"))
+    with pytest.raises(UsageError, match="--endpoint and --api-key-env are the openai backend's"):
+        resolve_model("transformers", None, endpoint=server.url)
