@@ -10,13 +10,17 @@ files, exports and reports all go through here.
   (torch.save, numpy, parquet); the file is fsynced on exit and removed if the block raises;
   `commit(tmp, path)` renames it over the target and fsyncs the folder (kept apart so a caller can
   do something in between: checkpoints keep the previous file, the cache hooks crash tests in);
-- `fsync_dir(path)`: make a rename in `path` durable.
+- `fsync_dir(path)`: make a rename in `path` durable;
+- `exclusive(lock_path, busy=...)`: hold a folder's writer lock (flock, released by the OS if the
+  process dies): waits for it, or with `busy` raises that message at once when another process
+  holds it (a training run's folder: two trainers must not write one run).
 Temporary names start with "." and end with ".tmp", so listings and cleanup tell them apart.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import os
 import uuid
@@ -24,7 +28,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
+from illm_tools.errors import IllmError
+
 TMP_SUFFIX = ".tmp"
+
+
+class BusyError(IllmError):
+    """Another process holds the lock `exclusive(..., busy=...)` asked for (its message says what to do)."""
 
 
 def temp_path(path: Path, prefix: str = ".") -> Path:
@@ -84,3 +94,21 @@ def sha256_file(path: str | os.PathLike) -> str:
         while chunk := f.read(1 << 20):
             h.update(chunk)
     return h.hexdigest()
+
+
+@contextlib.contextmanager
+def exclusive(lock_path: str | os.PathLike, *, busy: str | None = None) -> Iterator[None]:
+    """Hold an exclusive flock on `lock_path` (created if absent) for the block. Without `busy` it
+    waits for other holders; with it, a held lock raises `BusyError(busy)` at once."""
+    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (fcntl.LOCK_NB if busy is not None else 0))
+        except BlockingIOError:
+            raise BusyError(busy) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)

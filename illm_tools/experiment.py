@@ -43,14 +43,39 @@ import itertools
 import shutil
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 from illm_tools.errors import IllmError, UsageError
 
 TOP_KEYS = ("name", "frames", "seeds", "envs", "methods", "grid", "method_grid", "settings", "method_settings",
-            "description", "paper")
+            "description", "paper", "cluster")
+LAUNCHERS = ("local", "slurm", "submitit-local")
+"""How runs start: local (`--jobs` processes here), slurm (a job each through submitit, one array),
+submitit-local (submitit's local executor: the slurm path on this machine, for trying it)."""
+
+
+@dataclass(frozen=True)
+class Cluster:
+    """Resources of one run's job under a scheduler: a spec's `cluster:` block, which the CLI's
+    --partition, --time-minutes, --cpus, --gpus and --mem-gb override."""
+    partition: str | None = None
+    time_minutes: int = 240
+    cpus: int = 1
+    gpus: int = 0
+    mem_gb: float | None = None
+
+    def merged(self, **overrides: Any) -> Cluster:
+        """These settings with every override that is not None, checked."""
+        from illm_tools.settings import check_numbers
+
+        out = replace(self, **{k: v for k, v in overrides.items() if v is not None})
+        check_numbers(out, positive=("time_minutes", "cpus", "mem_gb"), non_negative=("gpus",))
+        return out
+
+
+CLUSTER_KEYS = tuple(f.name for f in fields(Cluster))
 REQUIRED = ("envs", "methods")
 SPEC_COPY = "spec.yaml"
 
@@ -84,6 +109,8 @@ class Spec:
     method_settings: dict[str, dict] = field(default_factory=dict)
     paper: dict = field(default_factory=dict)
     """What the paper sets for this table (documentation, checked by tests/test_experiment.py)."""
+    cluster: Cluster = field(default_factory=Cluster)
+    """Resources of a run's job under a scheduler."""
     lines: dict[tuple, int] = field(default_factory=dict)
     """(key, subkey, ...) -> line number in the file, for errors."""
 
@@ -176,6 +203,15 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
                     raise UsageError(f"{path} line {spec_lines.get((*where, key), '?')}: a bundle of settings in "
                                      f"{'.'.join(where)}.{key} needs a name (its label), e.g. {{name: oracle, backend: "
                                      "oracle}")
+    cluster = data.get("cluster") or {}
+    if not isinstance(cluster, dict) or set(cluster) - set(CLUSTER_KEYS):
+        bad = sorted(set(cluster) - set(CLUSTER_KEYS)) if isinstance(cluster, dict) else []
+        line = spec_lines.get(("cluster", *bad[:1]), spec_lines.get(("cluster",), "?"))
+        raise UsageError(f"{path} line {line}: cluster takes {', '.join(CLUSTER_KEYS)}")
+    try:
+        cluster = Cluster().merged(**cluster)
+    except UsageError as e:
+        raise UsageError(f"{path} line {spec_lines.get(('cluster',), '?')}: cluster: {e}") from None
     paper = data.get("paper")
     if paper is not None and not isinstance(paper, dict):
         raise UsageError(f"{path} line {spec_lines.get(('paper',), '?')}: paper must be a mapping (what the paper "
@@ -186,7 +222,7 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
     return Spec(name=str(data.get("name") or path.stem), path=path, text=text, frames=total, seeds=seed_list,
                 envs=[str(e) for e in as_list("envs")], methods=[str(m) for m in as_list("methods")], grid=grid,
                 method_grid=method_grid, settings=settings, method_settings=per_method, paper=paper or {},
-                lines=spec_lines)
+                cluster=cluster, lines=spec_lines)
 
 
 def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> None:
@@ -322,16 +358,72 @@ def claim_results(spec: Spec, results: str | Path) -> Path:
     return results
 
 
+def check_launcher(launcher: str) -> None:
+    if launcher not in LAUNCHERS:
+        raise UsageError(f"--launcher must be one of {', '.join(LAUNCHERS)}, got {launcher!r}")
+
+
+def _failure(e: BaseException) -> str:
+    """A failed run's reason in one line."""
+    return f"failed: {str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__}"
+
+
+def _submitit(spec: Spec, results: Path, todo: list[Run], jobs: int, launcher: str, cluster: Cluster,
+              on_run: Callable[[Run, str], None] | None) -> None:
+    """Each run a job through submitit (a SLURM job array, `jobs` of its tasks at a time; or
+    submitit's local executor in waves of `jobs` processes, to try the path without a cluster).
+    The jobs' logs go to RESULTS/.submitit/<job id>. Waits for every job: stopping this command
+    leaves queued jobs running (`scancel` them), and a job whose run another job is training
+    stops at once (the run folder's lock)."""
+    try:
+        import submitit
+    except ImportError:
+        raise UsageError(f"--launcher {launcher} needs the package submitit: pip install submitit") from None
+    executor = submitit.AutoExecutor(folder=str(results / ".submitit" / "%j"),
+                                     cluster="slurm" if launcher == "slurm" else "local")
+    params: dict[str, Any] = {"name": f"illm-{spec.name}", "timeout_min": cluster.time_minutes,
+                              "cpus_per_task": cluster.cpus}
+    if cluster.gpus:
+        params["gpus_per_node"] = cluster.gpus
+    if cluster.mem_gb:
+        params["mem_gb"] = cluster.mem_gb
+    if launcher == "slurm":
+        params["slurm_array_parallelism"] = jobs
+        if cluster.partition:
+            params["slurm_partition"] = cluster.partition
+    executor.update_parameters(**params)
+    configs = [replace(r.config, threads=cluster.cpus) for r in todo]
+    waves = [range(len(todo))] if launcher == "slurm" else [range(i, min(i + jobs, len(todo)))
+                                                             for i in range(0, len(todo), jobs)]
+    for wave in waves:
+        submitted = executor.map_array(_train_one, [configs[i] for i in wave])
+        for i, job in zip(wave, submitted):
+            run = todo[i]
+            try:
+                job.result()
+                run.status, event = "done", "done"
+            except Exception as e:  # noqa: BLE001 - one failed run must not stop the grid; it is reported
+                run.status, event = "failed", _failure(e)
+            if on_run is not None:
+                on_run(run, event)
+
+
 def run_experiment(spec: Spec, results: str | Path, *, jobs: int = 1,
-                   on_run: Callable[[Run, str], None] | None = None) -> list[Run]:
-    """Plan, claim the results folder, and train every run not done, `jobs` at a time. `on_run(run,
-    event)` hears "done" or "failed: <reason>" as each run ends. Returns the plan."""
+                   on_run: Callable[[Run, str], None] | None = None, launcher: str = "local",
+                   cluster: Cluster | None = None) -> list[Run]:
+    """Plan, claim the results folder, and train every run not done, `jobs` at a time, through the
+    `launcher` (`LAUNCHERS`; `cluster` overrides the spec's resources). `on_run(run, event)` hears
+    "done" or "failed: <reason>" as each run ends. Returns the plan."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
+    check_launcher(launcher)
     runs = plan(spec, results)
     claim_results(spec, results)
     todo = [r for r in runs if r.status != "done"]
     if not todo:
+        return runs
+    if launcher != "local":
+        _submitit(spec, Path(results), todo, jobs, launcher, cluster or spec.cluster, on_run)
         return runs
     import multiprocessing as mp
 
@@ -345,7 +437,7 @@ def run_experiment(spec: Spec, results: str | Path, *, jobs: int = 1,
                 event = "done"
             except Exception as e:  # noqa: BLE001 - one failed run must not stop the grid; it is reported
                 run.status = "failed"
-                event = f"failed: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+                event = _failure(e)
             if on_run is not None:
                 on_run(run, event)
     return runs

@@ -55,6 +55,8 @@ def test_every_shipped_spec_plans(spec, tmp_path):
     (TINY.replace("  num_envs: 2", "  seed: 2"), "line 9: seed is set by the grid itself"),
     (TINY + "  num_dists: [: bad\n", "is not valid YAML"),
     (TINY.replace("envs: [BabyAI-GoToLocal-v0]", "envs: []"), "needs a non-empty 'envs' list"),
+    (TINY + "cluster:\n  cpu: 2\n", "line 14: cluster takes partition, time_minutes, cpus, gpus, mem_gb"),
+    (TINY + "cluster:\n  cpus: 0\n", "line 13: cluster: --cpus must be positive"),
 ])
 def test_bad_specs_are_refused_naming_the_line_before_anything_runs(tmp_path, text, message):
     spec = write(tmp_path, text)
@@ -90,6 +92,38 @@ def test_a_partly_finished_grid_skips_resumes_and_starts(tmp_path):
     other = write(tmp_path, TINY.replace("seeds: 2", "seeds: 3"), "other.yaml")
     refused = runner.invoke(app, ["experiment", str(other), "--out", str(results)])
     assert refused.exit_code == 1 and "holds the results of another spec" in refused.output
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--launcher", "pbs"], "--launcher must be one of local, slurm, submitit-local"),
+    (["--launcher", "slurm", "--cpus", "0"], "--cpus must be positive"),
+    (["--launcher", "slurm", "--time-minutes", "-5"], "--time-minutes must be positive"),
+])
+def test_bad_launcher_settings_are_refused_before_anything_runs(tmp_path, args, message):
+    out = runner.invoke(app, ["experiment", str(write(tmp_path, TINY)), "--out", str(tmp_path / "results"), *args])
+    assert out.exit_code == 1 and message in out.output and len(out.output.strip().splitlines()) == 1, out.output
+    assert not (tmp_path / "results").exists()
+
+
+@pytest.mark.slow
+def test_the_submitit_launcher_runs_a_grid_as_jobs_and_resumes_it(tmp_path):
+    """--launcher submitit-local is the SLURM path (submitit job arrays, one run a job) on this
+    machine: every run finishes, a second call skips them, a lost run is trained again."""
+    pytest.importorskip("submitit")
+    spec, results = write(tmp_path, TINY.replace("  num_dists: [1, 2]", "  num_dists: [1]")), tmp_path / "results"
+    command = ["experiment", str(spec), "--out", str(results), "--launcher", "submitit-local", "--jobs", "2",
+               "--time-minutes", "10"]
+    out = runner.invoke(app, command)
+    assert out.exit_code == 0 and "all 2 runs finished" in out.output, out.output
+    runs = plan(load_spec(spec), results)
+    assert all(r.status == "done" for r in runs) and list((results / ".submitit").iterdir())
+    assert "2 finished, 0 to resume, 0 to start" in runner.invoke(app, command).output
+    lost = runs[1].config.run_dir
+    for p in lost.iterdir():
+        p.unlink() if p.is_file() else None
+    again = runner.invoke(app, command)
+    assert "1 finished, 0 to resume, 1 to start" in again.output and again.exit_code == 0, again.output
+    assert json.loads((lost / "metrics.jsonl").read_text().splitlines()[-1])["global_step"] == 64
 
 
 def test_a_method_grid_crosses_values_for_that_method_alone(tmp_path):

@@ -92,6 +92,20 @@ def test_checkpoint_damage_at_random_offsets_is_detected_never_loaded(tmp_path):
         assert torch.equal(loaded["model"]["w"], state["model"]["w"])  # a flip in padding changes nothing
 
 
+def test_a_run_being_trained_elsewhere_is_refused_and_left_alone(run):
+    """A second trainer of one folder (a re-submitted cluster job) stops at once: one line, no write."""
+    from illm_tools import durable
+    from illm_tools.rl.run import RUN_LOCK
+
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    with durable.exclusive(run / RUN_LOCK):  # the other trainer, holding the folder
+        out = runner.invoke(app, ["train", "--out", str(run), "--resume", "--frames", 256])
+    assert out.exit_code == 1 and "is being trained by another process" in out.output
+    assert len(out.output.strip().splitlines()) == 1
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+    assert "to 256 frames" in train("--out", run, "--resume", "--frames", 256)  # free again: it continues
+
+
 def test_damaged_config_and_metrics_give_one_line(run):
     metrics = run / "metrics.jsonl"
     lines = metrics.read_text().splitlines()

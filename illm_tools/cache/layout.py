@@ -16,7 +16,6 @@ is plain pyarrow, so the files can be read without illm.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import json
 import os
@@ -159,13 +158,8 @@ def write_manifest(root: Path, manifest: dict, checkpoint: Checkpoint | None = N
 @contextlib.contextmanager
 def locked(root: Path) -> Iterator[None]:
     """Hold the cache's exclusive writer lock (released by the OS if the process dies)."""
-    fd = os.open(root / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+    with durable.exclusive(root / LOCK):
         yield
-    finally:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        os.close(fd)
 
 
 def shard_bytes(table: pa.Table) -> bytes:

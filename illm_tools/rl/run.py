@@ -88,13 +88,29 @@ def make_live(cfg: TrainConfig, builder, cache, tasks: tuple[str, ...] = ("actio
     return SyncLive(annotator, builder.env_id, builder.renderer, cfg.live_limit, threads=cfg.live_threads)
 
 
+RUN_LOCK = ".lock"
+"""flock'ed in a run's folder while a process trains it (`durable.exclusive`)."""
+
+
+def _only_trainer(run_dir: Path):
+    """Hold the run folder's lock for the whole run: a second `illm train` of the same folder (a
+    re-submitted cluster job, a second terminal) stops at once instead of interleaving checkpoints."""
+    from illm_tools import durable
+    from illm_tools.folders import refuse_foreign
+
+    refuse_foreign(run_dir, "training run", "--out")  # before the lock file lands in someone else's folder
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return durable.exclusive(run_dir / RUN_LOCK, busy=f"{run_dir} is being trained by another process; wait "
+                             "for it to end (or stop it), then pass --resume to continue the run")
+
+
 def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
           should_stop: Callable[[], bool] | None = None) -> dict:
     """Build and run a training run to cfg.total_steps; returns the last update's metrics
     (`Trainer.train`: `should_stop` ends it early with a checkpoint)."""
     from illm_tools.rl.ppo import Trainer, make_pool
 
-    with torch_threads(cfg.threads):
+    with torch_threads(cfg.threads), _only_trainer(cfg.run_dir):
         cfg = cfg.resolved()  # auto dtypes measured with the run's own thread count, recorded in config.json
         pool = make_pool(cfg)
         provider, cfg = make_provider(cfg, len(pool.action_names))
