@@ -8,7 +8,7 @@ history (prompts of about 370 tokens). Both sides answer both language tasks for
   prompt prefix shared by the two tasks computed once, batched greedy decoding).
 Prints states/s of both and the speedup, illm's mean summary length and the share of summaries
 that ended at end-of-text (rather than at the 64-token limit), and the share of this machine's
-bf16 matmul rate (measured in the same run) that illm's forward passes reach (2 x non-embedding
+matmul rate in the dtype (measured in the same run) that illm's forward passes reach (2 x non-embedding
 parameters x tokens fed, attention left out). Targets: speedup >= 8x; >= 4 states/s for both tasks together.
 
     .venv/bin/python benchmarks/annotate.py [--states 32] [--naive-states 4] [--batch-size 8]
@@ -71,7 +71,7 @@ def naive(lm, jobs) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="smollm2-135m")
-    parser.add_argument("--dtype", default="bfloat16")
+    parser.add_argument("--dtype", default="auto", help="auto: what `illm annotate` picks on this machine.")
     parser.add_argument("--states", type=int, default=32, help="States annotated by illm.")
     parser.add_argument("--naive-states", type=int, default=4, help="States annotated by the naive loop (slow).")
     parser.add_argument("--batch-size", type=int, default=8)
@@ -83,8 +83,10 @@ def main() -> None:
     from illm_tools.annotate.engine import Annotator
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.llm.loading import load_model
+    from illm_tools.llm.dtype import resolve_dtype
     from illm_tools.tasks.prompts import SUMMARY_TOKENS
 
+    args.dtype = resolve_dtype(args.dtype)
     lm = load_model(args.model, dtype=args.dtype)
     rate = matmul_rate(getattr(torch, args.dtype))
     with tempfile.TemporaryDirectory() as tmp:
@@ -125,7 +127,7 @@ def main() -> None:
     print(f"speedup           {illm_rate / naive_rate:6.1f}x  (target >= 8x; illm target >= 4 states/s)")
     print(f"summaries         {sum(lengths) / len(lengths):6.1f} tokens on average (limit {SUMMARY_TOKENS}); "
           f"{ended}/{len(lengths)} ended at end-of-text")
-    print(f"bf16 matmul rate  {rate:6.0f} GFLOP/s measured; illm forward passes reach {achieved:.0f} GFLOP/s "
+    print(f"{args.dtype} matmul rate {rate:6.0f} GFLOP/s measured; illm forward passes reach {achieved:.0f} GFLOP/s "
           f"= {100 * achieved / rate:.0f}% of it ({tokens[0] / len(jobs):.0f} tokens fed per state)")
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 
 import typer
 
@@ -48,13 +49,27 @@ class _IllmFormat(logging.Formatter):
         return f"{record.levelname.lower()}: {text}" if record.levelno >= logging.WARNING else text
 
 
+class _Stderr(logging.StreamHandler):
+    """A handler writing to the `sys.stderr` of the moment, not the one it was made with: a handler
+    made during one call of the app (a test runner's captured stream, a redirect) must not write to
+    that stream, closed, in a later call of the same process."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler.__init__ sets it; the property always answers
+        pass
+
+
 def _logging(verbose: bool) -> None:
     """illm's messages (what a first model load is doing, a worker restart, a checkpoint fallback)
     reach stderr as plain lines; other libraries' only as warnings (all of it with --verbose)."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     ours = logging.getLogger("illm_tools")
     if not any(isinstance(h.formatter, _IllmFormat) for h in ours.handlers):
-        handler = logging.StreamHandler()
+        handler = _Stderr()
         handler.setFormatter(_IllmFormat("%(message)s"))
         ours.addHandler(handler)
         for other in logging.getLogger().handlers:  # printed once, by our handler (basicConfig's is a plain one)

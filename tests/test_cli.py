@@ -137,7 +137,7 @@ def test_illm_warnings_are_plain_lines(tmp_path):
     import logging
 
     runner.invoke(app, ["data", "info", str(tmp_path / "none")])  # sets up illm's logging
-    handler = next(h for h in logging.getLogger("illm_tools").handlers if type(h).__name__ == "StreamHandler")
+    handler = next(h for h in logging.getLogger("illm_tools").handlers if type(h.formatter).__name__ == "_IllmFormat")
     record = logging.LogRecord("illm_tools.rl.live", logging.WARNING, __file__, 1, "worker stopped", None, None)
     assert handler.format(record) == "warning: worker stopped"
 

@@ -216,7 +216,7 @@ def test_async_worker_rows_reach_a_later_rollout_and_a_killed_worker_leaves_the_
         assert verify(cache.root).ok
     finally:
         targets.close()
-    assert not live.process.is_alive()
+    assert live.exitcode is not None  # the worker ended with the run
 
 
 @pytest.mark.slow

@@ -161,7 +161,7 @@ def test_a_trainer_of_another_model_setup_is_refused_by_the_server_in_one_line(t
     out = runner.invoke(app, ["train", "--env", ENV, "--method", "illm", "--cache", str(tmp_path / "ann"),
                               "--backend", "stub", "--model", "stub:24", "--history", "0", "--num-envs", "2",
                               "--num-steps", "16", "--frames", "32", "--annotator", url, "--out", str(tmp_path / "r")])
-    assert out.exit_code == 1 and "annotates with --model stub:16 --dtype bfloat16 --quant none, another model setup than this run's --model stub:24" in out.output
+    assert out.exit_code == 1 and "annotates with --model stub:16 --dtype float32 --quant none, another model setup than this run's --model stub:24" in out.output
     assert len(out.output.strip().splitlines()) == 1
 
 

@@ -181,15 +181,17 @@ def model_options(model: str, fingerprint: str) -> str:
     return f"{prefix}--model {model} --dtype {found['dtype']} --quant {found['quant']}"
 
 
-def load_backend(name: str, model: str, *, dtype: str = "bfloat16", quant: str = "none", device: str = "cpu",
+def load_backend(name: str, model: str, *, dtype: str = "auto", quant: str = "none", device: str = "cpu",
                  cache_dir: str | None = None):
-    """The backend `name` serving `model` (an alias, hub id or folder for transformers)."""
-    return backend_class(name).load(model, dtype=dtype, quant=quant, device=device, cache_dir=cache_dir)
+    """The backend `name` serving `model` (an alias, hub id or folder for transformers), computing in
+    `dtype` ("auto": `backend_dtype`, as the commands resolve it)."""
+    return backend_class(name).load(model, dtype=backend_dtype(name, dtype, device), quant=quant, device=device,
+                                    cache_dir=cache_dir)
 
 
-def backend_fingerprint(name: str, model: str, *, dtype: str = "bfloat16", quant: str = "none") -> dict:
+def backend_fingerprint(name: str, model: str, *, dtype: str = "auto", quant: str = "none") -> dict:
     """What `load_backend(...).fingerprint` will be, without loading weights."""
-    return backend_class(name).model_fingerprint(model, dtype=dtype, quant=quant)
+    return backend_class(name).model_fingerprint(model, dtype=backend_dtype(name, dtype), quant=quant)
 
 
 def backend_hidden_size(name: str, model: str) -> int:

@@ -36,6 +36,9 @@ HEADS_SHAPE = (512, 512, 1024)
 """(m, k, n) of the trainer's probe: a minibatch through one of the iLLM heads' 1024-unit layers."""
 PROBE_FILE = "dtype-probe.json"
 CHOICES = ("auto", "bfloat16", "float32", "float16")
+ISA_LIMITS = ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA")
+"""Environment variables that limit the instructions torch's kernels use (`ONEDNN_MAX_CPU_ISA=AVX2`
+runs a CPU with AMX as one without): part of the probe's key, since they change its answer."""
 
 
 def cpu_signature() -> str:
@@ -108,7 +111,8 @@ def bf16_is_faster(shape: tuple[int, int, int] = LLM_SHAPE) -> bool:
     (measured once per machine; see the module docstring)."""
     import torch
 
-    key = f"{cpu_signature()}|torch {torch.__version__}|threads {torch.get_num_threads()}|{'x'.join(map(str, shape))}"
+    isa = "".join(f"|{name}={os.environ[name]}" for name in ISA_LIMITS if os.environ.get(name))
+    key = f"{cpu_signature()}{isa}|torch {torch.__version__}|threads {torch.get_num_threads()}|{'x'.join(map(str, shape))}"
     if os.environ.get("ILLM_DTYPE_PROBE"):  # tests and benchmarks simulate a machine: "bfloat16" or "float32"
         return os.environ["ILLM_DTYPE_PROBE"] == "bfloat16"
     return bool(_measured(key, tuple(shape))["bf16_faster"])

@@ -40,14 +40,18 @@ class StubBackend:
     device = "cpu"
     default_model = "stub"
 
-    def __init__(self, model: str = "stub", *, dtype: str = "bfloat16", quant: str = "none"):
+    def __init__(self, model: str = "stub", *, dtype: str = "auto", quant: str = "none"):
+        from illm_tools.llm.dtype import resolve_dtype
+
         self.model = model
         self.label, self.hidden_size = _parse(model)
-        self.fingerprint = self.model_fingerprint(model, dtype=dtype, quant=quant)
+        # it computes nothing, but stands in for a model that does: its keys carry the dtype a real
+        # model would run in here, as `illm train --backend stub` resolves it
+        self.fingerprint = self.model_fingerprint(model, dtype=resolve_dtype(dtype), quant=quant)
         self.shares_prefix = False
 
     @classmethod
-    def load(cls, model: str, *, dtype: str = "bfloat16", quant: str = "none", device: str = "cpu",
+    def load(cls, model: str, *, dtype: str = "auto", quant: str = "none", device: str = "cpu",
              cache_dir=None) -> StubBackend:
         return cls(model, dtype=dtype, quant=quant)
 

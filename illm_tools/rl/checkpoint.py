@@ -288,7 +288,8 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     net = make_network(method, cfg.env_id, len(names), image_shape=tuple(state["image_shape"]),
                        vocab_size=len(vocab), network_options=cfg.network_options,
                        embedding_dim=dim if method.policy_heads else None, tasks=cfg.tasks,
-                       head_hidden=cfg.head_hidden, context_dim=hop[0].hidden_size if hop else 0)
+                       head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16,  # as trained: no probe
+                       context_dim=hop[0].hidden_size if hop else 0)
     net.load_state_dict(state["model"])
     return TrainedPolicy(net, vocab, name=f"run:{run_dir.name}@{state['global_step']}",
                          greedy=greedy, seed=seed, frames=int(state["global_step"]), hop=hop,

@@ -210,6 +210,7 @@ class AsyncLive:
         for q in (self._inbox, self._errors):
             q.close()
             q.cancel_join_thread()  # a worker gone without reading leaves data in the pipe: do not wait for it
+        self.exitcode = self.process.exitcode  # the process object is closed below: what it ended with stays
         self.process.close()
         # Release the shared objects' semaphores now: left to interpreter shutdown, their finalizers may
         # run after the resource tracker's check, which then warns about "leaked semaphore objects".

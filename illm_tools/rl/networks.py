@@ -106,7 +106,8 @@ class GridMissionNet(nn.Module):
         self.critic_ext = mlp_head(self.feature_dim, hidden, 1, std=1.0)
         self.critic_int = mlp_head(self.feature_dim, hidden, 1, std=1.0)
         self.f_a = self.f_hc = None
-        self.heads_bf16 = bf16_is_faster() if heads_bf16 is None else heads_bf16
+        self.heads_bf16 = (bf16_is_faster() if embedding_dim is not None else False) if heads_bf16 is None \
+            else heads_bf16  # measured only for a network with heads
         self.head_tasks: tuple[str, ...] = ()
         self.text_heads: tuple[str, ...] = ()
         if embedding_dim is not None:
@@ -178,9 +179,10 @@ class GridMissionNet(nn.Module):
         side [B, K * D] in task order (f^hc's alone by default) or None without text tasks)."""
         if not self.head_tasks:
             raise RuntimeError("this network was built without iLLM heads (mode ppo)")
-        # the heads are most of the iLLM update's FLOPs: bf16 matmuls run ~2x faster on CPUs with
-        # fast bf16 (AMD EPYC here), slower on others (an Intel Xeon here); `heads_bf16=None` lets
-        # `bf16_is_faster` decide. Parameters, gradients and outputs stay float32
+        # the heads are most of the iLLM update's FLOPs: bf16 matmuls run several times faster on CPUs
+        # with AMX (a Sapphire Rapids Xeon here) and ~30x slower on AVX2-only ones (an AMD EPYC here);
+        # `heads_bf16=None` lets `bf16_is_faster` decide (the run records the answer). Parameters,
+        # gradients and outputs stay float32
         with torch.autocast(features.device.type, dtype=torch.bfloat16,
                             enabled=self.heads_bf16 and features.device.type == "cpu"):
             action = self.f_a(features).float() if self.f_a is not None else None
