@@ -27,6 +27,9 @@ def register(app: typer.Typer) -> None:
         probe: list[Path] = typer.Option(None, "--probe", help="With --out: an `illm probe --out` file "
                                          "(repeatable): final score against the annotator's probe agreement "
                                          "(quality.png); probes of models not trained with are marked on it."),
+        redraw: bool = typer.Option(False, "--redraw", help="Draw a report folder's figures and report.md again "
+                                    "from its results.json (the runs may be gone; heatmaps are kept): "
+                                    "`illm report docs/results/table1 --redraw`."),
     ) -> None:
         """The suite's score against frames (success rate; Crafter score; Atari's mean return), mean ±
         std over seeds, one row per configuration (a markdown table), then what was grouped: runs
@@ -39,6 +42,14 @@ def register(app: typer.Typer) -> None:
 
         from illm_tools.errors import UsageError
 
+        if redraw:
+            from illm_tools.report.build import redraw_report
+
+            if len(runs) != 1 or out is not None or probe:
+                raise UsageError("--redraw takes one report folder and no --out or --probe: `illm report DIR --redraw`")
+            redraw_report(runs[0])
+            typer.echo(f"report redrawn in {runs[0] / 'report.md'} (figures beside it)")
+            return
         if every <= 0 or final_points <= 0 or bootstrap <= 0:
             raise UsageError(f"--every, --final-points and --bootstrap must be positive, got {every}, {final_points} "
                              f"and {bootstrap}")

@@ -226,3 +226,51 @@ def test_curves_are_small_multiples_of_the_settings_methods_share():
                           ("num_dists 4", "illm (obs_mode obs)")]
     keys, placed = panels([{"method": "ppo", "settings": {}}, {"method": "illm", "settings": {"oracle_noise": "0.5"}}])
     assert keys == [] and placed == [("", "ppo"), ("", "illm (oracle_noise 0.5)")]
+
+
+def test_redraw_draws_an_old_report_again_from_its_results_json(tmp_path):
+    """`illm report DIR --redraw`: the runs are gone; an older results.json has no settings per row,
+    so they come from the labels, as numbers (panels 4, 8, 16 in that order); a damaged file is one
+    line and is left as it was."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from illm_tools.report.plots import panel_titles
+
+    runs = []
+    for seed in range(2):
+        for mode, final in (("ppo", 0.2), ("illm", 0.6)):
+            runs.append(tmp_path / f"{mode}-{seed}")
+            fake_run(runs[-1], seed, [(100, final / 2, 1), (200, final, 1)], mode=mode)
+    out = tmp_path / "rep"
+    assert CliRunner().invoke(app, ["report", *map(str, runs), "--every", "100", "--out", str(out),
+                                    "--bootstrap", "100"]).exit_code == 0
+    results = json.loads((out / "results.json").read_text())
+    old = []
+    for n in (16, 4, 8):  # a distractor grid as an older version wrote it: no settings, labels carry them
+        for row in results["rows"]:
+            old.append({k: v for k, v in row.items() if k != "settings"} | {"label": f"{row['method']} (num_dists {n})"})
+    results["rows"] = old
+    (out / "results.json").write_text(json.dumps(results))
+    for name in ("final.png", "curves-BabyAI-GoToLocal-v0.png", "report.md"):
+        (out / name).unlink()
+    for run in runs:
+        for f in run.iterdir():
+            f.unlink()
+        run.rmdir()
+
+    result = CliRunner().invoke(app, ["report", str(out), "--redraw"])
+    assert result.exit_code == 0, result.output
+    redrawn = json.loads((out / "results.json").read_text())
+    assert [r["settings"] for r in redrawn["rows"]][:2] == [{"num_dists": 16}, {"num_dists": 16}]
+    assert panel_titles(redrawn["rows"]) == ["num_dists 4", "num_dists 8", "num_dists 16"]
+    for name in ("final.png", "curves-BabyAI-GoToLocal-v0.png"):
+        assert (out / name).read_bytes()[:8] == PNG, name
+    assert "| illm (num_dists 4) |" in (out / "report.md").read_text()
+
+    (out / "results.json").write_text("{not json")
+    result = CliRunner().invoke(app, ["report", str(out), "--redraw"])
+    assert result.exit_code != 0 and "is damaged" in result.output and len(result.output.strip().splitlines()) == 1
+    assert (out / "results.json").read_text() == "{not json"
+    result = CliRunner().invoke(app, ["report", str(tmp_path / "none"), "--redraw"])
+    assert result.exit_code != 0 and "no results.json" in result.output

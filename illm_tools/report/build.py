@@ -97,7 +97,6 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
                  reps: int = DEFAULT_BOOTSTRAP, seed: int = BOOTSTRAP_SEED, probes: list[Path] = ()) -> dict:
     """Write the report folder `out` (see the module docstring) and return results.json's content.
     `probes` (`illm probe --out` files) add the annotator-quality curve (`illm_tools.report.quality`)."""
-    from illm_tools.report.markdown import render
     from illm_tools.report.quality import load_probes
 
     if final_points <= 0:
@@ -113,6 +112,22 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
     rows = [_row(env, label, g, every, final_points, reps, seed) for (env, label), g in groups.items()]
     envs = list(dict.fromkeys(r["env_id"] for r in rows))
     taken: set[str] = set()
+    for row in rows:
+        _visitation(row, out, taken)
+    quality_result = None
+    if probe_figures:
+        from illm_tools.report.quality import quality
+
+        configs = {key: json.loads((Path(g["runs"][0]) / "config.json").read_text())
+                   for key, g in groups.items() if g["runs"]}
+        quality_result = quality([r for r in rows if (r["env_id"], r["label"]) in configs], configs, probe_figures)
+    settings = {"every": every, "final_points": final_points, "bootstrap_reps": reps, "bootstrap_seed": seed,
+                "confidence": stats.CONFIDENCE, "interval": "percentile, stratified bootstrap over seeds (rliable)"}
+    return _write(out, settings, envs, rows, quality_result)
+
+
+def _figures(out: Path, envs: list[str], rows: list[dict], quality_result: dict | None) -> dict:
+    """Draw the curves, final-score and quality figures of `rows` into `out`; their file names."""
     curve_files = {}
     # one colour per line (a method and its settings other than the panels') in every figure
     colour = plots.colours(list(dict.fromkeys(line for env in envs for _, line in
@@ -124,36 +139,70 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
         name = f"curves-{slug(env)}.png"
         plots.curves_png(env, score_name(env), plotted, out / name, colour)
         curve_files[env] = name
-        taken.add(name)
-    for row in rows:
-        _visitation(row, out, taken)
     panels = [{"env_id": env, "score_name": score_name(env), "rows": [r for r in rows if r["env_id"] == env]}
               for env in envs]
     final_file = None
     if any(r["final"]["iqm"] is not None for r in rows):
         final_file = "final.png"
         plots.final_png(panels, out / final_file, colour)
-    quality_file, quality_result = None, None
-    if probe_figures:
-        from illm_tools.report.quality import quality, quality_png
+    quality_file = None
+    if quality_result and quality_result.get("points"):
+        from illm_tools.report.quality import quality_png
 
-        configs = {key: json.loads((Path(g["runs"][0]) / "config.json").read_text())
-                   for key, g in groups.items() if g["runs"]}
-        quality_result = quality([r for r in rows if (r["env_id"], r["label"]) in configs], configs, probe_figures)
-        if quality_result["points"]:
-            quality_file = "quality.png"
-            plots_names = {env: score_name(env) for env in envs}
-            quality_png(quality_result, plots_names, out / quality_file)
-    results = _clean({
-        "settings": {"every": every, "final_points": final_points, "bootstrap_reps": reps, "bootstrap_seed": seed,
-                     "confidence": stats.CONFIDENCE,
-                     "interval": "percentile, stratified bootstrap over seeds (rliable)"},
-        "envs": envs, "rows": rows,
-        "quality": quality_result,
-        "files": {"report": "report.md", "curves": curve_files, "final": final_file, "quality": quality_file,
-                  "visitation": {f"{r['env_id']} / {r['label']}": r["visitation"]["png"]
-                                 for r in rows if r["visitation"]}},
-    })
-    (out / "report.md").write_text(render(results))
-    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+        quality_file = "quality.png"
+        quality_png(quality_result, {env: score_name(env) for env in envs}, out / quality_file)
+    return {"report": "report.md", "curves": curve_files, "final": final_file, "quality": quality_file,
+            "visitation": {f"{r['env_id']} / {r['label']}": r["visitation"]["png"] for r in rows if r["visitation"]}}
+
+
+def _write(out: Path, settings: dict, envs: list[str], rows: list[dict], quality_result: dict | None) -> dict:
+    """Figures, report.md and results.json of a report into `out`; returns results.json's content."""
+    from illm_tools.report.markdown import render
+
+    results = _clean({"settings": settings, "envs": envs, "rows": rows, "quality": quality_result,
+                      "files": _figures(out, envs, rows, quality_result)})
+    from illm_tools import durable
+
+    durable.write_text(out / "report.md", render(results))
+    durable.write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
     return results
+
+
+def _number(text: str):
+    """A setting parsed from a label as the config held it: "16" -> 16, "0.5" -> 0.5, else the text."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+_LABEL = re.compile(r"^(?P<method>[^ ]+)(?: \((?P<settings>.*)\))?$")
+
+
+def redraw_report(folder: str | Path) -> dict:
+    """Draw a report folder's figures and report.md again from its results.json, with this
+    version's figures (small multiples, rliable's final-score plot): for a report whose run folders
+    are gone. Visitation heatmaps need the runs' counts and are kept as they are. A row of an older
+    report without its settings gets them from its label ("illm (num_dists 16)")."""
+    folder = Path(folder)
+    try:
+        results = json.loads((folder / "results.json").read_text())
+        rows, envs, settings = results["rows"], results["envs"], results["settings"]
+    except FileNotFoundError:
+        raise UsageError(f"no results.json in {folder}: --redraw takes a report folder written by "
+                         "`illm report --out`") from None
+    except (ValueError, KeyError, TypeError):
+        raise UsageError(f"{folder / 'results.json'} is damaged: write the report again from its runs "
+                         "(`illm report RUNS --out DIR`)") from None
+    for row in rows:
+        if row.get("settings") is None:
+            parsed = _LABEL.match(row["label"])
+            pairs = [p.strip().split(" ", 1) for p in (parsed["settings"] or "").split(",") if p.strip()] \
+                if parsed else []
+            row["settings"] = {k: _number(v) for k, *rest in pairs for v in rest}
+        for name in ("visitation",):
+            if row.get(name) and not (folder / row[name]["png"]).is_file():
+                row[name] = None  # its heatmap is gone and cannot be drawn again without the runs
+    return _write(folder, settings, envs, rows, results.get("quality"))

@@ -49,6 +49,28 @@ def panels(rows: list[dict]) -> tuple[list[str], list[tuple[str, str]]]:
     return keys, out
 
 
+def _order(value) -> tuple:
+    """Sort key of a setting's value: numbers by value (4 before 16), then text."""
+    try:
+        return (0, float(value), "")
+    except (TypeError, ValueError):
+        return (1, 0.0, str(value))
+
+
+def panel_titles(rows: list[dict]) -> list[str]:
+    """The panels' titles (`panels`) in the order of their settings' values, numbers by value."""
+    keys, placed = panels(rows)
+
+    def key(row: dict) -> tuple:
+        settings = row.get("settings", {})
+        return tuple(_order(settings.get(k)) for k in keys)
+
+    first = {}
+    for row, (title, _) in sorted(zip(rows, placed), key=lambda pair: key(pair[0])):
+        first.setdefault(title, row)
+    return list(first)
+
+
 def curves_png(env_id: str, score_name: str, rows: list[dict], path: Path, colour: dict[str, tuple] | None = None) -> Path:
     """One env's learning curves, one panel per setting that several methods share (small multiples,
     `panels`), one colour per line across panels: each row's ({"label", "method", "settings",
@@ -56,7 +78,7 @@ def curves_png(env_id: str, score_name: str, rows: list[dict], path: Path, colou
     band's ends where it has one."""
     plt = _pyplot()
     _, placed = panels(rows)
-    titles = list(dict.fromkeys(t for t, _ in placed))
+    titles = panel_titles(rows)
     lines = list(dict.fromkeys(line for _, line in placed))
     colour = {**colours(lines), **(colour or {})}
     fig, axes = plt.subplots(1, len(titles), figsize=(4.6 * len(titles) + 1.8, 3.8), dpi=100, squeeze=False,
@@ -95,18 +117,24 @@ def final_png(panels_: list[dict], path: Path, colour: dict[str, tuple] | None =
     configuration in its colour of the report's curves; configurations without a score in an env
     are left out of its panel."""
     plt = _pyplot()
-    labels = list(dict.fromkeys(r["label"] for p in panels_ for r in p["rows"]))
-    colour = colour or colours(labels)
     shown = [p for p in panels_ if any(r["final"]["iqm"] is not None for r in p["rows"])]
+    lines = {}  # a row's line label (`panels`): its colour in the curves
+    for panel in shown:
+        lines.update({row["label"]: line for row, (_, line) in zip(panel["rows"], panels(panel["rows"])[1])})
+    colour = {**colours(list(dict.fromkeys(lines.values()))), **(colour or {})}
     height = max(2.0, 0.42 * max(len(p["rows"]) for p in shown) + 1.1)
     fig, axes = plt.subplots(1, len(shown), figsize=(4.6 * len(shown), height), dpi=100, squeeze=False)
     for ax, panel in zip(axes[0], shown):
-        rows = [r for r in panel["rows"] if r["final"]["iqm"] is not None]
+        titles = panel_titles(panel["rows"])
+        placed = dict(zip((r["label"] for r in panel["rows"]), (t for t, _ in panels(panel["rows"])[1])))
+        rows = sorted((r for r in panel["rows"] if r["final"]["iqm"] is not None),
+                      key=lambda r: titles.index(placed[r["label"]]))  # grouped as the curves' panels
         for y, row in enumerate(rows):
             final = row["final"]
             low = final["ci_low"] if final["ci_low"] is not None else final["iqm"]
             high = final["ci_high"] if final["ci_high"] is not None else final["iqm"]
-            ax.barh(y, max(high - low, 1e-3), left=low, height=0.6, color=colour.get(row["label"], "C0"), alpha=0.75)
+            ax.barh(y, max(high - low, 1e-3), left=low, height=0.6, color=colour.get(lines[row["label"]], "C0"),
+                    alpha=0.75)
             ax.vlines(final["iqm"], y - 0.28, y + 0.28, color="black", alpha=0.6)
         ax.set_yticks(range(len(rows)), [r["label"] for r in rows], fontsize=8)
         ax.set_ylim(-0.6, len(rows) - 0.4)
