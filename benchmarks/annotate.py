@@ -12,6 +12,9 @@ matmul rate in the dtype (measured in the same run) that illm's forward passes r
 parameters x tokens fed, attention left out). Targets: speedup >= 8x; >= 4 states/s for both tasks together.
 
     .venv/bin/python benchmarks/annotate.py [--states 32] [--naive-states 4] [--batch-size 8]
+    .venv/bin/python benchmarks/annotate.py --device cuda [--quant 4bit] [--history 0] --batch-size 32
+
+On CUDA it also prints the peak GPU memory (torch.cuda.max_memory_allocated) of the illm run.
 """
 
 from __future__ import annotations
@@ -25,16 +28,20 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
-def matmul_rate(dtype, seconds: float = 2.0) -> float:
-    """GFLOP/s of a bf16 matmul shaped like the model's MLP over a batch of tokens."""
+def matmul_rate(dtype, seconds: float = 2.0, device: str = "cpu") -> float:
+    """GFLOP/s of a matmul in `dtype` shaped like the model's MLP over a batch of tokens."""
     import torch
 
-    a, b = torch.randn(2048, 576, dtype=dtype), torch.randn(576, 1536, dtype=dtype)
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    a = torch.randn(2048, 576, dtype=dtype, device=device)
+    b = torch.randn(576, 1536, dtype=dtype, device=device)
     a @ b
+    sync()
     n, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
         a @ b
         n += 1
+    sync()
     return n * 2 * 2048 * 576 * 1536 / (time.perf_counter() - start) / 1e9
 
 
@@ -54,14 +61,15 @@ def naive(lm, jobs) -> None:
     import torch
 
     model, tok = lm.model, lm.tokenizer
+    device = model.device
     for action, summary in jobs:
         ctx = tok(action.prompt.text, return_tensors="pt").input_ids
         for cand in action.prompt.candidates:
-            ids = tok(action.prompt.text + cand, return_tensors="pt").input_ids
+            ids = tok(action.prompt.text + cand, return_tensors="pt").input_ids.to(device)
             with torch.no_grad():
                 logp = model(ids).logits.log_softmax(-1)
             logp[0, ctx.shape[1] - 1:-1].gather(1, ids[0, ctx.shape[1]:, None]).sum()
-        ids = tok(summary.prompt.text, return_tensors="pt").input_ids
+        ids = tok(summary.prompt.text, return_tensors="pt").input_ids.to(device)
         with torch.no_grad():
             out = model.generate(ids, max_new_tokens=64, do_sample=False, pad_token_id=lm.pad_id)
             hidden = model(out, output_hidden_states=True).hidden_states[-1]
@@ -76,23 +84,29 @@ def main() -> None:
     parser.add_argument("--naive-states", type=int, default=4, help="States annotated by the naive loop (slow).")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--layout", default="shared", help="Template layout: shared or paper.")
+    parser.add_argument("--history", type=int, default=3, help="History pairs in the prompts (the paper's: 3).")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (as `illm annotate`).")
+    parser.add_argument("--quant", default="none", help="none, 4bit or 8bit (bitsandbytes; CUDA).")
     args = parser.parse_args()
 
     import torch
 
     from illm_tools.annotate.engine import Annotator
     from illm_tools.cache.store import AnnotationCache
+    from illm_tools.devices import resolve_device
     from illm_tools.llm.loading import load_model
     from illm_tools.llm.dtype import resolve_dtype
     from illm_tools.tasks.prompts import SUMMARY_TOKENS
 
-    args.dtype = resolve_dtype(args.dtype)
-    lm = load_model(args.model, dtype=args.dtype)
-    rate = matmul_rate(getattr(torch, args.dtype))
+    args.device = resolve_device(args.device)
+    args.dtype = resolve_dtype(args.dtype, args.device)
+    lm = load_model(args.model, dtype=args.dtype, quant=args.quant, device=args.device)
+    rate = matmul_rate(getattr(torch, args.dtype), device=args.device)
+    gpu = args.device.startswith("cuda")
     with tempfile.TemporaryDirectory() as tmp:
-        records = babyai_states(args.states, 3, Path(tmp))
+        records = babyai_states(args.states, args.history, Path(tmp))
         annotator = Annotator(lm, AnnotationCache(Path(tmp) / "ann"), model=args.model, layout=args.layout,
-                              batch_size=args.batch_size, chunk=args.states)
+                              batch_size=args.batch_size, chunk=args.states, history_len=args.history)
         plan = annotator.plan(annotator.visited(records, ["BabyAI-GoToLocal-v0"] * len(records),
                                                 ["babyai-text@1"] * len(records)))
         jobs = [(s[0], s[1]) for s in plan]
@@ -104,9 +118,12 @@ def main() -> None:
         hook = lm.model.register_forward_pre_hook(count, with_kwargs=True)
         annotator.neutral_scores(jobs[0][0].prompt.candidates)  # once per model; not part of the timing
         tokens[0] = 0
+        if gpu:
+            torch.cuda.reset_peak_memory_stats()
         start = time.perf_counter()
         rows = annotator.annotate(plan)
         t_illm = time.perf_counter() - start
+        peak = torch.cuda.max_memory_allocated() / 2**30 if gpu else None
         hook.remove()
         start = time.perf_counter()
         naive(lm, jobs[: args.naive_states])
@@ -119,9 +136,9 @@ def main() -> None:
     achieved = 2 * params * tokens[0] / t_illm / 1e9
     lengths = [r["_tokens"] for r in rows if r["task"] == "summary"]  # generated tokens, end-of-text excluded
     ended = sum(n < SUMMARY_TOKENS for n in lengths)  # a summary cut by the limit has exactly SUMMARY_TOKENS
-    print(f"model {args.model} ({args.dtype}), {len(jobs)} BabyAI GoToLocal states, 3-step history, "
-          f"action prompt ~{prompt_tokens:.0f} tokens, layout {args.layout}, batch {args.batch_size}, "
-          f"{torch.get_num_threads()} threads")
+    print(f"model {args.model} ({args.dtype}, quant {args.quant}) on {args.device}, {len(jobs)} BabyAI GoToLocal "
+          f"states, {args.history}-step history, action prompt ~{prompt_tokens:.0f} tokens, layout {args.layout}, "
+          f"batch {args.batch_size}, {torch.get_num_threads()} threads")
     print(f"naive loop        {naive_rate:6.2f} states/s  ({args.naive_states} states, action ranking + summary)")
     print(f"illm annotate     {illm_rate:6.2f} states/s  ({len(jobs)} states, action ranking + summary)")
     print(f"speedup           {illm_rate / naive_rate:6.1f}x  (target >= 8x; illm target >= 4 states/s)")
@@ -129,6 +146,8 @@ def main() -> None:
           f"{ended}/{len(lengths)} ended at end-of-text")
     print(f"{args.dtype} matmul rate {rate:6.0f} GFLOP/s measured; illm forward passes reach {achieved:.0f} GFLOP/s "
           f"= {100 * achieved / rate:.0f}% of it ({tokens[0] / len(jobs):.0f} tokens fed per state)")
+    if peak is not None:
+        print(f"peak GPU memory   {peak:6.2f} GiB (torch.cuda.max_memory_allocated, illm annotate)")
 
 
 if __name__ == "__main__":

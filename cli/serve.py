@@ -38,7 +38,7 @@ def register(app: typer.Typer) -> None:
 
         import torch
 
-        from illm_tools.annotate.bulk import resolve_device
+        from illm_tools.devices import resolve_device
         from illm_tools.cache.store import AnnotationCache
         from illm_tools.errors import UsageError
         from illm_tools.llm.backend import check_backend, load_backend, resolve_model

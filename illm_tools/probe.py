@@ -172,7 +172,7 @@ class ProbeConfig:
     backend: str = "transformers"
     """LLM backend (`illm_tools.llm.backend`)."""
     device: str = "cpu"
-    """Where the model runs."""
+    """Where the model runs: cpu, cuda, cuda:N or auto."""
     batch_size: int = 8
     """States per LLM batch."""
 
@@ -180,6 +180,9 @@ class ProbeConfig:
         from illm_tools.settings import check_numbers
 
         check_numbers(self, positive=("states", "batch_size"), non_negative=("history", "seed"), unit=("epsilon",))
+        from illm_tools.devices import check_device
+
+        check_device(self.device)
 
 
 @dataclass
@@ -258,7 +261,7 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
     """Collect the expert's states, score their actions with the LLM, compute every metric.
     `on_states` hears the collected states (before the model loads); `on_progress(done, total)`
     the distinct states scored so far."""
-    from illm_tools.annotate.bulk import resolve_device
+    from illm_tools.devices import resolve_device
     from illm_tools.keys import fingerprint_hash
     from illm_tools.envs import renderer_of
     from illm_tools.llm.backend import check_backend_use, load_backend, resolve_model

@@ -146,3 +146,15 @@ def collect_babyai(tmp_path_factory, steps: int, seed: int, action_space: str):
     collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=out, steps=steps, num_envs=4, seed=seed,
                           action_space=action_space))
     return out
+
+
+def pytest_collection_modifyitems(config, items):
+    """`gpu`-marked tests run where torch sees a CUDA GPU and are skipped, saying so, elsewhere."""
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA GPU (torch.cuda.is_available() is False)")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)

@@ -18,7 +18,7 @@ from illm_tools.intrinsic.registry import METHODS, Method, get_method, register
 from illm_tools.rl import TrainConfig, Trainer, load_checkpoint, two_stream_advantages
 from illm_tools.rl.config import MODES
 from illm_tools.rl.networks import GRID_CHANNEL_SIZES, GridMissionNet
-from test_ppo import FakePool
+from fakes import FakePool
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -288,7 +288,7 @@ def test_threshold_coef_and_options():
 
 def test_the_ellm_bonus_reaches_the_advantages(tmp_path):
     from illm_tools.rl import TrainConfig, Trainer
-    from test_ppo import FakePool
+    from fakes import FakePool
 
     cfg = TrainConfig(run_dir=tmp_path / "run", mode="ellm", num_envs=4, num_steps=32, total_steps=4 * 32,
                       tensorboard=False, update_epochs=1, num_minibatches=2, int_gamma=0.9)

@@ -163,7 +163,7 @@ def test_two_stream_advantages_return_the_weighted_parts_and_their_scale():
 
 
 def test_trainer_logs_the_bonus_scale_every_update(tmp_path):
-    from test_ppo import make_trainer
+    from fakes import make_trainer
 
     trainer, _ = make_trainer(tmp_path, updates=1)
     metrics = trainer.train()

@@ -30,7 +30,7 @@ from illm_tools.rl import TrainConfig, Trainer, load_checkpoint, two_stream_adva
 from illm_tools.rl.live import SyncLive
 from illm_tools.rl.targets import CachedTargets
 from illm_tools.tasks.state import StateRecord
-from test_ppo import ACTIONS, FakePool
+from fakes import ACTIONS, FakePool
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -1,99 +1,17 @@
 """PPO trainer: GAE, the bonus reaching the loss, modes, metrics, checkpoint and resume."""
 
 import json
-import zlib
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
-from illm_tools.envs.suite import EpisodeStats
 from illm_tools.errors import OutputExistsError, UsageError
-from illm_tools.intrinsic import Targets
 from illm_tools.rl import TrainConfig, Trainer, gae, load_checkpoint, load_policy, make_pool
 
+from fakes import ACTIONS, FakePool, FakeProvider, RefusingProvider, make_trainer  # noqa: F401
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
-
-
-ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
-
-
-class FakePool:
-    """The EnvPool interface over a toy task: an episode ends after 3-9 steps; 'go forward'
-    on the last step succeeds (reward 1)."""
-
-    def __init__(self, num_envs, seed=0):
-        self.num_envs, self.action_names = num_envs, ACTIONS
-        self.rng = np.random.default_rng(seed)
-
-    def _obs(self):
-        n = self.num_envs
-        return SimpleNamespace(
-            images=self.rng.integers(0, 6, size=(n, 7, 7, 3)).astype(np.uint8),
-            missions=[f"go to the {c} ball" for c in self.colours],
-            texts=[f"you see a wall {s} steps forward" for s in self.steps], seeds=np.arange(n),
-            steps=self.steps.copy())
-
-    def reset(self):
-        self.steps = np.zeros(self.num_envs, np.int64)
-        self.lengths = self.rng.integers(3, 10, self.num_envs)
-        self.returns = np.zeros(self.num_envs)
-        self.colours = self.rng.choice(["red", "blue"], self.num_envs).tolist()
-        return self._obs()
-
-    def step(self, actions):
-        self.steps += 1
-        done = self.steps >= self.lengths
-        rewards = (done & (np.asarray(actions) == 2)).astype(np.float32)
-        self.returns += rewards
-        episodes = [EpisodeStats(int(i), float(self.returns[i]), int(self.steps[i]), bool(rewards[i] > 0))
-                    for i in np.flatnonzero(done)]
-        for i in np.flatnonzero(done):
-            self.steps[i], self.returns[i] = 0, 0.0
-            self.lengths[i] = self.rng.integers(3, 10)
-        return SimpleNamespace(rewards=rewards, terminated=done, truncated=np.zeros_like(done),
-                               obs=self._obs(), episodes=episodes)
-
-
-class FakeProvider:
-    """Deterministic targets from a hash of each record; about one record in four has none."""
-
-    def __init__(self, num_actions, dim):
-        self.num_actions, self.dim, self.calls, self.records = num_actions, dim, 0, []
-
-    def targets(self, records):
-        self.calls += 1
-        self.records.extend(records)
-        probs = np.zeros((len(records), self.num_actions), np.float32)
-        emb = np.zeros((len(records), self.dim), np.float32)
-        mask = np.zeros(len(records), bool)
-        for i, r in enumerate(records):
-            key = zlib.crc32(repr((r.mission, r.history, r.observation)).encode())
-            rng = np.random.default_rng(key)
-            probs[i], emb[i], mask[i] = rng.dirichlet(np.ones(self.num_actions)), rng.normal(size=self.dim), key % 4 != 0
-        return Targets(probs, emb, mask)
-
-    def stats(self):
-        return {"cache_hit_rate": 0.25, "live_annotations": 7}
-
-
-class RefusingProvider:
-    def targets(self, records):
-        raise AssertionError("ppo mode must not ask for LLM targets")
-
-    def stats(self):
-        return {}
-
-
-def make_trainer(tmp_path, mode="illm", updates=2, pool=None, **kw):
-    cfg = TrainConfig(run_dir=tmp_path / "run", mode=mode, num_envs=4, num_steps=32,
-                      total_steps=4 * 32 * updates, embedding_dim=8, head_hidden=32, tensorboard=False,
-                      update_epochs=2, num_minibatches=2, **kw)
-    pool = pool or FakePool(cfg.num_envs)
-    provider = FakeProvider(len(pool.action_names), cfg.embedding_dim) if mode != "ppo" else RefusingProvider()
-    return Trainer(cfg, pool, provider), provider
 
 
 def test_gae_matches_a_direct_computation():
@@ -116,8 +34,17 @@ def test_gae_matches_a_direct_computation():
     assert torch.allclose(ret, adv + values)
 
 
-def test_the_bonus_reaches_the_advantages_the_loss_uses(tmp_path, monkeypatch):
-    trainer, _ = make_trainer(tmp_path, int_gamma=0.9)
+def _paying_methods() -> list[str]:
+    """Every registered method whose bonus reaches the advantages, but ELLM (it pays only where a
+    caption matches a suggested goal's text: test_ellm.py follows its reward into the loss)."""
+    from illm_tools.intrinsic.registry import METHODS, get_method
+
+    return [name for name in METHODS if get_method(name).pays_reward and name != "ellm"]
+
+
+@pytest.mark.parametrize("method", _paying_methods())
+def test_the_bonus_reaches_the_advantages_the_loss_uses(tmp_path, monkeypatch, method):
+    trainer, _ = make_trainer(tmp_path, mode=method, int_gamma=0.9)
     ro, records, _, next_values = trainer.collect_rollout()
     trainer.attach_targets(ro, records)
     bonus = trainer.intrinsic_rewards(ro).reward

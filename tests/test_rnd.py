@@ -14,7 +14,7 @@ from cli.main import app
 from illm_tools.intrinsic import BonusContext, RNDBonus, RNDConfig
 from illm_tools.rl import TrainConfig, Trainer, load_checkpoint
 from illm_tools.rl.config import bonus_weights
-from test_ppo import FakePool
+from fakes import FakePool
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from illm_tools.annotate.engine import Annotator, Stats
+from illm_tools.devices import check_device, resolve_device
 from illm_tools.errors import UsageError
 from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS
 from illm_tools.tasks.registry import get_task, parse_tasks
@@ -96,8 +97,7 @@ class AnnotateConfig:
         unfit = [t for t in self.tasks if not get_task(t).hop]
         if self.mode == "hop" and unfit:
             raise UsageError(f"the {', '.join(unfit)} task has no hop form: annotate hop data with other --tasks")
-        if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
-            raise UsageError(f"--device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
+        check_device(self.device)
 
 
 @dataclass
@@ -132,18 +132,6 @@ def distributed_state():
 
     cpu = not torch.cuda.is_available() or os.environ.get("ACCELERATE_USE_CPU", "").lower() in ("1", "true")
     return PartialState(cpu=cpu)
-
-
-def resolve_device(device: str, state=None) -> str:
-    """The torch device of the model: `device`, or for auto the process's accelerator (cuda when
-    there is one, else cpu); under several processes cuda and auto mean each process's own GPU."""
-    import torch
-
-    if state is not None and device in ("cuda", "auto") and state.device.type == "cuda":
-        return str(state.device)
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return device
 
 
 def _gathered(stats: Stats, state) -> Stats:

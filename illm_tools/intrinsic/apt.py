@@ -86,7 +86,7 @@ class APTBonus(EmbeddingBonus, IntrinsicBonus):
         dist.fill_diagonal_(float("inf"))  # a point is not its own neighbour
         knn = dist.topk(cfg.k, dim=-1, largest=False).values  # [B, k]
         if cfg.knn_rms:
-            self.dist_rms.update(knn.double().numpy())
+            self.dist_rms.update(knn)
             knn = knn / (float(self.dist_rms.mean) + 1e-8)
         knn = (knn - cfg.knn_clip).clamp_min(0.0)
         return torch.log1p(knn.mean(-1)).view(t, n)

@@ -162,6 +162,18 @@ class IntrinsicBonus(ABC):
         """Build the bonus for a run (default: `cls(config, ctx)`)."""
         return cls(config, ctx)  # type: ignore[call-arg]
 
+    def to(self, device: torch.device | str) -> "IntrinsicBonus":
+        """Move the bonus's own models to `device`, where the trainer's tensors live (`--device`):
+        every `torch.nn.Module` attribute, in place, so optimisers built on their parameters keep
+        them. A bonus holding other tensors across rollouts moves them in an override. (Bonuses
+        are not `nn.Module`s: most have no model, and their state is more than parameters.)"""
+        for value in vars(self).values():
+            if isinstance(value, torch.nn.Module):
+                value.to(device)
+            elif isinstance(value, IntrinsicBonus):  # a bonus inside another (NGU's RND)
+                value.to(device)
+        return self
+
     def use_provider(self, provider: TargetProvider) -> None:
         """Called once with the run's `TargetProvider` after the bonus is built, by whoever
         assembles the run (`illm_tools.rl.run.train`), for a bonus that reads more of the
@@ -185,8 +197,9 @@ class IntrinsicBonus(ABC):
         logs.update(intrinsic_reward=float(reward.mean()), intrinsic_std=norm.rms.std)
         return BonusRewards(reward, logs)
 
-    def aux_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
-        """Loss added to the PPO loss for one minibatch (default: none)."""
+    def aux_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float | torch.Tensor]]:
+        """Loss added to the PPO loss for one minibatch (default: none), and scalars to log: floats
+        or 0-d tensors (the trainer averages them over the update and reads a GPU once per update)."""
         return torch.zeros(()), {}
 
     @property
@@ -218,4 +231,5 @@ class NoBonus(IntrinsicBonus):
 
     def compute_rewards(self, batch: Mapping[str, torch.Tensor]) -> BonusRewards:
         t, n = batch["actions"].shape[:2]
-        return BonusRewards(torch.zeros(t, n), {"intrinsic_reward_a": 0.0, "intrinsic_reward_hc": 0.0})
+        return BonusRewards(torch.zeros(t, n, device=batch["actions"].device),
+                            {"intrinsic_reward_a": 0.0, "intrinsic_reward_hc": 0.0})

@@ -122,12 +122,13 @@ class ELLMBonus(IntrinsicBonus):
         goals = self.provider.goals  # type: ignore[attr-defined]
         if len(goals) != t * n:
             raise UsageError(f"the goal provider holds {len(goals)} steps' goals; this rollout has {t * n}")
-        ends = batch["ends"].reshape(-1).bool().numpy()
-        captions = caption_transitions(batch["images"].reshape(t * n, *batch["images"].shape[2:]).numpy(),
+        device = batch["actions"].device
+        ends = batch["ends"].reshape(-1).bool().cpu().numpy()
+        captions = caption_transitions(batch["images"].reshape(t * n, *batch["images"].shape[2:]).cpu().numpy(),
                                        batch["actions"].reshape(-1).tolist(),
-                                       batch["next_images"].reshape(t * n, *batch["next_images"].shape[2:]).numpy(),
+                                       batch["next_images"].reshape(t * n, *batch["next_images"].shape[2:]).cpu().numpy(),
                                        ends)
-        mask = batch["target_mask"].reshape(-1).bool().numpy() & np.array([g is not None for g in goals])
+        mask = batch["target_mask"].reshape(-1).bool().cpu().numpy() & np.array([g is not None for g in goals])
         compared = [k for k in range(t * n) if mask[k] and goals[k] and captions[k] != NOTHING]
         vectors = self._embed([captions[k] for k in compared] + [g for k in compared for g in goals[k]])
         reward = np.zeros(t * n, np.float32)
@@ -146,8 +147,8 @@ class ELLMBonus(IntrinsicBonus):
                         paid_goals += int(hit.sum())
             if ends[k]:
                 self.achieved[i].clear()
-        r = torch.as_tensor(reward).view(t, n)
-        m = torch.as_tensor(mask).view(t, n)
+        r = torch.as_tensor(reward, device=device).view(t, n)
+        m = torch.as_tensor(mask, device=device).view(t, n)
         covered = max(int(mask.sum()), 1)
         logs = {
             "intrinsic_reward_ellm": float(r.sum()) / covered,

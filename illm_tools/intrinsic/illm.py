@@ -206,7 +206,7 @@ class ILLMBonus(IntrinsicBonus):
         logs.update({f"intrinsic_std_{_suffix(t)}": self.norms[t].rms.std for t in raw})
         return BonusRewards(reward, logs)
 
-    def aux_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+    def aux_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Masked mean of the distillation losses, summed (gradients reach heads and torso): KL for
         the action task, 1 - cos (or MSE) for each text task."""
         mask, target, emb = _clean(batch)
@@ -220,7 +220,8 @@ class ILLMBonus(IntrinsicBonus):
             else:
                 losses[task] = (pred - goal).pow(2).mean(-1)
         means = {t: _masked_mean(torch.where(mask, x, torch.zeros_like(x)), mask) for t, x in losses.items()}
-        return sum(means.values()), {f"distill_{t}": v.item() for t, v in means.items()}
+        # the logs stay tensors (the trainer syncs once per update, not per minibatch)
+        return sum(means.values()), {f"distill_{t}": v.detach() for t, v in means.items()}
 
     def state_dict(self) -> dict:
         return {f"norm_{_suffix(t)}": norm.state_dict() for t, norm in self.norms.items()}

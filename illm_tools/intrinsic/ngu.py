@@ -144,7 +144,7 @@ def train_inverse_dynamics(model: InverseDynamics, optimizer: torch.optim.Optimi
     step = max(1, size // minibatches)
     losses, hits = [], []
     for _epoch in range(epochs):
-        order = torch.randperm(size, generator=generator)
+        order = torch.randperm(size, generator=generator).to(actions.device)  # drawn on the CPU: seeded
         for start in range(0, size, step):
             rows = order[start:start + step]
             logits = model.action_logits(images[rows], next_images[rows])
@@ -153,9 +153,9 @@ def train_inverse_dynamics(model: InverseDynamics, optimizer: torch.optim.Optimi
             loss.backward()
             nn.utils.clip_grad_norm_(model.parameters(), max_grad_norm)
             optimizer.step()
-            losses.append(loss.item())
-            hits.append((logits.argmax(-1) == actions[rows]).float().mean().item())
-    return {"loss": float(np.mean(losses)), "accuracy": float(np.mean(hits))}
+            losses.append(loss.detach())
+            hits.append((logits.argmax(-1) == actions[rows]).float().mean())
+    return {"loss": float(torch.stack(losses).mean()), "accuracy": float(torch.stack(hits).mean())}
 
 
 @dataclass
@@ -279,15 +279,16 @@ class NGUBonus(EmbeddingBonus, IntrinsicBonus):
         ([T, N, p] = f(x_t)) and `ends` [T, N]; advances the memories past the rollout."""
         cfg = self.config
         t, n, _ = embedded.shape
-        steps = torch.arange(t)
-        knn = torch.full((n, t, cfg.k), float("inf"))  # squared distances to each query's k nearest
+        device = embedded.device
+        steps = torch.arange(t, device=device)
+        knn = torch.full((n, t, cfg.k), float("inf"), device=device)  # squared distances to each query's k nearest
         for i in range(n):  # one env at a time: a [T, memory + T] distance matrix, however long its episode
             carried = len(self.memory[i])
-            cand = torch.cat([self.memory[i], embedded[:, i]])  # its episode so far, then x_0 .. x_{T-1}
-            position = torch.arange(-carried, t)
+            cand = torch.cat([self.memory[i].to(device), embedded[:, i]])  # its episode so far, then x_0 .. x_{T-1}
+            position = torch.arange(-carried, t, device=device)
             end = ends[:, i].long()
             episode = torch.cumsum(end, 0) - end  # episodes ended before step j: x_j's (the carried ones: 0)
-            cand_episode = torch.cat([torch.zeros(carried, dtype=torch.long), episode])
+            cand_episode = torch.cat([torch.zeros(carried, dtype=torch.long, device=device), episode])
             query_episode = episode + end  # an ending step reaches the next episode's first observation
             lag = steps[:, None] - position[None, :]  # t - j: the memory of query t holds x_j, j <= t
             usable = (cand_episode[None, :] == query_episode[:, None]) & (lag >= 0) & (lag < cfg.memory_capacity)
@@ -299,7 +300,7 @@ class NGUBonus(EmbeddingBonus, IntrinsicBonus):
             self.memory[i] = kept[-cfg.memory_capacity:].clone()
         found = torch.isfinite(knn)
         if found.any():  # Algorithm 1: the moving average is updated, then used
-            self.dist_rms.update(knn[found].double().numpy())
+            self.dist_rms.update(knn[found])
         d = (knn / (float(self.dist_rms.mean) + 1e-8) - cfg.cluster_distance).clamp_min(0.0)
         kernel = torch.where(found, cfg.kernel_epsilon / (d + cfg.kernel_epsilon), torch.zeros_like(d))
         s = kernel.sum(-1).sqrt() + cfg.pseudo_count
@@ -312,11 +313,11 @@ class NGUBonus(EmbeddingBonus, IntrinsicBonus):
         rnd, t, n = self.rnd, *reached_images.shape[:2]
         first = rnd.obs_rms.count < 1  # as rnd.py: statistics start from the first rollout, later merged after
         if first:
-            rnd.obs_rms.update(reached_images.numpy())
+            rnd.obs_rms.update(reached_images)
         error = rnd.prediction_error(rnd.normalise(reached_images)).view(t, n)
         if not first:
-            rnd.obs_rms.update(reached_images.numpy())
-        self.error_rms.update(error.double().numpy())
+            rnd.obs_rms.update(reached_images)
+        self.error_rms.update(error)
         alpha = 1.0 + (error - float(self.error_rms.mean)) / (self.error_rms.std + 1e-8)
         return alpha.clamp(1.0, self.config.max_modulation), error
 

@@ -27,8 +27,10 @@ class RunningMeanStd:
         self.var = np.ones(self.shape) if self.shape else 1.0
         self.count = epsilon
 
-    def update(self, x: np.ndarray) -> None:
-        """Merge a batch of samples: any array whose trailing axes are `shape`."""
+    def update(self, x: np.ndarray | torch.Tensor) -> None:
+        """Merge a batch of samples: any array or tensor (on any device) whose trailing axes are `shape`."""
+        if isinstance(x, torch.Tensor):
+            x = x.detach().to("cpu", torch.float64).numpy()
         x = np.asarray(x, dtype=np.float64).reshape(-1, *self.shape)
         if x.shape[0] == 0:
             return

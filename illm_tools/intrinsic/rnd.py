@@ -167,8 +167,8 @@ class RNDBonus(IntrinsicBonus):
         """[..., *obs shape] -> float32, standardised and clipped: [B, C, H, W] for pictures,
         [B, prod(obs shape)] otherwise (MiniGrid: H * W * 3)."""
         x = self._pictures(images).double()
-        mean = torch.as_tensor(self.obs_rms.mean)
-        std = torch.as_tensor(self.obs_rms.var).sqrt()
+        mean = torch.as_tensor(self.obs_rms.mean, device=x.device)
+        std = torch.as_tensor(self.obs_rms.var, device=x.device).sqrt()
         clip = self.config.obs_clip
         x = ((x - mean) / std).clamp(-clip, clip).float()
         return x if self.kind in PICTURES else x.flatten(1)
@@ -186,10 +186,10 @@ class RNDBonus(IntrinsicBonus):
         t, n = images.shape[:2]
         first = self.obs_rms.count < 1  # statistics start from the first rollout
         if first:
-            self.obs_rms.update(self._pictures(images).numpy())
+            self.obs_rms.update(self._pictures(images))
         error = self.prediction_error(self.normalise(images)).view(t, n)
         if not first:  # rewarded with the statistics as they were, then merged in (CleanRL's order)
-            self.obs_rms.update(self._pictures(images).numpy())
+            self.obs_rms.update(self._pictures(images))
         logs = {"rnd_error": float(error.mean())}
         return self.normalised(error, self.reward_norm, logs)
 
@@ -201,17 +201,17 @@ class RNDBonus(IntrinsicBonus):
         step = max(1, size // cfg.minibatches)
         losses = []
         for _epoch in range(cfg.epochs):
-            order = torch.randperm(size, generator=self.generator)
+            order = torch.randperm(size, generator=self.generator).to(x_all.device)  # drawn on the CPU: seeded
             for start in range(0, size, step):
                 error = self.prediction_error(x_all[order[start:start + step]])
-                mask = (torch.rand(error.shape, generator=self.generator) < cfg.update_proportion).float()
+                mask = (torch.rand(error.shape, generator=self.generator) < cfg.update_proportion).to(error)
                 loss = (error * mask).sum() / mask.sum().clamp_min(1.0)
                 self.optimizer.zero_grad()
                 loss.backward()
                 nn.utils.clip_grad_norm_(self.predictor.parameters(), cfg.max_grad_norm)
                 self.optimizer.step()
-                losses.append(loss.item())
-        return {"rnd_predictor_loss": float(np.mean(losses))}
+                losses.append(loss.detach())
+        return {"rnd_predictor_loss": float(torch.stack(losses).mean())}  # one sync per update
 
     def state_dict(self) -> dict:
         return {"target": self.target.state_dict(), "predictor": self.predictor.state_dict(),

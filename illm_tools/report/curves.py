@@ -28,7 +28,7 @@ import numpy as np
 from illm_tools.errors import UsageError
 
 
-NOT_LEARNED = frozenset({"seed", "run_dir", "resume", "threads", "llm_threads", "new_setup", "heads_bf16", "cache"})
+NOT_LEARNED = frozenset({"seed", "run_dir", "resume", "threads", "device", "llm_device", "llm_threads", "new_setup", "heads_bf16", "cache"})
 """config.json settings that may differ between seeds of one configuration (where a run is, how
 it uses the CPU, numerics chosen by timing, and which cache folder holds its targets)."""
 

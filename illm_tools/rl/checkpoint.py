@@ -205,7 +205,7 @@ def read_config(run_dir: Path) -> dict:
 
 
 # settings a resumed run may change; any other difference is refused
-RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "checkpoint_every", "checkpoint_minutes", "tensorboard", "live_budget", "threads",
+RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "device", "llm_device", "checkpoint_every", "checkpoint_minutes", "tensorboard", "live_budget", "threads",
                                "llm_threads", "live_mode", "new_setup", "heads_bf16", "run_dir", "cache", "vector",
                                "annotator"})
 

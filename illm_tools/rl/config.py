@@ -218,6 +218,12 @@ class TrainConfig:
     quantisation, history length, layout, templates, renderer): live annotation starts it."""
     threads: int = 1
     """Torch threads for the policy (small nets run best on one)."""
+    device: str = "cpu"
+    """Where the policy, the bonus's models and the rollout live: cpu, cuda, cuda:N or auto (a GPU
+    where there is one). Actions are sampled on the CPU from the run's seeded generator; a run may
+    resume on another device."""
+    llm_device: str | None = None
+    """Where the live fallback's and hop mode's LLM run (cpu, cuda, cuda:N, auto); unset: `device`."""
     llm_threads: int = 0
     """Torch threads for live annotation; 0: sync all cores, async the cores the policy leaves
     (one of 2). Give 1 when runs share the machine."""
@@ -258,6 +264,11 @@ class TrainConfig:
                       flags={"total_steps": "--frames", "history_len": "--history", "run_dir": "--out"})
         check_folder(self.run_dir, "--out")
         check_folder(self.cache, "--cache")
+        from illm_tools.devices import check_device
+
+        check_device(self.device)
+        if self.llm_device is not None:
+            check_device(self.llm_device, "--llm-device")
         if self.action_score not in CALIBRATIONS:
             raise UsageError(f"--action-score must be {', '.join(CALIBRATIONS)}, got {self.action_score!r}")
         if self.action_target not in ACTION_TARGETS:
@@ -310,19 +321,23 @@ class TrainConfig:
 
     def resolved(self) -> "TrainConfig":
         """This config with the machine's choices made, as the run records them in config.json (and
-        keeps on resume, on any machine): `model_dtype` auto -> the dtype `illm_tools.llm.dtype`
+        keeps on resume, on any machine): `device` and `llm_device` auto -> cpu or cuda (these two may
+        change on resume), `model_dtype` auto -> the dtype `illm_tools.llm.dtype`
         measures (when the run uses an LLM), `heads_bf16` None -> whether bf16 is faster for the heads
         (when the method has them)."""
+        from illm_tools.devices import resolve_device
         from illm_tools.llm.backend import backend_dtype
 
-        changes: dict = {}
-        if self.model_dtype == "auto" and (self.needs_targets or self.obs_mode == "hop"):
-            changes["model_dtype"] = backend_dtype(self.backend, "auto", "cpu")
+        changes: dict = {"device": resolve_device(self.device)}
+        if self.needs_targets or self.obs_mode == "hop":
+            changes["llm_device"] = resolve_device(self.llm_device or self.device, flag="--llm-device")
+            if self.model_dtype == "auto":
+                changes["model_dtype"] = backend_dtype(self.backend, "auto", changes["llm_device"])
         if self.heads_bf16 is None and self.uses_heads:
             from illm_tools.rl.networks import bf16_is_faster
 
             changes["heads_bf16"] = bf16_is_faster()
-        return dataclasses.replace(self, **changes) if changes else self
+        return dataclasses.replace(self, **changes)
 
     # --- derived values ----------------------------------------------------------------------
     @property

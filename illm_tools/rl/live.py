@@ -86,6 +86,8 @@ class WorkerSpec:
     """The language tasks the worker annotates (the run's: iLLM's two, or ELLM's `goal`)."""
     backend: str = "transformers"
     """The LLM backend serving `model` (`illm_tools.llm.backend`)."""
+    device: str = "cpu"
+    """Where the worker's LLM runs (the run's resolved `llm_device`)."""
 
 
 def _worker_main(spec: WorkerSpec, inbox, stop, queued, done, errors) -> None:  # pragma: no cover - child
@@ -110,7 +112,8 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done) -> None:  # pragma: no co
     from illm_tools.llm.backend import load_backend
 
     torch.set_num_threads(spec.threads)
-    lm = load_backend(spec.backend, spec.model, dtype=spec.dtype, quant=spec.quant, cache_dir=spec.model_cache_dir)
+    lm = load_backend(spec.backend, spec.model, dtype=spec.dtype, quant=spec.quant, device=spec.device,
+                      cache_dir=spec.model_cache_dir)
     annotator = Annotator(lm, AnnotationCache(spec.cache), model=spec.model, tasks=spec.tasks,
                           history_len=spec.history_len, layout=spec.layout, batch_size=spec.batch_size,
                           chunk=spec.chunk)

@@ -67,8 +67,9 @@ class Trainer:
             raise UsageError(f"the pool has {pool.num_envs} envs, the config asks for {cfg.num_envs}")
         if cfg.action_space == "auto" and getattr(pool, "action_space_name", None):
             cfg = dataclasses.replace(cfg, action_space=pool.action_space_name)  # the run records the resolved name
-        cfg = cfg.resolved()  # and its measured dtypes
+        cfg = cfg.resolved()  # and its measured dtypes, its devices
         self.cfg, self.pool, self.on_metrics = cfg, pool, on_metrics
+        self.device = torch.device(cfg.device)
         self.suite = suite_of(cfg.env_id)
         self.provider = provider if method.needs_targets else None
         self.action_names = list(pool.action_names)
@@ -86,7 +87,8 @@ class Trainer:
                                     vocab_size=len(self.vocab), network_options=cfg.network_options,
                                     embedding_dim=cfg.embedding_dim if method.policy_heads else None,
                                     head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16,
-                                    context_dim=self.hop.hidden_size if self.hop else 0, tasks=cfg.tasks)
+                                    context_dim=self.hop.hidden_size if self.hop else 0,
+                                    tasks=cfg.tasks).to(self.device)  # initialised on the CPU: the same weights
         self.visits = None  # per-cell visit counts where the env reports positions (MiniGrid; Figure 1)
         if getattr(self.obs, "positions", None) is not None:
             from illm_tools.rl.visitation import VisitCounts
@@ -103,7 +105,7 @@ class Trainer:
                            obs_kind=self.suite.obs_spec(cfg.env_id).kind)
         with torch.random.fork_rng(devices=[]):  # the bonus's own models: their own seeded stream
             torch.manual_seed(ctx.seed)
-            self.bonus = method.build(cfg.to_dict(), cfg.bonus_options, ctx)
+            self.bonus = method.build(cfg.to_dict(), cfg.bonus_options, ctx).to(self.device)
         if self.provider is not None:  # a bonus may read more of its provider than the stored targets (ELLM's goals)
             self.bonus.use_provider(self.provider)
         self.history = HistoryTracker(cfg.num_envs, cfg.history_len, self.action_names)
@@ -117,7 +119,8 @@ class Trainer:
         from illm_tools.llm.backend import load_backend
 
         cfg = self.cfg
-        lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant)
+        lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant,
+                          device=cfg.llm_device or "cpu")
         raw = np.asarray(self.suite.hop_input(self.obs.images[0]))
         self.hop_tracker = HopTracker(cfg.num_envs, cfg.history_len, self.action_names)
         self._hop_now = None  # (records, Z_h) of the current observations, computed once
@@ -126,7 +129,7 @@ class Trainer:
     def _hop_state(self, obs) -> tuple[list, torch.Tensor]:
         """The hop records and Z_h [N, H] of the pool's current observations."""
         records = self.hop_tracker.records(obs.missions, [self.suite.hop_input(img) for img in obs.images])
-        return records, self.hop.step(self.hop_tracker)
+        return records, self.hop.step(self.hop_tracker).to(self.device)
 
     # --- run directory ----------------------------------------------------------------------
     def _open_run_dir(self) -> None:
@@ -171,7 +174,8 @@ class Trainer:
 
     # --- 1. rollout -------------------------------------------------------------------------
     def _policy_inputs(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
-        return torch.as_tensor(obs.images), torch.as_tensor(self.vocab.encode(obs.missions))
+        return (torch.as_tensor(obs.images).to(self.device),
+                torch.as_tensor(self.vocab.encode(obs.missions)).to(self.device))
 
     @torch.no_grad()
     def collect_rollout(self) -> tuple[Rollout, list[StateRecord], list, tuple[torch.Tensor, torch.Tensor]]:
@@ -180,7 +184,7 @@ class Trainer:
         cfg = self.cfg
         ro = Rollout.empty(cfg.num_steps, cfg.num_envs, self.image_shape, cfg.mission_max_len,
                            len(self.action_names), cfg.embedding_dim * len(cfg.text_tasks),
-                           self.net.feature_dim, self.image_dtype, self.net.context_dim)
+                           self.net.feature_dim, self.image_dtype, self.net.context_dim, device=self.device)
         records: list[StateRecord] = []
         episodes: list = []
         obs = self.obs
@@ -194,7 +198,9 @@ class Trainer:
                 ro.contexts[t] = context
             out = self.net(images, missions, context)
             logp_all = out.logits.log_softmax(-1)
-            action = torch.multinomial(logp_all.exp(), 1, generator=self.generator).squeeze(-1)
+            # sampled on the CPU from the run's seeded generator (the envs need the actions there anyway)
+            action = torch.multinomial(logp_all.exp().cpu(), 1, generator=self.generator).squeeze(-1)
+            on_device = action.to(self.device)
             if self.provider is not None:
                 records.extend(hop_records if self.hop is not None else self.history.records(obs.missions, obs.texts))
             step = self.pool.step(action.numpy())
@@ -206,15 +212,15 @@ class Trainer:
                 self._hop_now = self._hop_state(step.obs)
             elif self.provider is not None:
                 self.history.push(obs.texts, action.tolist(), ends.tolist())
-            ro.images[t], ro.missions[t], ro.actions[t] = images, missions, action
-            ro.logprobs[t] = logp_all.gather(1, action[:, None]).squeeze(1)
+            ro.images[t], ro.missions[t], ro.actions[t] = images, missions, on_device
+            ro.logprobs[t] = logp_all.gather(1, on_device[:, None]).squeeze(1)
             ro.values_ext[t], ro.values_int[t] = out.value_ext, out.value_int
             ro.features[t] = out.features  # the bonus is computed before the update, with these same weights
             ro.rewards[t] = torch.as_tensor(step.rewards, dtype=torch.float32)
             ro.ends[t] = torch.as_tensor(ends, dtype=torch.float32)
             next_images, next_missions = self._policy_inputs(step.obs)
             ro.next_images[t], ro.next_missions[t] = next_images, next_missions
-            self.bonus.observe({"images": images, "missions": missions, "actions": action, "ends": ro.ends[t],
+            self.bonus.observe({"images": images, "missions": missions, "actions": on_device, "ends": ro.ends[t],
                                 "next_images": next_images, "next_missions": next_missions,
                                 "features": out.features})
             episodes.extend(step.episodes)
@@ -292,14 +298,15 @@ class Trainer:
         b_images, b_missions, b_contexts = ro.flat("images"), ro.flat("missions"), ro.flat("contexts")
         b_actions, b_logprobs = ro.flat("actions"), ro.flat("logprobs")
         b_v_ext, b_v_int = ro.flat("values_ext"), ro.flat("values_int")
-        sums: dict[str, float] = {}
+        # the logs stay tensors until the update ends: on a GPU, one wait for the device per update
+        sums: dict[str, torch.Tensor | float] = {}
         counts: dict[str, int] = {}
-        clipfracs: list[float] = []
+        clipfracs: list[torch.Tensor] = []
         inds = np.arange(cfg.batch_size)
         for _epoch in range(cfg.update_epochs):
             self.np_rng.shuffle(inds)
             for start in range(0, cfg.batch_size, cfg.minibatch_size):
-                mb = torch.as_tensor(inds[start:start + cfg.minibatch_size])
+                mb = torch.as_tensor(inds[start:start + cfg.minibatch_size]).to(self.device)
                 out = self.net(b_images[mb], b_missions[mb], b_contexts[mb] if self.hop is not None else None)
                 logp_all = out.logits.log_softmax(-1)
                 newlogprob = logp_all.gather(1, b_actions[mb, None]).squeeze(1)
@@ -308,7 +315,7 @@ class Trainer:
                 ratio = logratio.exp()
                 with torch.no_grad():
                     approx_kl = ((ratio - 1) - logratio).mean()
-                    clipfracs.append(float(((ratio - 1.0).abs() > cfg.clip_coef).float().mean()))
+                    clipfracs.append(((ratio - 1.0).abs() > cfg.clip_coef).float().mean())
                 mb_adv = b_adv[mb]
                 if cfg.norm_adv:
                     mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
@@ -316,11 +323,10 @@ class Trainer:
                                     -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)).mean()
                 v_loss = self._value_loss(out.value_ext, b_v_ext[mb], b_ret_ext[mb])
                 v_loss_int = (self._value_loss(out.value_int, b_v_int[mb], b_ret_int[mb])
-                              if self.bonus.pays_reward else torch.zeros(()))
+                              if self.bonus.pays_reward else torch.zeros((), device=self.device))
                 loss = pg_loss - cfg.ent_coef * entropy + cfg.vf_coef * (v_loss + v_loss_int)
-                logs = {"policy_loss": pg_loss.item(), "value_loss": v_loss.item(),
-                        "value_loss_int": v_loss_int.item(), "entropy": entropy.item(),
-                        "approx_kl": approx_kl.item()}
+                logs = {"policy_loss": pg_loss.detach(), "value_loss": v_loss.detach(),
+                        "value_loss_int": v_loss_int.detach(), "entropy": entropy.detach(), "approx_kl": approx_kl}
                 if self.bonus.uses_aux_loss and _epoch < cfg.distill_epochs:
                     aux, aux_logs = self.bonus.aux_loss(self.bonus_batch(ro, mb, out.features))
                     loss = loss + cfg.distill_coef * aux
@@ -334,10 +340,10 @@ class Trainer:
                     counts[k] = counts.get(k, 0) + 1
             if cfg.target_kl is not None and float(approx_kl) > cfg.target_kl:
                 break
-        out = {f"losses/{k}": v / counts[k] for k, v in sums.items()}
-        y_pred, y_true = b_v_ext.numpy(), b_ret_ext.numpy()
+        out = {f"losses/{k}": float(v) / counts[k] for k, v in sums.items()}
+        y_pred, y_true = b_v_ext.cpu().numpy(), b_ret_ext.cpu().numpy()
         var_y = np.var(y_true)
-        out["losses/clipfrac"] = float(np.mean(clipfracs))
+        out["losses/clipfrac"] = float(torch.stack(clipfracs).mean())
         if var_y > 0:  # undefined for a constant return (e.g. no reward yet); left out then
             out["losses/explained_variance"] = float(1 - np.var(y_true - y_pred) / var_y)
         return out

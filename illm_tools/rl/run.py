@@ -76,12 +76,13 @@ def make_live(cfg: TrainConfig, builder, cache, tasks: tuple[str, ...] = ("actio
     if cfg.live_mode == "async":
         spec = WorkerSpec(cache=str(cfg.cache), model=cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant,
                           env_id=builder.env_id, renderer=builder.renderer, history_len=cfg.history_len,
-                          layout=cfg.layout, threads=cfg.live_threads, tasks=tuple(tasks), backend=cfg.backend)
+                          layout=cfg.layout, threads=cfg.live_threads, tasks=tuple(tasks), backend=cfg.backend,
+                          device=cfg.llm_device or "cpu")
         return AsyncLive(spec, budget=cfg.live_limit)
     from illm_tools.annotate.engine import Annotator
     from illm_tools.llm.backend import load_backend
 
-    lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant)
+    lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant, device=cfg.llm_device or "cpu")
     # one shard per rollout: a budget of "all" hands over a rollout's every missed state at once
     annotator = Annotator(lm, cache, model=cfg.llm_model, tasks=tasks, history_len=cfg.history_len,
                           layout=cfg.layout, chunk=4096)
@@ -108,8 +109,12 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
           should_stop: Callable[[], bool] | None = None) -> dict:
     """Build and run a training run to cfg.total_steps; returns the last update's metrics
     (`Trainer.train`: `should_stop` ends it early with a checkpoint)."""
+    from illm_tools.devices import resolve_device
     from illm_tools.rl.ppo import Trainer, make_pool
 
+    resolve_device(cfg.device)  # a GPU this machine lacks: one line before anything lands on disk
+    if cfg.llm_device is not None:
+        resolve_device(cfg.llm_device, flag="--llm-device")
     with torch_threads(cfg.threads), _only_trainer(cfg.run_dir):
         cfg = cfg.resolved()  # auto dtypes measured with the run's own thread count, recorded in config.json
         pool = make_pool(cfg)

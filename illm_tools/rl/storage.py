@@ -48,9 +48,10 @@ class Rollout:
     @classmethod
     def empty(cls, num_steps: int, num_envs: int, image_shape: tuple[int, ...], mission_len: int,
               num_actions: int, embedding_dim: int, feature_dim: int = 0,
-              image_dtype: torch.dtype = torch.uint8, context_dim: int = 0) -> "Rollout":
+              image_dtype: torch.dtype = torch.uint8, context_dim: int = 0,
+              device: torch.device | str = "cpu") -> "Rollout":
         t, n = num_steps, num_envs
-        z = lambda *shape, dtype=torch.float32: torch.zeros((t, n, *shape), dtype=dtype)  # noqa: E731
+        z = lambda *shape, dtype=torch.float32: torch.zeros((t, n, *shape), dtype=dtype, device=device)  # noqa: E731
         return cls(
             images=z(*image_shape, dtype=image_dtype), missions=z(mission_len, dtype=torch.int64),
             next_images=z(*image_shape, dtype=image_dtype), next_missions=z(mission_len, dtype=torch.int64),
