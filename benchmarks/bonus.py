@@ -75,7 +75,7 @@ def provider_for(method, cfg: TrainConfig, cache_dir: Path, num_actions: int, fi
 
 def run(cfg: TrainConfig, cache_dir: Path, fill: bool = False) -> tuple[float, dict]:
     """Train `cfg`; returns (steps/s over the whole run, last metrics with the mean phase times)."""
-    method = get_method(cfg.mode)
+    method = get_method(cfg.method)
     pool = make_pool(cfg)
     phases = dict.fromkeys(PHASES, 0.0)
 
@@ -110,7 +110,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         def config(mode: str, name: str) -> TrainConfig:
-            return TrainConfig(env_id=args.env, run_dir=Path(tmp) / name, mode=mode, seed=0, total_steps=args.frames,
+            return TrainConfig(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
                                num_envs=args.num_envs, num_steps=args.num_steps, embedding_dim=DIM,
                                cache=Path(tmp) / f"ann-{mode}", live_budget=0, tensorboard=False,
                                checkpoint_every=0, threads=args.threads)

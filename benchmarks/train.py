@@ -87,7 +87,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         def config(mode: str, name: str, live_budget: int) -> TrainConfig:
-            return TrainConfig(env_id=args.env, run_dir=Path(tmp) / name, mode=mode, seed=0, total_steps=args.frames,
+            return TrainConfig(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
                                num_envs=args.num_envs, num_steps=args.num_steps, embedding_dim=DIM,
                                live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads)
 

@@ -52,7 +52,7 @@ def register(app: typer.Typer) -> None:
         model = resolve_model(backend, model, oracle_noise=oracle_noise, endpoint=endpoint, api_key_env=api_key_env)
         config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tasks,
                                 history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
-                                dtype=dtype, quant=quant, mode=mode, hop_seed=hop_seed, hop_beta=hop_beta,
+                                dtype=dtype, quant=quant, obs_mode=mode, hop_seed=hop_seed, hop_beta=hop_beta,
                                 device=device, backend=backend)
         if num_processes > 1 and distributed_state() is None:
             raise typer.Exit(launch(num_processes, device))
@@ -106,7 +106,7 @@ def annotate_and_report(config) -> None:
     if left:
         typer.echo(f"left to annotate in this dataset: {left:,} states ({1 - result.covered_step_share:.0%} of its "
                    f"steps); {'run again to go on' if stats.stopped_early else 'a larger --limit takes the next ones'}")
-    if config.mode == "obs":
+    if config.obs_mode == "obs":
         typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
                    f"{config.data} --cache {cache} --history {config.history}` estimates how many")
     if stop.requested and stats.stopped_early:

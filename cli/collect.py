@@ -38,7 +38,7 @@ def register(app: typer.Typer) -> None:
 
         config = CollectConfig(env_id=env, out=out, steps=steps, num_envs=num_envs, seed=seed, policy=policy,
                                action_space=action_space, num_dists=num_dists, save_raw=not no_raw,
-                               mode=write_mode(append, overwrite), mix_envs=mix_envs, vector=vector,
+                               write=write_mode(append, overwrite), mix_envs=mix_envs, vector=vector,
                                env_options=parse_pairs(env_option, "--env-option"))
         start = time.perf_counter()
         with progress(steps, f"collect {env}") as advance:

@@ -12,7 +12,7 @@ from cli.common import emit_json, progress, stop_on_signals
 from cli.errors import friendly
 
 # flags kept from the documented command line beside each field's own (`--frames` = `--total-steps`)
-ALIASES = {"env_id": "--env", "run_dir": "--out", "mode": ("--method",), "obs_mode": ("--mode",),
+ALIASES = {"env_id": "--env", "run_dir": "--out", "obs_mode": ("--mode",),
            "total_steps": "--frames", "history_len": "--history", "model_dtype": "--dtype"}
 DICT_FLAGS = {"bonus_options": "--bonus-option", "network_options": "--network-option", "env_options": "--env-option",
               "task_weights": "--task-weight"}
@@ -71,7 +71,7 @@ def train_config(ctx: typer.Context, options: dict):
 
     options = dict(options)
     preset = options.pop("bonus_preset")
-    spec = get_method(options["mode"])
+    spec = get_method(options["method"])
     weights = bonus_weights(preset or spec.preset, **{w: options.pop(w) for w in WEIGHTS})
     fields = {**options, **weights, "run_dir": Path(options["run_dir"]),
               "cache": Path(options["cache"]) if options.get("cache") else None}
@@ -114,7 +114,7 @@ def _train_parameters() -> list[inspect.Parameter]:
     params = dataclass_parameters(
         TrainConfig, aliases=ALIASES, dict_flags=DICT_FLAGS, exclude=NOT_OPTIONS, required={"run_dir"},
         defaults={w: None for w in WEIGHTS},
-        extra_help={"mode": "One of: " + method_help() + ".",
+        extra_help={"method": "One of: " + method_help() + ".",
                     **{w: "Default: from --bonus-preset." for w in WEIGHTS},
                     "bonus_options": "See illm_tools.intrinsic.registry (e.g. rnd: update_proportion=0.5).",
                     "network_options": "chibit: blocks=1, model=smollm2-135m."})
@@ -135,7 +135,7 @@ def register(app: typer.Typer) -> None:
         from illm_tools.rl.run import train as run
 
         cfg = train_config(ctx, options)
-        out, method, env = cfg.run_dir, cfg.mode, cfg.env_id
+        out, method, env = cfg.run_dir, cfg.method, cfg.env_id
         from illm_tools.envs import suite_of
 
         score_name = suite_of(env).score_name  # an unknown env is refused before anything else is said

@@ -43,10 +43,11 @@ class CollectConfig:
     """Number of distractors for levels that take it (paper Table 1); None keeps the level's own."""
     save_raw: bool = True
     """Store the raw observation array beside its text (needed by the Hopfield path)."""
-    mode: str = "new"
-    """new: refuse a folder that holds data; append: add to it; overwrite: replace it once done."""
+    write: str = "new"
+    """How the dataset folder is written: new refuses a folder that holds data; append adds to it;
+    overwrite replaces it once done (`--append`, `--overwrite`)."""
     mix_envs: bool = False
-    """With mode append: allow adding steps of an env the dataset does not hold yet."""
+    """With write append: allow adding steps of an env the dataset does not hold yet."""
     shard_rows: int = 50_000
     """Rows per Arrow shard."""
     env_options: dict = field(default_factory=dict)
@@ -60,8 +61,8 @@ class CollectConfig:
         self.out = Path(self.out)
         check_numbers(self, positive=("steps", "num_envs", "shard_rows"), non_negative=("seed", "num_dists"))
         check_folder(self.out, "--out")
-        if self.mode not in ("new", "append", "overwrite"):
-            raise UsageError(f"unknown mode {self.mode!r}")
+        if self.write not in ("new", "append", "overwrite"):
+            raise UsageError(f"unknown write mode {self.write!r}: new, append or overwrite")
 
 
 class Policy(Protocol):
@@ -102,7 +103,7 @@ def check_append(config: CollectConfig, names: list[str]) -> None:
     what the dataset holds and the option that works."""
     from illm_tools.data.trajectories import open_table
 
-    if config.mode != "append":
+    if config.write != "append":
         return
     try:
         table = open_table(config.out, columns=["env_id", "valid_actions", "seed"])
@@ -150,7 +151,7 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
     part = {"env_id": config.env_id, "action_space": pool.action_space_name, "actions": len(names),
             "num_dists": config.num_dists, "seed": config.seed, "num_envs": n, "policy": policy.name,
             **({"env_options": dict(config.env_options)} if config.env_options else {})}
-    writer = TrajectoryWriter(config.out, mode=config.mode, shard_rows=config.shard_rows, part=part)
+    writer = TrajectoryWriter(config.out, mode=config.write, shard_rows=config.shard_rows, part=part)
     next_episode = writer.first_episode_id
     episode_ids = np.arange(next_episode, next_episode + n)
     next_episode += n

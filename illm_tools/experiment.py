@@ -233,7 +233,7 @@ def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> Non
     if name.startswith("env_options."):
         fields.setdefault("env_options", {})[name.split(".", 1)[1]] = value
         return
-    if name in ("env_id", "mode", "seed", "run_dir", "total_steps", "resume"):
+    if name in ("env_id", "method", "seed", "run_dir", "total_steps", "resume"):
         raise UsageError(f"{spec.line(*where)}: {name} is set by the grid itself (envs, methods, seeds, frames, "
                          "the results folder): remove it")
     if name not in known:
@@ -318,7 +318,7 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
         for seed in spec.seeds:
             run_dir = results / env_id.replace("/", "-") / label / f"seed{seed}"
             try:
-                cfg = TrainConfig(**{**base, **weights, "env_id": env_id, "mode": method, "seed": seed,
+                cfg = TrainConfig(**{**base, **weights, "env_id": env_id, "method": method, "seed": seed,
                                      "total_steps": spec.frames, "run_dir": run_dir, "threads": 1})
             except (IllmError, TypeError) as e:
                 raise UsageError(f"{spec.line('settings')}: the run {env_id} {label} seed {seed} is refused: "

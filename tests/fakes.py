@@ -84,7 +84,7 @@ class RefusingProvider:
 
 
 def make_trainer(tmp_path, mode="illm", updates=2, pool=None, **kw):
-    cfg = TrainConfig(run_dir=tmp_path / "run", mode=mode, num_envs=4, num_steps=32,
+    cfg = TrainConfig(run_dir=tmp_path / "run", method=mode, num_envs=4, num_steps=32,
                       total_steps=4 * 32 * updates, embedding_dim=8, head_hidden=32, tensorboard=False,
                       update_epochs=2, num_minibatches=2, **kw)
     pool = pool or FakePool(cfg.num_envs)

@@ -80,7 +80,7 @@ def count_method():
 
 
 def trainer_for(tmp_path, mode, updates=2, **kw):
-    cfg = TrainConfig(run_dir=tmp_path / "run", mode=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
+    cfg = TrainConfig(run_dir=tmp_path / "run", method=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
                       tensorboard=False, update_epochs=2, num_minibatches=2, **kw)
     return Trainer(cfg, FakePool(cfg.num_envs))
 
@@ -93,12 +93,12 @@ def test_methods_and_what_each_declares():
     assert noreward.needs_targets and noreward.policy_heads and not noreward.pays
     assert ppo.bonus_class is NoBonus and not (ppo.needs_targets or ppo.policy_heads or ppo.pays)
     assert not (rnd.needs_targets or rnd.policy_heads) and rnd.pays and rnd.preset == "rnd"
-    assert TrainConfig(mode="rnd").uses_heads is False and TrainConfig(mode="rnd").pays_bonus
+    assert TrainConfig(method="rnd").uses_heads is False and TrainConfig(method="rnd").pays_bonus
 
 
 def test_an_unknown_method_is_refused_in_one_line(tmp_path):
     with pytest.raises(UsageError, match="unknown method") as err:
-        TrainConfig(mode="curiosity")
+        TrainConfig(method="curiosity")
     assert "\n" not in str(err.value) and "rnd" in str(err.value)
     result = CliRunner().invoke(app, ["train", "--method", "curiosity", "--out", str(tmp_path / "r")])
     assert result.exit_code == 1 and "unknown method" in result.output
@@ -116,17 +116,17 @@ def test_method_help_lists_the_registry(count_method):
 def test_bonus_options_are_typed_and_checked():
     rnd = get_method("rnd")
     assert rnd.parse_options(["update_proportion=0.5", "epochs = 2"]) == {"update_proportion": 0.5, "epochs": 2}
-    cfg = TrainConfig(mode="rnd", bonus_options={"update_proportion": 1})
+    cfg = TrainConfig(method="rnd", bonus_options={"update_proportion": 1})
     assert rnd.make_config(cfg.to_dict(), cfg.bonus_options).update_proportion == 1.0
     for bad, match in ((["epochs=two"], "epochs must be int"), (["bogus=1"], "no bonus option bogus"),
                        (["update_proportion"], "KEY=VALUE"), (["update_proportion=1.5"], r"\(0, 1\]")):
         with pytest.raises(UsageError, match=match):
-            TrainConfig(mode="rnd", bonus_options=rnd.parse_options(bad))
+            TrainConfig(method="rnd", bonus_options=rnd.parse_options(bad))
     # iLLM's settings are the run's own (top-level options), not bonus options; ppo has none
     with pytest.raises(UsageError, match="it takes none"):
-        TrainConfig(mode="illm", bonus_options={"lambda_a": 0.1})
+        TrainConfig(method="illm", bonus_options={"lambda_a": 0.1})
     with pytest.raises(UsageError, match="ppo has no bonus option"):
-        TrainConfig(mode="ppo", bonus_options={"scale": 1})
+        TrainConfig(method="ppo", bonus_options={"scale": 1})
     illm = get_method("illm").make_config(TrainConfig(lambda_a=0.3).to_dict(), {})
     assert illm.lambda_a == 0.3 and illm.beta_hc == 0.5
 
@@ -213,6 +213,6 @@ def test_a_network_registered_from_a_test_file_trains_without_trainer_changes(tm
         state = load_checkpoint(tmp_path / "run")["model"]
         assert state["flat.weight"].shape[0] == 6 and not any(k.startswith("image_conv") for k in state)
         with pytest.raises(UsageError, match="no network option depth"):
-            TrainConfig(mode=method.name, network_options={"depth": 2})
+            TrainConfig(method=method.name, network_options={"depth": 2})
     finally:
         METHODS.pop(method.name)

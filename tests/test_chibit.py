@@ -15,11 +15,11 @@ runner = CliRunner()
 
 def test_network_options_are_checked_before_anything_loads(tmp_path):
     with pytest.raises(UsageError, match="blocks must be at least 1"):
-        TrainConfig(mode="chibit", run_dir=tmp_path, network_options={"blocks": "0"})
+        TrainConfig(method="chibit", run_dir=tmp_path, network_options={"blocks": "0"})
     with pytest.raises(UsageError, match="has no network option depth; it takes blocks, model"):
-        TrainConfig(mode="chibit", run_dir=tmp_path, network_options={"depth": "2"})
+        TrainConfig(method="chibit", run_dir=tmp_path, network_options={"depth": "2"})
     with pytest.raises(UsageError, match="--method ppo takes no network option"):
-        TrainConfig(mode="ppo", run_dir=tmp_path, network_options={"blocks": "2"})
+        TrainConfig(method="ppo", run_dir=tmp_path, network_options={"blocks": "2"})
     out = runner.invoke(app, ["train", "--method", "chibit", "--network-option", "blocks", "--out", str(tmp_path / "r")])
     assert out.exit_code == 1 and "--network-option takes KEY=VALUE" in out.output
 

@@ -186,7 +186,7 @@ def test_every_train_setting_is_an_option_named_as_its_field_with_its_default(tm
                               "--clip-coef", "0.1", "--env-option", "num_dists=4", "--target-kl", "0.02"])
     assert out.exit_code == 0, out.output
     (cfg,) = seen
-    default = TrainConfig(run_dir=tmp_path / "r", mode="ppo")
+    default = TrainConfig(run_dir=tmp_path / "r", method="ppo")
     changed = {f.name for f in dataclasses.fields(TrainConfig) if getattr(cfg, f.name) != getattr(default, f.name)}
     assert changed == {"anneal_lr", "clip_coef", "env_options", "target_kl"}  # every other default is the field's
     assert cfg.env_options == {"num_dists": 4} and cfg.total_steps == 200_000

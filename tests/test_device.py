@@ -65,7 +65,7 @@ def test_a_bad_device_name_is_refused_by_every_stage_in_one_line(tmp_path):
 def test_auto_is_recorded_resolved_and_a_run_may_resume_on_another_device(tmp_path):
     from illm_tools.rl import TrainConfig, Trainer
 
-    cfg = TrainConfig(run_dir=tmp_path / "run", mode="rnd", num_envs=4, num_steps=32, total_steps=128,
+    cfg = TrainConfig(run_dir=tmp_path / "run", method="rnd", num_envs=4, num_steps=32, total_steps=128,
                       tensorboard=False, device="auto")
     trainer = Trainer(cfg, FakePool(4))
     trainer.train()
@@ -80,7 +80,7 @@ def test_auto_is_recorded_resolved_and_a_run_may_resume_on_another_device(tmp_pa
 def _short_run(tmp_path, name, method, device):
     from illm_tools.rl import TrainConfig, Trainer
 
-    cfg = TrainConfig(run_dir=tmp_path / name, mode=method, num_envs=4, num_steps=32, total_steps=256,
+    cfg = TrainConfig(run_dir=tmp_path / name, method=method, num_envs=4, num_steps=32, total_steps=256,
                       embedding_dim=8, head_hidden=32, tensorboard=False, device=device, update_epochs=2,
                       num_minibatches=2, heads_bf16=False)
     pool = FakePool(cfg.num_envs)

@@ -290,7 +290,7 @@ def test_the_ellm_bonus_reaches_the_advantages(tmp_path):
     from illm_tools.rl import TrainConfig, Trainer
     from fakes import FakePool
 
-    cfg = TrainConfig(run_dir=tmp_path / "run", mode="ellm", num_envs=4, num_steps=32, total_steps=4 * 32,
+    cfg = TrainConfig(run_dir=tmp_path / "run", method="ellm", num_envs=4, num_steps=32, total_steps=4 * 32,
                       tensorboard=False, update_epochs=1, num_minibatches=2, int_gamma=0.9)
     provider = FakeGoals(lambda k: ("turn left",) if k % 5 else None)
     trainer = Trainer(cfg, FakePool(cfg.num_envs), provider)  # hands the bonus its provider
@@ -359,7 +359,7 @@ def test_annotate_goal_then_train_ellm(tmp_path, tiny_lm, monkeypatch):
     after = AnnotationCache(cache)
     assert after.tasks() == {"goal": len(after)} and len(after) > len(ann)
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["mode"] == "ellm" and cfg["bonus_options"] == {"threshold": 0.5}
+    assert cfg["method"] == "ellm" and cfg["bonus_options"] == {"threshold": 0.5}
     out = runner.invoke(app, ["eval", str(run), "--episodes", "2", "--json"])
     assert out.exit_code == 0 and json.loads(out.output)[0]["method"] == "ellm", out.output
     # a goal-only cache has nothing for iLLM, and says how to annotate it

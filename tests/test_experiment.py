@@ -46,7 +46,7 @@ def test_every_shipped_spec_plans(spec, tmp_path):
 
 
 @pytest.mark.parametrize("text,message", [
-    (TINY.replace("methods: [ppo]", "methods: [ppo, rdn]"), "line 5: unknown method (mode) 'rdn'"),
+    (TINY.replace("methods: [ppo]", "methods: [ppo, rdn]"), "line 5: unknown method 'rdn'"),
     (TINY.replace("envs: [BabyAI-GoToLocal-v0]", "envs: [BabyAI-GoToLocl-v0]"), "line 4: unknown environment id"),
     (TINY.replace("  num_envs: 2", "  num_env: 2"), "line 9: unknown setting 'num_env' (did you mean num_envs?)"),
     (TINY.replace("grid:", "gird:"), "line 6: unknown key 'gird' (did you mean grid?)"),
@@ -167,7 +167,7 @@ def test_a_spec_sets_what_the_paper_sets_or_says_why_not(spec, tmp_path):
     method_grid = paper.pop("method_grid", {})
     grid_keys = {*grid, *(k for g in method_grid.values() for k in g)}
     assert source and set(differs) <= {"methods", "envs", "frames", "seeds", *grid_keys, *paper}, differs
-    runs = [r for r in plan(loaded, tmp_path / "results") if r.config.mode in methods]
+    runs = [r for r in plan(loaded, tmp_path / "results") if r.config.method in methods]
 
     def same(key: str, equal: bool) -> None:
         assert equal != (key in differs), f"{spec.name}: {key} {'differs without a reason' if not equal else 'is listed as differing but is the same'}"
@@ -181,6 +181,6 @@ def test_a_spec_sets_what_the_paper_sets_or_says_why_not(spec, tmp_path):
         same(key, {str(_value(r.config, key)) for r in runs} == {str(v) for v in values})
     for method, values_of in method_grid.items():
         for key, values in values_of.items():
-            same(key, {str(_value(r.config, key)) for r in runs if r.config.mode == method} == {str(v) for v in values})
+            same(key, {str(_value(r.config, key)) for r in runs if r.config.method == method} == {str(v) for v in values})
     for key, value in paper.items():
         same(key, all(_value(r.config, key) == value for r in runs))

@@ -90,13 +90,13 @@ def test_collect_records_the_resolved_action_space_and_append_keeps_it(tmp_path)
     rows = open_table(out, columns=["valid_actions"])["valid_actions"].to_pylist()
     assert rows[0] == ["turn left", "turn right", "go forward"] and all(r == rows[0] for r in rows)
     with pytest.raises(UsageError, match="--action-space") as err:
-        collect(CollectConfig(env_id=ENV, out=out, steps=4, num_envs=2, action_space="augmented", mode="append"))
+        collect(CollectConfig(env_id=ENV, out=out, steps=4, num_envs=2, action_space="augmented", write="append"))
     assert "\n" not in str(err.value) and open_table(out, columns=["step"]).num_rows == 16
-    assert collect(CollectConfig(env_id=ENV, out=out, steps=4, num_envs=2, seed=100, mode="append"))["rows"] == 4
+    assert collect(CollectConfig(env_id=ENV, out=out, steps=4, num_envs=2, seed=100, write="append"))["rows"] == 4
 
 
 def _ppo_config(run_dir, **kw):
-    return TrainConfig(env_id=ENV, run_dir=run_dir, mode="ppo", num_envs=2, num_steps=16, num_minibatches=2,
+    return TrainConfig(env_id=ENV, run_dir=run_dir, method="ppo", num_envs=2, num_steps=16, num_minibatches=2,
                        update_epochs=1, tensorboard=False, **kw)
 
 

@@ -78,7 +78,7 @@ def test_task_settings_are_checked():
     with pytest.raises(UsageError, match="goal is not one of this run's --tasks"):
         TrainConfig(tasks=("summary", "plan"), task_weights={"goal": 0.3})
     with pytest.raises(UsageError, match="--method rnd has none"):
-        TrainConfig(mode="rnd", tasks=("plan",))
+        TrainConfig(method="rnd", tasks=("plan",))
     assert TrainConfig(tasks="goal+plan").text_tasks == ("goal", "plan")
 
 

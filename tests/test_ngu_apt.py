@@ -124,7 +124,7 @@ def test_apt_pays_nothing_for_a_batch_of_one_state_and_more_for_spread_states():
 
 # --- both, through the trainer --------------------------------------------------------------------
 def trainer_for(tmp_path, mode, updates=2, name="run", **kw):
-    cfg = TrainConfig(run_dir=tmp_path / name, mode=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
+    cfg = TrainConfig(run_dir=tmp_path / name, method=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
                       tensorboard=False, update_epochs=2, num_minibatches=2, **kw)
     return Trainer(cfg, FakePool(cfg.num_envs))
 
@@ -205,16 +205,16 @@ def test_checkpoints_resume_the_bonus_state(tmp_path, mode):
 
 def test_bad_settings_are_refused_in_one_line(tmp_path):
     cases = [
-        (lambda: TrainConfig(mode="ngu", bonus_options={"k": 40, "memory_capacity": 30}), "larger than"),
-        (lambda: TrainConfig(mode="ngu", bonus_options={"k": 0}), "must be positive"),
-        (lambda: TrainConfig(mode="ngu", bonus_options={"max_modulation": 0.5}), ">= 1"),
-        (lambda: TrainConfig(mode="apt", bonus_options={"k": 0}), "must be positive"),
+        (lambda: TrainConfig(method="ngu", bonus_options={"k": 40, "memory_capacity": 30}), "larger than"),
+        (lambda: TrainConfig(method="ngu", bonus_options={"k": 0}), "must be positive"),
+        (lambda: TrainConfig(method="ngu", bonus_options={"max_modulation": 0.5}), ">= 1"),
+        (lambda: TrainConfig(method="apt", bonus_options={"k": 0}), "must be positive"),
         (lambda: trainer_for(tmp_path, "apt", bonus_options={"k": 128}), "larger than the 127 other states of a rollout"),
-        (lambda: TrainConfig(mode="rnd", bonus_options={"k": 5}), "rnd has no bonus option k"),
-        (lambda: TrainConfig(mode="ppo", bonus_options={"k": 5}), "ppo has no bonus option k"),
-        (lambda: TrainConfig(mode="ngu", bonus_options={"knn_clip": 0.1}), "ngu has no bonus option knn_clip"),
-        (lambda: TrainConfig(mode="apt", bonus_options={"kernel_epsilon": 0.1}), "apt has no bonus option"),
-        (lambda: TrainConfig(mode="apt", bonus_options={"k": "many"}), "k must be int"),
+        (lambda: TrainConfig(method="rnd", bonus_options={"k": 5}), "rnd has no bonus option k"),
+        (lambda: TrainConfig(method="ppo", bonus_options={"k": 5}), "ppo has no bonus option k"),
+        (lambda: TrainConfig(method="ngu", bonus_options={"knn_clip": 0.1}), "ngu has no bonus option knn_clip"),
+        (lambda: TrainConfig(method="apt", bonus_options={"kernel_epsilon": 0.1}), "apt has no bonus option"),
+        (lambda: TrainConfig(method="apt", bonus_options={"k": "many"}), "k must be int"),
     ]
     for make, match in cases:
         with pytest.raises(UsageError, match=match) as err:
@@ -235,7 +235,7 @@ def test_illm_train_method_end_to_end(tmp_path, mode, option):
     assert result.exit_code == 0, result.output
     assert f"trained {mode}" in result.output and "LLM target" not in result.output
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["mode"] == mode and cfg["bonus_options"] == {"k": int(option[2:])}
+    assert cfg["method"] == mode and cfg["bonus_options"] == {"k": int(option[2:])}
     with open(run / "metrics.csv", newline="") as fh:
         assert [int(r["global_step"]) for r in csv.DictReader(fh)] == [2048, 4096]
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
@@ -353,12 +353,12 @@ def test_illm_shuffled_is_illm_on_shuffled_targets_end_to_end(tmp_path, monkeypa
     common = dict(num_envs=4, num_steps=32, total_steps=128, tensorboard=False, update_epochs=1, num_minibatches=2,
                   embedding_dim=DIM, head_hidden=32, cache=tmp_path / "ann", model=f"synthetic:{DIM}", backend="stub",
                   live_budget=0)
-    Trainer(TrainConfig(run_dir=tmp_path / "fill", mode="illm", **common), FakePool(4), plain).train()
+    Trainer(TrainConfig(run_dir=tmp_path / "fill", method="illm", **common), FakePool(4), plain).train()
 
-    cfg = TrainConfig(run_dir=tmp_path / "shuffled", mode="illm-shuffled", **common)
+    cfg = TrainConfig(run_dir=tmp_path / "shuffled", method="illm-shuffled", **common)
     provider, cfg = make_provider(cfg, len(ACTIONS))
     assert provider.shuffle is not None and provider.shuffle.seed == 0
-    assert make_provider(TrainConfig(mode="illm", **common), len(ACTIONS))[0].shuffle is None
+    assert make_provider(TrainConfig(method="illm", **common), len(ACTIONS))[0].shuffle is None
     trainer = Trainer(cfg, FakePool(4), provider)
     assert isinstance(trainer.bonus, ILLMBonus) and trainer.net.has_heads
     looked_up, real_targets = [], provider.targets

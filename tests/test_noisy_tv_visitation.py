@@ -81,7 +81,7 @@ def test_a_minigrid_run_counts_visits_and_a_resume_keeps_counting(tmp_path):
 
     info = make_env("MiniGrid-MultiRoom-N6-v0").reset(seed=0)[1]
     assert info["agent_pos"].shape == (2,) and tuple(info["grid_size"]) == (25, 25)
-    common = dict(env_id="MiniGrid-MultiRoom-N6-v0", mode="ppo", run_dir=tmp_path / "run", num_envs=2, num_steps=16,
+    common = dict(env_id="MiniGrid-MultiRoom-N6-v0", method="ppo", run_dir=tmp_path / "run", num_envs=2, num_steps=16,
                   tensorboard=False, num_minibatches=2)
     train(TrainConfig(total_steps=32, **common))
     first = np.load(tmp_path / "run" / FILE)

@@ -142,8 +142,8 @@ def test_short_run_writes_metrics_and_checkpoint_and_resumes(tmp_path):
 
 
 def test_config_is_validated():
-    with pytest.raises(UsageError, match="mode"):
-        TrainConfig(mode="curiosity")
+    with pytest.raises(UsageError, match="unknown method 'curiosity'"):
+        TrainConfig(method="curiosity")
     with pytest.raises(UsageError, match="divisible"):
         TrainConfig(num_envs=3, num_steps=5, num_minibatches=4)
     cfg = TrainConfig(num_envs=16, num_steps=128, total_steps=10_000)

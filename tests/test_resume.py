@@ -46,7 +46,7 @@ def run(tmp_path) -> Path:
 def test_resume_reads_the_runs_settings_and_refuses_changes_that_alter_learning(run, tmp_path):
     assert "to 256 frames" in train("--out", run, "--resume", "--frames", 256)  # no --method ppo needed
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["mode"] == "ppo" and cfg["seed"] == 5 and cfg["total_steps"] == 256 and updates(run) == [1, 2, 3, 4]
+    assert cfg["method"] == "ppo" and cfg["seed"] == 5 and cfg["total_steps"] == 256 and updates(run) == [1, 2, 3, 4]
     out = runner.invoke(app, ["train", "--out", str(run), "--resume", "--frames", "512", "--seed", "1"])
     assert out.exit_code == 1 and "--seed (the run has 5)" in out.output and "--frames" in out.output
     assert len(out.output.strip().splitlines()) == 1

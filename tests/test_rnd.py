@@ -78,7 +78,7 @@ def test_observations_are_normalised_from_the_first_rollout_then_merged_after_re
 
 
 def rnd_trainer(tmp_path, updates, **kw):
-    cfg = TrainConfig(run_dir=tmp_path / "run", mode="rnd", num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
+    cfg = TrainConfig(run_dir=tmp_path / "run", method="rnd", num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
                       tensorboard=False, update_epochs=2, num_minibatches=2, **bonus_weights("rnd"), **kw)
     return Trainer(cfg, FakePool(cfg.num_envs))
 
@@ -115,7 +115,7 @@ def test_illm_train_method_rnd_end_to_end(tmp_path):
     assert result.exit_code == 0, result.output
     assert "trained rnd" in result.output and "LLM target" not in result.output
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["mode"] == "rnd" and (cfg["ext_coef"], cfg["int_coef"]) == (2.0, 1.0)  # RND's preset by default
+    assert cfg["method"] == "rnd" and (cfg["ext_coef"], cfg["int_coef"]) == (2.0, 1.0)  # RND's preset by default
     assert cfg["bonus_options"] == {"update_proportion": 0.5}
     with open(run / "metrics.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))

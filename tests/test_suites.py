@@ -94,7 +94,7 @@ def test_a_suite_registered_from_a_test_file_runs_every_stage(tiny, tmp_path):
     assert table["obs_text"][0].as_py().startswith("You are ") and table["valid_actions"][0].as_py() == ["go left", "go right"]
 
     for method in ("ppo", "rnd"):
-        cfg = TrainConfig(env_id=TINY, mode=method, run_dir=tmp_path / method, total_steps=64, num_envs=2,
+        cfg = TrainConfig(env_id=TINY, method=method, run_dir=tmp_path / method, total_steps=64, num_envs=2,
                           num_steps=16, tensorboard=False, env_options={"length": 4})
         pool = make_pool(cfg)
         try:

@@ -51,8 +51,8 @@ class AnnotateConfig:
     on a CPU where a timed matmul says it is faster than float32); the resolved one is in every key."""
     quant: str = "none"
     """bitsandbytes quantisation: none, 4bit or 8bit."""
-    mode: str = "obs"
-    """obs: the states' text; hop: the raw observations translated into the LLM's embedding space
+    obs_mode: str = "obs"
+    """(`--mode`) obs: the states' text; hop: the raw observations translated into the LLM's embedding space
     (iLLM(hop), `illm_tools.hop`; any suite, Atari included)."""
     hop_seed: int = 0
     """hop: seed of the translation's random projection (the training run's --hop-seed)."""
@@ -92,10 +92,10 @@ class AnnotateConfig:
             raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.dtype!r}")
         check_backend(self.backend)
         resolve_model(self.backend, self.model)  # refuses a model the backend does not serve
-        if self.mode not in ("obs", "hop"):
-            raise UsageError(f"--mode must be obs or hop, got {self.mode!r}")
+        if self.obs_mode not in ("obs", "hop"):
+            raise UsageError(f"--mode must be obs or hop, got {self.obs_mode!r}")
         unfit = [t for t in self.tasks if not get_task(t).hop]
-        if self.mode == "hop" and unfit:
+        if self.obs_mode == "hop" and unfit:
             raise UsageError(f"the {', '.join(unfit)} task has no hop form: annotate hop data with other --tasks")
         check_device(self.device)
 
@@ -164,7 +164,7 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     from illm_tools.llm.backend import backend_dtype, load_backend
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
-    if config.mode == "hop":
+    if config.obs_mode == "hop":
         from illm_tools.hop.context import RAW_COLUMNS, hop_records_from_table, hop_renderer
 
         table = open_table(config.data, columns=RAW_COLUMNS)

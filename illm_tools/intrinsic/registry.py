@@ -50,7 +50,7 @@ class Method:
     """One `--method`: the bonus it trains with and whether that bonus's reward is paid."""
 
     name: str
-    """What `--method` and `TrainConfig.mode` say."""
+    """What `--method` and `TrainConfig.method` say."""
     summary: str
     """A few words for `--help`."""
     entry_point: str | type | None = None
@@ -196,7 +196,7 @@ def _typed(name: str, hint: Any, value: Any) -> Any:
     return value  # other types: the config's own validation decides
 
 
-METHODS: Registry[Method] = Registry("method (mode)", "illm.methods", check=Method, hint="--method")
+METHODS: Registry[Method] = Registry("method", "illm.methods", check=Method, hint="--method")
 """Every method by name, in registration order (a live view: methods registered later count, and
 installed packages' `illm.methods` entry points, each a `Method`)."""
 

@@ -22,7 +22,7 @@ docs.cleanrl.dev/rl-algorithms/ppo-rnd), the reference most users know:
   gradient norm clipped to 0.5;
 - the trainer's non-episodic intrinsic value head (int_episodic False) takes the reward, and the
   advantages are summed with RND's weights ext_coef 2, int_coef 1: `illm train --method rnd` uses
-  `--bonus-preset rnd` unless told otherwise (library users: `TrainConfig(mode="rnd",
+  `--bonus-preset rnd` unless told otherwise (library users: `TrainConfig(method="rnd",
   **bonus_weights("rnd"))`). The extrinsic gamma stays the run's (0.99; RND's Atari runs: 0.999).
 
 Where this differs from CleanRL, on purpose:

@@ -132,7 +132,7 @@ def _learned(cfg: dict) -> str:
 def group_settings(configs: list[dict]) -> list[dict[str, str]]:
     """Per run, the settings in which its configuration differs from other configurations of the
     same env and method, as labels show them ({"ext_coef": "2", "lambda_a": "0.1"})."""
-    method = [c.get("mode", c.get("method", "?")) for c in configs]
+    method = [c.get("method", c.get("mode", "?")) for c in configs]
     out = []
     for i, cfg in enumerate(configs):
         peers = [c for j, c in enumerate(configs) if c["env_id"] == cfg["env_id"] and method[j] == method[i]]
@@ -145,7 +145,7 @@ def group_settings(configs: list[dict]) -> list[dict[str, str]]:
 def group_labels(configs: list[dict]) -> list[str]:
     """Each run's group label: its method, plus the settings in which its configuration differs
     from other configurations of the same env and method ("illm (ext_coef 2, lambda_a 0.1)")."""
-    return [c.get("mode", c.get("method", "?")) + (f" ({', '.join(f'{k} {v}' for k, v in s.items())})" if s else "")
+    return [c.get("method", c.get("mode", "?")) + (f" ({', '.join(f'{k} {v}' for k, v in s.items())})" if s else "")
             for c, s in zip(configs, group_settings(configs))]
 
 
@@ -153,7 +153,7 @@ def _reads_targets(cfg: dict) -> bool:
     """Whether the run's method reads LLM targets (so its target coverage means something)."""
     from illm_tools.intrinsic.registry import METHODS
 
-    method = METHODS.get(cfg.get("mode", ""))
+    method = METHODS.get(cfg.get("method", cfg.get("mode", "")))
     return method.needs_targets if method is not None else True
 
 
@@ -186,7 +186,7 @@ def summarise(run_dirs: list[Path], every: int) -> dict:
         with np.errstate(all="ignore"), warnings.catch_warnings():  # windows with no finished episode stay NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             mean, std = (np.nanmean(table, 0), np.nanstd(table, 0)) if long else (np.zeros(0), np.zeros(0))
-        out[key] = {"method": members[0].config.get("mode", "?"), "settings": settings[key[1]],
+        out[key] = {"method": members[0].config.get("method", members[0].config.get("mode", "?")), "settings": settings[key[1]],
                     "reads_targets": _reads_targets(members[0].config),
                     "frames": frames, "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in long),
                     "runs": [c.run for c in long], "short_runs": {c.run: c.last_step for c in members if not c.frames},

@@ -71,7 +71,7 @@ def quality(rows: list[dict], configs: dict[tuple, dict], probes: list[dict]) ->
         if row["final"]["iqm"] is None:
             continue
         config = configs[(row["env_id"], row["label"])]
-        method = METHODS.get(config.get("mode", ""))
+        method = METHODS.get(config.get("method", config.get("mode", "")))
         identity = run_identity(config)
         probe = by_identity.get(identity) if identity is not None else None
         own = method is not None and method.needs_targets and method.target_shuffle is None

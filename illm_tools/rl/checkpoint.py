@@ -28,6 +28,7 @@ import torch
 
 from illm_tools import durable
 from illm_tools.errors import DamagedFileError, UsageError
+from illm_tools.rl.config import upgrade_config
 
 log = logging.getLogger(__name__)
 
@@ -196,8 +197,9 @@ def read_config(run_dir: Path) -> dict:
         raise UsageError(f"{run_dir} is not a training run (no {CONFIG_NAME}): pass a folder written by `illm train`")
     try:
         config = json.loads(path.read_text())
-        if not isinstance(config, dict) or "mode" not in config or "env_id" not in config:
+        if not isinstance(config, dict) or "env_id" not in config or not ({"method", "mode"} & set(config)):
             raise ValueError("not a run's settings")
+        config = upgrade_config(config)
     except (ValueError, UnicodeDecodeError) as e:
         raise DamagedFileError(f"{path} is damaged ({type(e).__name__}): the checkpoint holds the same settings; "
                                "restore the file from a copy") from None
@@ -212,7 +214,7 @@ RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "device", "llm_device", 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:
     """Refuse to resume a checkpoint under other settings or another action list."""
-    saved, now = state["config"], cfg.to_dict()
+    saved, now = upgrade_config(state["config"]), cfg.to_dict()
     # a setting added after the checkpoint was written counts at its default value
     defaults = type(cfg)().to_dict() if any(k not in saved for k in now) else {}
     changed = sorted(k for k in now if saved.get(k, defaults.get(k)) != now[k] and k not in RESUMABLE_CHANGES)
@@ -273,7 +275,7 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
         raise UsageError(f"the run was trained with actions {state['action_names']}, "
                          f"the environment offers {names}; use the same --action-space")
     vocab = MissionVocab(cfg.mission_max_len)
-    method = get_method(cfg.mode)
+    method = get_method(cfg.method)
     text_heads = [get_task(t).head for t in cfg.text_tasks]  # the iLLM heads the method's bonus put on the network
     dim = state["model"][f"{text_heads[0]}.2.weight"].shape[0] if text_heads else cfg.embedding_dim
     hop = None

@@ -58,6 +58,20 @@ def bonus_weights(preset: str, **given: float | None) -> dict[str, float]:
     return {k: v if given.get(k) is None else float(given[k]) for k, v in BONUS_PRESETS[preset].items()}
 
 
+
+RENAMED = {"mode": "method"}
+"""Settings renamed since runs were first written (old name -> new): config.json files and
+checkpoints of older runs are read under the new names."""
+
+
+def upgrade_config(data: dict) -> dict:
+    """A run's settings as written by any version, under this version's names (`RENAMED`)."""
+    out = dict(data)
+    for old, new in RENAMED.items():
+        if old in out and new not in out:
+            out[new] = out.pop(old)
+    return out
+
 @dataclass
 class TrainConfig:
     """One training run: environment, PPO, iLLM bonus, and bookkeeping."""
@@ -67,7 +81,7 @@ class TrainConfig:
     """Id of the environment (BabyAI/MiniGrid, MiniHack, Crafter, Atari: `illm envs` lists them)."""
     run_dir: Path = Path("data/runs/default")
     """Folder for config.json, metrics.jsonl, TensorBoard events and checkpoint.pt."""
-    mode: str = "illm"
+    method: str = "illm"
     """The method, a name in the registry `illm_tools.intrinsic.registry` (its bonus and network)."""
     network_options: dict = field(default_factory=dict)
     """Settings of the method's policy network by name (e.g. chibit's blocks; `--network-option
@@ -292,12 +306,12 @@ class TrainConfig:
                                  "not --task-weight")
             if not isinstance(weight, (int, float)) or weight < 0:
                 raise UsageError(f"--task-weight {name}={weight!r}: a weight is a number >= 0")
-        if self.tasks != ("action", "summary") and not get_method(self.mode).policy_heads:
-            reads = ", ".join(get_method(self.mode).target_tasks) if get_method(self.mode).needs_targets else ""
-            raise UsageError(f"--tasks chooses the language tasks of iLLM's heads; --method {self.mode} has none "
+        if self.tasks != ("action", "summary") and not get_method(self.method).policy_heads:
+            reads = ", ".join(get_method(self.method).target_tasks) if get_method(self.method).needs_targets else ""
+            raise UsageError(f"--tasks chooses the language tasks of iLLM's heads; --method {self.method} has none "
                              f"(it reads {reads or 'no language task'})")
-        get_method(self.mode).make_config(self.to_dict(), self.bonus_options)  # refuses unknown methods, options
-        get_method(self.mode).network_options(self.network_options)
+        get_method(self.method).make_config(self.to_dict(), self.bonus_options)  # refuses unknown methods, options
+        get_method(self.method).network_options(self.network_options)
         if self.batch_size % self.num_minibatches:
             raise UsageError(f"num_envs * num_steps = {self.batch_size} is not divisible by "
                              f"num_minibatches = {self.num_minibatches}")
@@ -358,17 +372,17 @@ class TrainConfig:
     @property
     def uses_heads(self) -> bool:
         """Whether the network carries f^a / f^hc and the loss distils the LLM (the bonus says)."""
-        return get_method(self.mode).policy_heads
+        return get_method(self.method).policy_heads
 
     @property
     def needs_targets(self) -> bool:
         """Whether the run reads LLM targets (an annotation cache; the bonus says)."""
-        return get_method(self.mode).needs_targets
+        return get_method(self.method).needs_targets
 
     @property
     def pays_bonus(self) -> bool:
         """Whether the intrinsic rewards reach the advantages."""
-        return get_method(self.mode).pays
+        return get_method(self.method).pays
 
     @property
     def llm_model(self) -> str:
@@ -409,14 +423,14 @@ class TrainConfig:
     def target_tasks(self) -> tuple[str, ...]:
         """The language tasks whose cache rows the run reads: the heads' `tasks`, or those the
         method's bonus reads (ELLM: goal)."""
-        return self.tasks if get_method(self.mode).policy_heads else get_method(self.mode).target_tasks
+        return self.tasks if get_method(self.method).policy_heads else get_method(self.method).target_tasks
 
     @property
     def text_tasks(self) -> tuple[str, ...]:
         """The text tasks among `tasks` (each a head of `embedding_dim` outputs)."""
         from illm_tools.tasks.registry import text_tasks
 
-        return text_tasks(self.tasks) if get_method(self.mode).policy_heads else ()
+        return text_tasks(self.tasks) if get_method(self.method).policy_heads else ()
 
     def to_dict(self) -> dict:
         """JSON-ready form (paths as strings)."""
@@ -435,6 +449,7 @@ class TrainConfig:
         that has none (the oracle), every LLM and target setting for a method that reads no targets
         and is not in hop mode, and iLLM's bonus weights for a method without its heads. A config
         this version cannot read is returned as it is."""
+        data = upgrade_config(data)
         try:
             cfg = cls.from_dict({**{k: v for k, v in data.items() if k in cls.__dataclass_fields__}, "resume": False})
         except Exception:  # noqa: BLE001 - another version's run: compared as written
@@ -459,7 +474,8 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "TrainConfig":
-        """Inverse of `to_dict`; unknown keys are refused."""
+        """Inverse of `to_dict` (an older run's names upgraded, `upgrade_config`); unknown keys are refused."""
+        data = upgrade_config(data)
         known = set(cls.__dataclass_fields__)
         unknown = set(data) - known
         if unknown:

@@ -2,7 +2,7 @@
 
 Reads top to bottom like CleanRL's ppo.py, but as an importable `Trainer` over an env pool
 (`illm_tools.envs.pool.EnvPool` interface) and an optional `TargetProvider`. The run's method
-(`cfg.mode`) names a bonus in `illm_tools.intrinsic.registry`; the trainer knows bonuses only
+(`cfg.method`) names a bonus in `illm_tools.intrinsic.registry`; the trainer knows bonuses only
 through `IntrinsicBonus` (base.py documents the tensors it hands them and the hooks). Per update:
   1. rollout: T steps of N envs, actions sampled from the policy, `bonus.observe` after each step,
      per-step `StateRecord`s kept when the bonus needs LLM targets;
@@ -59,9 +59,9 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, pool, provider: TargetProvider | None = None,
                  on_metrics: Callable[[dict], None] | None = None):
-        self.method = method = get_method(cfg.mode)
+        self.method = method = get_method(cfg.method)
         if method.needs_targets and provider is None:
-            raise UsageError(f"mode {cfg.mode} needs LLM targets (an annotation cache); "
+            raise UsageError(f"mode {cfg.method} needs LLM targets (an annotation cache); "
                              "pass one or train with mode ppo")
         if pool.num_envs != cfg.num_envs:
             raise UsageError(f"the pool has {pool.num_envs} envs, the config asks for {cfg.num_envs}")

@@ -26,7 +26,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
         return None, cfg
     cfg = cfg.resolved()
     if cfg.cache is None:
-        raise UsageError(f"--method {cfg.mode} reads LLM targets: pass --cache DIR (an annotation cache, "
+        raise UsageError(f"--method {cfg.method} reads LLM targets: pass --cache DIR (an annotation cache, "
                          "see `illm annotate`), or use --method ppo")
     from illm_tools.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
@@ -49,7 +49,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
         check_setup(cache, builder, model=model, dtype=cfg.model_dtype, quant=cfg.quant, tasks=tasks)
-    if not get_method(cfg.mode).policy_heads:  # ELLM: the goals themselves, no heads to distil into
+    if not get_method(cfg.method).policy_heads:  # ELLM: the goals themselves, no heads to distil into
         return GoalTargets(cache, builder, num_actions=num_actions, live=make_live(cfg, builder, cache, tasks)), cfg
     dim = backend_hidden_size(cfg.backend, model)
     if dim != cfg.embedding_dim:
@@ -57,7 +57,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
                              embedding_dim=dim, action_target=cfg.action_target, tasks=tasks,
                              live=make_live(cfg, builder, cache, tasks),
-                             shuffle_seed=get_method(cfg.mode).target_shuffle)  # illm-shuffled: another state's
+                             shuffle_seed=get_method(cfg.method).target_shuffle)  # illm-shuffled: another state's
     return provider, cfg
 
 
@@ -159,7 +159,7 @@ def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy:
             obs = step.obs
     pool.close()
     figures = pool.suite.episode_metrics(finished)
-    return {"run": str(run_dir), "env_id": cfg.env_id, "method": cfg.mode, "episodes": episodes,
+    return {"run": str(run_dir), "env_id": cfg.env_id, "method": cfg.method, "episodes": episodes,
             "score": figures["score"], "score_name": pool.suite.score_name,
             "success_rate": figures["success_rate"],
             "mean_return": float(np.mean([e.episode_return for e in finished])),
