@@ -140,3 +140,14 @@ def test_sigterm_stops_training_at_an_update_with_a_checkpoint_and_resume_finish
     assert load_checkpoint(out)["global_step"] == frames and updates(out) == list(range(1, frames // 64 + 1))
     assert f"to {frames + 128:,} frames" in train("--out", out, "--resume", "--frames", frames + 128)
     assert updates(out) == list(range(1, frames // 64 + 3))
+
+
+def test_a_run_written_before_mode_became_method_resumes_and_evaluates(run):
+    """config.json of older versions names the method `mode` (`illm_tools.rl.config.RENAMED`)."""
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["mode"] = cfg.pop("method")
+    (run / "config.json").write_text(json.dumps(cfg))
+    assert "to 256 frames" in train("--out", run, "--resume", "--frames", 256)
+    assert json.loads((run / "config.json").read_text())["method"] == "ppo"
+    out = runner.invoke(app, ["eval", str(run), "--episodes", "2"])
+    assert out.exit_code == 0, out.output
