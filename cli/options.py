@@ -94,3 +94,20 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
                                         default=typer.Option(default, *decls, help=help_text,
                                                              show_default=default is not None)))
     return params
+
+
+def config_from_options(cls: type, options: dict, dict_flags: dict[str, str]):
+    """The config `cls` from a generated command's options (`dataclass_parameters`): repeatable
+    KEY=VALUE options parsed into their dict fields, comma-separated ones into tuples; `cls`
+    validates the rest in its `__post_init__` (a bad value: one line)."""
+    from illm_tools.settings import parse_pairs
+
+    hints = typing.get_type_hints(cls)
+    fields = dict(options)
+    for name, option in dict_flags.items():
+        fields[name] = parse_pairs(options.get(name), option)
+    for name, value in options.items():
+        hint, _ = _optional(hints.get(name))
+        if typing.get_origin(hint) is tuple and isinstance(value, str):
+            fields[name] = tuple(v.strip() for v in value.split(",") if v.strip())
+    return cls(**fields)

@@ -47,7 +47,7 @@ class CollectConfig:
     """How the dataset folder is written: new refuses a folder that holds data; append adds to it;
     overwrite replaces it once done (`--append`, `--overwrite`)."""
     mix_envs: bool = False
-    """With write append: allow adding steps of an env the dataset does not hold yet."""
+    """With --append: allow adding steps of an env the dataset does not hold yet."""
     shard_rows: int = 50_000
     """Rows per Arrow shard."""
     env_options: dict = field(default_factory=dict)
