@@ -109,23 +109,22 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
           should_stop: Callable[[], bool] | None = None) -> dict:
     """Build and run a training run to cfg.total_steps; returns the last update's metrics
     (`Trainer.train`: `should_stop` ends it early with a checkpoint)."""
-    from illm_tools.devices import resolve_device
     from illm_tools.rl.ppo import Trainer, make_pool
 
-    resolve_device(cfg.device)  # a GPU this machine lacks: one line before anything lands on disk
-    if cfg.llm_device is not None:
-        resolve_device(cfg.llm_device, flag="--llm-device")
-    with torch_threads(cfg.threads), _only_trainer(cfg.run_dir):
-        cfg = cfg.resolved()  # auto dtypes measured with the run's own thread count, recorded in config.json
-        pool = make_pool(cfg)
-        provider, cfg = make_provider(cfg, len(pool.action_names))
-        try:
-            trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
-            return trainer.train(should_stop)
-        finally:
-            pool.close()
-            if provider is not None:
-                provider.close()
+    with torch_threads(cfg.threads):
+        # devices resolved (a GPU this machine lacks: one line before anything lands on disk) and auto
+        # dtypes measured with the run's own thread count, as config.json records them
+        cfg = cfg.resolved()
+        with _only_trainer(cfg.run_dir):
+            pool = make_pool(cfg)
+            provider, cfg = make_provider(cfg, len(pool.action_names))
+            try:
+                trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
+                return trainer.train(should_stop)
+            finally:
+                pool.close()
+                if provider is not None:
+                    provider.close()
 
 
 def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy: bool = False,
