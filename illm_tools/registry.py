@@ -8,7 +8,7 @@ is checked by the registry's `check` (a base class, or a function saying what is
 unknown name is refused in one line that lists the known ones. Entries come from three places, in
 this order: the built-ins (registered by the module that owns the registry), code (`register`, or
 `registry[name] = entry`), and installed packages through Python entry points of the registry's
-group (`illm.methods`, `illm.tasks`, `illm.backends`, `illm.suites`), read once, on the first look-up:
+group (`illm.methods`, `illm.tasks`, `illm.backends`, `illm.suites`, `illm.observations`), read once, on the first look-up:
 
     # a plug-in package's pyproject.toml
     [project.entry-points."illm.methods"]
@@ -29,7 +29,7 @@ from illm_tools.errors import UsageError
 
 T = TypeVar("T")
 
-ENTRY_POINT_GROUPS = ("illm.methods", "illm.tasks", "illm.backends", "illm.suites")
+ENTRY_POINT_GROUPS = ("illm.methods", "illm.tasks", "illm.backends", "illm.suites", "illm.observations")
 
 
 def load_reference(ref: str) -> Any:

@@ -1,11 +1,15 @@
 """How each kind of observation becomes a tensor, shared by the policy's torsos
 (`illm_tools.rl.networks`) and the bonuses' own encoders (`illm_tools.intrinsic.ngu`, NGU's and
 APT's embeddings): MiniGrid's grid codes (the channel sizes of its one-hot encoding), pictures and
-stacked frames (channels first, scaled to [0, 1], the Nature CNN trunk), NetHack's glyphs (the
-glyph count). Below the trainer and the bonuses, so neither imports the other for it.
+stacked frames (the Nature CNN trunk), NetHack's glyphs (the glyph count), missions (`MissionVocab`: the word ids of BabyAI's instruction
+grammar, a suite's default `mission_vocab`); the adapters of `illm_tools.envs.observations` build
+on them. Below the trainer and the bonuses, so neither imports the other for it.
 """
 
 from __future__ import annotations
+
+import re
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -38,16 +42,39 @@ def conv_trunk(in_channels: int, height: int, width: int, out: int) -> tuple[nn.
     return nn.Sequential(*convs, layer_init(nn.Linear(flat, out)), nn.ReLU()), out
 
 
-def channels_first(images: torch.Tensor, kind: str) -> torch.Tensor:
-    """[B, C, H, W] float in [0, 1] from "frames" ([B, C, H, W] uint8) or "image" ([B, H, W, C] uint8)."""
-    x = images.float() / 255.0
-    return x.permute(0, 3, 1, 2) if kind == "image" else x
+# Words of BabyAI's instruction grammar (minigrid.envs.babyai.core.verifier) and the fixed
+# missions of the MiniGrid levels. Order fixes the ids: append only, never reorder.
+MISSION_WORDS = (
+    "go to the a an pick up put next open then after you and it "
+    "red green blue purple yellow grey "
+    "ball box key door object wall goal square lava "
+    "on your left right in front of behind "
+    "get use unlock avoid traverse rooms fetch reach match colour color same as "
+    "locked closed opened room corridor"
+).split()
+PAD, UNK = 0, 1
 
 
-def chw_shape(image_shape: tuple[int, ...], kind: str) -> tuple[int, int, int]:
-    """(C, H, W) of one "frames" or "image" observation."""
-    if kind == "image":
-        h, w, c = image_shape
-        return c, h, w
-    c, h, w = image_shape
-    return c, h, w
+class MissionVocab:
+    """Maps missions to padded word-id arrays: 0 pads, 1 is any word outside the grammar."""
+
+    def __init__(self, max_len: int = 32, words: Sequence[str] = MISSION_WORDS):
+        self.max_len = max_len
+        self.ids = {w: i + 2 for i, w in enumerate(dict.fromkeys(words))}
+        self._memo: dict[str, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.ids) + 2
+
+    def encode_one(self, mission: str) -> np.ndarray:
+        row = self._memo.get(mission)
+        if row is None:
+            words = re.findall(r"[a-z]+", mission.lower())[: self.max_len]
+            row = np.zeros(self.max_len, dtype=np.int64)
+            row[: len(words)] = [self.ids.get(w, UNK) for w in words]
+            self._memo[mission] = row
+        return row
+
+    def encode(self, missions: Sequence[str]) -> np.ndarray:
+        """[B, max_len] int64 word ids."""
+        return np.stack([self.encode_one(m) for m in missions])

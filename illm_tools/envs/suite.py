@@ -4,8 +4,9 @@ A suite answers, for each of its env ids:
 - which ids it owns (`env_ids`, `owns`) and how to make one (`make`; its own options pass through
   `--env-option KEY=VALUE` to it and to no other suite);
 - what the policy sees (`obs_spec`: shape, dtype and kind of one observation array, turned out of
-  the env's own observation by `policy_obs`), what a trajectory keeps of it (`raw_obs`), and which
-  policy network reads it (`network`, a "module:Class" entry point);
+  the env's own observation by `policy_obs`), what a trajectory keeps of it (`raw_obs`), how
+  tensors are made of it (`observation`: the adapter the torso and the bonuses read it through), and
+  which policy network reads it (`network`, a "module:Class" entry point);
 - its text: `renderer` ("name@version", part of every annotation cache key; None when the suite
   has no text observation, e.g. Atari), with `info["text"]` and `info["mission"]` set by `make`'s
   env after every reset and step, and `info["valid_actions"]` its readable action names;
@@ -148,6 +149,21 @@ class Suite:
     # --- observations -------------------------------------------------------------------------
     def obs_spec(self, env_id: str) -> ObsSpec:
         raise NotImplementedError
+
+    def observation(self, env_id: str):
+        """The observation adapter of this env (`illm_tools.envs.observations`): how the policy's
+        torso and the bonuses read its arrays. Default: the adapter registered for `obs_spec`'s
+        kind; a suite with a kind of its own returns its own `Observation` here."""
+        from illm_tools.envs.observations import observation_of
+
+        return observation_of(self.obs_spec(env_id))
+
+    def mission_vocab(self, max_len: int):
+        """How the policy reads this suite's missions: word ids of at most `max_len` words
+        (`MissionVocab`; default BabyAI's instruction grammar, any other word one unknown id)."""
+        from illm_tools.envs.encoding import MissionVocab
+
+        return MissionVocab(max_len)
 
     def policy_obs(self, obs: Any) -> np.ndarray:
         """The policy's array from one observation of `make`'s env."""

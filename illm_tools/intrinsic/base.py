@@ -13,7 +13,7 @@ The tensors a bonus may read (the trainer's side of the contract; every bonus ge
   images         [.., *obs shape]     the observation the policy acted from: the suite's policy
                                       array (`BonusContext.obs_kind` says which: MiniGrid's uint8
                                       (H, W, 3) symbolic view, Atari's (4, 84, 84) frames, ...)
-  missions       int64 [.., L]        its mission as word ids (`illm_tools.rl.networks.MissionVocab`)
+  missions       int64 [.., L]        its mission as word ids (`Suite.mission_vocab`)
   actions        int64 [..]           the action taken
   ends           float [..]           1.0 where that transition ended its episode (terminated or
                                       truncated)
@@ -67,6 +67,7 @@ from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from illm_tools.envs.observations import GridObservation, Observation
 from illm_tools.tasks.state import StateRecord
 
 __all__ = ["BonusContext", "BonusRewards", "IntrinsicBonus", "NoBonus", "StateRecord", "TargetProvider",
@@ -128,9 +129,21 @@ class BonusContext:
     seed: int
     """Seed of the bonus's own random streams (derived from the run's seed, apart from the
     trainer's; the trainer also seeds torch's global RNG with it while it builds the bonus)."""
-    obs_kind: str = "grid"
-    """How to read an observation (`illm_tools.envs.suite.ObsSpec.kind`): "grid", "frames",
-    "image" or "glyphs"."""
+    observation: Observation | None = None
+    """How to read an observation (the suite's adapter, `illm_tools.envs.observations`); None: MiniGrid's
+    grid of `image_shape`."""
+
+    def __post_init__(self) -> None:
+        if self.observation is None:
+            from illm_tools.envs.suite import ObsSpec
+
+            spec = ObsSpec(shape=tuple(self.image_shape), dtype="uint8", kind="grid", description="MiniGrid's grid")
+            object.__setattr__(self, "observation", GridObservation(spec))
+
+    @property
+    def obs_kind(self) -> str:
+        """The observation's kind (`ObsSpec.kind`)."""
+        return self.observation.kind
 
 
 class IntrinsicBonus(ABC):

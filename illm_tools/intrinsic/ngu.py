@@ -60,7 +60,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -69,7 +68,7 @@ from illm_tools.errors import UsageError
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer, RunningMeanStd
 from illm_tools.intrinsic.rnd import RNDBonus, RNDConfig
-from illm_tools.envs.encoding import GRID_CHANNEL_SIZES, NUM_GLYPHS, channels_first, chw_shape, conv_trunk
+from illm_tools.envs.observations import Observation
 
 EXACT = "donot_use_mm_for_euclid_dist"
 """`torch.cdist` mode that gives exactly 0 between equal rows (the matmul form leaves ~1e-3), so a
@@ -77,51 +76,23 @@ repeated observation is a repeated observation; the cost is a few tens of ms per
 
 
 # --- the inverse-dynamics embedding (NGU's f, APT's representation) ------------------------------
-def one_hot_grid(images: torch.Tensor) -> torch.Tensor:
-    """uint8 [B, H, W, 3] MiniGrid codes -> float32 [B, H * W * 20]: one-hot of each cell's object,
-    colour and state (out-of-range codes clamped), as the policy's torso reads the grid."""
-    parts = [F.one_hot(images[..., c].long().clamp(0, size - 1), size) for c, size in enumerate(GRID_CHANNEL_SIZES)]
-    return torch.cat(parts, -1).flatten(1).float()
-
-
 class InverseDynamics(nn.Module):
     """Embedding f (observation -> `embedding_dim`) and inverse model h (one hidden layer on
-    [f(x_t), f(x_{t+1})] -> logits over the actions), trained so that h predicts a_t. f reads the
-    observation by its kind: MiniGrid's grid one-hot encoded into an MLP; pictures (Atari frames,
-    Crafter) through the Nature CNN (NGU's Atari embedding is a convnet too); MiniHack's glyph
-    array through a 4-wide learned embedding per position into an MLP."""
+    [f(x_t), f(x_{t+1})] -> logits over the actions), trained so that h predicts a_t. f is the
+    observation adapter's learned encoder (`illm_tools.envs.observations`: MiniGrid's grid one-hot
+    encoded into an MLP; pictures through the Nature CNN, as NGU's Atari embedding is a convnet;
+    MiniHack's glyphs through a learned embedding per position into an MLP)."""
 
-    def __init__(self, image_shape: tuple[int, ...], num_actions: int, hidden: int, embedding_dim: int,
-                 kind: str = "grid"):
+    def __init__(self, observation: Observation, num_actions: int, hidden: int, embedding_dim: int):
         super().__init__()
-        self.image_shape, self.kind = tuple(image_shape), kind
-        if kind == "grid":
-            if len(image_shape) != 3 or image_shape[-1] != len(GRID_CHANNEL_SIZES):
-                raise UsageError(f"the inverse-dynamics embedding reads MiniGrid's (H, W, 3) grid, got {image_shape}")
-            inp = int(np.prod(image_shape[:2])) * sum(GRID_CHANNEL_SIZES)
-            self.embed = nn.Sequential(nn.Linear(inp, hidden), nn.ReLU(), nn.Linear(hidden, embedding_dim))
-        elif kind in ("frames", "image"):
-            trunk, out = conv_trunk(*chw_shape(self.image_shape, kind), hidden)
-            self.embed = nn.Sequential(trunk, nn.Linear(out, embedding_dim))
-        elif kind == "glyphs":
-            self.glyphs = nn.Embedding(NUM_GLYPHS + 1, 4)
-            self.embed = nn.Sequential(nn.Linear(4 * int(np.prod(image_shape)), hidden), nn.ReLU(),
-                                       nn.Linear(hidden, embedding_dim))
-        else:
-            raise UsageError(f"the inverse-dynamics embedding cannot read {kind!r} observations")
+        self.image_shape = tuple(observation.shape)
+        self.embed = observation.encoder(hidden, embedding_dim)
         self.inverse = nn.Sequential(nn.Linear(2 * embedding_dim, hidden), nn.ReLU(), nn.Linear(hidden, num_actions))
-
-    def _inputs(self, x: torch.Tensor) -> torch.Tensor:
-        if self.kind == "grid":
-            return one_hot_grid(x)
-        if self.kind == "glyphs":
-            return self.glyphs(x.long().clamp(0, NUM_GLYPHS)).flatten(1)
-        return channels_first(x, self.kind)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """f: [..., *obs shape] -> float32 [..., embedding_dim]."""
         lead = images.shape[:images.dim() - len(self.image_shape)]
-        return self.embed(self._inputs(images.reshape(-1, *self.image_shape))).view(*lead, -1)
+        return self.embed(images.reshape(-1, *self.image_shape)).view(*lead, -1)
 
     def action_logits(self, images: torch.Tensor, next_images: torch.Tensor) -> torch.Tensor:
         """h(f(x_t), f(x_{t+1})): [B, A] logits of the action taken between the two."""
@@ -187,8 +158,7 @@ class EmbeddingBonus:
     rollout, saved in the bonus's state under "embedding", "optimizer" and "generator"."""
 
     def build_embedding(self, settings: EmbeddingSettings, ctx: BonusContext) -> None:
-        self.embedding = InverseDynamics(ctx.image_shape, ctx.num_actions, settings.hidden, settings.embedding_dim,
-                                         ctx.obs_kind)
+        self.embedding = InverseDynamics(ctx.observation, ctx.num_actions, settings.hidden, settings.embedding_dim)
         self.optimizer = torch.optim.Adam(self.embedding.parameters(), lr=settings.embedding_lr)
         self.generator = torch.Generator().manual_seed(ctx.seed + 1)
         self._embedding_settings = settings

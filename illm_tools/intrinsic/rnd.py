@@ -58,10 +58,6 @@ from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer, RunningMeanStd
 
 
-PICTURES = ("frames", "image")
-"""Observation kinds RND reads with CleanRL's convolutional networks (the rest: MLPs)."""
-
-
 @dataclass
 class RNDConfig:
     """RND's settings (defaults: CleanRL's ppo_rnd_envpool.py where it has one)."""
@@ -139,9 +135,9 @@ class RNDBonus(IntrinsicBonus):
     def __init__(self, config: RNDConfig, ctx: BonusContext):
         self.config = config
         self.image_shape = tuple(ctx.image_shape)
-        self.kind = ctx.obs_kind
+        self.observation = ctx.observation
         self.input_shape = self._pictures(torch.zeros(1, *self.image_shape, dtype=torch.uint8)).shape[1:]
-        if self.kind in PICTURES:
+        if self.observation.rnd_picture:
             self.target, self.predictor = rnd_conv_networks(tuple(self.input_shape), 512, config.output_dim)
         else:
             self.target, self.predictor = rnd_networks(int(np.prod(self.image_shape)), config.hidden,
@@ -156,12 +152,7 @@ class RNDBonus(IntrinsicBonus):
     def _pictures(self, images: torch.Tensor) -> torch.Tensor:
         """What the networks read of observations [..., *obs shape]: for stacked frames the newest
         one [B, 1, H, W] (as CleanRL), for an RGB picture [B, 3, H, W]; else the rows [B, *obs shape]."""
-        x = images.reshape(-1, *self.image_shape)
-        if self.kind == "frames":
-            return x[:, -1:]
-        if self.kind == "image":
-            return x.permute(0, 3, 1, 2)
-        return x
+        return self.observation.rnd_input(images.reshape(-1, *self.image_shape))
 
     def normalise(self, images: torch.Tensor) -> torch.Tensor:
         """[..., *obs shape] -> float32, standardised and clipped: [B, C, H, W] for pictures,
@@ -171,7 +162,7 @@ class RNDBonus(IntrinsicBonus):
         std = torch.as_tensor(self.obs_rms.var, device=x.device).sqrt()
         clip = self.config.obs_clip
         x = ((x - mean) / std).clamp(-clip, clip).float()
-        return x if self.kind in PICTURES else x.flatten(1)
+        return x if self.observation.rnd_picture else x.flatten(1)
 
     def prediction_error(self, x: torch.Tensor) -> torch.Tensor:
         """Per-row mean squared error of the predictor against the target on normalised rows."""

@@ -1,7 +1,6 @@
 """The agent's networks: a torso per kind of observation, actor, two critics, iLLM heads.
 
-Owns `MissionVocab` (fixed word-level vocabulary of BabyAI/MiniGrid mission grammar, no external
-tokenizer), `GridMissionNet` (features -> actor logits, extrinsic and intrinsic values) and the
+Owns `GridMissionNet` (features -> actor logits, extrinsic and intrinsic values) and the
 heads f^a / f^hc (two fully connected layers of `head_hidden` units on the torso's features:
 Linear(F, 1024) - ReLU - Linear(1024, out)). Layout follows rl-starter-files' ACModel, with the
 grid's object/colour/state indices one-hot encoded instead of fed as raw numbers.
@@ -16,54 +15,14 @@ do not fit (`kinds`).
 
 from __future__ import annotations
 
-import re
-from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import nn
 
-from illm_tools.envs.encoding import (GRID_CHANNEL_SIZES, NUM_GLYPHS, channels_first, chw_shape,  # noqa: F401
+from illm_tools.envs.encoding import (GRID_CHANNEL_SIZES, MISSION_WORDS, NUM_GLYPHS, PAD, UNK, MissionVocab,  # noqa: F401
                                       conv_trunk, layer_init)
-
-# Words of BabyAI's instruction grammar (minigrid.envs.babyai.core.verifier) and the fixed
-# missions of the MiniGrid levels. Order fixes the ids: append only, never reorder.
-MISSION_WORDS = (
-    "go to the a an pick up put next open then after you and it "
-    "red green blue purple yellow grey "
-    "ball box key door object wall goal square lava "
-    "on your left right in front of behind "
-    "get use unlock avoid traverse rooms fetch reach match colour color same as "
-    "locked closed opened room corridor"
-).split()
-PAD, UNK = 0, 1
-
-
-class MissionVocab:
-    """Maps missions to padded word-id arrays: 0 pads, 1 is any word outside the grammar."""
-
-    def __init__(self, max_len: int = 32, words: Sequence[str] = MISSION_WORDS):
-        self.max_len = max_len
-        self.ids = {w: i + 2 for i, w in enumerate(dict.fromkeys(words))}
-        self._memo: dict[str, np.ndarray] = {}
-
-    def __len__(self) -> int:
-        return len(self.ids) + 2
-
-    def encode_one(self, mission: str) -> np.ndarray:
-        row = self._memo.get(mission)
-        if row is None:
-            words = re.findall(r"[a-z]+", mission.lower())[: self.max_len]
-            row = np.zeros(self.max_len, dtype=np.int64)
-            row[: len(words)] = [self.ids.get(w, UNK) for w in words]
-            self._memo[mission] = row
-        return row
-
-    def encode(self, missions: Sequence[str]) -> np.ndarray:
-        """[B, max_len] int64 word ids."""
-        return np.stack([self.encode_one(m) for m in missions])
-
 
 def mlp_head(inp: int, hidden: int, out: int, *, std: float, act: type[nn.Module] = nn.Tanh) -> nn.Sequential:
     return nn.Sequential(layer_init(nn.Linear(inp, hidden)), act(), layer_init(nn.Linear(hidden, out), std))
@@ -94,8 +53,10 @@ class GridMissionNet(nn.Module):
 
     def __init__(self, num_actions: int, *, vocab_size: int, embedding_dim: int | None = None,
                  head_hidden: int = 1024, image_shape: tuple[int, ...] = (7, 7, 3), heads_bf16: bool | None = None,
-                 hidden: int = 64, options=None, context_dim: int = 0, tasks: tuple[str, ...] = ("action", "summary")):
+                 hidden: int = 64, options=None, context_dim: int = 0, tasks: tuple[str, ...] = ("action", "summary"),
+                 observation=None):
         super().__init__()
+        self.observation = observation  # the suite's adapter (`illm_tools.envs.observations`); torsos read through it
         self.register_buffer("cell_sizes", torch.tensor(GRID_CHANNEL_SIZES), persistent=False)
         self.register_buffer("cell_offsets", torch.tensor(np.cumsum((0, *GRID_CHANNEL_SIZES[:-1]))),
                              persistent=False)
@@ -197,16 +158,12 @@ class FrameNet(GridMissionNet):
 
     kinds = ("frames", "image")
 
-    def __init__(self, *args, kind: str = "frames", **kw):
-        self.kind = kind
-        super().__init__(*args, **kw)
-
     def build_torso(self, *, vocab_size: int, image_shape: tuple[int, ...], options=None, **_) -> int:
-        self.trunk, out = conv_trunk(*chw_shape(image_shape, self.kind), 512)
+        self.trunk, out = conv_trunk(*self.observation.picture_shape, 512)
         return out
 
     def features(self, images: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
-        return self.trunk(channels_first(images, self.kind))
+        return self.trunk(self.observation.picture(images))
 
 
 class GlyphNet(GridMissionNet):
@@ -216,13 +173,10 @@ class GlyphNet(GridMissionNet):
 
     kinds = ("glyphs",)
 
-    def __init__(self, *args, parts: dict | None = None, **kw):
-        self.parts = dict(parts or {})
-        super().__init__(*args, **kw)
-
     def build_torso(self, *, vocab_size: int, image_shape: tuple[int, ...], options=None, **_) -> int:
-        self.crop_shape = tuple(self.parts["glyphs_crop"])
-        self.message_len = int(np.prod(self.parts["message"]))
+        parts = self.observation.spec.parts
+        self.crop_shape = tuple(parts["glyphs_crop"])
+        self.message_len = int(np.prod(parts["message"]))
         self.glyph_embedding = nn.Embedding(NUM_GLYPHS + 1, 32)
         self.glyph_conv = nn.Sequential(nn.Conv2d(32, 32, 3, padding=1), nn.ReLU(),
                                         nn.Conv2d(32, 32, 3, padding=1), nn.ReLU(), nn.Flatten())
@@ -250,18 +204,16 @@ def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[in
     from illm_tools.registry import load_class
 
     suite = suite_of(env_id)
-    spec = suite.obs_spec(env_id)
+    observation = suite.observation(env_id)
+    spec = observation.spec
     cls = load_class(method.network, GridMissionNet, f"method {method.name}: network") if method.network else \
         load_class(suite.network, GridMissionNet, f"suite {suite.name}: network")
     if spec.kind not in cls.kinds:
         raise UsageError(f"--method {method.name}'s network {cls.__name__} reads {', '.join(cls.kinds)} "
                          f"observations; {env_id} gives {spec.kind} ({spec.description}): use another method")
-    extra = {"kind": spec.kind} if issubclass(cls, FrameNet) else {}
-    if issubclass(cls, GlyphNet):
-        extra = {"parts": spec.parts}
     return cls(num_actions, vocab_size=vocab_size, options=method.network_options(network_options, cls),
                embedding_dim=embedding_dim, head_hidden=head_hidden, image_shape=tuple(image_shape),
-               heads_bf16=heads_bf16, context_dim=context_dim, tasks=tuple(tasks), **extra)
+               heads_bf16=heads_bf16, context_dim=context_dim, tasks=tuple(tasks), observation=observation)
 
 
 def bf16_is_faster() -> bool:
