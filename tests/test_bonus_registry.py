@@ -139,6 +139,9 @@ def test_the_rollout_hands_bonuses_the_next_observations(tmp_path):
     last_images, last_missions = trainer._policy_inputs(trainer.obs)  # where the next rollout starts
     assert torch.equal(ro.next_images[-1], last_images) and torch.equal(ro.next_missions[-1], last_missions)
     assert ro.ends.sum() > 0  # episodes ended in the rollout: their next observation is the reset one
+    # stored once: the next observations are a view of the same T + 1 observations, not a copy
+    assert ro.next_images.untyped_storage().data_ptr() == ro.images.untyped_storage().data_ptr()
+    assert ro.observations.shape[0] == ro.num_steps + 1
     batch = trainer.bonus_batch(ro)
     assert set(batch) == {"images", "missions", "actions", "ends", "next_images", "next_missions", "features"}
     assert batch["features"].shape == (32, 4, trainer.net.feature_dim) and batch["features"].abs().sum() > 0

@@ -132,7 +132,7 @@ def test_a_run_recorded_as_augmented_resumes_under_auto_and_its_policy_collects(
 
 # --- C. the bonus's scale next to the task reward ----------------------------------------------
 def _tiny_rollout() -> Rollout:
-    ro = Rollout.empty(3, 2, (7, 7, 3), 4, 3, 0)
+    ro = Rollout.empty(3, 2, (7, 7, 3), 4)
     ro.rewards[2, 0] = 1.0
     ro.ends[2, 0] = 1.0
     return ro
@@ -154,7 +154,7 @@ def test_two_stream_advantages_return_the_weighted_parts_and_their_scale():
     assert logs["adv_int_ext_ratio"] == pytest.approx(3 * 2.4375 / (2 * 1.75))
     assert logs["return_ext"] == pytest.approx(1.75 / 6) and logs["return_int"] == pytest.approx(2.4375 / 6)
 
-    no_task = two_stream_advantages(Rollout.empty(3, 2, (7, 7, 3), 4, 3, 0), bonus, zero, zero,
+    no_task = two_stream_advantages(Rollout.empty(3, 2, (7, 7, 3), 4), bonus, zero, zero,
                                     ext_coef=1.0, int_coef=1.0, **kw).scale_logs()
     assert no_task["adv_ext_abs"] == 0.0 and np.isfinite(no_task["adv_int_ext_ratio"])
     assert no_task["adv_int_ext_ratio"] == pytest.approx(no_task["adv_int_abs"] / 1e-8)

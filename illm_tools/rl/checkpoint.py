@@ -230,33 +230,30 @@ class TrainedPolicy:
     """A trained run's actor, acting on the pool's `PoolObs` (sampled, or greedy)."""
 
     def __init__(self, net, vocab, *, name: str, greedy: bool = False, seed: int = 0, frames: int = 0,
-                 hop=None, hop_input=None):
+                 states=None):
         self.net, self.vocab, self.name, self.greedy = net.eval(), vocab, name, greedy
         self.frames = frames
         """Frames the policy was trained for."""
         self.generator = torch.Generator().manual_seed(seed)
-        self.hop, self.hop_input = hop, hop_input
-        """iLLM(hop) runs: (HopContext, HopTracker) giving Z_h, and what the translation reads of a
-        policy array (the suite's `hop_input`)."""
-        self._last: np.ndarray | None = None
+        self.states = states
+        """The run's state source (`illm_tools.rl.states`) where its network reads a context (hop's Z_h)."""
+        self._last: tuple | None = None  # (observations, actions) of the last call
 
     @torch.no_grad()
     def act(self, obs) -> np.ndarray:
         images = torch.as_tensor(obs.images)
         missions = torch.as_tensor(self.vocab.encode(obs.missions))
         context = None
-        if self.hop is not None:  # the windows follow the episodes: a state with step 0 began a new one
-            hop, tracker = self.hop
+        if self.states is not None:  # the windows follow the episodes: a state with step 0 began a new one
             if self._last is not None:
-                tracker.push(self._last.tolist(), (np.asarray(obs.steps) == 0).tolist())
-            tracker.records(obs.missions, [self.hop_input(img) for img in obs.images])
-            context = hop.step(tracker)
+                self.states.advance(self._last[0], self._last[1].tolist(), (np.asarray(obs.steps) == 0).tolist(), obs)
+            context = self.states.current(obs)[1]
         logits = self.net(images, missions, context).logits
         if self.greedy:
             actions = logits.argmax(-1).numpy()
         else:
             actions = torch.multinomial(logits.softmax(-1), 1, generator=self.generator).squeeze(-1).numpy()
-        self._last = actions
+        self._last = obs, actions
         return actions
 
 
@@ -264,7 +261,8 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     """Rebuild a run's network for `pool` (whose action list must match) and load its weights."""
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.config import TrainConfig
-    from illm_tools.rl.networks import MissionVocab, make_network
+    from illm_tools.rl.networks import make_network
+    from illm_tools.rl.states import make_states
     from illm_tools.tasks.registry import get_task
 
     run_dir = Path(run_dir)
@@ -274,25 +272,18 @@ def load_policy(run_dir: str | Path, pool, *, greedy: bool = False, seed: int = 
     if state["action_names"] != names:
         raise UsageError(f"the run was trained with actions {state['action_names']}, "
                          f"the environment offers {names}; use the same --action-space")
-    vocab = MissionVocab(cfg.mission_max_len)
+    vocab = pool.suite.mission_vocab(cfg.mission_max_len)
     method = get_method(cfg.method)
     text_heads = [get_task(t).head for t in cfg.text_tasks]  # the iLLM heads the method's bonus put on the network
     dim = state["model"][f"{text_heads[0]}.2.weight"].shape[0] if text_heads else cfg.embedding_dim
-    hop = None
-    if cfg.obs_mode == "hop":
-        from illm_tools.hop.context import HopContext, HopTracker
-        from illm_tools.llm.backend import load_backend
-
-        obs_dim = int(np.prod(pool.suite.hop_input(np.zeros(state["image_shape"], dtype=np.uint8)).shape))
-        lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant)
-        hop = (HopContext(lm, obs_dim, len(names), seed=cfg.hop_seed, beta=cfg.hop_beta),
-               HopTracker(pool.num_envs, cfg.history_len, names))
+    states = make_states(cfg, pool.suite, tuple(state["image_shape"]), names, needs_records=False,
+                         num_envs=pool.num_envs)
     net = make_network(method, cfg.env_id, len(names), image_shape=tuple(state["image_shape"]),
                        vocab_size=len(vocab), network_options=cfg.network_options,
                        embedding_dim=dim if method.policy_heads else None, tasks=cfg.tasks,
                        head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16,  # as trained: no probe
-                       context_dim=hop[0].hidden_size if hop else 0)
+                       context_dim=states.context_dim)
     net.load_state_dict(state["model"])
     return TrainedPolicy(net, vocab, name=f"run:{run_dir.name}@{state['global_step']}",
-                         greedy=greedy, seed=seed, frames=int(state["global_step"]), hop=hop,
-                         hop_input=pool.suite.hop_input)
+                         greedy=greedy, seed=seed, frames=int(state["global_step"]),
+                         states=states if states.context_dim else None)

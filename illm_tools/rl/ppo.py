@@ -32,9 +32,10 @@ from illm_tools.intrinsic.registry import get_method
 from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint, write_config,
                                       save_checkpoint)
 from illm_tools.rl.config import TrainConfig
-from illm_tools.rl.networks import MissionVocab, make_network
-from illm_tools.rl.storage import Advantages, Rollout, two_stream_advantages
-from illm_tools.tasks.state import HistoryTracker, StateRecord
+from illm_tools.rl.networks import make_network
+from illm_tools.rl.states import make_observers, make_states
+from illm_tools.rl.storage import Advantages, Rollout, target_extras, two_stream_advantages
+from illm_tools.tasks.state import StateRecord
 
 
 def make_pool(cfg: TrainConfig):
@@ -73,7 +74,7 @@ class Trainer:
         self.suite = suite_of(cfg.env_id)
         self.provider = provider if method.needs_targets else None
         self.action_names = list(pool.action_names)
-        self.vocab = MissionVocab(cfg.mission_max_len)
+        self.vocab = self.suite.mission_vocab(cfg.mission_max_len)
 
         # --- seeding: everything random in the run derives from cfg.seed (episode seeds too:
         # make_pool gives the pool cfg.seed); no global RNG is read or changed ------------------
@@ -82,19 +83,16 @@ class Trainer:
             self.obs = pool.reset()
             self.image_shape = tuple(self.obs.images.shape[1:])
             self.image_dtype = torch.as_tensor(self.obs.images[:1]).dtype
-            self.hop = self._hop_context() if cfg.obs_mode == "hop" else None
+            # what the run tracks beside the policy: each step's LLM state (and hop's Z_h), visit counts
+            self.states = make_states(cfg, self.suite, self.image_shape, self.action_names,
+                                      needs_records=self.provider is not None, device=self.device)
+            self.observers = make_observers(self.obs)
             self.net = make_network(method, cfg.env_id, len(self.action_names), image_shape=self.image_shape,
                                     vocab_size=len(self.vocab), network_options=cfg.network_options,
                                     embedding_dim=cfg.embedding_dim if method.policy_heads else None,
                                     head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16,
-                                    context_dim=self.hop.hidden_size if self.hop else 0,
+                                    context_dim=self.states.context_dim,
                                     tasks=cfg.tasks).to(self.device)  # initialised on the CPU: the same weights
-        self.visits = None  # per-cell visit counts where the env reports positions (MiniGrid; Figure 1)
-        if getattr(self.obs, "positions", None) is not None:
-            from illm_tools.rl.visitation import VisitCounts
-
-            self.visits = VisitCounts()
-            self.visits.add(self.obs.positions)
         self.generator = torch.Generator().manual_seed(cfg.seed + 1)  # action sampling
         self.np_rng = np.random.default_rng(cfg.seed + 2)             # minibatch order
 
@@ -102,34 +100,14 @@ class Trainer:
         ctx = BonusContext(num_envs=cfg.num_envs, num_steps=cfg.num_steps, image_shape=self.image_shape,
                            num_actions=len(self.action_names), feature_dim=self.net.feature_dim,
                            int_gamma=cfg.int_gamma, seed=cfg.seed + 3,
-                           obs_kind=self.suite.obs_spec(cfg.env_id).kind)
+                           observation=self.suite.observation(cfg.env_id))
         with torch.random.fork_rng(devices=[]):  # the bonus's own models: their own seeded stream
             torch.manual_seed(ctx.seed)
             self.bonus = method.build(cfg.to_dict(), cfg.bonus_options, ctx).to(self.device)
         if self.provider is not None:  # a bonus may read more of its provider than the stored targets (ELLM's goals)
             self.bonus.use_provider(self.provider)
-        self.history = HistoryTracker(cfg.num_envs, cfg.history_len, self.action_names)
         self.global_step, self.update_idx = 0, 0
         self._open_run_dir()
-
-    # --- iLLM(hop) ---------------------------------------------------------------------------
-    def _hop_context(self):
-        """The run's translation and LLM (`illm_tools.hop`), and the per-env windows."""
-        from illm_tools.hop.context import HopContext, HopTracker
-        from illm_tools.llm.backend import load_backend
-
-        cfg = self.cfg
-        lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant,
-                          device=cfg.llm_device or "cpu")
-        raw = np.asarray(self.suite.hop_input(self.obs.images[0]))
-        self.hop_tracker = HopTracker(cfg.num_envs, cfg.history_len, self.action_names)
-        self._hop_now = None  # (records, Z_h) of the current observations, computed once
-        return HopContext(lm, raw.size, len(self.action_names), seed=cfg.hop_seed, beta=cfg.hop_beta)
-
-    def _hop_state(self, obs) -> tuple[list, torch.Tensor]:
-        """The hop records and Z_h [N, H] of the pool's current observations."""
-        records = self.hop_tracker.records(obs.missions, [self.suite.hop_input(img) for img in obs.images])
-        return records, self.hop.step(self.hop_tracker).to(self.device)
 
     # --- run directory ----------------------------------------------------------------------
     def _open_run_dir(self) -> None:
@@ -151,22 +129,23 @@ class Trainer:
             "action_names": self.action_names, "image_shape": list(self.image_shape),
             "model": self.net.state_dict(), "optimizer": self.optimizer.state_dict(),
             "bonus": self.bonus.state_dict(),
-            **({"visits": self.visits.state_dict()} if self.visits is not None else {}),
+            **{observer.name: observer.state_dict() for observer in self.observers},
             "rng": {"torch": self.generator.get_state(), "numpy": self.np_rng.bit_generator.state},
         }
 
     def save(self) -> None:
         save_checkpoint(self.cfg.run_dir, self.state_dict())
-        if self.visits is not None:
-            self.visits.save(self.cfg.run_dir)
+        for observer in self.observers:
+            observer.save(self.cfg.run_dir)
 
     def _restore(self, state: dict) -> None:
         check_resumable(state, self.cfg, self.action_names)
         self.net.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.bonus.load_state_dict(state["bonus"])
-        if self.visits is not None and "visits" in state:
-            self.visits.load_state_dict(state["visits"])
+        for observer in self.observers:
+            if observer.name in state:
+                observer.load_state_dict(state[observer.name])
         self.generator.set_state(state["rng"]["torch"])
         self.np_rng.bit_generator.state = state["rng"]["numpy"]
         self.global_step, self.update_idx = int(state["global_step"]), int(state["update"])
@@ -182,19 +161,22 @@ class Trainer:
         """T steps of every env. Returns (rollout, records t-major, the episodes that ended
         (`EpisodeStats`), next values)."""
         cfg = self.cfg
+        extras = {}
+        if self.states.context_dim:
+            extras["contexts"] = ((self.states.context_dim,), torch.float32)
+        if self.provider is not None:
+            extras.update(target_extras(len(self.action_names), cfg.embedding_dim * len(cfg.text_tasks)))
         ro = Rollout.empty(cfg.num_steps, cfg.num_envs, self.image_shape, cfg.mission_max_len,
-                           len(self.action_names), cfg.embedding_dim * len(cfg.text_tasks),
-                           self.net.feature_dim, self.image_dtype, self.net.context_dim, device=self.device)
+                           feature_dim=self.net.feature_dim, image_dtype=self.image_dtype, extras=extras,
+                           device=self.device)
         records: list[StateRecord] = []
         episodes: list = []
         obs = self.obs
         images, missions = self._policy_inputs(obs)
-        context = None
+        ro.observations[0], ro.mission_ids[0] = images, missions
         for t in range(cfg.num_steps):
-            if self.hop is not None:  # Z_h of the current windows, the records of their hop states
-                if self._hop_now is None:
-                    self._hop_now = self._hop_state(obs)
-                hop_records, context = self._hop_now
+            step_records, context = self.states.current(obs)
+            if context is not None:
                 ro.contexts[t] = context
             out = self.net(images, missions, context)
             logp_all = out.logits.log_softmax(-1)
@@ -202,24 +184,20 @@ class Trainer:
             action = torch.multinomial(logp_all.exp().cpu(), 1, generator=self.generator).squeeze(-1)
             on_device = action.to(self.device)
             if self.provider is not None:
-                records.extend(hop_records if self.hop is not None else self.history.records(obs.missions, obs.texts))
+                records.extend(step_records)
             step = self.pool.step(action.numpy())
             ends = np.logical_or(step.terminated, step.truncated)
-            if self.visits is not None:
-                self.visits.add(step.obs.positions)
-            if self.hop is not None:
-                self.hop_tracker.push(action.tolist(), ends.tolist())
-                self._hop_now = self._hop_state(step.obs)
-            elif self.provider is not None:
-                self.history.push(obs.texts, action.tolist(), ends.tolist())
-            ro.images[t], ro.missions[t], ro.actions[t] = images, missions, on_device
+            for observer in self.observers:
+                observer.observe(step.obs)
+            self.states.advance(obs, action.tolist(), ends.tolist(), step.obs)
+            ro.actions[t] = on_device
             ro.logprobs[t] = logp_all.gather(1, on_device[:, None]).squeeze(1)
             ro.values_ext[t], ro.values_int[t] = out.value_ext, out.value_int
             ro.features[t] = out.features  # the bonus is computed before the update, with these same weights
             ro.rewards[t] = torch.as_tensor(step.rewards, dtype=torch.float32)
             ro.ends[t] = torch.as_tensor(ends, dtype=torch.float32)
             next_images, next_missions = self._policy_inputs(step.obs)
-            ro.next_images[t], ro.next_missions[t] = next_images, next_missions
+            ro.observations[t + 1], ro.mission_ids[t + 1] = next_images, next_missions
             self.bonus.observe({"images": images, "missions": missions, "actions": on_device, "ends": ro.ends[t],
                                 "next_images": next_images, "next_missions": next_missions,
                                 "features": out.features})
@@ -227,7 +205,7 @@ class Trainer:
             obs, images, missions = step.obs, next_images, next_missions
         self.obs = obs
         self.global_step += cfg.batch_size
-        last = self.net(images, missions, self._hop_now[1] if self.hop is not None else None)
+        last = self.net(images, missions, self.states.current(obs)[1])
         return ro, records, episodes, (last.value_ext, last.value_int)
 
     # --- 2. targets -------------------------------------------------------------------------
@@ -245,12 +223,10 @@ class Trainer:
         ro.target_probs[:] = torch.as_tensor(np.asarray(probs, dtype=np.float32)).view(t, n, a)
         ro.target_emb[:] = torch.as_tensor(np.asarray(emb, dtype=np.float32)).view(t, n, d)
         ro.target_mask[:] = torch.as_tensor(np.asarray(mask, dtype=bool)).view(t, n)
-        stats = dict(self.provider.stats())
-        out = {"cache_hit_rate": float(stats.get("cache_hit_rate", 0.0)),
-               "target_coverage": float(ro.target_mask.float().mean()),
-               "live_annotations": float(stats.get("live_annotations", 0.0))}
-        out.update({k: float(stats[k]) for k in ("live_queue", "live_worker_restarts") if k in stats})
-        return out
+        # the provider's own figures (cache hits, live annotations, its live annotator's queue) as it names them
+        return {"cache_hit_rate": 0.0, "live_annotations": 0.0,
+                **{k: float(v) for k, v in self.provider.stats().items()},
+                "target_coverage": float(ro.target_mask.float().mean())}
 
     # --- 3. intrinsic rewards ---------------------------------------------------------------
     def bonus_batch(self, ro: Rollout, rows: torch.Tensor | None = None,
@@ -258,7 +234,7 @@ class Trainer:
         """What the bonus reads (base.py): the whole rollout [T, N, ...], or flat rows `rows` [B, ...]
         with `features` (the minibatch's, with gradient) in place of the stored ones. The LLM
         targets and the heads' outputs are added when the bonus declares it needs them."""
-        batch = ro.bonus_batch(self.method.needs_targets, rows)
+        batch = ro.bonus_batch(rows)
         if features is not None:
             batch["features"] = features
         if self.method.policy_heads:
@@ -295,7 +271,8 @@ class Trainer:
     def update(self, ro: Rollout, adv: Advantages) -> dict:
         cfg = self.cfg
         b_adv, b_ret_ext, b_ret_int = (x.reshape(-1) for x in (adv.advantages, adv.returns_ext, adv.returns_int))
-        b_images, b_missions, b_contexts = ro.flat("images"), ro.flat("missions"), ro.flat("contexts")
+        b_images, b_missions = ro.flat("images"), ro.flat("missions")
+        b_contexts = ro.flat("contexts") if "contexts" in ro.extras else None
         b_actions, b_logprobs = ro.flat("actions"), ro.flat("logprobs")
         b_v_ext, b_v_int = ro.flat("values_ext"), ro.flat("values_int")
         # the logs stay tensors until the update ends: on a GPU, one wait for the device per update
@@ -307,7 +284,7 @@ class Trainer:
             self.np_rng.shuffle(inds)
             for start in range(0, cfg.batch_size, cfg.minibatch_size):
                 mb = torch.as_tensor(inds[start:start + cfg.minibatch_size]).to(self.device)
-                out = self.net(b_images[mb], b_missions[mb], b_contexts[mb] if self.hop is not None else None)
+                out = self.net(b_images[mb], b_missions[mb], b_contexts[mb] if b_contexts is not None else None)
                 logp_all = out.logits.log_softmax(-1)
                 newlogprob = logp_all.gather(1, b_actions[mb, None]).squeeze(1)
                 entropy = -(logp_all.exp() * logp_all).sum(-1).mean()

@@ -36,6 +36,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     from illm_tools.tasks.prompts import PromptBuilder
 
     tasks = cfg.target_tasks
+    method = get_method(cfg.method)
 
     cache = AnnotationCache(cfg.cache)
     renderer = cfg.renderer  # the suite's text renderer, or the hop translation's settings
@@ -49,7 +50,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
         check_setup(cache, builder, model=model, dtype=cfg.model_dtype, quant=cfg.quant, tasks=tasks)
-    if not get_method(cfg.method).policy_heads:  # ELLM: the goals themselves, no heads to distil into
+    if not method.policy_heads:  # ELLM: the goals themselves, no heads to distil into
         return GoalTargets(cache, builder, num_actions=num_actions, live=make_live(cfg, builder, cache, tasks)), cfg
     dim = backend_hidden_size(cfg.backend, model)
     if dim != cfg.embedding_dim:
@@ -57,7 +58,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
                              embedding_dim=dim, action_target=cfg.action_target, tasks=tasks,
                              live=make_live(cfg, builder, cache, tasks),
-                             shuffle_seed=get_method(cfg.method).target_shuffle)  # illm-shuffled: another state's
+                             shuffle_seed=method.target_shuffle)  # illm-shuffled: another state's
     return provider, cfg
 
 

@@ -10,56 +10,82 @@ Convention: `ends[t]` is True when the transition taken at step t ended its epis
 pool autoresets in the same step and does not return the final observation). For the same
 reason `next_images[t]` / `next_missions[t]`, the observation after step t, is the first
 observation of the next episode where `ends[t]` is set (as CleanRL's next_obs is); for the last
-step it is the observation the next rollout starts from.
+step it is the observation the next rollout starts from. So `next_images[t]` is `images[t + 1]`
+for every t < T - 1, and the rollout stores the T + 1 observations once (half the memory of two
+copies).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import torch
 
 BONUS_FIELDS = ("images", "missions", "actions", "ends", "next_images", "next_missions", "features")
-"""The rollout fields every intrinsic bonus may read (illm_tools.intrinsic.base documents them)."""
+"""The rollout fields every intrinsic bonus may read (illm_tools.intrinsic.base documents them); a
+bonus also reads the rollout's named extras (the LLM targets, where the run has them)."""
 TARGET_FIELDS = ("target_probs", "target_emb", "target_mask")
-"""The LLM targets, added for bonuses that declare `needs_targets`."""
+"""The LLM targets' extras, filled after the rollout for bonuses that declare `needs_targets`."""
+
+
+def target_extras(num_actions: int, embedding_dim: int) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+    """The extras holding a run's LLM targets: the distribution over the valid actions [A], the text
+    tasks' embeddings side by side [D], and whether the step has a target."""
+    return {"target_probs": ((num_actions,), torch.float32), "target_emb": ((embedding_dim,), torch.float32),
+            "target_mask": ((), torch.bool)}
 
 
 @dataclass
 class Rollout:
-    """One rollout of T steps from N envs. Targets are filled after the rollout."""
+    """One rollout of T steps from N envs.
 
-    images: torch.Tensor       # [T, N, *obs shape] the observation acted from (the suite's dtype)
-    missions: torch.Tensor     # int64 [T, N, L]
-    next_images: torch.Tensor  # [T, N, *obs shape] the observation after the step (see module doc)
-    next_missions: torch.Tensor  # int64 [T, N, L]
-    actions: torch.Tensor      # int64 [T, N]
-    logprobs: torch.Tensor     # float [T, N]
-    rewards: torch.Tensor      # float [T, N] extrinsic
-    ends: torch.Tensor         # float [T, N] 1.0 where the episode ended at this step
-    values_ext: torch.Tensor   # float [T, N]
-    values_int: torch.Tensor   # float [T, N]
-    target_probs: torch.Tensor  # float [T, N, A] LLM distribution over valid actions
-    target_emb: torch.Tensor    # float [T, N, D] LLM summary embedding
-    target_mask: torch.Tensor   # bool [T, N]
+    The observations are stored once, T + 1 of them: step t acts from `observations[t]` and reaches
+    `observations[t + 1]` (`images` and `next_images` are views of the two ranges, see the module
+    docstring); the missions likewise. What a method or the run's state source adds per step lives
+    in `extras` under its name ([T, N, ...] each, read as attributes: `ro.contexts`, `ro.target_probs`).
+    """
+
+    observations: torch.Tensor  # [T + 1, N, *obs shape] (the suite's dtype)
+    mission_ids: torch.Tensor   # int64 [T + 1, N, L]
+    actions: torch.Tensor       # int64 [T, N]
+    logprobs: torch.Tensor      # float [T, N]
+    rewards: torch.Tensor       # float [T, N] extrinsic
+    ends: torch.Tensor          # float [T, N] 1.0 where the episode ended at this step
+    values_ext: torch.Tensor    # float [T, N]
+    values_int: torch.Tensor    # float [T, N]
     features: torch.Tensor      # float [T, N, F] policy features at acting time
-    contexts: torch.Tensor      # float [T, N, C] what the network read beside the observation (hop: Z_h; C = 0 else)
+    extras: dict[str, torch.Tensor] = field(default_factory=dict)
+    """Named [T, N, ...] tensors: "contexts" (what the network read beside the observation: hop's
+    Z_h), the LLM targets (`TARGET_FIELDS`)."""
 
     @classmethod
-    def empty(cls, num_steps: int, num_envs: int, image_shape: tuple[int, ...], mission_len: int,
-              num_actions: int, embedding_dim: int, feature_dim: int = 0,
-              image_dtype: torch.dtype = torch.uint8, context_dim: int = 0,
+    def empty(cls, num_steps: int, num_envs: int, image_shape: tuple[int, ...], mission_len: int, *,
+              feature_dim: int = 0, image_dtype: torch.dtype = torch.uint8,
+              extras: Mapping[str, tuple[tuple[int, ...], torch.dtype]] | None = None,
               device: torch.device | str = "cpu") -> "Rollout":
+        """Zeros; `extras`: name -> (per-step shape, dtype)."""
         t, n = num_steps, num_envs
-        z = lambda *shape, dtype=torch.float32: torch.zeros((t, n, *shape), dtype=dtype, device=device)  # noqa: E731
+        z = lambda *shape, dtype=torch.float32, steps=t: torch.zeros((steps, n, *shape), dtype=dtype,  # noqa: E731
+                                                                     device=device)
         return cls(
-            images=z(*image_shape, dtype=image_dtype), missions=z(mission_len, dtype=torch.int64),
-            next_images=z(*image_shape, dtype=image_dtype), next_missions=z(mission_len, dtype=torch.int64),
-            actions=z(dtype=torch.int64), logprobs=z(), rewards=z(), ends=z(),
-            values_ext=z(), values_int=z(), target_probs=z(num_actions),
-            target_emb=z(embedding_dim), target_mask=z(dtype=torch.bool), features=z(feature_dim),
-            contexts=z(context_dim),
+            observations=z(*image_shape, dtype=image_dtype, steps=t + 1),
+            mission_ids=z(mission_len, dtype=torch.int64, steps=t + 1),
+            actions=z(dtype=torch.int64), logprobs=z(), rewards=z(), ends=z(), values_ext=z(), values_int=z(),
+            features=z(feature_dim),
+            extras={name: z(*shape, dtype=dtype) for name, (shape, dtype) in (extras or {}).items()},
         )
+
+    images = property(lambda self: self.observations[:-1], doc="[T, N, *obs shape] the observation acted from")
+    next_images = property(lambda self: self.observations[1:], doc="[T, N, *obs shape] the observation reached")
+    missions = property(lambda self: self.mission_ids[:-1], doc="int64 [T, N, L] its mission's word ids")
+    next_missions = property(lambda self: self.mission_ids[1:], doc="int64 [T, N, L] the next one's")
+
+    def __getattr__(self, name: str) -> torch.Tensor:  # the extras, by name
+        extras = self.__dict__.get("extras", {})
+        if name in extras:
+            return extras[name]
+        raise AttributeError(f"the rollout has no field or extra {name!r}")
 
     @property
     def num_steps(self) -> int:
@@ -70,10 +96,10 @@ class Rollout:
         x = getattr(self, name)
         return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])  # explicit: a field may be empty ([T, N, 0])
 
-    def bonus_batch(self, targets: bool, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """What a bonus reads: `BONUS_FIELDS` (+ `TARGET_FIELDS` when `targets`), [T, N, ...]
-        views, or the flat rows `rows` ([B, ...]) when given."""
-        names = BONUS_FIELDS + (TARGET_FIELDS if targets else ())
+    def bonus_batch(self, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """What a bonus reads: `BONUS_FIELDS` and the extras, [T, N, ...] views, or the flat rows
+        `rows` ([B, ...]) when given."""
+        names = BONUS_FIELDS + tuple(self.extras)
         if rows is None:
             return {name: getattr(self, name) for name in names}
         return {name: self.flat(name)[rows] for name in names}

@@ -1,0 +1,131 @@
+"""What a run tracks beside the policy, step by step: the LLM state of every step (its `StateRecord`,
+the key of its targets) and what the network reads beside the observation, and the observers of the
+steps (visit counts). The trainer talks to them through two small interfaces, so that it carries
+no branch for iLLM(hop), iLLM(obs) or a suite's extras:
+
+- a state source (`TextStates`, `HopStates`, `NoStates`): `current(obs)` -> (the records of the
+  pool's current observations, the network's context [N, C] or None), `advance(obs, actions, ends,
+  next_obs)` after each step; `context_dim` is C (0: none);
+- a step observer (`VisitObserver`): `observe(obs)` with every new observation, `state_dict` /
+  `load_state_dict` (kept in the checkpoint under its `name`), `save(run_dir)` beside it.
+
+`make_states` and `make_observers` pick them from the run's config and its first observations.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from illm_tools.rl.config import TrainConfig
+from illm_tools.tasks.state import HistoryTracker, StateRecord
+
+
+class StateSource(Protocol):
+    context_dim: int
+
+    def current(self, obs) -> tuple[list[StateRecord], torch.Tensor | None]: ...
+
+    def advance(self, obs, actions: Sequence[int], ends: Sequence[bool], next_obs) -> None: ...
+
+
+class NoStates:
+    """A run that needs no LLM state: no records, no context."""
+
+    context_dim = 0
+
+    def current(self, obs) -> tuple[list[StateRecord], None]:
+        return [], None
+
+    def advance(self, obs, actions, ends, next_obs) -> None:
+        pass
+
+
+class TextStates:
+    """iLLM(obs), ELLM: each step's rendered text and mission with its episode's recent history."""
+
+    context_dim = 0
+
+    def __init__(self, num_envs: int, history_len: int, action_names: Sequence[str]):
+        self.history = HistoryTracker(num_envs, history_len, action_names)
+
+    def current(self, obs) -> tuple[list[StateRecord], None]:
+        return self.history.records(obs.missions, obs.texts), None
+
+    def advance(self, obs, actions, ends, next_obs) -> None:
+        self.history.push(obs.texts, list(actions), list(ends))
+
+
+class HopStates:
+    """iLLM(hop): the window of each env's recent (observation, action) steps, its hop records and
+    Z_h, the LLM's last hidden state over the translated window (`illm_tools.hop`), which the
+    network reads beside its torso. Z_h of the current observations is computed once per step."""
+
+    def __init__(self, cfg: TrainConfig, suite, image_shape: tuple[int, ...], action_names: Sequence[str],
+                 device: torch.device | str = "cpu", num_envs: int | None = None):
+        from illm_tools.hop.context import HopContext, HopTracker
+        from illm_tools.llm.backend import load_backend
+
+        lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant,
+                          device=cfg.llm_device or "cpu")
+        self.suite, self.device = suite, device
+        raw = np.asarray(suite.hop_input(np.zeros(image_shape, dtype=np.uint8)))
+        self.tracker = HopTracker(num_envs or cfg.num_envs, cfg.history_len, list(action_names))
+        self.hop = HopContext(lm, raw.size, len(action_names), seed=cfg.hop_seed, beta=cfg.hop_beta)
+        self.context_dim = self.hop.hidden_size
+        self._now: tuple[list, torch.Tensor] | None = None
+
+    def current(self, obs) -> tuple[list[StateRecord], torch.Tensor]:
+        if self._now is None:
+            records = self.tracker.records(obs.missions, [self.suite.hop_input(img) for img in obs.images])
+            self._now = records, self.hop.step(self.tracker).to(self.device)
+        return self._now
+
+    def advance(self, obs, actions, ends, next_obs) -> None:
+        self.tracker.push(list(actions), list(ends))
+        self._now = None
+        self.current(next_obs)  # the windows changed: their Z_h now, while the step's arrays are at hand
+
+
+def make_states(cfg: TrainConfig, suite, image_shape: tuple[int, ...], action_names: Sequence[str], *,
+                needs_records: bool, device: torch.device | str = "cpu", num_envs: int | None = None) -> StateSource:
+    """The run's state source: hop windows for `--mode hop` (their Z_h feeds the network whatever the
+    method), the text history when the method reads LLM targets, else none."""
+    if cfg.obs_mode == "hop":
+        return HopStates(cfg, suite, image_shape, action_names, device, num_envs)
+    if needs_records:
+        return TextStates(num_envs or cfg.num_envs, cfg.history_len, action_names)
+    return NoStates()
+
+
+class VisitObserver:
+    """Per-cell visit counts where the env reports the agent's position (`info["agent_pos"]`: MiniGrid,
+    paper Figure 1), saved as `visitation.npy` with each checkpoint."""
+
+    name = "visits"
+
+    def __init__(self, first_obs):
+        from illm_tools.rl.visitation import VisitCounts
+
+        self.counts = VisitCounts()
+        self.counts.add(first_obs.positions)
+
+    def observe(self, obs) -> None:
+        self.counts.add(obs.positions)
+
+    def state_dict(self) -> dict:
+        return self.counts.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.counts.load_state_dict(state)
+
+    def save(self, run_dir) -> None:
+        self.counts.save(run_dir)
+
+
+def make_observers(first_obs) -> list:
+    """The step observers a pool's observations allow (visit counts where it reports positions)."""
+    return [VisitObserver(first_obs)] if getattr(first_obs, "positions", None) is not None else []
