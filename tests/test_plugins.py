@@ -1,7 +1,8 @@
-"""Plug-ins from installed packages: a method, a language task, an LLM backend and a suite, each
-defined in this file and found only through a (fake) Python entry point of its group, run end to end
-(collect, annotate, train) without editing the trainer, networks, bonuses or any registry; and the
-one `Registry` shape: lazy entries, a type check, one unknown-name message."""
+"""Plug-ins from installed packages: a method, a language task, an LLM backend and two suites (one
+with a kind of observation illm has never seen, its adapter and its torso), each defined in this file
+and found only through a (fake) Python entry point of its group, run end to end (collect, annotate,
+train with every bonus that reads observations) without editing the trainer, networks, bonuses or
+any registry; and the one `Registry` shape: lazy entries, a type check, one unknown-name message."""
 
 from __future__ import annotations
 
@@ -14,12 +15,18 @@ import torch
 from typer.testing import CliRunner
 
 from cli.main import app
+import numpy as np
+from torch import nn
+
 from illm_tools.envs import SUITES
+from illm_tools.envs.observations import Observation
+from illm_tools.envs.suite import ObsSpec
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic import BonusRewards, IntrinsicBonus
 from illm_tools.intrinsic.registry import METHODS, Method
 from illm_tools.llm.backend import BACKENDS
 from illm_tools.llm.stub import StubBackend
+from illm_tools.rl.networks import GridMissionNet
 from illm_tools.registry import Registry
 from illm_tools.tasks.registry import LANGUAGE_TASKS, LanguageTask
 from test_suites import TINY, TinySuite
@@ -59,8 +66,51 @@ class EchoBackend(StubBackend):
                 "quant": quant}
 
 
+class RulerObservation(Observation):
+    """A new kind: the corridor as a float vector, one-hot of the agent's cell (no grid, no picture)."""
+
+    kind = "ruler"
+
+    def encoder(self, hidden, out):
+        return nn.Sequential(nn.Linear(self.shape[0], hidden), nn.Tanh(), nn.Linear(hidden, out))
+
+
+class RulerNet(GridMissionNet):
+    """The plug-in's torso for its kind: an MLP on the vector (the mission is fixed, not read)."""
+
+    kinds = ("ruler",)
+
+    def build_torso(self, *, vocab_size, image_shape, options=None, **_):
+        self.mlp = nn.Sequential(nn.Linear(self.observation.shape[0], 32), nn.Tanh())
+        return 32
+
+    def features(self, images, missions):
+        return self.mlp(images.float())
+
+
+class RulerSuite(TinySuite):
+    """The tiny corridor, seen as a `ruler` vector through the suite's own adapter and network."""
+
+    name = "ruler"
+    network = f"{__name__}:RulerNet"
+
+    def env_ids(self):
+        return [RULER]
+
+    def obs_spec(self, env_id):
+        return ObsSpec(shape=(7,), dtype="float32", kind="ruler", description="the agent's cell, one-hot")
+
+    def observation(self, env_id):
+        return RulerObservation(self.obs_spec(env_id))
+
+    def policy_obs(self, obs):
+        return (obs[:, 3, 0] == 5).astype(np.float32)
+
+
+RULER = "Ruler-Corridor-v0"
 PLUGIN_METHOD = Method("flat", "a flat bonus from a plug-in package", FlatBonus)
 PLUGIN_SUITE = TinySuite()
+PLUGIN_RULER = RulerSuite()
 PLUGIN_TASK: LanguageTask | None = None  # made by the fixture: its template lives in a temporary folder
 
 
@@ -77,7 +127,7 @@ def plugins(tmp_path, monkeypatch):
         "illm.methods": [("flat", f"{__name__}:PLUGIN_METHOD")],
         "illm.tasks": [("verdict", f"{__name__}:PLUGIN_TASK")],
         "illm.backends": [("echo", f"{__name__}:EchoBackend")],
-        "illm.suites": [("tiny", f"{__name__}:PLUGIN_SUITE")],
+        "illm.suites": [("tiny", f"{__name__}:PLUGIN_SUITE"), ("ruler", f"{__name__}:PLUGIN_RULER")],
     }
 
     real = importlib.metadata.entry_points
@@ -104,7 +154,7 @@ def ok(*args):
 
 
 def test_a_plugin_of_each_kind_loads_through_its_entry_point_and_runs(plugins, tmp_path):
-    assert plugins == [["flat"], ["verdict"], ["echo"], ["tiny"]]
+    assert plugins == [["flat"], ["verdict"], ["echo"], ["tiny", "ruler"]]
     ok("collect", "--env", TINY, "--steps", 48, "--num-envs", 2, "--out", tmp_path / "traj")
     said = ok("annotate", tmp_path / "traj", "--cache", tmp_path / "ann", "--backend", "echo", "--history", 0,
               "--tasks", "action,verdict")
@@ -119,6 +169,20 @@ def test_a_plugin_of_each_kind_loads_through_its_entry_point_and_runs(plugins, t
         assert float(next(csv.DictReader(fh))["adv_int_abs"]) > 0  # the plug-in's bonus reached the advantages
     with open(tmp_path / "illm" / "metrics.csv", newline="") as fh:
         assert all(float(r["target_coverage"]) == 1.0 for r in csv.DictReader(fh))
+
+
+@pytest.mark.parametrize("method", ["ppo", "rnd", "ngu", "apt", "flat"])
+def test_a_suite_with_a_new_kind_of_observation_trains_with_every_bonus(plugins, method, tmp_path):
+    """The suite brings its adapter and torso; the bonuses read the vector through the adapter."""
+    ok("train", "--env", RULER, "--method", method, "--num-envs", 2, "--num-steps", 16, "--frames", 64,
+       "--out", tmp_path / "run")
+    with open(tmp_path / "run" / "metrics.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 and all(np.isfinite(float(r["policy_loss"])) for r in rows)
+    if method != "ppo":
+        assert float(rows[-1]["adv_int_abs"]) > 0  # the bonus read the new kind and reached the advantages
+    said = ok("eval", tmp_path / "run", "--episodes", 4)
+    assert "success" in said
 
 
 def test_one_registry_shape_lazy_checked_and_one_message():
