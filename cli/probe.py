@@ -2,50 +2,52 @@
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 
 import typer
 
-from cli.common import API_KEY_ENV, BACKEND, DEVICE, DTYPE, ENDPOINT, MODEL, ORACLE_NOISE, QUANT, emit_json, progress
+from cli.common import API_KEY_ENV, ENDPOINT, ORACLE_NOISE, emit_json, progress
 from cli.errors import friendly
 
 
+ALIASES = {"env_id": "--env"}
+EXAMPLE = "Example: illm probe --env BabyAI-GoToLocal-v0 --model smollm2-135m --states 400"
+
+
+def _parameters() -> list[inspect.Parameter]:
+    """`ProbeConfig`'s fields as options (`cli.options`), then what only the command reads: how the
+    model is named (the oracle's noise, an OpenAI endpoint) and where the figures go."""
+    from cli.options import dataclass_parameters
+    from illm_tools.probe import ProbeConfig
+
+    params = dataclass_parameters(ProbeConfig, aliases=ALIASES, dict_flags={}, exclude=set(), defaults={},
+                                  required=set(), extra_help={})
+    extra = [("oracle_noise", float, ORACLE_NOISE), ("endpoint", str, ENDPOINT), ("api_key_env", str, API_KEY_ENV),
+             ("as_json", bool, typer.Option(False, "--json", help="Print the figures as JSON.")),
+             ("out", Path, typer.Option(None, "--out", help="Also write the figures as JSON to this file."))]
+    return params + [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=kind, default=default)
+                     for name, kind, default in extra]
+
+
 def register(app: typer.Typer) -> None:
-    @app.command(epilog="Example: illm probe --env BabyAI-GoToLocal-v0 --model smollm2-135m --states 400")
-    @friendly
-    def probe(
-        env: str = typer.Option("BabyAI-GoToLocal-v0", "--env", help="A BabyAI level (the expert is minigrid's BabyAI bot)."),
-        model: str = MODEL,
-        oracle_noise: float = ORACLE_NOISE,
-        endpoint: str = ENDPOINT,
-        api_key_env: str = API_KEY_ENV,
-        states: int = typer.Option(400, "--states", help="States to probe, from the bot's episodes."),
-        history: int = typer.Option(0, "--history", help="Observation/action pairs of history in the prompt (as `illm annotate --history`)."),
-        seed: int = typer.Option(0, "--seed", help="Seed of the episodes and of the random actions."),
-        epsilon: float = typer.Option(0.25, "--epsilon", help="Share of random actions in the bot's episodes (states off its path)."),
-        action_space: str = typer.Option("auto", "--action-space", help="original | augmented | irrelevant | auto (as `illm collect`)."),
-        layout: str = typer.Option("shared", "--layout", help="Prompt templates, as `illm annotate --layout`."),
-        dtype: str = DTYPE,
-        quant: str = QUANT,
-        backend: str = BACKEND,
-        device: str = DEVICE,
-        batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
-        as_json: bool = typer.Option(False, "--json", help="Print the figures as JSON."),
-        out: Path = typer.Option(None, "--out", help="Also write the figures as JSON to this file."),
-    ) -> None:
+    def probe(**options) -> None:
         """Agreement of the LLM's next-action ranking (calibrations sum, mean, pmi) with the BabyAI
         expert bot, against always choosing the expert's most frequent action; mutual information
         between state and ranking; log-loss; pairwise AUROC."""
         import json
 
+        from cli.options import config_from_options
         from illm_tools.llm.backend import check_backend, resolve_model
         from illm_tools.probe import ProbeConfig, probe as run
 
-        check_backend(backend)
-        model = resolve_model(backend, model, oracle_noise=oracle_noise, endpoint=endpoint, api_key_env=api_key_env)
-        config = ProbeConfig(env_id=env, model=model, states=states, history=history, seed=seed, epsilon=epsilon,
-                             action_space=action_space, layout=layout, dtype=dtype, quant=quant, backend=backend,
-                             device=device, batch_size=batch_size)
+        as_json, out = options.pop("as_json"), options.pop("out")
+        naming = {k: options.pop(k) for k in ("oracle_noise", "endpoint", "api_key_env")}
+        check_backend(options["backend"])
+        options["model"] = resolve_model(options["backend"], options["model"], **naming)
+        config = config_from_options(ProbeConfig, options, {})
+        model, env, backend, quant = config.model, config.env_id, config.backend, config.quant
+        history, epsilon = config.history, config.epsilon
         with progress(0, f"probe {model}", unit="states") as advance:
             done = [0]
 
@@ -93,3 +95,6 @@ def register(app: typer.Typer) -> None:
         else:
             typer.echo(f"reading: {result.best} beats always \"{b['majority_action']}\" "
                        f"({best['agreement']:.3f} against {b['majority_agreement']:.3f})")
+
+    probe.__signature__ = inspect.Signature(_parameters())
+    app.command(epilog=EXAMPLE)(friendly(probe))

@@ -152,7 +152,8 @@ class ProbeConfig:
     env_id: str = "BabyAI-GoToLocal-v0"
     """A BabyAI level (the expert is minigrid's BabyAI bot)."""
     model: str | None = None
-    """The LLM; None: the backend's own (smollm2-135m for transformers, oracle for oracle)."""
+    """The LLM: an alias (see `illm models`), hub id or local folder; default: the backend's own
+    (smollm2-135m for transformers, oracle for oracle)."""
     states: int = 400
     """States to probe, from the bot's episodes."""
     history: int = 0
@@ -166,11 +167,13 @@ class ProbeConfig:
     layout: str = "shared"
     """Prompt templates, as `illm annotate --layout`."""
     dtype: str = "auto"
-    """bfloat16, float32, float16, or auto (this machine's choice, `illm_tools.llm.dtype`)."""
+    """Compute dtype: auto | bfloat16 | float32 | float16; auto: bfloat16 on CUDA, and on a CPU where a
+    timed matmul says it is faster than float32 (measured once per machine)."""
     quant: str = "none"
     """bitsandbytes quantisation: none, 4bit or 8bit."""
     backend: str = "transformers"
-    """LLM backend (`illm_tools.llm.backend`)."""
+    """LLM backend: transformers | oracle (a rule-based annotator that knows BabyAI/MiniGrid) | openai (an
+    OpenAI-compatible server, with --endpoint) | stub (deterministic answers, no weights; for tests)."""
     device: str = "cpu"
     """Where the model runs: cpu, cuda, cuda:N or auto."""
     batch_size: int = 8
