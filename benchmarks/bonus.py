@@ -35,7 +35,8 @@ from illm_tools.envs import renderer_of  # noqa: E402
 from illm_tools.intrinsic.registry import METHODS, get_method  # noqa: E402
 from illm_tools.rl.config import TrainConfig  # noqa: E402
 from illm_tools.rl.live import SyncLive  # noqa: E402
-from illm_tools.rl.ppo import Trainer, make_pool  # noqa: E402
+from illm_tools.rl.ppo import Trainer  # noqa: E402
+from illm_tools.rl.run import make_pool  # noqa: E402
 from illm_tools.rl.run import torch_threads  # noqa: E402
 
 PHASES = ("time/rollout_s", "time/targets_s", "time/update_s")

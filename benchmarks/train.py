@@ -34,7 +34,8 @@ from illm_tools.llm.stub import StubBackend
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.live import SyncLive
-from illm_tools.rl.ppo import Trainer, make_pool
+from illm_tools.rl.ppo import Trainer
+from illm_tools.rl.run import make_pool
 from illm_tools.rl.run import make_provider, torch_threads
 from illm_tools.rl.targets import CachedTargets
 

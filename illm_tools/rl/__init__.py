@@ -10,7 +10,7 @@ import importlib
 
 _EXPORTS = {
     "load_checkpoint": "checkpoint", "load_policy": "checkpoint", "TrainConfig": "config",
-    "GridMissionNet": "networks", "MissionVocab": "networks", "Trainer": "ppo", "make_pool": "ppo",
+    "GridMissionNet": "networks", "MissionVocab": "networks", "Trainer": "ppo", "make_pool": "run",
     "Rollout": "storage", "gae": "storage", "two_stream_advantages": "storage",
 }
 

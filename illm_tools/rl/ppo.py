@@ -38,23 +38,6 @@ from illm_tools.rl.storage import Advantages, Rollout, target_extras, two_stream
 from illm_tools.tasks.state import StateRecord
 
 
-def make_pool(cfg: TrainConfig):
-    """The env pool a run trains on. Text is rendered only when LLM targets need it. A resumed
-    run starts its episodes past every seed the run can have used so far (the pool's episode k of
-    env i has seed `seed + i + k * num_envs`, so `seed + global_step + num_envs` is unused)."""
-    from illm_tools.envs.pool import EnvPool
-
-    seed, space = cfg.seed, cfg.action_space
-    if cfg.resume:
-        state = load_checkpoint(cfg.run_dir)
-        seed += int(state["global_step"]) + cfg.num_envs
-        if space == "auto":  # the run's own action space, as its config recorded it
-            space = state["config"].get("action_space", space)
-    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets and cfg.obs_mode == "obs",
-                   action_space=space, episode_seeds=cfg.env_seeds,
-                   num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
-
-
 class Trainer:
     """One training run. `train()` runs to `cfg.total_steps`; the steps are public for tests."""
 
@@ -77,7 +60,7 @@ class Trainer:
         self.vocab = self.suite.mission_vocab(cfg.mission_max_len)
 
         # --- seeding: everything random in the run derives from cfg.seed (episode seeds too:
-        # make_pool gives the pool cfg.seed); no global RNG is read or changed ------------------
+        # run.make_pool gives the pool cfg.seed); no global RNG is read or changed ------------------
         with torch.random.fork_rng(devices=[]):  # network init without touching global RNG state
             torch.manual_seed(cfg.seed)
             self.obs = pool.reset()

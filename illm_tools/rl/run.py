@@ -17,6 +17,24 @@ EVAL_SEED_OFFSET = 2**40
 """Evaluation episodes use seeds from here on: training seeds (seed + steps) never get this far."""
 
 
+def make_pool(cfg: TrainConfig):
+    """The env pool a run trains on. Text is rendered only when LLM targets need it. A resumed
+    run starts its episodes past every seed the run can have used so far (the pool's episode k of
+    env i has seed `seed + i + k * num_envs`, so `seed + global_step + num_envs` is unused)."""
+    from illm_tools.envs.pool import EnvPool
+    from illm_tools.rl.checkpoint import load_checkpoint
+
+    seed, space = cfg.seed, cfg.action_space
+    if cfg.resume:
+        state = load_checkpoint(cfg.run_dir)
+        seed += int(state["global_step"]) + cfg.num_envs
+        if space == "auto":  # the run's own action space, as its config recorded it
+            space = state["config"].get("action_space", space)
+    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets and cfg.obs_mode == "obs",
+                   action_space=space, episode_seeds=cfg.env_seeds,
+                   num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
+
+
 def make_provider(cfg: TrainConfig, num_actions: int):
     """The target provider of a run whose bonus needs LLM targets, or None: `CachedTargets` (the rows
     of iLLM's language tasks, `cfg.tasks`) or, for a bonus whose `target_tasks` are ("goal",), `GoalTargets`
@@ -110,7 +128,7 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
           should_stop: Callable[[], bool] | None = None) -> dict:
     """Build and run a training run to cfg.total_steps; returns the last update's metrics
     (`Trainer.train`: `should_stop` ends it early with a checkpoint)."""
-    from illm_tools.rl.ppo import Trainer, make_pool
+    from illm_tools.rl.ppo import Trainer
 
     with torch_threads(cfg.threads):
         # devices resolved (a GPU this machine lacks: one line before anything lands on disk) and auto
