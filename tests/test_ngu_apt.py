@@ -378,3 +378,16 @@ def test_copying_the_cache_keeps_the_permutation(tmp_path):
     shutil.copytree(tmp_path / "ann", tmp_path / "copy")
     copy = AnnotationCache(tmp_path / "copy")
     assert partners(*providers(copy, annotator), records) == mapping
+
+
+def test_an_embedding_saved_before_the_observation_adapters_still_loads():
+    """Checkpoints named the grid encoder's layers embed.0 / embed.2 (no input module then)."""
+    from illm_tools.intrinsic.ngu import InverseDynamics
+
+    model = InverseDynamics(CTX.observation, 3, 16, 8)
+    old = {(f"embed.{int(k.split('.')[1]) - 1}." + k.split(".", 2)[2]) if k.startswith("embed.") else k: v
+           for k, v in model.state_dict().items()}
+    assert "embed.0.weight" in old
+    fresh = InverseDynamics(CTX.observation, 3, 16, 8)
+    fresh.load_state_dict(old)
+    assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), model.state_dict().values()))

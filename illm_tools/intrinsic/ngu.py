@@ -89,6 +89,22 @@ class InverseDynamics(nn.Module):
         self.embed = observation.encoder(hidden, embedding_dim)
         self.inverse = nn.Sequential(nn.Linear(2 * embedding_dim, hidden), nn.ReLU(), nn.Linear(hidden, num_actions))
 
+    def load_state_dict(self, state: Mapping[str, torch.Tensor], strict: bool = True, assign: bool = False):
+        """Also the names a checkpoint from before the observation adapters used (the encoder's
+        input step was not a module then: `embed.i` is now `embed.i+1`, `glyphs` is `embed.0.glyphs`),
+        so those NGU and APT runs still resume."""
+        if set(state) != set(self.state_dict()):  # an older checkpoint's names
+            renamed = {}
+            for key, value in state.items():
+                if key == "glyphs.weight":
+                    key = "embed.0.glyphs.weight"
+                elif key.startswith("embed."):
+                    index, rest = key[len("embed."):].split(".", 1)
+                    key = f"embed.{int(index) + 1}.{rest}"
+                renamed[key] = value
+            state = renamed
+        return super().load_state_dict(state, strict=strict, assign=assign)
+
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """f: [..., *obs shape] -> float32 [..., embedding_dim]."""
         lead = images.shape[:images.dim() - len(self.image_shape)]
