@@ -9,11 +9,12 @@ from collections.abc import Sequence
 
 from illm_tools.llm.spliced import SplicedPrompt
 from illm_tools.llm.loading import LoadedModel
+from illm_tools.llm.registry import DEFAULT_MODEL
 
 
 class TransformersBackend:
     name = "transformers"
-    default_model = "smollm2-135m"
+    default_model = DEFAULT_MODEL
 
     def __init__(self, lm: LoadedModel):
         self.lm = lm

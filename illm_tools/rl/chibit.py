@@ -26,6 +26,7 @@ import torch
 from torch import nn
 
 from illm_tools.errors import UsageError
+from illm_tools.llm.registry import DEFAULT_MODEL
 from illm_tools.rl.networks import GRID_CHANNEL_SIZES, GridMissionNet
 
 
@@ -35,7 +36,7 @@ class ChibiTOptions:
 
     blocks: int = 1
     """Pretrained decoder layers in the torso (from the bottom of the model)."""
-    model: str = "smollm2-135m"
+    model: str = DEFAULT_MODEL
     """The language model whose blocks initialise the torso (an alias of `illm models`)."""
 
     def __post_init__(self) -> None:
