@@ -54,10 +54,10 @@ class TinyBackend(StubBackend):
 
     name = "tiny"
 
-    @staticmethod
-    def model_fingerprint(model, *, dtype="bfloat16", quant="none"):
-        return {"model_id": f"tiny:{model}", "source": "tiny", "sha256": None, "revision": "1", "dtype": dtype,
-                "quant": quant}
+    @classmethod
+    def model_fingerprint(cls, model, *, dtype="bfloat16", quant="none"):
+        return {"model_id": f"{cls.name}:{model}", "source": cls.name, "sha256": None, "revision": "1",
+                "dtype": dtype, "quant": quant}
 
 
 def test_a_backend_registered_from_a_test_file_annotates_and_trains(tmp_path):

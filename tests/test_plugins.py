@@ -25,10 +25,10 @@ from illm_tools.errors import UsageError
 from illm_tools.intrinsic import BonusRewards, IntrinsicBonus
 from illm_tools.intrinsic.registry import METHODS, Method
 from illm_tools.llm.backend import BACKENDS
-from illm_tools.llm.stub import StubBackend
 from illm_tools.rl.networks import GridMissionNet
 from illm_tools.registry import Registry
 from illm_tools.tasks.registry import LANGUAGE_TASKS, LanguageTask
+from test_backends import TinyBackend
 from test_suites import TINY, TinySuite
 
 runner = CliRunner()
@@ -54,16 +54,11 @@ class FlatBonus(IntrinsicBonus):
         return BonusRewards(torch.full(batch["actions"].shape, self.pay), {"flat_paid": self.pay})
 
 
-class EchoBackend(StubBackend):
-    """The stub under another name, with its own fingerprint."""
+class EchoBackend(TinyBackend):
+    """test_backends' tiny backend under another name, with its own fingerprint."""
 
     name = "echo"
     default_model = "echo:8"
-
-    @staticmethod
-    def model_fingerprint(model, *, dtype="bfloat16", quant="none"):
-        return {"model_id": f"echo:{model}", "source": "echo", "sha256": None, "revision": "1", "dtype": dtype,
-                "quant": quant}
 
 
 class RulerObservation(Observation):
