@@ -73,13 +73,17 @@ def heatmap_png(counts: np.ndarray, path: str | os.PathLike, title: str = "") ->
 
     counts = np.asarray(counts, dtype=float)
     masked = np.ma.masked_less_equal(counts, 0)
-    fig, ax = plt.subplots(figsize=(4.5, 4.0), dpi=100)
+    from mpl_toolkits.axes_grid1 import make_axes_locatable
+
+    h, w = counts.shape if counts.size else (1, 1)
+    fig, ax = plt.subplots(figsize=(4.5, min(6.0, max(1.8, 3.6 * h / max(w, 1) + 0.9))), dpi=100)
     image = ax.imshow(masked, cmap="viridis", norm=LogNorm(vmin=1, vmax=max(float(counts.max()), 1.0)),
                       interpolation="nearest")
     ax.set_xticks([])
     ax.set_yticks([])
     ax.set_title(title, fontsize=9)
-    fig.colorbar(image, ax=ax, label="visits")
+    # the colour bar as tall as the grid (a wide, flat grid no longer sits beside a bar twice its height)
+    fig.colorbar(image, cax=make_axes_locatable(ax).append_axes("right", size="4%", pad=0.08), label="visits")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
