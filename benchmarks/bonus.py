@@ -65,7 +65,7 @@ def provider_for(method, cfg: TrainConfig, cache_dir: Path, num_actions: int, fi
     annotator = GoalAwareAnnotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", tasks=tasks,
                                    history_len=cfg.history_len, chunk=10_000)
     builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
-    live = SyncLive(annotator, cfg.env_id, builder.renderer, 10**9) if fill else None
+    live = SyncLive(annotator, cfg.annotation_setup, 10**9) if fill else None
     if tasks == ("goal",):
         from illm_tools.rl.targets import GoalTargets
 

@@ -52,7 +52,7 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
         annotator = Annotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", history_len=cfg.history_len,
                                        chunk=10_000)
         builder = annotator.builder(cfg.env_id, cfg.renderer)
-        live = SyncLive(annotator, cfg.env_id, builder.renderer, cfg.live_budget) if cfg.live_budget else None
+        live = SyncLive(annotator, cfg.annotation_setup, cfg.live_budget) if cfg.live_budget else None
         provider = CachedTargets(cache, builder, calibration="sum", num_actions=len(pool.action_names),
                                  embedding_dim=DIM, live=live)
     phases: dict[str, float] = {}

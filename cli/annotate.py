@@ -2,60 +2,36 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+import inspect
 
 import typer
 
-from cli.common import API_KEY_ENV, BACKEND, DEVICE, DTYPE, ENDPOINT, MODEL, ORACLE_NOISE, QUANT, progress, stop_on_signals
+from cli.common import progress, stop_on_signals
 from cli.errors import friendly
 
+ALIASES = {"obs_mode": ("--mode",)}
+EXAMPLE = "Example: illm annotate data/traj/gotolocal --cache data/ann --model smollm2-135m --tasks action,summary"
 
-MAX_PROCESSES = 4096
-"""More annotating processes than any one launch starts (a typo, not a cluster)."""
+
+def _parameters() -> list[inspect.Parameter]:
+    """`AnnotateConfig`'s fields as options (`cli.options`; its LLM's as --backend, --model, ...)."""
+    from cli.options import dataclass_parameters
+    from illm_tools.annotate.bulk import AnnotateConfig
+
+    return dataclass_parameters(AnnotateConfig, aliases=ALIASES, arguments={"data"},
+                                extra_help={"tasks": "(paper Table 2; goal is also ELLM's)."})
 
 
 def register(app: typer.Typer) -> None:
-    @app.command(epilog="Example: illm annotate data/traj/gotolocal --cache data/ann --model smollm2-135m "
-                        "--tasks action,summary")
-    @friendly
-    def annotate(
-        data: Path = typer.Argument(..., help="Trajectory dataset written by `illm collect`."),
-        cache: Path = typer.Option(Path("data/ann"), "--cache", help="Annotation cache folder (shared across runs)."),
-        model: str = MODEL,
-        oracle_noise: float = ORACLE_NOISE,
-        endpoint: str = ENDPOINT,
-        api_key_env: str = API_KEY_ENV,
-        tasks: str = typer.Option("action,summary", "--tasks", help="Comma-separated, any combination of action, summary, goal, plan (paper Table 2; goal is also ELLM's)."),
-        history: int = typer.Option(3, "--history", help="Observation/action pairs of history in the prompts."),
-        layout: str = typer.Option("shared", "--layout", help="Templates: shared (history first, prefix computed once) or paper (as printed)."),
-        batch_size: int = typer.Option(8, "--batch-size", help="States per LLM batch."),
-        limit: int = typer.Option(None, "--limit", help="Annotate the N most visited distinct states (those not cached yet); the same --limit again annotates nothing."),
-        max_minutes: float = typer.Option(None, "--max-minutes", help="Stop after M minutes, keeping every finished chunk; run again to go on."),
-        dtype: str = DTYPE,
-        quant: str = QUANT,
-        mode: str = typer.Option("obs", "--mode", help="obs: the states' text | hop: the raw observations translated into the LLM's embedding space (iLLM(hop); any suite, Atari included)."),
-        hop_seed: int = typer.Option(0, "--hop-seed", help="hop: seed of the translation's random projection (the run's --hop-seed)."),
-        hop_beta: float = typer.Option(100.0, "--hop-beta", help="hop: inverse temperature of the Hopfield retrieval (the run's --hop-beta)."),
-        backend: str = BACKEND,
-        device: str = DEVICE,
-        num_processes: int = typer.Option(1, "--num-processes", help="Annotate with N processes: runs `accelerate launch --num_processes N` on this command (the states are split between them)."),
-    ) -> None:
+    def annotate(**options) -> None:
         """Annotate every distinct state once with the LLM, into the shared cache: its next-action ranking
         and 64-token summary, and the goal and plan tasks when --tasks names them."""
+        from cli.options import config_from_options
         from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset, distributed_state
-        from illm_tools.errors import UsageError
-        from illm_tools.llm.backend import resolve_model
 
-        if not 1 <= num_processes <= MAX_PROCESSES:
-            raise UsageError(f"--num-processes must be between 1 and {MAX_PROCESSES:,}, got {num_processes}")
-
-        model = resolve_model(backend, model, oracle_noise=oracle_noise, endpoint=endpoint, api_key_env=api_key_env)
-        config = AnnotateConfig(data=data, cache=cache, model=model, tasks=tasks,
-                                history=history, layout=layout, batch_size=batch_size, limit=limit, max_minutes=max_minutes,
-                                dtype=dtype, quant=quant, obs_mode=mode, hop_seed=hop_seed, hop_beta=hop_beta,
-                                device=device, backend=backend)
-        if num_processes > 1 and distributed_state() is None:
-            raise typer.Exit(launch(num_processes, device))
+        config = config_from_options(AnnotateConfig, options)
+        if config.num_processes > 1 and distributed_state() is None:
+            raise typer.Exit(launch(config.num_processes, config.llm.device))
         state = distributed_state()
         if state is None:
             return annotate_and_report(config)
@@ -68,12 +44,15 @@ def register(app: typer.Typer) -> None:
         finally:
             state.destroy_process_group()
 
+    annotate.__signature__ = inspect.Signature(_parameters())
+    app.command(epilog=EXAMPLE)(friendly(annotate))
+
 
 def annotate_and_report(config) -> None:
     """The main process's annotation with its progress bar and closing lines."""
     from illm_tools.annotate.bulk import annotate_dataset
 
-    model, cache = config.llm_model, config.cache
+    model, cache = config.llm.model, config.cache
     with stop_on_signals("the chunk in progress (written whole)") as stop, \
             progress(0, f"annotate {model}", unit="states") as advance:
         def on_plan(stats, todo: int) -> None:

@@ -125,26 +125,3 @@ def stop_on_signals(what: str) -> Iterator[Stop]:
 def score_text(value: float | None) -> str:
     """A suite's score for people: "-" while no episode has ended (NaN), else 2 decimals."""
     return "-" if value is None or value != value else f"{value:.2f}"
-
-
-# The options that choose and place an LLM, shared by the commands that load one (annotate, serve,
-# probe): one definition each, so their flags, defaults and help never drift apart.
-MODEL = typer.Option(None, "--model", show_default=False,
-                     help="Alias (see `illm models`), hub id or local folder; default: the backend's "
-                          "(smollm2-135m for transformers, oracle for oracle).")
-ORACLE_NOISE = typer.Option(0.0, "--oracle-noise",
-                            help="oracle: the share of states (fixed, keyed by the state) answered at random; "
-                                 "1 is an annotator that knows nothing (part of every key).")
-DTYPE = typer.Option("auto", "--dtype", help="Compute dtype: auto | bfloat16 | float32 | float16; auto: bfloat16 on CUDA, and "
-                     "on a CPU where a timed matmul says it is faster than float32, else float32 (measured once per "
-                     "machine). The resolved dtype is part of every cache key.")
-QUANT = typer.Option("none", "--quant", help="bitsandbytes quantisation: none | 4bit | 8bit (part of every cache key).")
-BACKEND = typer.Option("transformers", "--backend",
-                       help="LLM backend: transformers | oracle (a rule-based annotator that knows BabyAI/MiniGrid: "
-                            "the positive control) | openai (an OpenAI-compatible server: vLLM, ...; with --endpoint) | "
-                            "stub (deterministic answers from the prompt, no weights; for tests).")
-ENDPOINT = typer.Option(None, "--endpoint", help="openai: the server's OpenAI base URL, e.g. http://127.0.0.1:8000/v1 "
-                                                 "(--model is the model as it serves it).")
-API_KEY_ENV = typer.Option(None, "--api-key-env", help="openai: the environment variable holding the server's API key "
-                                                       "(default OPENAI_API_KEY).")
-DEVICE = typer.Option("cpu", "--device", help="cpu | cuda | cuda:N | auto (with several processes each takes its own GPU).")

@@ -67,15 +67,15 @@ def coverage(
     the episodes against the other half's steps)."""
     from illm_tools.annotate.coverage import TOP_K, measure_coverage
     from illm_tools.errors import UsageError
-    from illm_tools.llm.backend import resolve_model
+    from illm_tools.llm.spec import LLMSpec
 
     if not path.is_dir():
         raise UsageError(f"no trajectory dataset at {path}: pass a folder `illm collect` wrote")
     if cache is not None and not cache.is_dir():
         raise UsageError(f"no annotation cache at {cache}: check the path, or leave --cache out to see only the costs")
 
-    rows = measure_coverage(path, cache=cache, histories=history, model=resolve_model(backend, model, oracle_noise=oracle_noise, endpoint=endpoint),
-                            dtype=dtype, quant=quant, layout=layout, tasks=tasks, backend=backend)
+    llm = LLMSpec(backend=backend, model=model, dtype=dtype, quant=quant, oracle_noise=oracle_noise, endpoint=endpoint)
+    rows = measure_coverage(path, cache=cache, histories=history, llm=llm, layout=layout, tasks=tasks)
     if as_json:
         emit_json(rows)
         return

@@ -6,7 +6,9 @@ Hand-written on Typer because tyro would replace the Typer app (and its one-line
 layout and the other commands); Typer reads a command's `inspect.Signature`, so the generated
 parameters are given to it as one. A field may carry a short alias kept from the documented
 command line (`--frames` for `total_steps`); dict fields are repeatable `--x-option KEY=VALUE`
-options; bool fields are `--x/--no-x` flags.
+options; bool fields are `--x/--no-x` flags; `arguments` are positional (a list field: several).
+A field whose type is itself a dataclass (a stage's `llm: LLMSpec`) is flattened: its fields are
+options of their own (`--model`, `--dtype`), gathered back into it by `config_from_options`.
 """
 
 from __future__ import annotations
@@ -49,14 +51,18 @@ def _optional(hint: Any) -> tuple[Any, bool]:
     return hint, False
 
 
-def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]], dict_flags: dict[str, str],
-                         exclude: set[str], defaults: dict[str, Any], required: set[str],
-                         extra_help: dict[str, str]) -> list[inspect.Parameter]:
+def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]] | None = None,
+                         dict_flags: dict[str, str] | None = None, exclude: set[str] = frozenset(),
+                         defaults: dict[str, Any] | None = None, required: set[str] = frozenset(),
+                         extra_help: dict[str, str] | None = None,
+                         arguments: set[str] = frozenset()) -> list[inspect.Parameter]:
     """One keyword parameter per field of `cls` (minus `exclude`) with a `typer.Option` default.
 
     aliases: field -> an extra flag kept from the documented CLI (a tuple: the only flags); dict_flags: dict field -> its
     repeatable KEY=VALUE flag; defaults: CLI defaults that differ from the field's (e.g. None for
-    "take it from a preset"); required: fields the command needs; extra_help: appended to help."""
+    "take it from a preset"); required: fields the command needs; extra_help: appended to help;
+    arguments: positional fields (required)."""
+    aliases, dict_flags, defaults, extra_help = aliases or {}, dict_flags or {}, defaults or {}, extra_help or {}
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     params = []
@@ -64,7 +70,16 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
         if f.name in exclude:
             continue
         hint, nullable = _optional(hints[f.name])
+        if dataclasses.is_dataclass(hint):  # a nested config: its fields are options of their own
+            params += dataclass_parameters(hint, aliases=aliases, dict_flags=dict_flags, exclude=exclude,
+                                           defaults=defaults, required=required, extra_help=extra_help)
+            continue
         help_text = " ".join(filter(None, [docs.get(f.name, ""), extra_help.get(f.name, "")]))
+        if f.name in arguments:
+            params.append(inspect.Parameter(f.name, inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                            annotation=list[Path] if typing.get_origin(hint) in (list, tuple) else hint,
+                                            default=typer.Argument(..., help=help_text)))
+            continue
         if f.name in dict_flags:
             decls, annotation, default = [dict_flags[f.name]], list[str], None
             help_text += " Repeatable KEY=VALUE."
@@ -96,18 +111,28 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
     return params
 
 
-def config_from_options(cls: type, options: dict, dict_flags: dict[str, str]):
+def config_from_options(cls: type, options: dict, dict_flags: dict[str, str] | None = None):
     """The config `cls` from a generated command's options (`dataclass_parameters`): repeatable
     KEY=VALUE options parsed into their dict fields, comma-separated ones into tuples; `cls`
     validates the rest in its `__post_init__` (a bad value: one line)."""
     from illm_tools.settings import parse_pairs
 
+    dict_flags = dict_flags or {}
     hints = typing.get_type_hints(cls)
     fields = dict(options)
+    for f in dataclasses.fields(cls):
+        hint, _ = _optional(hints[f.name])
+        if dataclasses.is_dataclass(hint) and f.name not in fields:  # a nested config from its own options
+            names = {g.name for g in dataclasses.fields(hint)}
+            fields[f.name] = config_from_options(hint, {k: fields.pop(k) for k in list(fields) if k in names},
+                                                 dict_flags)
     for name, option in dict_flags.items():
-        fields[name] = parse_pairs(options.get(name), option)
-    for name, value in options.items():
+        if name in hints:
+            fields[name] = parse_pairs(fields.get(name), option)
+    for name, value in list(fields.items()):
         hint, _ = _optional(hints.get(name))
         if typing.get_origin(hint) is tuple and isinstance(value, str):
             fields[name] = tuple(v.strip() for v in value.split(",") if v.strip())
+        elif typing.get_origin(hint) is tuple and isinstance(value, list):  # a positional list
+            fields[name] = tuple(value)
     return cls(**fields)

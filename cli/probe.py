@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import API_KEY_ENV, ENDPOINT, ORACLE_NOISE, emit_json, progress
+from cli.common import emit_json, progress
 from cli.errors import friendly
 
 
@@ -16,15 +16,13 @@ EXAMPLE = "Example: illm probe --env BabyAI-GoToLocal-v0 --model smollm2-135m --
 
 
 def _parameters() -> list[inspect.Parameter]:
-    """`ProbeConfig`'s fields as options (`cli.options`), then what only the command reads: how the
-    model is named (the oracle's noise, an OpenAI endpoint) and where the figures go."""
+    """`ProbeConfig`'s fields as options (`cli.options`; its LLM's as --backend, --model, ...), then
+    what only the command reads: where the figures go."""
     from cli.options import dataclass_parameters
     from illm_tools.probe import ProbeConfig
 
-    params = dataclass_parameters(ProbeConfig, aliases=ALIASES, dict_flags={}, exclude=set(), defaults={},
-                                  required=set(), extra_help={})
-    extra = [("oracle_noise", float, ORACLE_NOISE), ("endpoint", str, ENDPOINT), ("api_key_env", str, API_KEY_ENV),
-             ("as_json", bool, typer.Option(False, "--json", help="Print the figures as JSON.")),
+    params = dataclass_parameters(ProbeConfig, aliases=ALIASES)
+    extra = [("as_json", bool, typer.Option(False, "--json", help="Print the figures as JSON.")),
              ("out", Path, typer.Option(None, "--out", help="Also write the figures as JSON to this file."))]
     return params + [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=kind, default=default)
                      for name, kind, default in extra]
@@ -38,15 +36,11 @@ def register(app: typer.Typer) -> None:
         import json
 
         from cli.options import config_from_options
-        from illm_tools.llm.backend import check_backend, resolve_model
         from illm_tools.probe import ProbeConfig, probe as run
 
         as_json, out = options.pop("as_json"), options.pop("out")
-        naming = {k: options.pop(k) for k in ("oracle_noise", "endpoint", "api_key_env")}
-        check_backend(options["backend"])
-        options["model"] = resolve_model(options["backend"], options["model"], **naming)
-        config = config_from_options(ProbeConfig, options, {})
-        model, env, backend, quant = config.model, config.env_id, config.backend, config.quant
+        config = config_from_options(ProbeConfig, options)
+        model, env, backend, quant = config.llm.model, config.env_id, config.llm.backend, config.llm.quant
         history, epsilon = config.history, config.epsilon
         with progress(0, f"probe {model}", unit="states") as advance:
             done = [0]

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from illm_tools.errors import UsageError
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.tasks.calibration import CALIBRATIONS, action_distribution, action_scores
 from illm_tools.tasks.state import StateRecord
 
@@ -151,9 +152,8 @@ class ProbeConfig:
 
     env_id: str = "BabyAI-GoToLocal-v0"
     """A BabyAI level (the expert is minigrid's BabyAI bot)."""
-    model: str | None = None
-    """The LLM: an alias (see `illm models`), hub id or local folder; default: the backend's own
-    (smollm2-135m for transformers, oracle for oracle)."""
+    llm: LLMSpec = field(default_factory=LLMSpec)
+    """The LLM probed (`illm_tools.llm.spec`)."""
     states: int = 400
     """States to probe, from the bot's episodes."""
     history: int = 0
@@ -166,26 +166,15 @@ class ProbeConfig:
     """original | augmented | irrelevant | auto (as `illm collect`)."""
     layout: str = "shared"
     """Prompt templates, as `illm annotate --layout`."""
-    dtype: str = "auto"
-    """Compute dtype: auto | bfloat16 | float32 | float16; auto: bfloat16 on CUDA, and on a CPU where a
-    timed matmul says it is faster than float32 (measured once per machine)."""
-    quant: str = "none"
-    """bitsandbytes quantisation: none, 4bit or 8bit."""
-    backend: str = "transformers"
-    """LLM backend: transformers | oracle (a rule-based annotator that knows BabyAI/MiniGrid) | openai (an
-    OpenAI-compatible server, with --endpoint) | stub (deterministic answers, no weights; for tests)."""
-    device: str = "cpu"
-    """Where the model runs: cpu, cuda, cuda:N or auto."""
     batch_size: int = 8
     """States per LLM batch."""
 
     def __post_init__(self) -> None:
         from illm_tools.settings import check_numbers
 
+        if isinstance(self.llm, dict):  # as a probe file writes it
+            self.llm = LLMSpec(**self.llm)
         check_numbers(self, positive=("states", "batch_size"), non_negative=("history", "seed"), unit=("epsilon",))
-        from illm_tools.devices import check_device
-
-        check_device(self.device)
 
 
 @dataclass
@@ -264,32 +253,28 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
     """Collect the expert's states, score their actions with the LLM, compute every metric.
     `on_states` hears the collected states (before the model loads); `on_progress(done, total)`
     the distinct states scored so far."""
-    from illm_tools.devices import resolve_device
-    from illm_tools.keys import fingerprint_hash
+    import dataclasses
+
     from illm_tools.envs import renderer_of
-    from illm_tools.llm.backend import check_backend_use, load_backend, resolve_model
-    from illm_tools.tasks.prompts import PromptBuilder
+    from illm_tools.keys import fingerprint_hash
+    from illm_tools.tasks.setup import AnnotationSetup
 
     data = expert_states(cfg.env_id, cfg.states, history=cfg.history, seed=cfg.seed, epsilon=cfg.epsilon,
                          action_space=cfg.action_space)
     if on_states is not None:
         on_states(data)
-    model = resolve_model(cfg.backend, cfg.model)
-    check_backend_use(cfg.backend, cfg.env_id, renderer_of(cfg.env_id))
-    from illm_tools.llm.backend import backend_dtype
-
-    device = resolve_device(cfg.device)
-    lm = load_backend(cfg.backend, model, dtype=backend_dtype(cfg.backend, cfg.dtype, device), quant=cfg.quant,
-                      device=device)
-    builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer_of(cfg.env_id), model=model,
-                            model_fingerprint=fingerprint_hash(lm.fingerprint), history_len=cfg.history,
-                            layout=cfg.layout)
+    setup = AnnotationSetup(cfg.env_id, renderer_of(cfg.env_id), ("action",), cfg.history, cfg.layout)
+    cfg.llm.check_use(setup.env_id, setup.renderer)
+    llm = cfg.llm.placed()
+    lm = llm.load()
+    builder = setup.builder(llm.model, fingerprint_hash(lm.fingerprint))
     sums, counts, neutral_sums = score_records(lm, builder, data.records, batch_size=cfg.batch_size,
                                                on_progress=on_progress)
     expert = data.expert
     freq = np.bincount(expert, minlength=len(data.actions)) / len(expert)
     result = ProbeResult(
-        config={**cfg.__dict__, "model": model, "dtype": lm.fingerprint.get("dtype", cfg.dtype)},  # as resolved
+        config={**{k: v for k, v in cfg.__dict__.items() if k != "llm"}, **dataclasses.asdict(llm),  # as resolved
+                "dtype": lm.fingerprint.get("dtype", llm.dtype)},
         actions=data.actions, states=len(expert),
         distinct_states=len(set(data.records)), episodes=data.episodes, skipped=data.skipped,
         bot_failures=data.bot_failures, expert_share={n: float(f) for n, f in zip(data.actions, freq)},

@@ -43,10 +43,14 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from illm_tools.annotate.wire import record_to_json  # noqa: F401  (the request format: re-exported)
+from illm_tools.errors import UsageError
+from illm_tools.llm.spec import LLMSpec
+from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
@@ -65,22 +69,42 @@ class RequestError(ValueError):
         self.status = status
 
 
-@dataclass(frozen=True)
-class Setup:
-    """What, besides the state, decides a request's keys: one prompt builder per setup."""
+@dataclass
+class ServeConfig:
+    """An `illm serve` server: the cache it writes, the LLM it loads, where it listens, how it batches."""
 
-    env_id: str
-    renderer: str
-    history_len: int
-    layout: str
-    tasks: tuple[str, ...]
+    cache: Path = Path("data/ann")
+    """Annotation cache the answers go to (the trainers' --cache)."""
+    llm: LLMSpec = field(default_factory=LLMSpec)
+    """The LLM that answers; none of its options given: the cache's one model setup (`adopt_model`)."""
+    port: int = 8765
+    """TCP port (0: any free one, printed when ready)."""
+    host: str = "127.0.0.1"
+    """Address to listen on (localhost by default: the server has no authentication)."""
+    batch_size: int = 8
+    """States per LLM batch."""
+    chunk: int = 16
+    """States taken per round across all trainers (highest visit counts first), written as one shard."""
+    threads: int = 0
+    """Torch threads of the model; 0: every core."""
+
+    def __post_init__(self) -> None:
+        from illm_tools.settings import check_folder, check_numbers
+
+        self.cache = Path(self.cache)
+        if isinstance(self.llm, dict):
+            self.llm = LLMSpec(**self.llm)
+        check_numbers(self, positive=("batch_size", "chunk"), non_negative=("threads", "port"))
+        if self.port >= 65536:
+            raise UsageError(f"--port must be in 0..65535, got {self.port}")
+        check_folder(self.cache, "--cache")
 
 
 @dataclass
 class Pending:
     """One state waiting, with the clients that asked for it and their summed visits."""
 
-    setup: Setup
+    setup: AnnotationSetup
     record: StateRecord
     visits: int
     clients: set[str] = field(default_factory=set)
@@ -150,16 +174,15 @@ def parse_state(item, hop: bool = False) -> tuple[StateRecord, int]:
 class AnnotationServer:
     """The queue, the scheduler and the model behind `illm serve` (the HTTP layer is `make_app`)."""
 
-    def __init__(self, lm, cache, *, model: str, batch_size: int = 8, chunk: int = 16, dtype: str = "",
-                 quant: str = ""):
+    def __init__(self, lm, cache, *, llm: LLMSpec, batch_size: int = 8, chunk: int = 16):
         from illm_tools.keys import fingerprint_hash
         from illm_tools.llm.backend import as_backend
 
         self.lm = as_backend(lm)
         self.cache = cache
-        self.model = model
-        self.setup = {"model": model, "dtype": dtype, "quant": quant}
-        """The options the model was loaded with (for a trainer's message when its own differ)."""
+        self.llm = llm
+        """The model as it was loaded (placed: its device and dtype resolved)."""
+        self.model = llm.model
         self.batch_size, self.chunk = batch_size, chunk
         self.annotating = 0
         """States in the batch being annotated now (0: idle)."""
@@ -176,42 +199,23 @@ class AnnotationServer:
     # --- requests ------------------------------------------------------------------------------
     def submit(self, body) -> dict:
         """Queue a parsed request body for its client (replacing the client's pending list)."""
-        from illm_tools.tasks.prompts import LAYOUTS
-        from illm_tools.tasks.registry import parse_tasks
-
         if not isinstance(body, dict):
             raise RequestError(400, "the request body must be a JSON object")
-        missing = [k for k in ("client", "model_fingerprint", "env_id", "renderer", "history_len", "layout", "tasks",
-                               "states") if k not in body]
+        missing = [k for k in ("client", "model_fingerprint", "states") if k not in body]
         if missing:
             raise RequestError(400, f"the request lacks {', '.join(missing)}")
         client = _text(body["client"], "client")
         if body["model_fingerprint"] != self.fingerprint:
-            raise RequestError(409, f"this server annotates with {self._options()} (fingerprint {self.fingerprint}); "
+            raise RequestError(409, f"this server annotates with {self.llm.options()} (fingerprint {self.fingerprint}); "
                                     f"the request's fingerprint {body['model_fingerprint']!r} is another model setup: "
                                     "train with the server's --model, --dtype and --quant, or start a server for yours")
-        if body["layout"] not in LAYOUTS:
-            raise RequestError(400, f"layout must be one of {', '.join(LAYOUTS)}, got {body['layout']!r}")
-        history_len = body["history_len"]
-        if not isinstance(history_len, int) or isinstance(history_len, bool) or history_len < 0:
-            raise RequestError(400, f"history_len must be a whole number >= 0, got {history_len!r}")
-        renderer = _text(body["renderer"], "renderer")
-        hop = renderer.startswith("hop@")
-        if hop:
-            from illm_tools.hop.context import parse_hop_renderer
-
-            try:
-                parse_hop_renderer(renderer)
-            except (KeyError, ValueError):
-                raise RequestError(400, f"renderer {renderer!r} is not a hop renderer (hop@1:seed=..:beta=..:window=..)") \
-                    from None
         try:
-            tasks = parse_tasks(body["tasks"], "tasks")
-        except Exception as e:  # noqa: BLE001 - any bad task list is the client's error
+            setup = AnnotationSetup.from_wire(body)
+        except UsageError as e:  # any bad setup field is the client's error
             raise RequestError(400, str(e)) from None
         if not isinstance(body["states"], list):
             raise RequestError(400, "states must be a list")
-        setup = Setup(_text(body["env_id"], "env_id"), renderer, history_len, body["layout"], tasks)
+        hop, history_len = setup.hop, setup.history_len
         entries = {}
         for item in body["states"]:
             record, visits = parse_state(item, hop)
@@ -229,9 +233,6 @@ class AnnotationServer:
         landed = self._landed.pop(client, 0)
         return {"queued": len(entries), "queue": self.queue_size(), "landed": landed}
 
-    def _options(self) -> str:
-        return " ".join(f"--{k} {v}" for k, v in self.setup.items() if v)
-
     def queue_size(self) -> int:
         return len({k for entries in self._clients.values() for k in entries})
 
@@ -239,7 +240,7 @@ class AnnotationServer:
         """The queue, totals and throughput (GET /stats)."""
         busy = self.totals["seconds"]
         up = time.time() - self.started
-        return {"protocol": PROTOCOL, "model": self.model, "model_options": self._options(),
+        return {"protocol": PROTOCOL, "model": self.model, "model_options": self.llm.options(),
                 "model_fingerprint": self.fingerprint, "cache": str(self.cache.root), "queue": self.queue_size(),
                 "annotating": self.annotating, "clients": len(self._clients),
                 "annotated_states": self.totals["states"], "rows": self.totals["rows"],
@@ -271,14 +272,13 @@ class AnnotationServer:
                 del self._clients[client]
         return batch
 
-    def annotator(self, setup: Setup):
+    def annotator(self, setup: AnnotationSetup):
         from illm_tools.annotate.engine import Annotator
 
         key = (setup.history_len, setup.layout, setup.tasks)
         if key not in self._annotators:
-            self._annotators[key] = Annotator(self.lm, self.cache, model=self.model, tasks=setup.tasks,
-                                              history_len=setup.history_len, layout=setup.layout,
-                                              batch_size=self.batch_size, chunk=self.chunk)
+            self._annotators[key] = Annotator.of_setup(self.lm, self.cache, self.llm, setup,
+                                                       batch_size=self.batch_size, chunk=self.chunk)
         return self._annotators[key]
 
     def annotate(self, batch: Sequence[Pending]) -> tuple[int, int]:
@@ -286,7 +286,7 @@ class AnnotationServer:
         the cache lacks of it, one shard per setup; returns (states annotated, rows written)."""
         self.cache.refresh()  # trainers and other servers may have written meanwhile
         done = rows = 0
-        by_setup: dict[Setup, list[Pending]] = {}
+        by_setup: dict[AnnotationSetup, list[Pending]] = {}
         for p in batch:
             by_setup.setdefault(p.setup, []).append(p)
         for setup, items in by_setup.items():

@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from conftest import collect_babyai
+from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.cache.verify import verify
@@ -34,7 +36,7 @@ def trajectories(tmp_path_factory):
 
 
 def config(trajectories, cache, tiny_lm, **kw) -> AnnotateConfig:
-    return AnnotateConfig(data=trajectories, cache=cache, model=tiny_lm.spec.path, dtype="float32",
+    return AnnotateConfig(data=trajectories, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"),
                           batch_size=4, chunk=8, **kw)
 
 
@@ -102,7 +104,7 @@ def _annotate_in_process(args):
     import os
 
     os.environ["ILLM_CACHE_DIR"] = cache_dir
-    stats = annotate_dataset(AnnotateConfig(data=trajectories, cache=cache, model=model, dtype="float32",
+    stats = annotate_dataset(AnnotateConfig(data=trajectories, cache=cache, llm=LLMSpec(model=model, dtype="float32"),
                                             batch_size=4, chunk=4)).stats
     return stats.keys
 
@@ -147,7 +149,7 @@ def test_trainer_keys_hit_the_rows_annotate_wrote_and_live_fallback_writes_back(
     unseen = [StateRecord("go to the purple key", (), f"You see a purple key {k} steps forward", ACTIONS)
               for k in range(1, 6)]
     live = CachedTargets(ann, builder, calibration="sum", num_actions=6, embedding_dim=tiny_lm.hidden_size,
-                         live=SyncLive(annotator, ENV, "babyai-text@1", budget=3))
+                         live=SyncLive(annotator, AnnotationSetup(ENV, "babyai-text@1"), budget=3))
     first = live.targets(unseen + unseen[:1])
     assert first.mask.tolist() == [True, True, True, False, False, True]
     assert live.stats()["live_annotations"] == 3

@@ -17,6 +17,8 @@ from typer.testing import CliRunner
 
 from conftest import collect_babyai
 from cli.main import app
+from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 from illm_tools.annotate.coverage import VisitedStates, heldout_curve, measure_coverage
 from illm_tools.annotate.engine import Annotator
@@ -44,7 +46,7 @@ def trajectories(tmp_path_factory):
 
 
 def config(trajectories, cache, tiny_lm, **kw) -> AnnotateConfig:
-    return AnnotateConfig(data=trajectories, cache=cache, model=tiny_lm.spec.path, dtype="float32", history=0,
+    return AnnotateConfig(data=trajectories, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), history=0,
                           batch_size=4, chunk=4, **kw)
 
 
@@ -105,7 +107,7 @@ def test_the_heldout_curve_counts_the_other_episodes_steps_only():
 def test_data_coverage_reports_costs_and_what_the_cache_answers(trajectories, tmp_path, tiny_lm):
     cache = tmp_path / "ann"
     annotate_dataset(config(trajectories, cache, tiny_lm, limit=5))
-    rows = measure_coverage(trajectories, cache=cache, histories=[0, 3], model=tiny_lm.spec.path, dtype="float32")
+    rows = measure_coverage(trajectories, cache=cache, histories=[0, 3], llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"))
     assert [r["history"] for r in rows] == [0, 3] and rows[0]["steps"] == rows[1]["steps"]
     assert rows[0]["distinct_states"] < rows[1]["distinct_states"]
     assert rows[0]["cached_states"] == 5 and rows[1]["cached_states"] == 0
@@ -143,7 +145,7 @@ def test_cache_info_names_each_setup_with_the_options_that_select_it(trajectorie
 def test_sync_live_budget_goes_to_the_states_visited_most_over_the_run(tmp_path, tiny_lm):
     cache = AnnotationCache(tmp_path / "ann")
     annotator = Annotator(tiny_lm, cache, model=tiny_lm.spec.path, history_len=0, batch_size=4)
-    live = SyncLive(annotator, ENV, "babyai-text@1", budget=1)
+    live = SyncLive(annotator, AnnotationSetup(ENV, "babyai-text@1"), budget=1)
     targets = CachedTargets(cache, _builder(tiny_lm), calibration="sum", num_actions=3,
                             embedding_dim=tiny_lm.hidden_size, live=live)
     targets._count_visits([state(2)] * 5)  # earlier rollouts visited state 2 most
@@ -155,17 +157,17 @@ def test_the_cache_refuses_a_run_of_another_setup_naming_what_differs(trajectori
     cache = tmp_path / "ann"
     annotate_dataset(config(trajectories, cache, tiny_lm, limit=3))
     ann = AnnotationCache(cache)
-    check_setup(ann, _builder(tiny_lm, 0), model=tiny_lm.spec.path, dtype="float32", quant="none")
+    check_setup(ann, _builder(tiny_lm, 0), llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"))
     with pytest.raises(CacheError, match=r"holds --history 0 annotations .*this run asks for --history 3"):
-        check_setup(ann, _builder(tiny_lm, 3), model=tiny_lm.spec.path, dtype="float32", quant="none")
+        check_setup(ann, _builder(tiny_lm, 3), llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"))
     from dataclasses import replace
 
     paper = replace(_builder(tiny_lm, 0), layout="paper")
     with pytest.raises(CacheError, match=r"holds no action annotations .*--layout shared.*asks for --layout paper"):
-        check_setup(ann, paper, model=tiny_lm.spec.path, dtype="float32", quant="none")
+        check_setup(ann, paper, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"))
     other = replace(_builder(tiny_lm, 0), model_fingerprint="f" * 64)
     with pytest.raises(CacheError, match=r"--dtype float32 --quant none annotations.*--new-setup"):
-        check_setup(ann, other, model=tiny_lm.spec.path, dtype="bfloat16", quant="none")
+        check_setup(ann, other, llm=LLMSpec(model=tiny_lm.spec.path, dtype="bfloat16"))
 
 
 def test_train_refuses_another_setup_in_one_line_and_new_setup_accepts_it(trajectories, tmp_path, tiny_lm):
@@ -193,8 +195,8 @@ def _wait(predicate, seconds: float = 120.0) -> bool:
 @pytest.mark.slow
 def test_async_worker_rows_reach_a_later_rollout_and_a_killed_worker_leaves_the_run_going(tmp_path, tiny_lm):
     cache = AnnotationCache(tmp_path / "ann")
-    spec = WorkerSpec(cache=str(cache.root), model=tiny_lm.spec.path, dtype="float32", quant="none", env_id=ENV,
-                      renderer="babyai-text@1", history_len=0, layout="shared", threads=1, batch_size=4, chunk=2)
+    spec = WorkerSpec(cache=str(cache.root), llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"),
+                      setup=AnnotationSetup(ENV, "babyai-text@1", history_len=0), threads=1, batch_size=4, chunk=2)
     live = AsyncLive(spec, budget=6, max_restarts=1)
     targets = CachedTargets(cache, _builder(tiny_lm), calibration="sum", num_actions=3,
                             embedding_dim=tiny_lm.hidden_size, live=live)
@@ -225,7 +227,7 @@ def test_async_worker_rows_reach_a_later_rollout_and_a_killed_worker_leaves_the_
 def test_train_with_async_live_annotation_logs_its_queue(tmp_path, tiny_lm):
     traj, cache = tmp_path / "traj", tmp_path / "ann"
     collect(CollectConfig(env_id=ENV, out=traj, steps=64, num_envs=4, seed=1))
-    annotate_dataset(AnnotateConfig(data=traj, cache=cache, model=tiny_lm.spec.path, dtype="float32", history=0,
+    annotate_dataset(AnnotateConfig(data=traj, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), history=0,
                                     limit=4, batch_size=4))
     out = runner.invoke(app, [str(a) for a in [
         "train", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype", "float32", "--history", 0,

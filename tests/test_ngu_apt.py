@@ -18,6 +18,7 @@ import torch
 from typer.testing import CliRunner
 
 from cli.main import app
+from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.annotate.engine import Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
@@ -349,7 +350,7 @@ def test_illm_shuffled_is_illm_on_shuffled_targets_end_to_end(tmp_path, monkeypa
     cache = AnnotationCache(tmp_path / "ann")
     annotator = Annotator(StubBackend(f"synthetic:{DIM}"), cache, model=f"synthetic:{DIM}", history_len=3, chunk=64)
     plain = CachedTargets(cache, annotator.builder(ENV, RENDERER), calibration="sum", num_actions=6,
-                          embedding_dim=DIM, live=SyncLive(annotator, ENV, RENDERER, budget=10**6))
+                          embedding_dim=DIM, live=SyncLive(annotator, AnnotationSetup(ENV, RENDERER), budget=10**6))
     common = dict(num_envs=4, num_steps=32, total_steps=128, tensorboard=False, update_epochs=1, num_minibatches=2,
                   embedding_dim=DIM, head_hidden=32, cache=tmp_path / "ann", model=f"synthetic:{DIM}", backend="stub",
                   live_budget=0)

@@ -19,6 +19,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.cache import AnnotationCache, verify
 from illm_tools.keys import fingerprint_hash
 from illm_tools.llm.stub import StubBackend
@@ -29,6 +30,7 @@ runner = CliRunner()
 ENV = "BabyAI-GoToLocal-v0"
 ACTIONS = ("turn left", "turn right", "go forward")
 MODEL = "stub:16"
+LLM = LLMSpec(backend="stub", model=MODEL, dtype="float32")
 FINGERPRINT = fingerprint_hash(StubBackend(MODEL).fingerprint)
 
 
@@ -45,7 +47,7 @@ def request(pending, client="run-a", **changes) -> dict:
 
 
 def test_the_scheduler_takes_the_most_visited_states_across_clients_once(tmp_path):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), model=MODEL, chunk=3)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, chunk=3)
     assert server.submit(request([(state(1), 5), (state(2), 1)], client="a"))["queued"] == 2
     assert server.submit(request([(state(2), 9), (state(3), 2), (state(4), 1)], client="b"))["queue"] == 4
     batch = server.next_batch()  # state 2: 1 + 9 visits from two runs, one entry
@@ -69,7 +71,7 @@ def test_the_scheduler_takes_the_most_visited_states_across_clients_once(tmp_pat
     ({"states": [{**record_to_json(state(1)), "visits": "many"}]}, 400, "visits must be"),
 ])
 def test_malformed_requests_are_refused_with_their_reason(tmp_path, change, status, message):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), model=MODEL)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM)
     with pytest.raises(RequestError, match=message) as e:
         server.submit(request([(state(1), 1)], **change))
     assert e.value.status == status and server.queue_size() == 0
@@ -161,7 +163,7 @@ def test_a_trainer_of_another_model_setup_is_refused_by_the_server_in_one_line(t
     out = runner.invoke(app, ["train", "--env", ENV, "--method", "illm", "--cache", str(tmp_path / "ann"),
                               "--backend", "stub", "--model", "stub:24", "--history", "0", "--num-envs", "2",
                               "--num-steps", "16", "--frames", "32", "--annotator", url, "--out", str(tmp_path / "r")])
-    assert out.exit_code == 1 and "annotates with --model stub:16 --dtype float32 --quant none, another model setup than this run's --model stub:24" in out.output
+    assert out.exit_code == 1 and "annotates with --backend stub --model stub:16 --dtype float32 --quant none, another model setup than this run's --backend stub --model stub:24" in out.output
     assert len(out.output.strip().splitlines()) == 1
 
 
@@ -184,7 +186,7 @@ def hop_states(n: int = 3):
 def test_hop_states_travel_with_their_window_and_a_forged_one_is_refused(tmp_path):
     from illm_tools.hop.context import hop_renderer
 
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), model=MODEL)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM)
     records = hop_states()
     hop = {"renderer": hop_renderer(0, 1.0, 2), "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
     body = request([(r, 1) for r in records], **hop)

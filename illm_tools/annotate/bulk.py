@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from illm_tools.annotate.engine import Annotator, Stats
-from illm_tools.devices import check_device, resolve_device
 from illm_tools.errors import UsageError
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS
 from illm_tools.tasks.registry import get_task, parse_tasks
 
 
+MAX_PROCESSES = 4096
+"""More annotating processes than any one launch starts (a typo, not a cluster)."""
 DEFAULT_CHUNK = 32
 """States per written shard for a backend that names none (an LLM: about 20 s on 2 CPU cores)."""
 
@@ -25,12 +27,9 @@ class AnnotateConfig:
     """Trajectory dataset written by `illm collect`."""
     cache: Path = Path("data/ann")
     """Annotation cache folder (created if absent; shared by every run that reads it)."""
-    model: str | None = None
-    """Model alias (see `illm models`), hub id or local folder; None: the backend's own
-    (`illm_tools.llm.backend.resolve_model`: smollm2-135m for transformers, oracle for oracle)."""
-    backend: str = "transformers"
-    """LLM backend (`illm_tools.llm.backend`): transformers, oracle (knows BabyAI/MiniGrid), or stub
-    (deterministic, no weights)."""
+    llm: LLMSpec = field(default_factory=LLMSpec)
+    """The LLM that annotates (`illm_tools.llm.spec`); under `accelerate launch` (or --num-processes)
+    each process takes its own device for cuda/auto."""
     tasks: tuple[str, ...] = DEFAULT_TASKS
     """Language tasks (`illm_tools.tasks.registry`): action (next-action ranking), summary (64-token
     history compression), goal (suggested goals: ELLM's, and a head of iLLM's), plan (a 2-7 action
@@ -46,11 +45,6 @@ class AnnotateConfig:
     (None: all). The same limit again annotates nothing."""
     max_minutes: float | None = None
     """Stop after this many minutes, between chunks, with every finished chunk written."""
-    dtype: str = "auto"
-    """Compute dtype: bfloat16, float32, float16, or auto (`illm_tools.llm.dtype`: bfloat16 on CUDA,
-    on a CPU where a timed matmul says it is faster than float32); the resolved one is in every key."""
-    quant: str = "none"
-    """bitsandbytes quantisation: none, 4bit or 8bit."""
     obs_mode: str = "obs"
     """(`--mode`) obs: the states' text; hop: the raw observations translated into the LLM's embedding space
     (iLLM(hop), `illm_tools.hop`; any suite, Atari included)."""
@@ -58,26 +52,21 @@ class AnnotateConfig:
     """hop: seed of the translation's random projection (the training run's --hop-seed)."""
     hop_beta: float = 100.0
     """hop: inverse temperature of the Hopfield retrieval (the training run's --hop-beta)."""
-    device: str = "cpu"
-    """Where the model runs: cpu, cuda, cuda:N or auto (a GPU when there is one). Under
-    `accelerate launch` (or --num-processes) each process takes its own device for cuda/auto."""
     chunk: int | None = None
     """States per written shard: a killed run loses at most one chunk, and `max_minutes` is
     checked between chunks. None: the backend's (`chunk_states`: 32 for an LLM, about 20 s on 2
     CPU cores at history 0; 2,048 for the oracle, about 2 s)."""
-
-    @property
-    def llm_model(self) -> str:
-        """The model spec the backend serves (`model`, or the backend's default)."""
-        from illm_tools.llm.backend import resolve_model
-
-        return resolve_model(self.backend, self.model)
+    num_processes: int = 1
+    """Annotate with N processes: the command runs `accelerate launch --num_processes N` on itself (the
+    states are split between them)."""
 
     def __post_init__(self) -> None:
         from illm_tools.settings import check_folder, check_numbers
 
         self.data, self.cache = Path(self.data), Path(self.cache)
-        check_numbers(self, positive=("batch_size", "chunk", "max_minutes", "hop_beta"),
+        if isinstance(self.llm, dict):  # as a JSON file or a test writes it
+            self.llm = LLMSpec(**self.llm)
+        check_numbers(self, positive=("batch_size", "chunk", "max_minutes", "hop_beta", "num_processes"),
                       non_negative=("limit", "history", "hop_seed"))
         if not self.data.is_dir():
             raise UsageError(f"no trajectory dataset at {self.data}: pass a folder `illm collect` wrote")
@@ -85,19 +74,13 @@ class AnnotateConfig:
         self.tasks = parse_tasks(self.tasks)
         if self.layout not in LAYOUTS:
             raise UsageError(f"unknown --layout {self.layout!r}: use {' or '.join(LAYOUTS)}")
-        from illm_tools.llm.backend import check_backend, resolve_model
-        from illm_tools.llm.dtype import CHOICES
-
-        if self.dtype not in CHOICES:
-            raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.dtype!r}")
-        check_backend(self.backend)
-        resolve_model(self.backend, self.model)  # refuses a model the backend does not serve
+        if self.num_processes > MAX_PROCESSES:
+            raise UsageError(f"--num-processes must be between 1 and {MAX_PROCESSES:,}, got {self.num_processes}")
         if self.obs_mode not in ("obs", "hop"):
             raise UsageError(f"--mode must be obs or hop, got {self.obs_mode!r}")
         unfit = [t for t in self.tasks if not get_task(t).hop]
         if self.obs_mode == "hop" and unfit:
             raise UsageError(f"the {', '.join(unfit)} task has no hop form: annotate hop data with other --tasks")
-        check_device(self.device)
 
 
 @dataclass
@@ -161,7 +144,6 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     `max_minutes` have passed or `should_stop()` says so; report the coverage."""
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.data.trajectories import open_table, require_text
-    from illm_tools.llm.backend import backend_dtype, load_backend
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
     if config.obs_mode == "hop":
@@ -178,10 +160,9 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
         records, env_ids = records_from_table(table, config.history)
         renderers = table.column("renderer").to_pylist()
     state = distributed_state()
-    device = resolve_device(config.device, state)
-    lm = load_backend(config.backend, config.llm_model, dtype=backend_dtype(config.backend, config.dtype, device),
-                      quant=config.quant, device=device)
-    annotator = Annotator(lm, cache, model=config.llm_model, tasks=config.tasks, history_len=config.history,
+    llm = config.llm.placed(state)  # under accelerate: this process's own device
+    lm = llm.load()
+    annotator = Annotator(lm, cache, model=llm.model, tasks=config.tasks, history_len=config.history,
                           layout=config.layout, batch_size=config.batch_size,
                           chunk=config.chunk or getattr(lm, "chunk_states", DEFAULT_CHUNK))
     visited = annotator.visited(records, env_ids, renderers)

@@ -26,7 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.tasks.prompts import PromptBuilder
+from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 TOP_K = (100, 1_000, 10_000)
@@ -116,17 +118,14 @@ def heldout_curve(records: Sequence[StateRecord], env_ids: Sequence[str], render
     return out
 
 
-def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), model: str | None = None,
-                     dtype: str = "auto", quant: str = "none", layout: str = "shared",
-                     tasks: Sequence[str] = ("action", "summary"), backend: str = "transformers") -> list[dict]:
+def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), llm: LLMSpec | None = None,
+                     layout: str = "shared", tasks: Sequence[str] = ("action", "summary")) -> list[dict]:
     """`illm data coverage`: per history length, the dataset's distinct states, the share of its
     steps the cache answers (for this model setup), the top-k curve and its held-out estimate
     (`heldout_curve`). No model is loaded: the keys need only the model's fingerprint."""
-    from illm_tools.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.data.trajectories import open_table, require_text
     from illm_tools.errors import UsageError
-    from illm_tools.llm.backend import backend_dtype, backend_fingerprint, resolve_model
     from illm_tools.tasks.registry import parse_tasks
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
@@ -138,8 +137,8 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
     if cache is not None and not (Path(cache) / "manifest.json").is_file():
         raise UsageError(f"no annotation cache at {cache}: check the path, or leave --cache out to see only the costs")
     ann = AnnotationCache(cache) if cache is not None else None
-    fp = fingerprint_hash(backend_fingerprint(backend, resolve_model(backend, model),
-                                              dtype=backend_dtype(backend, dtype), quant=quant))
+    llm = (llm or LLMSpec()).placed()
+    fp = llm.fingerprint()
     renderers = table.column("renderer").to_pylist()
     episodes = table.column("episode_id").to_pylist()
     out = []
@@ -149,8 +148,8 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
 
         def builder_for(env_id: str, renderer: str, k: int = k) -> PromptBuilder:
             if (env_id, renderer) not in builders:
-                builders[env_id, renderer] = PromptBuilder(env_id=env_id, renderer=renderer, model=model,
-                                                           model_fingerprint=fp, history_len=k, layout=layout)
+                setup = AnnotationSetup(env_id, renderer, tasks, history_len=k, layout=layout)
+                builders[env_id, renderer] = setup.builder(llm.model, fp)
             return builders[env_id, renderer]
 
         visited = VisitedStates.count(records, env_ids, renderers, builder_for, tasks)

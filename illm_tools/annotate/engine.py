@@ -98,6 +98,13 @@ class Annotator:
         self._neutral: dict[tuple[str, ...], list[float]] = {}
         self._hop: dict[tuple, object] = {}
 
+    @classmethod
+    def of_setup(cls, lm, cache: AnnotationCache, llm, setup, **options) -> Annotator:
+        """The annotator of a loaded `llm` (its `LLMSpec`) for an `AnnotationSetup`'s tasks, history
+        and layout (`options`: batch_size, chunk)."""
+        return cls(lm, cache, model=llm.model, tasks=setup.tasks, history_len=setup.history_len, layout=setup.layout,
+                   **options)
+
     def builder(self, env_id: str, renderer: str) -> PromptBuilder:
         key = (env_id, renderer)
         if key not in self._builders:

@@ -25,26 +25,11 @@ import numpy as np
 import torch
 
 from illm_tools.hop.translate import FrozenHopfield
+from illm_tools.tasks.setup import HOP_VERSION, hop_renderer, parse_hop_renderer  # noqa: F401  (re-exported)
 from illm_tools.tasks.state import StateRecord
 
-HOP_VERSION = 2
-"""Version of the hop record format and translation; part of every hop cache key (bump on change).
-2: Crafter's pictures are grey-scaled before the translation (`Suite.hop_frame`)."""
 START = "start"
 """The previous action of an episode's first step."""
-
-
-def hop_renderer(seed: int, beta: float, window: int) -> str:
-    """The `renderer` field of hop keys: the translation's settings (the model is in the key already)."""
-    return f"hop@{HOP_VERSION}:seed={int(seed)}:beta={float(beta)!r}:window={int(window)}"
-
-
-def parse_hop_renderer(renderer: str) -> dict | None:
-    """{"seed", "beta", "window"} of a hop renderer string, None for a text renderer."""
-    if not renderer.startswith("hop@"):
-        return None
-    fields = dict(part.split("=", 1) for part in renderer.split(":")[1:])
-    return {"seed": int(fields["seed"]), "beta": float(fields["beta"]), "window": int(fields["window"])}
 
 
 def digest(raw: np.ndarray) -> str:

@@ -160,25 +160,31 @@ def describe_model(model: str, fingerprint: str) -> dict | None:
 
 
 def model_options(model: str, fingerprint: str) -> str:
-    """The options that select the model of a cache row (its `model` and fingerprint hash): "--backend
-    oracle --oracle-noise 0.5", "--backend stub --model stub:64 --dtype float32 --quant none",
-    "--model smollm2-135m --dtype bfloat16 --quant none", or the model alone, said to be another
-    file or revision, when no backend here reproduces the fingerprint."""
+    """The options that select the model of a cache row (its `model` and fingerprint hash), as
+    `selecting_options` writes them, or the model alone, said to be another file or revision, when
+    no backend here reproduces the fingerprint."""
     found = describe_model(model, fingerprint)
     if found is None:
         return f"--model {model} (another file or revision)"
-    if found["backend"] == "oracle":
+    return selecting_options(**found)
+
+
+def selecting_options(backend: str, model: str, dtype: str, quant: str) -> str:
+    """The options that select a model setup: "--backend oracle --oracle-noise 0.5", "--backend
+    stub --model stub:64 --dtype float32 --quant none", "--model smollm2-135m --dtype bfloat16
+    --quant none", "--backend openai --model NAME --endpoint URL"."""
+    if backend == "oracle":
         from illm_tools.llm.oracle import parse_spec
 
         noise = parse_spec(model)
         return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
-    if found["backend"] == "openai":
+    if backend == "openai":
         from illm_tools.llm.openai import parse_spec as endpoint_of
 
         name, url, _ = endpoint_of(model)
         return f"--backend openai --model {name} --endpoint {url}"
-    prefix = "" if found["backend"] == DEFAULT_BACKEND else f"--backend {found['backend']} "
-    return f"{prefix}--model {model} --dtype {found['dtype']} --quant {found['quant']}"
+    prefix = "" if backend == DEFAULT_BACKEND else f"--backend {backend} "
+    return f"{prefix}--model {model} --dtype {dtype} --quant {quant}"
 
 
 def load_backend(name: str, model: str, *, dtype: str = "auto", quant: str = "none", device: str = "cpu",

@@ -12,7 +12,9 @@ from pathlib import Path
 
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic.registry import METHODS, get_method
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.tasks.calibration import ACTION_TARGETS, CALIBRATIONS
+from illm_tools.tasks.setup import AnnotationSetup
 
 MODES = METHODS  # the bonus registry, name -> method (a live mapping: methods registered later count)
 LIVE_MODES = ("sync", "async")
@@ -320,15 +322,14 @@ class TrainConfig:
         if self.action_similarity not in ("tv", "bhattacharyya"):
             raise UsageError("action_similarity must be tv or bhattacharyya, "
                              f"got {self.action_similarity!r}")
-        from illm_tools.llm.backend import check_backend, resolve_model
+        from illm_tools.llm.backend import check_backend
         from illm_tools.llm.dtype import CHOICES
 
         if self.model_dtype not in CHOICES:
             raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.model_dtype!r}")
         check_backend(self.backend)
-        if self.needs_targets or self.obs_mode == "hop":  # refuses a bad model, noise or endpoint
-            resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
-                          api_key_env=self.api_key_env)
+        if self.needs_targets or self.obs_mode == "hop":  # refuses a bad model, noise, endpoint or quantisation
+            self.llm  # noqa: B018 - built to be checked
         if self.obs_mode not in OBS_MODES:
             raise UsageError(f"--mode is the observation mode, {' or '.join(OBS_MODES)}; got {self.obs_mode!r} "
                              "(the method is --method)")
@@ -385,12 +386,23 @@ class TrainConfig:
         return get_method(self.method).pays
 
     @property
+    def llm(self) -> LLMSpec:
+        """The run's LLM (its targets' model, the live annotator's, hop's embeddings) as one value; on
+        a `resolved()` config its device and dtype are this machine's choices."""
+        return LLMSpec(backend=self.backend, model=self.model, dtype=self.model_dtype, quant=self.quant,
+                       device=self.llm_device or self.device, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
+                       api_key_env=self.api_key_env)
+
+    @property
     def llm_model(self) -> str:
         """The model spec the backend serves: `model` or the backend's default, with the oracle's noise."""
-        from illm_tools.llm.backend import resolve_model
+        return self.llm.model
 
-        return resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
-                             api_key_env=self.api_key_env)
+    @property
+    def annotation_setup(self) -> AnnotationSetup:
+        """The key inputs of the run's targets besides the state and the model: env, renderer (text,
+        or hop's translation), the tasks it reads, history and layout."""
+        return AnnotationSetup(self.env_id, self.renderer, self.target_tasks, self.history_len, self.layout)
 
     @property
     def live_limit(self) -> int | None:

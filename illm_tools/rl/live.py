@@ -26,6 +26,8 @@ import queue
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from illm_tools.llm.spec import LLMSpec
+from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
@@ -37,8 +39,8 @@ class SyncLive:
     waits = True
     """The answers are in the cache when `submit` returns."""
 
-    def __init__(self, annotator, env_id: str, renderer: str, budget: int | None, threads: int | None = None):
-        self.annotator, self.env_id, self.renderer, self.budget = annotator, env_id, renderer, budget
+    def __init__(self, annotator, setup: AnnotationSetup, budget: int | None, threads: int | None = None):
+        self.annotator, self.setup, self.budget = annotator, setup, budget
         self.threads = threads
         """Torch threads of the LLM calls (the policy runs on fewer); None keeps the current count."""
 
@@ -52,7 +54,7 @@ class SyncLive:
         if not todo:
             return 0
         with torch_threads(self.threads) if self.threads else nullcontext():
-            return self.annotator.annotate_states(todo, self.env_id, self.renderer).annotated_states
+            return self.annotator.annotate_states(todo, self.setup.env_id, self.setup.renderer).annotated_states
 
     def landed(self) -> int:
         """States annotated since the last call that `submit` did not count (none: it waits)."""
@@ -70,24 +72,15 @@ class WorkerSpec:
     """Everything the worker process needs to rebuild the annotator (picklable, plain values)."""
 
     cache: str
-    model: str
-    dtype: str
-    quant: str
-    env_id: str
-    renderer: str
-    history_len: int
-    layout: str
+    llm: LLMSpec
+    """The run's LLM, placed (its device and dtype resolved)."""
+    setup: AnnotationSetup
+    """The run's key inputs besides the state (env, renderer, tasks, history, layout)."""
     threads: int
     batch_size: int = 8
     chunk: int = 8
     """States per written shard: small, so answers reach the trainer soon after they exist."""
     model_cache_dir: str | None = None
-    tasks: tuple[str, ...] = ("action", "summary")
-    """The language tasks the worker annotates (the run's: iLLM's two, or ELLM's `goal`)."""
-    backend: str = "transformers"
-    """The LLM backend serving `model` (`illm_tools.llm.backend`)."""
-    device: str = "cpu"
-    """Where the worker's LLM runs (the run's resolved `llm_device`)."""
 
 
 def _worker_main(spec: WorkerSpec, inbox, stop, queued, done, errors) -> None:  # pragma: no cover - child
@@ -109,14 +102,11 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done) -> None:  # pragma: no co
 
     from illm_tools.annotate.engine import Annotator
     from illm_tools.cache.store import AnnotationCache
-    from illm_tools.llm.backend import load_backend
 
     torch.set_num_threads(spec.threads)
-    lm = load_backend(spec.backend, spec.model, dtype=spec.dtype, quant=spec.quant, device=spec.device,
-                      cache_dir=spec.model_cache_dir)
-    annotator = Annotator(lm, AnnotationCache(spec.cache), model=spec.model, tasks=spec.tasks,
-                          history_len=spec.history_len, layout=spec.layout, batch_size=spec.batch_size,
-                          chunk=spec.chunk)
+    lm = spec.llm.load(cache_dir=spec.model_cache_dir)
+    annotator = Annotator.of_setup(lm, AnnotationCache(spec.cache), spec.llm, spec.setup, batch_size=spec.batch_size,
+                                   chunk=spec.chunk)
     pending: list[StateRecord] = []
     while not stop.is_set():
         try:  # the newest list replaces the old one; wait for one when idle
@@ -131,7 +121,7 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done) -> None:  # pragma: no co
             continue
         head, pending = pending[: spec.chunk], pending[spec.chunk:]
         annotator.cache.refresh()
-        stats = annotator.annotate_states(head, spec.env_id, spec.renderer, should_stop=stop.is_set)
+        stats = annotator.annotate_states(head, spec.setup.env_id, spec.setup.renderer, should_stop=stop.is_set)
         with done.get_lock():
             done.value += stats.annotated_states
         queued.value = len(pending)
@@ -237,19 +227,21 @@ class RemoteLive:
 
     waits = False
 
-    def __init__(self, url: str, *, client: str, setup: dict, budget: int | None, timeout: float = 10.0,
-                 options: str = "--model, --dtype, --quant"):
+    def __init__(self, url: str, *, client: str, llm: LLMSpec, setup: AnnotationSetup, budget: int | None,
+                 timeout: float = 10.0):
         self.url = url.rstrip("/")
-        self.client, self.setup, self.budget, self.timeout = client, dict(setup), budget, timeout
+        self.client, self.budget, self.timeout = client, budget, timeout
+        self.setup = {**setup.wire(), "model_fingerprint": llm.fingerprint()}
+        """The request's fields besides the client and the states (`AnnotationSetup.wire`)."""
         self._landed = 0
         self._queue = 0
         self._down = False
         info = self.server_stats(what="start")
-        if info.get("model_fingerprint") != setup["model_fingerprint"]:
+        if info.get("model_fingerprint") != self.setup["model_fingerprint"]:
             from illm_tools.errors import UsageError
 
             raise UsageError(f"the server at {self.url} annotates with {info.get('model_options') or info.get('model')}, "
-                             f"another model setup than this run's {options}: its answers would never be this run's "
+                             f"another model setup than this run's {llm.options()}: its answers would never be this run's "
                              "targets; train with the server's options or start a server for this model")
 
     def _call(self, path: str, body: dict | None = None) -> dict:

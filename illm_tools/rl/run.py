@@ -46,66 +46,50 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     if cfg.cache is None:
         raise UsageError(f"--method {cfg.method} reads LLM targets: pass --cache DIR (an annotation cache, "
                          "see `illm annotate`), or use --method ppo")
-    from illm_tools.keys import fingerprint_hash
     from illm_tools.cache.store import AnnotationCache
-    from illm_tools.llm.backend import backend_fingerprint, backend_hidden_size, check_backend_use
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.targets import CachedTargets, GoalTargets, check_setup
-    from illm_tools.tasks.prompts import PromptBuilder
 
-    tasks = cfg.target_tasks
     method = get_method(cfg.method)
-
     cache = AnnotationCache(cfg.cache)
-    renderer = cfg.renderer  # the suite's text renderer, or the hop translation's settings
-    model = cfg.llm_model
-    check_backend_use(cfg.backend, cfg.env_id, renderer)
-    fp = fingerprint_hash(backend_fingerprint(cfg.backend, model, dtype=cfg.model_dtype, quant=cfg.quant))
-    builder = PromptBuilder(env_id=cfg.env_id, renderer=renderer, model=model, model_fingerprint=fp,
-                            history_len=cfg.history_len, layout=cfg.layout)
+    llm, setup = cfg.llm, cfg.annotation_setup  # resolved: the machine's device and dtype
+    llm.check_use(setup.env_id, setup.renderer)
+    builder = setup.builder(llm.model, llm.fingerprint())
     if len(cache) == 0 and cfg.live_budget == 0:
         raise CacheError(f"the cache {cfg.cache} is empty and --live-budget is 0: nothing would give targets; "
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
-        check_setup(cache, builder, model=model, dtype=cfg.model_dtype, quant=cfg.quant, tasks=tasks)
+        check_setup(cache, builder, llm=llm, tasks=setup.tasks)
+    live = make_live(cfg, llm, setup, cache)
     if not method.policy_heads:  # ELLM: the goals themselves, no heads to distil into
-        return GoalTargets(cache, builder, num_actions=num_actions, live=make_live(cfg, builder, cache, tasks)), cfg
-    dim = backend_hidden_size(cfg.backend, model)
+        return GoalTargets(cache, builder, num_actions=num_actions, live=live), cfg
+    dim = llm.hidden_size()
     if dim != cfg.embedding_dim:
         cfg = dataclasses.replace(cfg, embedding_dim=dim)
     provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
-                             embedding_dim=dim, action_target=cfg.action_target, tasks=tasks,
-                             live=make_live(cfg, builder, cache, tasks),
+                             embedding_dim=dim, action_target=cfg.action_target, tasks=setup.tasks, live=live,
                              shuffle_seed=method.target_shuffle)  # illm-shuffled: another state's
     return provider, cfg
 
 
-def make_live(cfg: TrainConfig, builder, cache, tasks: tuple[str, ...] = ("action", "summary")):
-    """The live annotator of a run (`illm_tools.rl.live`) for the language tasks it reads, or None
-    with no live budget; sync writes through `cache`, the object the targets are read from."""
+def make_live(cfg: TrainConfig, llm, setup, cache):
+    """The live annotator of a run (`illm_tools.rl.live`) for its LLM (placed) and annotation setup,
+    or None with no live budget; sync writes through `cache`, the object the targets are read from."""
     if cfg.live_budget == 0:
         return None
     from illm_tools.rl.live import AsyncLive, RemoteLive, SyncLive, WorkerSpec
 
     if cfg.annotator is not None:
-        setup = {"model_fingerprint": builder.model_fingerprint, "env_id": builder.env_id, "renderer": builder.renderer,
-                 "history_len": builder.history_len, "layout": builder.layout, "tasks": list(tasks)}
-        return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), setup=setup, budget=cfg.live_limit,
-                          options=f"--model {cfg.llm_model} --dtype {cfg.model_dtype} --quant {cfg.quant}")
+        return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
+                          budget=cfg.live_limit)
     if cfg.live_mode == "async":
-        spec = WorkerSpec(cache=str(cfg.cache), model=cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant,
-                          env_id=builder.env_id, renderer=builder.renderer, history_len=cfg.history_len,
-                          layout=cfg.layout, threads=cfg.live_threads, tasks=tuple(tasks), backend=cfg.backend,
-                          device=cfg.llm_device or "cpu")
+        spec = WorkerSpec(cache=str(cfg.cache), llm=llm, setup=setup, threads=cfg.live_threads)
         return AsyncLive(spec, budget=cfg.live_limit)
     from illm_tools.annotate.engine import Annotator
-    from illm_tools.llm.backend import load_backend
 
-    lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant, device=cfg.llm_device or "cpu")
     # one shard per rollout: a budget of "all" hands over a rollout's every missed state at once
-    annotator = Annotator(lm, cache, model=cfg.llm_model, tasks=tasks, history_len=cfg.history_len,
-                          layout=cfg.layout, chunk=4096)
-    return SyncLive(annotator, builder.env_id, builder.renderer, cfg.live_limit, threads=cfg.live_threads)
+    annotator = Annotator.of_setup(llm.load(), cache, llm, setup, chunk=4096)
+    return SyncLive(annotator, setup, cfg.live_limit, threads=cfg.live_threads)
 
 
 RUN_LOCK = ".lock"

@@ -67,10 +67,7 @@ class HopStates:
     def __init__(self, cfg: TrainConfig, suite, image_shape: tuple[int, ...], action_names: Sequence[str],
                  device: torch.device | str = "cpu", num_envs: int | None = None):
         from illm_tools.hop.context import HopContext, HopTracker
-        from illm_tools.llm.backend import load_backend
-
-        lm = load_backend(cfg.backend, cfg.llm_model, dtype=cfg.model_dtype, quant=cfg.quant,
-                          device=cfg.llm_device or "cpu")
+        lm = cfg.llm.load()
         self.suite, self.device = suite, device
         raw = np.asarray(suite.hop_input(np.zeros(image_shape, dtype=np.uint8)))
         self.tracker = HopTracker(num_envs or cfg.num_envs, cfg.history_len, list(action_names))

@@ -310,20 +310,12 @@ def _describe(setup: dict, fields: list[str], model: str | None) -> str:
                      if f == "model_fingerprint" else f"{_FLAGS[f]} {setup[f]}" for f in fields)
 
 
-def _run_options(builder: PromptBuilder, model: str, dtype: str, quant: str) -> str:
-    """The run's model options as flags: a transformers model's as given, another backend's as its
-    fingerprint reads ("--backend oracle --oracle-noise 0.5")."""
-    from illm_tools.llm.backend import model_options
-
-    options = model_options(model, builder.model_fingerprint)
-    return options if options.startswith("--backend") else f"--model {model} --dtype {dtype} --quant {quant}"
-
-
-def check_setup(cache: AnnotationCache, builder: PromptBuilder, *, model: str, dtype: str, quant: str,
+def check_setup(cache: AnnotationCache, builder: PromptBuilder, *, llm,
                 tasks: Sequence[str] = ("action", "summary")) -> None:
     """Refuse a cache that holds annotations but none for this run's setup, in one line naming the
     settings that differ and what the cache holds ("the cache holds --history 0 annotations; this
-    run asks for --history 3"). Nothing is refused when every task has entries of this setup."""
+    run asks for --history 3"); `llm`: the run's placed `LLMSpec`. Nothing is refused when every
+    task has entries of this setup."""
     from illm_tools.errors import CacheError
     from illm_tools.tasks.prompts import layouts_of
 
@@ -353,5 +345,5 @@ def check_setup(cache: AnnotationCache, builder: PromptBuilder, *, model: str, d
         raise CacheError(
             f"the cache {cache.root} holds no {task} annotations for this run's setup: it holds "
             f"{_describe(theirs, fields, None)} annotations ({closest['entries']:,} entries); this run asks for "
-            f"{_describe(want, fields, _run_options(builder, model, dtype, quant))}. Train with the "
+            f"{_describe(want, fields, llm.options())}. Train with the "
             "cache's settings, or pass --new-setup to start this setup in the cache")

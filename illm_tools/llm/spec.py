@@ -1,0 +1,108 @@
+"""The LLM of a stage as one value: which backend serves which model, in what dtype and
+quantisation, on which device. `illm annotate`, `illm serve`, `illm probe` and a training run's
+live fallback each hold one (`config.llm`); its `fingerprint()` is what every cache key of the
+model carries, and `options()` the flags that select it, so the model's identity is built in one
+place instead of from loose fields in each stage.
+
+How a model is named is folded into `model` when the spec is made (`resolve_model`): the backend's
+default when none is given, the oracle's noise ("oracle:noise=0.5"), an OpenAI-compatible
+server's endpoint ("NAME@URL#VAR"). Two specs naming the same model the two ways are equal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from illm_tools.errors import UsageError
+
+
+@dataclass(frozen=True)
+class LLMSpec:
+    """The LLM a stage loads (see the module docstring)."""
+
+    backend: str = "transformers"
+    """LLM backend: transformers | oracle (a rule-based annotator that knows BabyAI/MiniGrid: the positive
+    control) | openai (an OpenAI-compatible server: vLLM, ...; with --endpoint) | stub (deterministic
+    answers from the prompt, no weights; for tests)."""
+    model: str | None = None
+    """Alias (see `illm models`), hub id or local folder; default: the backend's (smollm2-135m for
+    transformers, oracle for oracle)."""
+    dtype: str = "auto"
+    """Compute dtype: auto | bfloat16 | float32 | float16; auto: bfloat16 on CUDA, and on a CPU where a
+    timed matmul says it is faster than float32, else float32 (measured once per machine). The resolved
+    dtype is part of every cache key."""
+    quant: str = "none"
+    """bitsandbytes quantisation: none | 4bit | 8bit (part of every cache key)."""
+    device: str = "cpu"
+    """Where the model runs: cpu | cuda | cuda:N | auto (with several processes each takes its own GPU)."""
+    oracle_noise: float = 0.0
+    """oracle: the share of states (fixed, keyed by the state) answered at random; 1 is an annotator
+    that knows nothing (part of every key)."""
+    endpoint: str | None = None
+    """openai: the server's OpenAI base URL, e.g. http://127.0.0.1:8000/v1 (--model is the model as it
+    serves it)."""
+    api_key_env: str | None = None
+    """openai: the environment variable holding the server's API key (default OPENAI_API_KEY)."""
+
+    def __post_init__(self) -> None:
+        from illm_tools.devices import check_device
+        from illm_tools.llm.backend import check_backend, resolve_model
+        from illm_tools.llm.dtype import CHOICES
+        from illm_tools.llm.loading import QUANTS
+
+        check_backend(self.backend)
+        if self.dtype not in CHOICES:
+            raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.dtype!r}")
+        if self.quant not in QUANTS:
+            raise UsageError(f"--quant must be one of {', '.join(QUANTS)}, got {self.quant!r}")
+        check_device(self.device)
+        if not 0.0 <= self.oracle_noise <= 1.0:
+            raise UsageError(f"--oracle-noise must be between 0 and 1, got {self.oracle_noise}")
+        model = resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
+                              api_key_env=self.api_key_env)
+        for name, value in (("model", model), ("oracle_noise", 0.0), ("endpoint", None), ("api_key_env", None)):
+            object.__setattr__(self, name, value)
+
+    def placed(self, state=None) -> LLMSpec:
+        """This spec with the machine's choices made: the device (auto -> cuda or cpu; under
+        accelerate's `state`, this process's own) and the dtype (auto -> what `illm_tools.llm.dtype`
+        measures on that device; the oracle: float32)."""
+        from illm_tools.devices import resolve_device
+        from illm_tools.llm.backend import backend_dtype
+
+        device = resolve_device(self.device, state)
+        return dataclasses.replace(self, device=device, dtype=backend_dtype(self.backend, self.dtype, device))
+
+    def fingerprint(self) -> str:
+        """The hash every cache key of this model carries (without loading weights)."""
+        from illm_tools.keys import fingerprint_hash
+        from illm_tools.llm.backend import backend_fingerprint
+
+        return fingerprint_hash(backend_fingerprint(self.backend, self.model, dtype=self.dtype, quant=self.quant))
+
+    def hidden_size(self) -> int:
+        """The model's hidden size (the summary embedding's width), without loading weights."""
+        from illm_tools.llm.backend import backend_hidden_size
+
+        return backend_hidden_size(self.backend, self.model)
+
+    def load(self, cache_dir: str | None = None):
+        """The loaded backend (`illm_tools.llm.backend.load_backend`)."""
+        from illm_tools.llm.backend import load_backend
+
+        return load_backend(self.backend, self.model, dtype=self.dtype, quant=self.quant, device=self.device,
+                            cache_dir=cache_dir)
+
+    def check_use(self, env_id: str, renderer: str) -> None:
+        """Refuse in one line an env (or hop states) the backend cannot read (the oracle: hop)."""
+        from illm_tools.llm.backend import check_backend_use
+
+        check_backend_use(self.backend, env_id, renderer)
+
+    def options(self) -> str:
+        """The flags that select this model ("--model smollm2-135m --dtype bfloat16 --quant none",
+        "--backend oracle --oracle-noise 0.5"; `selecting_options`)."""
+        from illm_tools.llm.backend import selecting_options
+
+        return selecting_options(self.backend, self.model, self.dtype, self.quant)
