@@ -2,50 +2,35 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+import inspect
 
 import typer
 
 from cli.errors import friendly
 
 
+EXAMPLE = ("Example: illm experiment experiments/specs/table1.yaml --jobs 2  (then: illm report results/table1 --out "
+           "results/table1/report); on a SLURM cluster: illm experiment experiments/specs/table1.yaml --launcher slurm "
+           "--partition gpu --gpus 1 --jobs 32")
+
+
+def _parameters() -> list[inspect.Parameter]:
+    from cli.options import dataclass_parameters
+    from illm_tools.experiment import ExperimentConfig
+
+    return dataclass_parameters(ExperimentConfig, arguments={"spec"})
+
+
 def register(app: typer.Typer) -> None:
-    @app.command(epilog="Example: illm experiment experiments/specs/table1.yaml --jobs 2  (then: illm report "
-                        "results/table1 --out results/table1/report); on a SLURM cluster: illm experiment "
-                        "experiments/specs/table1.yaml --launcher slurm --partition gpu --gpus 1 --jobs 32")
-    @friendly
-    def experiment(
-        spec: Path = typer.Argument(..., help="The experiment's YAML spec (experiments/specs/ has the paper's tables)."),
-        out: Path = typer.Option(None, "--out", help="Results folder (default: results/<spec name>)."),
-        jobs: int = typer.Option(1, "--jobs", help="Runs trained at a time, each in its own process with one thread."),
-        frames: int = typer.Option(None, "--frames", help="Frames per run, over the spec's (the paper: 100000000)."),
-        seeds: int = typer.Option(None, "--seeds", help="Seeds 0..N-1, over the spec's (the paper: 10)."),
-        dry_run: bool = typer.Option(False, "--dry-run", help="Check the spec and list the runs; train nothing."),
-        launcher: str = typer.Option("local", "--launcher",
-                                     help="How runs start: local (--jobs processes here), slurm (one job array "
-                                          "through submitit, --jobs tasks at a time), submitit-local (the slurm "
-                                          "path on this machine, to try it)."),
-        partition: str = typer.Option(None, "--partition", help="SLURM partition (over the spec's cluster: block)."),
-        time_minutes: int = typer.Option(None, "--time-minutes", help="Time limit of one run's job (default 240)."),
-        cpus: int = typer.Option(None, "--cpus", help="CPUs of one run's job, its torch threads (default 1)."),
-        gpus: int = typer.Option(None, "--gpus", help="GPUs of one run's job (default 0)."),
-        mem_gb: float = typer.Option(None, "--mem-gb", help="Memory of one run's job in GB (default: the "
-                                                            "partition's)."),
-    ) -> None:
+    def experiment(**options) -> None:
         """Train every run of a spec's grid (methods x envs x settings x seeds) into one results folder;
         finished runs are skipped, unfinished ones resumed, so the same command continues a grid."""
-        from illm_tools.errors import UsageError
-        from illm_tools.experiment import check_launcher, load_spec, plan, run_experiment
-        from illm_tools.settings import check_folder
+        from cli.options import config_from_options
+        from illm_tools.experiment import ExperimentConfig, plan, run_experiment
 
-        if jobs < 1:
-            raise UsageError(f"--jobs must be at least 1, got {jobs}")
-        check_folder(out, "--out")
-        check_launcher(launcher)
-        loaded = load_spec(spec, frames=frames, seeds=seeds)
-        cluster = loaded.cluster.merged(partition=partition, time_minutes=time_minutes, cpus=cpus, gpus=gpus,
-                                        mem_gb=mem_gb)
-        results = out or Path("results") / loaded.name
+        config = config_from_options(ExperimentConfig, options)
+        loaded, cluster, results = config.load()
+        jobs, launcher, dry_run = config.jobs, config.launcher, config.dry_run
         runs = plan(loaded, results)
         counts = {s: sum(r.status == s for r in runs) for s in ("done", "resume", "new")}
         typer.echo(f"{loaded.name}: {len(runs)} runs ({len(loaded.envs)} envs x {len({r.label for r in runs})} "
@@ -69,3 +54,6 @@ def register(app: typer.Typer) -> None:
             raise typer.Exit(1)
         typer.echo(f"all {len(runs)} runs finished: `illm report {results} --out {results}/report` makes the tables "
                    "and plots")
+
+    experiment.__signature__ = inspect.Signature(_parameters())
+    app.command(epilog=EXAMPLE)(friendly(experiment))

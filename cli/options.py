@@ -91,7 +91,9 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
                 decls = [f"{names[0]}/--no-{names[0][2:]}"] + names[1:]
             else:
                 decls = names
-            if typing.get_origin(hint) is tuple:  # a tuple of names: one comma-separated option
+            if typing.get_origin(hint) is list:  # a list: a repeatable option
+                pass
+            elif typing.get_origin(hint) is tuple:  # a tuple of names: one comma-separated option
                 hint = str
                 help_text += " Comma-separated."
             elif typing.get_origin(hint) in (typing.Union, types.UnionType):  # e.g. int | str: the config parses it

@@ -185,26 +185,17 @@ def register(app: typer.Typer) -> None:
     train.__signature__ = inspect.Signature(_train_parameters())
     app.command(epilog=EXAMPLE)(friendly(train))
 
-    @app.command("eval", epilog="Example: illm eval runs/gotolocal-illm --episodes 100")
-    @friendly
-    def evaluate(
-        runs: list[Path] = typer.Argument(..., help="Run folders written by `illm train` (several give a table)."),
-        episodes: int = typer.Option(100, "--episodes", help="Episodes to play per run."),
-        seed: int = typer.Option(0, "--seed", help="Evaluation seed (episodes are disjoint from training seeds)."),
-        greedy: bool = typer.Option(False, "--greedy", help="Take the most likely action instead of sampling."),
-        as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
-    ) -> None:
+    def evaluate(**options) -> None:
         """Score (the suite's: success rate, Crafter score, mean return), success rate and mean return
         of trained policies on the same fresh episodes (a markdown table; --json: a list with one
         object per run)."""
-        from illm_tools.errors import UsageError
+        from cli.options import config_from_options
+        from illm_tools.rl.config import EvalConfig
         from illm_tools.rl.run import evaluate as run
 
-        if episodes <= 0 or seed < 0:
-            raise UsageError(f"--episodes must be positive and --seed 0 or more, got {episodes} and {seed}")
-        missing = [str(r) for r in runs if not (r / "config.json").is_file()]
-        if missing:
-            raise UsageError(f"no training run at {', '.join(missing[:3])}: pass folders written by `illm train`")
+        as_json = options.pop("as_json")
+        config = config_from_options(EvalConfig, options)
+        runs, episodes, seed, greedy = config.runs, config.episodes, config.seed, config.greedy
         results = [run(r, episodes=episodes, seed=seed, greedy=greedy) for r in runs]
         if as_json:
             emit_json(results)
@@ -218,3 +209,15 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"\n{episodes} episodes per run (--seed {seed}: env seeds from 2^40 + {seed}, apart from training's; "
                    "the same episodes for every run), actions "
                    + ("greedy (the most likely)" if greedy else "sampled from the policy"))
+
+    evaluate.__signature__ = inspect.Signature(_eval_parameters())
+    app.command("eval", epilog="Example: illm eval runs/gotolocal-illm --episodes 100")(friendly(evaluate))
+
+
+def _eval_parameters() -> list[inspect.Parameter]:
+    from cli.options import dataclass_parameters
+    from illm_tools.rl.config import EvalConfig
+
+    as_json = inspect.Parameter("as_json", inspect.Parameter.KEYWORD_ONLY, annotation=bool,
+                                default=typer.Option(False, "--json", help="Print machine-readable JSON."))
+    return dataclass_parameters(EvalConfig, arguments={"runs"}) + [as_json]

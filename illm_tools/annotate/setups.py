@@ -42,17 +42,12 @@ class Setup:
 
     def options(self) -> str:
         """The flags that select it ("--backend oracle --history 0 --layout shared")."""
-        if self.backend in ("oracle", "openai"):
-            from illm_tools.keys import fingerprint_hash
-            from illm_tools.llm.backend import backend_fingerprint, model_options
+        from illm_tools.llm.backend import selecting_options
 
-            model = model_options(self.model, fingerprint_hash(backend_fingerprint(self.backend, self.model)))
-        else:
-            model = ("" if self.backend == "transformers" else f"--backend {self.backend} ") + \
-                f"--model {self.model} --dtype {self.dtype} --quant {self.quant}"
+        model = selecting_options(self.backend, self.model, self.dtype, self.quant)
         hop = ""
         if self.renderer.startswith("hop@"):
-            from illm_tools.hop.context import parse_hop_renderer
+            from illm_tools.tasks.setup import parse_hop_renderer
 
             settings = parse_hop_renderer(self.renderer)
             hop = f" --mode hop --hop-seed {settings['seed']} --hop-beta {settings['beta']:g}"
@@ -63,7 +58,7 @@ class Setup:
         out = {"backend": self.backend, "model": self.model, "model_dtype": self.dtype, "quant": self.quant,
                "oracle_noise": 0.0, "history_len": self.history_len, "layout": self.layout}
         if self.renderer.startswith("hop@"):
-            from illm_tools.hop.context import parse_hop_renderer
+            from illm_tools.tasks.setup import parse_hop_renderer
 
             settings = parse_hop_renderer(self.renderer)
             out.update(hop_seed=settings["seed"], hop_beta=settings["beta"])
@@ -113,7 +108,7 @@ def adopt(cache, tasks: Sequence[str], renderer: str | None) -> Setup | None:
 def adopt_model(cache) -> dict | None:
     """The one model setup (backend, model, dtype, quant) of the cache's rows, for `illm serve
     --cache` without model options; None for an empty cache; several are refused naming each."""
-    from illm_tools.llm.backend import describe_model, model_options
+    from illm_tools.llm.backend import describe_model, selecting_options
 
     found: dict[tuple, tuple[dict, int]] = {}
     for row in cache.setups():
@@ -122,15 +117,8 @@ def adopt_model(cache) -> dict | None:
             key = tuple(model.values())
             found[key] = (model, found.get(key, (model, 0))[1] + int(row["entries"]))
     if len(found) > 1:
-        listed = "; ".join(f"{model_options(m['model'], _hash(m))} ({n:,} entries)" for m, n in found.values())
+        listed = "; ".join(f"{selecting_options(**m)} ({n:,} entries)" for m, n in found.values())
         raise UsageError(f"the cache {cache.root} holds annotations of {len(found)} model setups: {listed}. Pass the "
                          "options of the one to serve")
     return next(iter(found.values()))[0] if found else None
 
-
-def _hash(model: dict) -> str:
-    from illm_tools.keys import fingerprint_hash
-    from illm_tools.llm.backend import backend_fingerprint
-
-    return fingerprint_hash(backend_fingerprint(model["backend"], model["model"], dtype=model["dtype"],
-                                                quant=model["quant"]))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,59 @@ from illm_tools.report.curves import load_curve, summarise
 DEFAULT_BOOTSTRAP = 2000
 BOOTSTRAP_SEED = 0
 
+
+
+@dataclass
+class ReportConfig:
+    """An `illm report`: which runs, how their curves are windowed, and the report folder's settings."""
+
+    runs: tuple[Path, ...]
+    """Run folders written by `illm train`, or folders holding them (an `illm experiment` results folder)."""
+    every: int = 20_000
+    """Frames per curve point (window of the score)."""
+    out: Path | None = None
+    """Also write a report folder: report.md (IQM [95% CI] and mean ± std per configuration), learning-curve
+    and visitation PNGs, results.json."""
+    final_points: int = 1
+    """With --out: a seed's final score is the mean of its last this many curve points."""
+    bootstrap: int = 2000
+    """With --out: bootstrap resamples of the 95% intervals (rliable's stratified bootstrap, seeded)."""
+    probe: list[Path] = field(default_factory=list)
+    """With --out: an `illm probe --out` file (repeatable): final score against the annotator's probe agreement
+    (quality.png); probes of models not trained with are marked on it."""
+    redraw: bool = False
+    """Draw a report folder's figures and report.md again from its results.json (the runs may be gone;
+    heatmaps are kept): `illm report docs/results/table1 --redraw`."""
+
+    def __post_init__(self) -> None:
+        from illm_tools.settings import check_numbers
+
+        self.runs = tuple(Path(r) for r in self.runs)
+        self.out = Path(self.out) if self.out is not None else None
+        self.probe = [Path(p) for p in self.probe or []]
+        if self.redraw:
+            if len(self.runs) != 1 or self.out is not None or self.probe:
+                raise UsageError("--redraw takes one report folder and no --out or --probe: `illm report DIR --redraw`")
+            return
+        check_numbers(self, positive=("every", "final_points", "bootstrap"))
+        if self.out is not None and self.out.exists() and not self.out.is_dir():
+            raise UsageError(f"--out {self.out} is a file: pass a folder for the report")
+        if self.probe and self.out is None:
+            raise UsageError("--probe adds the quality curve to a report folder: pass --out DIR too")
+        missing = [str(r) for r in self.runs if not r.is_dir()]
+        if missing or not self.runs:
+            raise UsageError(f"no run folder at {', '.join(missing[:3]) or '(none given)'}: pass folders written by "
+                             "`illm train`")
+
+    def run_folders(self) -> list[Path]:
+        """The runs: each folder given, or, for a folder that is not a run (an `illm experiment`
+        results folder), the runs below it; none is refused in one line."""
+        runs = [run for r in self.runs for run in ([r] if (r / "metrics.csv").is_file() or (r / "config.json").is_file()
+                                                  else sorted(p.parent for p in r.rglob("metrics.csv")))]
+        if not runs:
+            raise UsageError("no training run in the folders given: pass folders written by `illm train` or "
+                             "`illm experiment`")
+        return runs
 
 def score_name(env_id: str) -> str:
     """The suite's name for its score ("success rate", "Crafter score", "mean return")."""
