@@ -26,6 +26,7 @@ from illm_tools.intrinsic import BonusRewards, IntrinsicBonus
 from illm_tools.intrinsic.registry import METHODS, Method
 from illm_tools.llm.backend import BACKENDS
 from illm_tools.rl.networks import GridMissionNet
+from illm_tools.rl.targets import CachedTargets
 from illm_tools.registry import Registry
 from illm_tools.tasks.registry import LANGUAGE_TASKS, LanguageTask
 from test_backends import TinyBackend
@@ -52,6 +53,34 @@ class FlatBonus(IntrinsicBonus):
 
     def compute_rewards(self, batch):
         return BonusRewards(torch.full(batch["actions"].shape, self.pay), {"flat_paid": self.pay})
+
+
+class MarkedTargets(CachedTargets):
+    """A plug-in method's own target provider: the cache's rows, counting the rollouts it answered."""
+
+    calls = 0
+
+    def targets(self, records):
+        MarkedTargets.calls += 1
+        return super().targets(records)
+
+
+class ToldBonus(IntrinsicBonus):
+    """Pays 1 where its own provider found the state's action row: a method that brings its provider."""
+
+    needs_targets = True
+    target_tasks = ("action",)
+    target_provider = f"{__name__}:MarkedTargets"
+
+    def __init__(self, config, ctx):
+        self.provider = None
+
+    def use_provider(self, provider):
+        self.provider = provider
+
+    def compute_rewards(self, batch):
+        assert isinstance(self.provider, MarkedTargets)  # the run's provider is the one the bonus named
+        return BonusRewards(batch["target_mask"].float(), {"told_calls": float(MarkedTargets.calls)})
 
 
 class EchoBackend(TinyBackend):
@@ -104,6 +133,7 @@ class RulerSuite(TinySuite):
 
 RULER = "Ruler-Corridor-v0"
 PLUGIN_METHOD = Method("flat", "a flat bonus from a plug-in package", FlatBonus)
+TOLD_METHOD = Method("told", "paid where its own target provider answers", ToldBonus)
 PLUGIN_SUITE = TinySuite()
 PLUGIN_RULER = RulerSuite()
 PLUGIN_TASK: LanguageTask | None = None  # made by the fixture: its template lives in a temporary folder
@@ -119,7 +149,7 @@ def plugins(tmp_path, monkeypatch):
     PLUGIN_TASK = LanguageTask("verdict", "text", {"shared": ("verdict", 1), "paper": ("verdict", 1)},
                                max_new_tokens=8, template_dir=str(tmp_path / "templates"))
     points = {
-        "illm.methods": [("flat", f"{__name__}:PLUGIN_METHOD")],
+        "illm.methods": [("flat", f"{__name__}:PLUGIN_METHOD"), ("told", f"{__name__}:TOLD_METHOD")],
         "illm.tasks": [("verdict", f"{__name__}:PLUGIN_TASK")],
         "illm.backends": [("echo", f"{__name__}:EchoBackend")],
         "illm.suites": [("tiny", f"{__name__}:PLUGIN_SUITE"), ("ruler", f"{__name__}:PLUGIN_RULER")],
@@ -149,7 +179,7 @@ def ok(*args):
 
 
 def test_a_plugin_of_each_kind_loads_through_its_entry_point_and_runs(plugins, tmp_path):
-    assert plugins == [["flat"], ["verdict"], ["echo"], ["tiny", "ruler"]]
+    assert plugins == [["flat", "told"], ["verdict"], ["echo"], ["tiny", "ruler"]]
     ok("collect", "--env", TINY, "--steps", 48, "--num-envs", 2, "--out", tmp_path / "traj")
     said = ok("annotate", tmp_path / "traj", "--cache", tmp_path / "ann", "--backend", "echo", "--history", 0,
               "--tasks", "action,verdict")
@@ -164,6 +194,13 @@ def test_a_plugin_of_each_kind_loads_through_its_entry_point_and_runs(plugins, t
         assert float(next(csv.DictReader(fh))["adv_int_abs"]) > 0  # the plug-in's bonus reached the advantages
     with open(tmp_path / "illm" / "metrics.csv", newline="") as fh:
         assert all(float(r["target_coverage"]) == 1.0 for r in csv.DictReader(fh))
+    # a method that names its own target provider: the run reads the cache through it, no trainer edit
+    ok("train", "--env", TINY, "--method", "told", "--backend", "echo", "--cache", tmp_path / "ann", "--history", 0,
+       "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--out", tmp_path / "told")
+    with open(tmp_path / "told" / "metrics.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert MarkedTargets.calls == len(rows)  # once per rollout; the bonus checked it is its provider
+    assert float(rows[-1]["target_coverage"]) == 1.0 and float(rows[-1]["adv_int_abs"]) > 0
 
 
 @pytest.mark.parametrize("method", ["ppo", "rnd", "ngu", "apt", "flat"])

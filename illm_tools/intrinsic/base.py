@@ -166,6 +166,11 @@ class IntrinsicBonus(ABC):
     """With `needs_targets` and without `policy_heads`: the language tasks (illm_tools.tasks.registry)
     whose cache rows the run's provider reads and the live fallback annotates (a method with the
     heads reads the run's `tasks`)."""
+    target_provider: ClassVar[str] = "illm_tools.rl.targets:CachedTargets"
+    """With `needs_targets`: the run's target provider, "module:Class" (loaded when a run starts, so
+    this layer imports no trainer code): a `TargetProvider` with a classmethod `for_run(cfg, cache,
+    builder, *, num_actions, live, shuffle_seed)`. Default: the cache's rows of the run's language
+    tasks (`CachedTargets`); ELLM's: its goals (`GoalTargets`); a plug-in may name its own."""
     pays_reward: bool = True
     """Whether the rewards reach the advantages; False trains the bonus's models and pays nothing
     (e.g. `illm-noreward`, paper Table 3). Set by the registry entry, read by the trainer."""

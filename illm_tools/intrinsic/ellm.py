@@ -81,6 +81,7 @@ class ELLMBonus(IntrinsicBonus):
     config_class = ELLMConfig
     needs_targets = True
     target_tasks: ClassVar[tuple[str, ...]] = ("goal",)
+    target_provider: ClassVar[str] = "illm_tools.rl.targets:GoalTargets"
 
     def __init__(self, config: ELLMConfig, ctx: BonusContext, embedder=None):
         from illm_tools.envs.captions import captioner

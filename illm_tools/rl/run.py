@@ -4,7 +4,8 @@ live model when a budget is given), and the trainer; plus evaluation of a finish
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -36,10 +37,11 @@ def make_pool(cfg: TrainConfig):
 
 
 def make_provider(cfg: TrainConfig, num_actions: int):
-    """The target provider of a run whose bonus needs LLM targets, or None: `CachedTargets` (the rows
-    of iLLM's language tasks, `cfg.tasks`) or, for a bonus whose `target_tasks` are ("goal",), `GoalTargets`
-    (ELLM's suggested goals). Returns (provider, cfg) where cfg carries the model's embedding
-    dimension (iLLM's heads predict it)."""
+    """The target provider of a run whose bonus needs LLM targets, or None: the class its bonus names
+    (`target_provider`: `CachedTargets`, the rows of iLLM's language tasks; ELLM's `GoalTargets`, its
+    suggested goals), reading the cache under the run's `LLMSpec` and `AnnotationSetup`, with the live
+    annotator (`make_live`). Returns (provider, cfg) where cfg carries the model's embedding dimension
+    (iLLM's heads predict it)."""
     if not cfg.needs_targets:
         return None, cfg
     cfg = cfg.resolved()
@@ -48,7 +50,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "see `illm annotate`), or use --method ppo")
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.intrinsic.registry import get_method
-    from illm_tools.rl.targets import CachedTargets, GoalTargets, check_setup
+    from illm_tools.rl.targets import check_setup
 
     method = get_method(cfg.method)
     cache = AnnotationCache(cfg.cache)
@@ -60,15 +62,11 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
         check_setup(cache, builder, llm=llm, tasks=setup.tasks)
-    live = make_live(cfg, llm, setup, cache)
-    if not method.policy_heads:  # ELLM: the goals themselves, no heads to distil into
-        return GoalTargets(cache, builder, num_actions=num_actions, live=live), cfg
-    dim = llm.hidden_size()
-    if dim != cfg.embedding_dim:
-        cfg = dataclasses.replace(cfg, embedding_dim=dim)
-    provider = CachedTargets(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
-                             embedding_dim=dim, action_target=cfg.action_target, tasks=setup.tasks, live=live,
-                             shuffle_seed=method.target_shuffle)  # illm-shuffled: another state's
+    if method.policy_heads and llm.hidden_size() != cfg.embedding_dim:  # the heads predict the model's embeddings
+        cfg = dataclasses.replace(cfg, embedding_dim=llm.hidden_size())
+    provider = method.provider_class.for_run(cfg, cache, builder, num_actions=num_actions,
+                                             live=make_live(cfg, llm, setup, cache),
+                                             shuffle_seed=method.target_shuffle)  # illm-shuffled: another state's
     return provider, cfg
 
 
@@ -112,22 +110,31 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
           should_stop: Callable[[], bool] | None = None) -> dict:
     """Build and run a training run to cfg.total_steps; returns the last update's metrics
     (`Trainer.train`: `should_stop` ends it early with a checkpoint)."""
-    from illm_tools.rl.ppo import Trainer
-
     with torch_threads(cfg.threads):
         # devices resolved (a GPU this machine lacks: one line before anything lands on disk) and auto
         # dtypes measured with the run's own thread count, as config.json records them
         cfg = cfg.resolved()
-        with _only_trainer(cfg.run_dir):
-            pool = make_pool(cfg)
-            provider, cfg = make_provider(cfg, len(pool.action_names))
-            try:
-                trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
-                return trainer.train(should_stop)
-            finally:
-                pool.close()
-                if provider is not None:
-                    provider.close()
+        with _only_trainer(cfg.run_dir), build_run(cfg, on_metrics) as trainer:
+            return trainer.train(should_stop)
+
+
+@contextmanager
+def build_run(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None) -> Iterator:
+    """The whole run assembled from its config, in one place: the env pool (`make_pool`), the method's
+    target provider with its live annotator (`make_provider`), then the trainer, which builds the
+    network, the bonus and the state sources and restores the checkpoint on --resume. Yields the
+    `Trainer`; closes the pool and the provider (its live worker) on the way out, also when a later
+    piece is refused."""
+    from illm_tools.rl.ppo import Trainer
+
+    pool, provider = make_pool(cfg), None
+    try:
+        provider, cfg = make_provider(cfg, len(pool.action_names))
+        yield Trainer(cfg, pool, provider, on_metrics=on_metrics)
+    finally:
+        pool.close()
+        if provider is not None:
+            provider.close()
 
 
 def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy: bool = False,

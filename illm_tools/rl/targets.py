@@ -152,6 +152,15 @@ class CachedTargets:
         and the live annotator's queue (`live_queue`: states waiting in the async worker)."""
         return dict(self._last)
 
+    @classmethod
+    def for_run(cls, cfg, cache: AnnotationCache, builder: PromptBuilder, *, num_actions: int, live=None,
+                shuffle_seed: int | None = None) -> CachedTargets:
+        """The provider of a training run (its `TrainConfig`): the run's target tasks, calibration,
+        action target and embedding width (the model's hidden size, set by the run's assembly)."""
+        return cls(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
+                   embedding_dim=cfg.embedding_dim, action_target=cfg.action_target, tasks=cfg.target_tasks,
+                   live=live, shuffle_seed=shuffle_seed)
+
     def close(self) -> None:
         """Stop the live annotator (the async worker process), if any."""
         if self.live is not None:
@@ -173,6 +182,16 @@ class GoalTargets(CachedTargets):
         self._goal_keys: dict[StateRecord, str] = {}
         self.goals: list[tuple[str, ...] | None] = []
         """Per record of the last `targets` call: the state's goals (possibly none), or None."""
+
+    @classmethod
+    def for_run(cls, cfg, cache: AnnotationCache, builder: PromptBuilder, *, num_actions: int, live=None,
+                shuffle_seed: int | None = None) -> GoalTargets:
+        if shuffle_seed is not None:
+            from illm_tools.errors import UsageError
+
+            raise UsageError("the goal targets have no shuffled control: a method with target_shuffle reads "
+                             "the heads' tasks")
+        return cls(cache, builder, num_actions=num_actions, live=live)
 
     def goal_keys(self, records: Sequence[StateRecord]) -> list[str]:
         """The `goal` keys of the records, memoised per distinct record."""
