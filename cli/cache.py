@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import emit_json
+from cli.common import counted, emit_json
 from cli.errors import friendly
 
 app = typer.Typer(help="Inspect, verify, merge and repair annotation caches.", no_args_is_help=True)
@@ -96,8 +96,8 @@ def merge(
     from illm_tools.cache.verify import merge as run
 
     report = run(sources, into)
-    typer.echo(f"merged {len(sources)} cache{'s' if len(sources) > 1 else ''} into {into}: {report.rows_copied:,} rows copied, "
-               f"{report.rows_skipped:,} already present, {len(report.shards_written)} new shards")
+    typer.echo(f"merged {counted(len(sources), 'cache')} into {into}: {counted(report.rows_copied, 'row')} copied, "
+               f"{report.rows_skipped:,} already present, {counted(len(report.shards_written), 'new shard')}")
 
 
 @app.command("export", epilog="Example: illm cache export data/ann --format parquet --out data/share/ann.parquet")
@@ -112,7 +112,7 @@ def export(
     from illm_tools.cache.share import export as run
 
     report = run(path, out, fmt=fmt, overwrite=overwrite)
-    typer.echo(f"exported {report.rows:,} rows from {report.shards} shards of {path} -> {report.path}")
+    typer.echo(f"exported {counted(report.rows, 'row')} from {counted(report.shards, 'shard')} of {path} -> {report.path}")
 
 
 @app.command("import", epilog="Example: illm cache import data/share/ann.parquet --into data/ann")
@@ -161,7 +161,7 @@ def repair(
                f"{len(report.removed)} redundant, rejected {len(report.rejected)}, "
                f"{len(report.temp_removed)} temp files removed")
     final = check(path)
-    typer.echo(f"{path}: {final.rows:,} rows in {final.shards} shards; " + ("ok" if final.ok else "still damaged: "
+    typer.echo(f"{path}: {counted(final.rows, 'row')} in {counted(final.shards, 'shard')}; " + ("ok" if final.ok else "still damaged: "
                + final.problems[0]))
     if not final.ok:
         raise typer.Exit(1)

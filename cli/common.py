@@ -125,3 +125,8 @@ def stop_on_signals(what: str) -> Iterator[Stop]:
 def score_text(value: float | None) -> str:
     """A suite's score for people: "-" while no episode has ended (NaN), else 2 decimals."""
     return "-" if value is None or value != value else f"{value:.2f}"
+
+
+def counted(n: int, word: str, plural: str | None = None) -> str:
+    """ "1 shard", "2 shards", "1,024 runs": a count and its noun."""
+    return f"{n:,} {word if n == 1 else plural or word + 's'}"

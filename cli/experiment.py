@@ -6,6 +6,7 @@ import inspect
 
 import typer
 
+from cli.common import counted
 from cli.errors import friendly
 
 
@@ -33,8 +34,9 @@ def register(app: typer.Typer) -> None:
         jobs, launcher, dry_run = config.jobs, config.launcher, config.dry_run
         runs = plan(loaded, results)
         counts = {s: sum(r.status == s for r in runs) for s in ("done", "resume", "new")}
-        typer.echo(f"{loaded.name}: {len(runs)} runs ({len(loaded.envs)} envs x {len({r.label for r in runs})} "
-                   f"configurations x {len(loaded.seeds)} seeds, {loaded.frames:,} frames each): {counts['done']} "
+        typer.echo(f"{loaded.name}: {counted(len(runs), 'run')} ({counted(len(loaded.envs), 'env')} x "
+                   f"{counted(len({r.label for r in runs}), 'configuration')} x {counted(len(loaded.seeds), 'seed')}, "
+                   f"{loaded.frames:,} frames each): {counts['done']} "
                    f"finished, {counts['resume']} to resume, {counts['new']} to start -> {results}")
         if dry_run:
             for r in runs:

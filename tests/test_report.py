@@ -207,6 +207,12 @@ def test_the_quality_curve_places_each_configuration_at_its_annotators_probe_agr
     md = (out / "report.md").read_text()
     assert "## Annotator quality" in md and "| BabyAI-UnlockLocal-v0 | illm (oracle_noise 0.5) | 0.600 |" in md
 
+    # a probe of a model no configuration trained with: said in one line, no quality.png
+    alone = CliRunner().invoke(app, ["report", *map(str, runs), "--every", "100", "--out", str(tmp_path / "r3"),
+                                     "--bootstrap", "50", "--probe", str(probes[-1])])
+    assert alone.exit_code == 0 and "quality.png is not drawn" in alone.output
+    assert not (tmp_path / "r3" / "quality.png").exists()
+
     bad = tmp_path / "bad.json"
     bad.write_text("{}")
     refused = CliRunner().invoke(app, ["report", *map(str, runs), "--out", str(tmp_path / "r2"), "--probe", str(bad)])
@@ -267,6 +273,7 @@ def test_redraw_draws_an_old_report_again_from_its_results_json(tmp_path):
     for name in ("final.png", "curves-BabyAI-GoToLocal-v0.png"):
         assert (out / name).read_bytes()[:8] == PNG, name
     assert "| illm (num_dists 4) |" in (out / "report.md").read_text()
+    assert "| method | num_dists 4 | num_dists 8 | num_dists 16 |" in (out / "report.md").read_text()  # by value
 
     (out / "results.json").write_text("{not json")
     result = CliRunner().invoke(app, ["report", str(out), "--redraw"])

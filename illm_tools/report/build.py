@@ -175,6 +175,12 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
         configs = {key: json.loads((Path(g["runs"][0]) / "config.json").read_text())
                    for key, g in groups.items() if g["runs"]}
         quality_result = quality([r for r in rows if (r["env_id"], r["label"]) in configs], configs, probe_figures)
+        if not quality_result["points"]:
+            import logging
+
+            logging.getLogger(__name__).warning(
+                "no configuration here was trained with a probed annotator (the same env, backend, model, history "
+                "and layout as a --probe file), so quality.png is not drawn; the probes stay in results.json")
     settings = {"every": every, "final_points": final_points, "bootstrap_reps": reps, "bootstrap_seed": seed,
                 "confidence": stats.CONFIDENCE, "interval": "percentile, stratified bootstrap over seeds (rliable)"}
     return _write(out, settings, envs, rows, quality_result)

@@ -115,6 +115,8 @@ def load_curve(run_dir: Path, every: int) -> Curve:
 def _setting(value) -> str:
     """A setting's value as a label shows it: numbers plainly, lists joined with "+" (language tasks
     as the paper's Table 2 writes them), dicts as key=value, nothing as "-"."""
+    if value is None:
+        return "-"
     if isinstance(value, float):
         return f"{value:g}"
     if isinstance(value, (list, tuple)):

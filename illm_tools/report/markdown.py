@@ -55,7 +55,12 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
                   [[r["label"], iqm_cell(r["final"]), mean_cell(r["final"]), str(r["final"]["n"]),
                     _frames(r["final"]["frames"])] for r in rows])
     split = [_split(r["label"]) for r in rows]
-    columns = list(dict.fromkeys(s for _, s in split))
+    from illm_tools.report.plots import setting_order
+
+    order = {}
+    for (_, column), r in zip(split, rows):  # a column's settings' values, numbers by value (4, 8, 16)
+        order.setdefault(column, tuple(setting_order(v) for _, v in sorted(r.get("settings", {}).items())))
+    columns = sorted(dict.fromkeys(s for _, s in split), key=lambda c: (c == "", order[c]))  # "(as is)" last
     methods = list(dict.fromkeys(m for m, _ in split))
     if len(columns) > 1 and len(methods) < len(rows):  # settings shared by methods: the paper's method x setting grid
         cells = {sp: iqm_cell(r["final"]) for sp, r in zip(split, rows)}

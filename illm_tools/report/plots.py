@@ -49,7 +49,7 @@ def panels(rows: list[dict]) -> tuple[list[str], list[tuple[str, str]]]:
     return keys, out
 
 
-def _order(value) -> tuple:
+def setting_order(value) -> tuple:
     """Sort key of a setting's value: numbers by value (4 before 16), then text."""
     try:
         return (0, float(value), "")
@@ -63,7 +63,7 @@ def panel_titles(rows: list[dict]) -> list[str]:
 
     def key(row: dict) -> tuple:
         settings = row.get("settings", {})
-        return tuple(_order(settings.get(k)) for k in keys)
+        return tuple(setting_order(settings.get(k)) for k in keys)
 
     first = {}
     for row, (title, _) in sorted(zip(rows, placed), key=lambda pair: key(pair[0])):

@@ -482,6 +482,10 @@ class TrainConfig:
         if not cfg.uses_heads:
             drop |= {"lambda_a", "beta_hc", "distill_coef", "distill_epochs", "summary_loss", "action_similarity",
                      "head_hidden"}
+        if out.get("model") is None and "model" not in drop:  # the backend's default, named as a given one is
+            from illm_tools.llm.backend import resolve_model
+
+            out["model"] = resolve_model(cfg.backend, None)
         return {k: v for k, v in out.items() if k not in drop}
 
     @classmethod
