@@ -197,6 +197,12 @@ class IntrinsicBonus(ABC):
         assembles the run (`illm_tools.rl.run.train`), for a bonus that reads more of the
         provider than the targets the trainer stores (ELLM: each step's goals). Default: nothing."""
 
+    def policy_outputs(self, net, features: torch.Tensor) -> dict[str, torch.Tensor]:
+        """What the bonus reads of the policy network beyond its features, for `features` [..., F]
+        (the minibatch's, with gradient, during the update): entries added to its batches. Default:
+        nothing; iLLM's: its heads' outputs (`action_logits`, `summary`)."""
+        return {}
+
     def observe(self, step: Mapping[str, torch.Tensor]) -> None:
         """Called after every env step with that step's [N, ...] tensors (default: nothing).
         For per-step state such as an episodic memory; must not change what the policy does."""

@@ -188,6 +188,17 @@ class ILLMBonus(IntrinsicBonus):
         d = emb.shape[-1] // len(self.text)
         return {task: (pred[..., i * d:(i + 1) * d], emb[..., i * d:(i + 1) * d]) for i, task in enumerate(self.text)}
 
+    def policy_outputs(self, net, features: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The heads' outputs on `features` [..., F]: `action_logits` (f^a) and `summary` (f^hc and the
+        other text tasks' heads, side by side), shaped as the features' leading dimensions."""
+        action_logits, summary = net.heads(features.reshape(-1, features.shape[-1]))
+        out = {}
+        if action_logits is not None:
+            out["action_logits"] = action_logits.reshape(*features.shape[:-1], -1)
+        if summary is not None:
+            out["summary"] = summary.reshape(*features.shape[:-1], -1)
+        return out
+
     @torch.no_grad()
     def compute_rewards(self, batch: Mapping[str, torch.Tensor]) -> BonusRewards:
         mask, probs, emb = _clean(batch)

@@ -215,18 +215,13 @@ class Trainer:
     def bonus_batch(self, ro: Rollout, rows: torch.Tensor | None = None,
                     features: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """What the bonus reads (base.py): the whole rollout [T, N, ...], or flat rows `rows` [B, ...]
-        with `features` (the minibatch's, with gradient) in place of the stored ones. The LLM
-        targets and the heads' outputs are added when the bonus declares it needs them."""
+        with `features` (the minibatch's, with gradient) in place of the stored ones; the LLM
+        targets are among the rollout's extras when the run has them, and the bonus adds what it
+        reads of the policy network (`policy_outputs`: iLLM's heads)."""
         batch = ro.bonus_batch(rows)
         if features is not None:
             batch["features"] = features
-        if self.method.policy_heads:
-            f = batch["features"]
-            action_logits, summary = self.net.heads(f.reshape(-1, f.shape[-1]))
-            if action_logits is not None:
-                batch["action_logits"] = action_logits.reshape(*f.shape[:-1], -1)
-            if summary is not None:
-                batch["summary"] = summary.reshape(*f.shape[:-1], -1)
+        batch.update(self.bonus.policy_outputs(self.net, batch["features"]))
         return batch
 
     @torch.no_grad()
