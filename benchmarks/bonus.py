@@ -18,6 +18,7 @@ that cannot run here (chibit without its model files, say) is skipped, with the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 import time
@@ -48,30 +49,26 @@ class GoalAwareAnnotator(Annotator):
 
     def annotate(self, states):
         goal_jobs = [[j for j in jobs if j.prompt.task == "goal"] for jobs in states]
-        rows = super().annotate([[j for j in jobs if j.prompt.task != "goal"] for jobs in states])
+        others = [[j for j in jobs if j.prompt.task != "goal"] for jobs in states]
+        rows = super().annotate([jobs for jobs in others if jobs])  # ELLM's states have only goal jobs
         gen = type("G", (), {"text": "1. go to the red ball\n2. pick up the key", "token_ids": [0] * 8,
-                             "finished": True})
-        return rows + [self._goal_row(job, gen) for jobs in goal_jobs for job in jobs]
+                             "finished": True, "embedding": [0.0] * DIM})
+        return rows + [self._text_row(job, gen) for jobs in goal_jobs for job in jobs]
 
 
 def provider_for(method, cfg: TrainConfig, cache_dir: Path, num_actions: int, fill: bool):
     """The run's target provider over a synthetic cache (None for a method without targets)."""
     if not method.needs_targets:
         return None
-    from illm_tools.rl.targets import CachedTargets
-
     tasks = tuple(getattr(method, "target_tasks", ("action", "summary")))
     cache = AnnotationCache(cache_dir)
     annotator = GoalAwareAnnotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", tasks=tasks,
                                    history_len=cfg.history_len, chunk=10_000)
     builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
     live = SyncLive(annotator, cfg.annotation_setup, 10**9) if fill else None
-    if tasks == ("goal",):
-        from illm_tools.rl.targets import GoalTargets
-
-        return GoalTargets(cache, builder, num_actions=num_actions, live=live)
-    return CachedTargets(cache, builder, calibration="sum", num_actions=num_actions, embedding_dim=DIM,
-                         live=live, shuffle_seed=getattr(method, "target_shuffle", None))
+    # the provider the method's bonus names (CachedTargets, ELLM's GoalTargets), as a run builds it
+    return method.provider_class.for_run(dataclasses.replace(cfg, embedding_dim=DIM), cache, builder,
+                                         num_actions=num_actions, live=live, shuffle_seed=method.target_shuffle)
 
 
 def run(cfg: TrainConfig, cache_dir: Path, fill: bool = False) -> tuple[float, dict]:
