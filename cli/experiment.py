@@ -27,7 +27,7 @@ def register(app: typer.Typer) -> None:
         """Train every run of a spec's grid (methods x envs x settings x seeds) into one results folder;
         finished runs are skipped, unfinished ones resumed, so the same command continues a grid."""
         from cli.options import config_from_options
-        from illm_tools.experiment import ExperimentConfig, plan, run_experiment
+        from illm_tools.experiment import ExperimentConfig, plan, run_experiment, unavailable_models
 
         config = config_from_options(ExperimentConfig, options)
         loaded, cluster, results = config.load()
@@ -38,6 +38,10 @@ def register(app: typer.Typer) -> None:
                    f"{counted(len({r.label for r in runs}), 'configuration')} x {counted(len(loaded.seeds), 'seed')}, "
                    f"{loaded.frames:,} frames each): {counts['done']} "
                    f"finished, {counts['resume']} to resume, {counts['new']} to start -> {results}")
+        missing = unavailable_models(runs)
+        if missing:
+            typer.echo("not loadable on this machine offline (`illm models` says why; download them where there is "
+                       "network): " + ", ".join(f"{m} ({counted(n, 'run')})" for m, n in missing.items()), err=True)
         if dry_run:
             for r in runs:
                 typer.echo(f"  {r.status:6s} {r.config.run_dir}")

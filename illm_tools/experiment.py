@@ -407,6 +407,21 @@ def claim_results(spec: Spec, results: str | Path) -> Path:
     return results
 
 
+def unavailable_models(runs: list[Run]) -> dict[str, int]:
+    """The model aliases the runs still to train would load that this machine cannot load offline
+    (`illm models`), with how many runs each: a dry run names them before a grid fails on them."""
+    from illm_tools.llm.registry import list_models
+
+    missing = {m.alias for m in list_models() if not m.available}
+    out: dict[str, int] = {}
+    for run in runs:
+        cfg = run.config
+        if run.status != "done" and (cfg.needs_targets or cfg.obs_mode == "hop") and cfg.backend == "transformers" \
+                and cfg.llm_model in missing:
+            out[cfg.llm_model] = out.get(cfg.llm_model, 0) + 1
+    return out
+
+
 def check_launcher(launcher: str) -> None:
     if launcher not in LAUNCHERS:
         raise UsageError(f"--launcher must be one of {', '.join(LAUNCHERS)}, got {launcher!r}")

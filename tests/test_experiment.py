@@ -184,3 +184,21 @@ def test_a_spec_sets_what_the_paper_sets_or_says_why_not(spec, tmp_path):
             same(key, {str(_value(r.config, key)) for r in runs if r.config.method == method} == {str(v) for v in values})
     for key, value in paper.items():
         same(key, all(_value(r.config, key) == value for r in runs))
+
+
+def test_a_dry_run_names_the_models_this_machine_cannot_load(tmp_path, monkeypatch):
+    """Runs of a model no offline copy exists of are named with their count before the grid starts;
+    ppo runs, which load no model, are not counted."""
+    from illm_tools.llm import registry
+
+    real = registry.list_models()
+    monkeypatch.setattr(registry, "list_models", lambda: [*real, registry.ModelInfo(
+        "far-away", "hub", "nobody/far-away", False, "not in the hub cache", "")])
+    spec = tmp_path / "s.yaml"
+    spec.write_text("name: s\nframes: 64\nseeds: 2\nenvs: [BabyAI-GoToLocal-v0]\nmethods: [ppo, illm]\n"
+                    "grid: {model: [far-away]}\nsettings: {num_envs: 2, num_steps: 16, num_minibatches: 2, "
+                    "cache: " + str(tmp_path / "ann") + "}\n")
+    result = CliRunner().invoke(app, ["experiment", str(spec), "--out", str(tmp_path / "r"), "--dry-run"])
+    assert result.exit_code == 0, result.output
+    assert "not loadable on this machine offline" in result.output and "far-away (2 runs)" in result.output
+    assert not (tmp_path / "r").exists()
