@@ -86,8 +86,13 @@ def annotate_and_report(config) -> None:
         typer.echo(f"left to annotate in this dataset: {left:,} states ({1 - result.covered_step_share:.0%} of its "
                    f"steps); {'run again to go on' if stats.stopped_early else 'a larger --limit takes the next ones'}")
     if config.obs_mode == "obs":
+        from illm_tools.llm.spec import LLMSpec
+
+        model = "" if config.llm == LLMSpec(device=config.llm.device) else f" {config.llm.options()}"
+        layout = ("" if config.layout == "shared" else f" --layout {config.layout}") + \
+            ("" if config.tasks == ("action", "summary") else f" --tasks {','.join(config.tasks)}")
         typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
-                   f"{config.data} --cache {cache} --history {config.history}` estimates how many")
+                   f"{config.data} --cache {cache} --history {config.history}{model}{layout}` estimates how many")
     if stop.requested and stats.stopped_early:
         raise typer.Exit(stop.exit_code)
 

@@ -68,7 +68,10 @@ def verify(
 ) -> None:
     """Check schema, checksums, row counts and duplicate keys of every shard; exit 1 on damage."""
     from illm_tools.cache.verify import verify as run
+    from illm_tools.errors import UsageError
 
+    if not (path / "manifest.json").is_file() and not path.is_dir():
+        raise UsageError(f"no annotation cache at {path}: pass a folder `illm annotate --cache` wrote")
     report = run(path)
     if as_json:
         emit_json({**dataclasses.asdict(report), "ok": report.ok})

@@ -38,8 +38,11 @@ def register(app: typer.Typer) -> None:
         from cli.options import config_from_options
         from illm_tools.probe import ProbeConfig, probe as run
 
+        from illm_tools.settings import check_new_file
+
         as_json, out = options.pop("as_json"), options.pop("out")
         config = config_from_options(ProbeConfig, options)
+        check_new_file(out, "--out")  # before the probe runs, not after
         model, env, backend, quant = config.llm.model, config.env_id, config.llm.backend, config.llm.quant
         history, epsilon = config.history, config.epsilon
         with progress(0, f"probe {model}", unit="states") as advance:

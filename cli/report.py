@@ -54,16 +54,19 @@ def register(app: typer.Typer) -> None:
                 typer.echo(written, err=True)
             return
         frames = max((g["frames"] for g in groups.values()), key=len, default=[])
-        typer.echo("| env | method | seeds | " + " | ".join(f"{f:,}" for f in frames)
-                   + " | steps with a target |")
-        typer.echo("|---" * (4 + len(frames)) + "|")
+        if not frames:
+            typer.echo(f"no run has trained for half of --every {every:,} frames, so there is no curve point to show: "
+                       "pass a smaller --every", err=True)
+        header = ["env", "method", "seeds", *(f"{f:,}" for f in frames), "steps with a target"]
+        typer.echo("| " + " | ".join(header) + " |")
+        typer.echo("|---" * len(header) + "|")
         for (env, method), g in groups.items():
             by_frame = dict(zip(g["frames"], zip(g["mean"], g["std"])))
             cells = ["-" if f not in by_frame or by_frame[f][0] != by_frame[f][0]  # nan: no episode ended there
                      else f"{by_frame[f][0]:.2f}" if len(g["seeds"]) < 2  # one seed: no spread to show
                      else f"{by_frame[f][0]:.2f} ± {by_frame[f][1]:.2f}" for f in frames]
             cover = f"{g['coverage']:.1%}" if g["reads_targets"] else "-"
-            typer.echo(f"| {env} | {method} | {len(g['seeds'])} | " + " | ".join(cells) + f" | {cover} |")
+            typer.echo("| " + " | ".join([env, method, str(len(g["seeds"])), *cells, cover]) + " |")
         typer.echo("")
         for (env, method), g in groups.items():
             typer.echo(f"{env}, {method} ({suite_of(env).score_name}): seeds {', '.join(map(str, g['seeds'])) or '-'} "

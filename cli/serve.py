@@ -6,7 +6,7 @@ import inspect
 
 import typer
 
-from cli.common import stop_on_signals
+from cli.common import counted, stop_on_signals
 from cli.errors import friendly
 
 EXAMPLE = ("Example: illm serve --cache data/ann --model smollm2-135m --port 8765, then "
@@ -71,7 +71,8 @@ def register(app: typer.Typer) -> None:
             try:
                 await run(server, host, port, stop, on_ready=ready)
             except OSError as e:
-                raise UsageError(f"cannot listen on {host}:{port} ({e.strerror or e}): pick another --port") from None
+                raise UsageError(f"cannot listen on {host}:{port} ({e.strerror or e}): check --host (an address of this "
+                                 "machine) and --port (a free one, or 0)") from None
             finally:
                 watcher.cancel()
 
@@ -79,7 +80,7 @@ def register(app: typer.Typer) -> None:
             asyncio.run(main(stop_flag))
         s = server.stats()
         typer.echo(f"served {s['requests']:,} requests: {s['annotated_states']:,} states annotated ({s['rows']:,} rows) "
-                   f"in {s['batches']:,} batches, {s['states_per_s']:.2f} states/s while annotating; "
+                   f"in {counted(s['batches'], 'batch', 'batches')}, {s['states_per_s']:.2f} states/s while annotating; "
                    f"{s['queue']:,} states left queued")
 
     serve.__signature__ = inspect.Signature(_parameters())

@@ -203,7 +203,8 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
         where = f" line {mark.line + 1}" if mark is not None else ""
         raise UsageError(f"{path}{where} is not valid YAML ({getattr(e, 'problem', e)}): fix the spec") from None
     if not isinstance(data, dict):
-        raise UsageError(f"{path} must be a mapping with keys {', '.join(REQUIRED)} (and {', '.join(TOP_KEYS[2:])})")
+        raise UsageError(f"{path} must be a mapping with keys {', '.join(REQUIRED)} (and "
+                         f"{', '.join(k for k in TOP_KEYS if k not in REQUIRED)})")
     spec_lines = lines
     for key in data:
         if key not in TOP_KEYS:

@@ -62,8 +62,30 @@ def check_numbers(config: Any, *, positive: Iterable[str] = (), non_negative: It
 
 
 def check_folder(path: Any, flag: str) -> None:
-    """Refuse a path a command would write a folder at when a file is there."""
+    """Refuse a path a command would write a folder at when a file is there, or above it."""
     from pathlib import Path
 
-    if path is not None and Path(path).exists() and not Path(path).is_dir():
+    if path is None:
+        return
+    if Path(path).exists() and not Path(path).is_dir():
         raise UsageError(f"{flag} {path} is a file: pass a folder")
+    above = next((p for p in Path(path).parents if p.exists()), None)  # a file on the way: it cannot be made
+    if above is not None and not above.is_dir():
+        raise UsageError(f"{flag} {path} lies under {above}, a file: pass a folder elsewhere")
+
+
+def check_new_file(path: Any, flag: str) -> None:
+    """Refuse a path a command would write a new file at: a folder there, a file above it, or a file
+    already there (nothing is overwritten unless asked: pass another path)."""
+    from pathlib import Path
+
+    if path is None:
+        return
+    path = Path(path)
+    if path.is_dir():
+        raise UsageError(f"{flag} {path} is a folder: pass a file name (e.g. {path / 'figures.json'})")
+    if path.exists():
+        raise UsageError(f"{flag} {path} exists and would be overwritten: pass another file, or remove it first")
+    above = next((p for p in path.parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise UsageError(f"{flag} {path} lies under {above}, a file: pass a path elsewhere")

@@ -190,3 +190,17 @@ def test_every_train_setting_is_an_option_named_as_its_field_with_its_default(tm
     changed = {f.name for f in dataclasses.fields(TrainConfig) if getattr(cfg, f.name) != getattr(default, f.name)}
     assert changed == {"anneal_lr", "clip_coef", "env_options", "target_kl"}  # every other default is the field's
     assert cfg.env_options == {"num_dists": 4} and cfg.total_steps == 200_000
+
+
+def test_probe_refuses_an_out_it_would_overwrite_or_cannot_write_before_probing(tmp_path, monkeypatch):
+    """`illm probe --out`: an existing file, a folder, or a path under a file is refused in one line
+    before the probe runs; the existing file is left as it was."""
+    import illm_tools.probe
+
+    monkeypatch.setattr(illm_tools.probe, "probe", lambda *a, **k: (_ for _ in ()).throw(AssertionError("ran")))
+    kept = tmp_path / "kept.json"
+    kept.write_text("{}")
+    for out, said in ((kept, "would be overwritten"), (tmp_path, "is a folder"), (kept / "x.json", "a file")):
+        result = runner.invoke(app, ["probe", "--backend", "oracle", "--states", "4", "--out", str(out)])
+        assert result.exit_code == 1 and said in result.output and len(result.output.strip().splitlines()) == 1
+    assert kept.read_text() == "{}"

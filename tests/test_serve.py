@@ -155,6 +155,7 @@ def test_a_trainer_without_its_server_is_refused_in_one_line(tmp_path):
                               "--num-steps", "16", "--frames", "32", "--annotator", "http://127.0.0.1:9",
                               "--out", str(tmp_path / "run")])
     assert out.exit_code == 1 and "no illm server answers at http://127.0.0.1:9" in out.output
+    assert not (tmp_path / "run").exists()  # refused before it wrote anything: no folder holding only its lock
     assert len(out.output.strip().splitlines()) == 1
 
 

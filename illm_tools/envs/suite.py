@@ -102,7 +102,7 @@ def check_options(env_id: str, options: dict, allowed: Sequence[str]) -> None:
     unknown = sorted(set(options) - set(allowed))
     if unknown:
         raise UsageError(f"{env_id} takes no env option {', '.join(unknown)}; it takes "
-                         f"{', '.join(sorted(allowed)) or 'none'}")
+                         f"{', '.join(sorted(set(allowed))) or 'none'}")
 
 
 class Suite:

@@ -61,12 +61,17 @@ class ReportConfig:
         if self.redraw:
             if len(self.runs) != 1 or self.out is not None or self.probe:
                 raise UsageError("--redraw takes one report folder and no --out or --probe: `illm report DIR --redraw`")
+            if self.runs[0].exists() and not self.runs[0].is_dir():
+                raise UsageError(f"{self.runs[0]} is a file: --redraw takes a folder `illm report --out` wrote")
             return
         check_numbers(self, positive=("every", "final_points", "bootstrap"))
         if self.out is not None and self.out.exists() and not self.out.is_dir():
             raise UsageError(f"--out {self.out} is a file: pass a folder for the report")
         if self.probe and self.out is None:
             raise UsageError("--probe adds the quality curve to a report folder: pass --out DIR too")
+        not_files = [str(p) for p in self.probe if not p.is_file()]
+        if not_files:
+            raise UsageError(f"no probe file at {', '.join(not_files[:3])}: pass files `illm probe --out FILE` wrote")
         missing = [str(r) for r in self.runs if not r.is_dir()]
         if missing or not self.runs:
             raise UsageError(f"no run folder at {', '.join(missing[:3]) or '(none given)'}: pass folders written by "
@@ -77,6 +82,7 @@ class ReportConfig:
         results folder), the runs below it; none is refused in one line."""
         runs = [run for r in self.runs for run in ([r] if (r / "metrics.csv").is_file() or (r / "config.json").is_file()
                                                   else sorted(p.parent for p in r.rglob("metrics.csv")))]
+        runs = list({run.resolve(): run for run in runs}.values())  # a folder given twice is one run, not two seeds
         if not runs:
             raise UsageError("no training run in the folders given: pass folders written by `illm train` or "
                              "`illm experiment`")
@@ -179,8 +185,9 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
             import logging
 
             logging.getLogger(__name__).warning(
-                "no configuration here was trained with a probed annotator (the same env, backend, model, history "
-                "and layout as a --probe file), so quality.png is not drawn; the probes stay in results.json")
+                "no configuration here has both a final score (an episode ended in its last points) and a probed "
+                "annotator (the same env, backend, model, history and layout as a --probe file), so quality.png is "
+                "not drawn; the probes stay in results.json")
     settings = {"every": every, "final_points": final_points, "bootstrap_reps": reps, "bootstrap_seed": seed,
                 "confidence": stats.CONFIDENCE, "interval": "percentile, stratified bootstrap over seeds (rliable)"}
     return _write(out, settings, envs, rows, quality_result)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from illm_tools.errors import CacheError, UsageError
+from illm_tools.errors import CacheError, IllmError, UsageError
 from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.threads import torch_threads  # noqa: F401  (re-exported: where callers found it)
 
@@ -114,8 +114,15 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
         # devices resolved (a GPU this machine lacks: one line before anything lands on disk) and auto
         # dtypes measured with the run's own thread count, as config.json records them
         cfg = cfg.resolved()
-        with _only_trainer(cfg.run_dir), build_run(cfg, on_metrics) as trainer:
-            return trainer.train(should_stop)
+        made = not cfg.run_dir.exists()
+        try:
+            with _only_trainer(cfg.run_dir), build_run(cfg, on_metrics) as trainer:
+                return trainer.train(should_stop)
+        except IllmError:  # refused before the run wrote anything: leave no folder holding only the lock
+            if made and cfg.run_dir.is_dir() and {p.name for p in cfg.run_dir.iterdir()} <= {RUN_LOCK}:
+                (cfg.run_dir / RUN_LOCK).unlink(missing_ok=True)
+                cfg.run_dir.rmdir()
+            raise
 
 
 @contextmanager
