@@ -76,7 +76,7 @@ def verify(
     if as_json:
         emit_json({**dataclasses.asdict(report), "ok": report.ok})
     else:
-        typer.echo(f"{path}: {report.schema or 'unknown schema'}, {report.shards} shard{'s' if report.shards != 1 else ''}, {report.rows:,} rows, "
+        typer.echo(f"{path}: {report.schema or 'unknown schema'}, {counted(report.shards, 'shard')}, {counted(report.rows, 'row')}, "
                    f"{report.keys:,} keys")
         for problem in report.problems:
             typer.echo(f"  DAMAGED  {problem}")

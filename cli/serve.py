@@ -11,8 +11,6 @@ from cli.errors import friendly
 
 EXAMPLE = ("Example: illm serve --cache data/ann --model smollm2-135m --port 8765, then "
            "illm train ... --cache data/ann --annotator http://127.0.0.1:8765")
-LLM_OPTIONS = ("backend", "model", "dtype", "quant", "oracle_noise", "endpoint", "api_key_env")
-"""The options that choose the model: none of them given, the server serves the cache's model setup."""
 
 
 def _parameters() -> list[inspect.Parameter]:
@@ -41,7 +39,8 @@ def register(app: typer.Typer) -> None:
 
         config = config_from_options(ServeConfig, options)
         store = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
-        if all(options[k] == LLMSpec.__dataclass_fields__[k].default for k in LLM_OPTIONS):
+        chosen = [f.name for f in dataclasses.fields(LLMSpec) if f.name != "device"]  # what names the model
+        if all(options[k] == LLMSpec.__dataclass_fields__[k].default for k in chosen):  # none given: the cache's
             from illm_tools.annotate.setups import adopt_model
 
             held = adopt_model(store)  # no model options: the cache's model setup

@@ -115,8 +115,7 @@ class ExperimentConfig:
 
         self.spec = Path(self.spec)
         self.out = Path(self.out) if self.out is not None else None
-        check_numbers(self, positive=("jobs", "frames", "seeds", "time_minutes", "cpus", "mem_gb"),
-                      non_negative=("gpus",))
+        check_numbers(self, positive=("jobs", "frames", "seeds"))  # the cluster's: `Cluster.merged` in `load`
         check_folder(self.out, "--out")
         check_launcher(self.launcher)
 

@@ -172,8 +172,6 @@ class ProbeConfig:
     def __post_init__(self) -> None:
         from illm_tools.settings import check_numbers
 
-        if isinstance(self.llm, dict):  # as a probe file writes it
-            self.llm = LLMSpec(**self.llm)
         check_numbers(self, positive=("states", "batch_size"), non_negative=("history", "seed"), unit=("epsilon",))
 
 

@@ -92,8 +92,6 @@ class ServeConfig:
         from illm_tools.settings import check_folder, check_numbers
 
         self.cache = Path(self.cache)
-        if isinstance(self.llm, dict):
-            self.llm = LLMSpec(**self.llm)
         check_numbers(self, positive=("batch_size", "chunk"), non_negative=("threads", "port"))
         if self.port >= 65536:
             raise UsageError(f"--port must be in 0..65535, got {self.port}")

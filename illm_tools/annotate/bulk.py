@@ -64,8 +64,6 @@ class AnnotateConfig:
         from illm_tools.settings import check_folder, check_numbers
 
         self.data, self.cache = Path(self.data), Path(self.cache)
-        if isinstance(self.llm, dict):  # as a JSON file or a test writes it
-            self.llm = LLMSpec(**self.llm)
         check_numbers(self, positive=("batch_size", "chunk", "max_minutes", "hop_beta", "num_processes"),
                       non_negative=("limit", "history", "hop_seed"))
         if not self.data.is_dir():

@@ -322,14 +322,15 @@ class TrainConfig:
         if self.action_similarity not in ("tv", "bhattacharyya"):
             raise UsageError("action_similarity must be tv or bhattacharyya, "
                              f"got {self.action_similarity!r}")
-        from illm_tools.llm.backend import check_backend
-        from illm_tools.llm.dtype import CHOICES
-
-        if self.model_dtype not in CHOICES:
-            raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.model_dtype!r}")
-        check_backend(self.backend)
-        if self.needs_targets or self.obs_mode == "hop":  # refuses a bad model, noise, endpoint or quantisation
+        if self.needs_targets or self.obs_mode == "hop":  # refuses a bad backend, model, dtype, noise, endpoint, quant
             self.llm  # noqa: B018 - built to be checked
+        else:  # a run without an LLM still refuses a backend or dtype that is no such thing
+            from illm_tools.llm.backend import check_backend
+            from illm_tools.llm.dtype import CHOICES
+
+            if self.model_dtype not in CHOICES:
+                raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.model_dtype!r}")
+            check_backend(self.backend)
         if self.obs_mode not in OBS_MODES:
             raise UsageError(f"--mode is the observation mode, {' or '.join(OBS_MODES)}; got {self.obs_mode!r} "
                              "(the method is --method)")
@@ -412,9 +413,9 @@ class TrainConfig:
     @property
     def renderer(self) -> str:
         """The renderer field of the run's cache keys: the suite's text renderer, or in hop mode the
-        translation's settings (`illm_tools.hop.context.hop_renderer`)."""
+        translation's settings (`illm_tools.tasks.setup.hop_renderer`)."""
         if self.obs_mode == "hop":
-            from illm_tools.hop.context import hop_renderer
+            from illm_tools.tasks.setup import hop_renderer
 
             return hop_renderer(self.hop_seed, self.hop_beta, self.history_len + 1)
         from illm_tools.envs import renderer_of

@@ -62,7 +62,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
         check_setup(cache, builder, llm=llm, tasks=setup.tasks)
-    if method.policy_heads and llm.hidden_size() != cfg.embedding_dim:  # the heads predict the model's embeddings
+    if method.policy_heads:  # the heads predict the model's embeddings
         cfg = dataclasses.replace(cfg, embedding_dim=llm.hidden_size())
     provider = method.provider_class.for_run(cfg, cache, builder, num_actions=num_actions,
                                              live=make_live(cfg, llm, setup, cache),
