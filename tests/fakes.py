@@ -18,19 +18,23 @@ ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
 
 class FakePool:
     """The EnvPool interface over a toy task: an episode ends after 3-9 steps; 'go forward'
-    on the last step succeeds (reward 1)."""
+    on the last step succeeds (reward 1). With `positions`, the agent of env i stands at (step, i)."""
 
-    def __init__(self, num_envs, seed=0):
+    def __init__(self, num_envs, seed=0, positions=False):
         self.num_envs, self.action_names = num_envs, ACTIONS
         self.rng = np.random.default_rng(seed)
+        self.positions = positions
 
     def _obs(self):
         n = self.num_envs
-        return SimpleNamespace(
+        obs = SimpleNamespace(
             images=self.rng.integers(0, 6, size=(n, 7, 7, 3)).astype(np.uint8),
             missions=[f"go to the {c} ball" for c in self.colours],
             texts=[f"you see a wall {s} steps forward" for s in self.steps], seeds=np.arange(n),
             steps=self.steps.copy())
+        if self.positions:
+            obs.positions = np.stack([self.steps, np.arange(n)], 1)
+        return obs
 
     def reset(self):
         self.steps = np.zeros(self.num_envs, np.int64)

@@ -210,6 +210,9 @@ class ILLMBonus(IntrinsicBonus):
         raw = {task: torch.where(mask, r, torch.zeros_like(r)) for task, r in raw.items()}
         logs = {f"intrinsic_reward_{_suffix(t)}": float(_masked_mean(r, mask)) for t, r in raw.items()}
         logs.update(target_coverage=float(mask.float().mean()), no_target_steps=float((~mask).sum()))
+        if "action" in self.tasks:  # how much of the annotator f^a has learned: its best action = the annotator's
+            agree = batch["action_logits"].argmax(-1) == probs.argmax(-1)
+            logs["head_agreement"] = float(_masked_mean(agree.float(), mask))
         if not self.pays_reward:
             return BonusRewards(torch.zeros_like(mask, dtype=torch.float32), logs)
         reward = sum(self.weights[t] * self.norms[t](r, mask) for t, r in raw.items())

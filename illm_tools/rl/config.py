@@ -187,6 +187,16 @@ class TrainConfig:
     """Weight of the extrinsic advantage in the summed advantage."""
     int_coef: float = BONUS_PRESETS["paper"]["int_coef"]
     """Weight of the intrinsic advantage; 1 with ext_coef 1 matches r* = r + lambda r^a + beta r^hc."""
+    reward_streams: int = 2
+    """2: the bonus has its own value head and GAE (RND's two streams; `int_gamma`, `int_episodic`);
+    1: the paper's Algorithm 1, r* = ext_coef r + int_coef b in one episodic stream with one critic."""
+    bonus_schedule: str = "constant"
+    """The intrinsic advantage's weight over the run (`illm_tools.rl.bonus_schedule`): constant,
+    anneal (linear to 0 over the run), or success (1 - the running success rate: it fades as the
+    level is solved)."""
+    int_ext_cap: float = 0.0
+    """Cap the intrinsic advantage at this multiple of the extrinsic one (mean |.| per rollout) where
+    the task paid anything in the rollout; 0: no cap (the bonus alone steers until a reward is found)."""
 
     # --- LLM targets -----------------------------------------------------------------------
     cache: Path | None = None
@@ -274,7 +284,7 @@ class TrainConfig:
                                       "mission_max_len", "head_hidden", "embedding_dim", "learning_rate", "clip_coef",
                                       "max_grad_norm", "target_kl", "hop_beta", "checkpoint_minutes", "threads"),
                       non_negative=("seed", "num_dists", "hop_seed", "history_len", "lambda_a", "beta_hc", "ext_coef",
-                                    "int_coef", "distill_coef", "distill_epochs", "ent_coef", "vf_coef", "llm_threads",
+                                    "int_coef", "int_ext_cap", "distill_coef", "distill_epochs", "ent_coef", "vf_coef", "llm_threads",
                                     "checkpoint_every"),
                       unit=("gamma", "gae_lambda", "int_gamma", "oracle_noise"),
                       flags={"total_steps": "--frames", "history_len": "--history", "run_dir": "--out"})
@@ -289,6 +299,20 @@ class TrainConfig:
             raise UsageError(f"--action-score must be {', '.join(CALIBRATIONS)}, got {self.action_score!r}")
         if self.action_target not in ACTION_TARGETS:
             raise UsageError(f"--action-target must be distribution or argmax, got {self.action_target!r}")
+        if self.reward_streams not in (1, 2):
+            raise UsageError(f"--reward-streams is 1 (the paper's one critic) or 2 (RND's two value heads), got "
+                             f"{self.reward_streams!r}")
+        from illm_tools.rl.bonus_schedule import SCHEDULES
+
+        if self.bonus_schedule not in SCHEDULES:
+            raise UsageError(f"--bonus-schedule must be one of {', '.join(SCHEDULES)}, got {self.bonus_schedule!r}")
+        if self.bonus_schedule == "success":
+            from illm_tools.envs import suite_of
+
+            if suite_of(self.env_id).score_name != "success rate":
+                raise UsageError(f"--bonus-schedule success fades the bonus with the success rate, and "
+                                 f"{self.env_id}'s score is its {suite_of(self.env_id).score_name}: use constant or "
+                                 "anneal")
         if self.live_mode not in LIVE_MODES:
             raise UsageError(f"--live-mode must be {' or '.join(LIVE_MODES)}, got {self.live_mode!r}")
         if self.annotator is not None and not self.annotator.startswith(("http://", "https://")):

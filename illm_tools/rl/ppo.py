@@ -29,6 +29,7 @@ from illm_tools.errors import OutputExistsError, UsageError
 from illm_tools.folders import refuse_foreign
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, TargetProvider
 from illm_tools.intrinsic.registry import get_method
+from illm_tools.rl.bonus_schedule import BonusSchedule
 from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint, write_config,
                                       save_checkpoint)
 from illm_tools.rl.config import TrainConfig
@@ -89,6 +90,7 @@ class Trainer:
             self.bonus = method.build(cfg.to_dict(), cfg.bonus_options, ctx).to(self.device)
         if self.provider is not None:  # a bonus may read more of its provider than the stored targets (ELLM's goals)
             self.bonus.use_provider(self.provider)
+        self.schedule = BonusSchedule(cfg.bonus_schedule, cfg.num_updates)  # the intrinsic advantage's weight
         self.global_step, self.update_idx = 0, 0
         self._open_run_dir()
 
@@ -111,7 +113,7 @@ class Trainer:
             "config": self.cfg.to_dict(), "global_step": self.global_step, "update": self.update_idx,
             "action_names": self.action_names, "image_shape": list(self.image_shape),
             "model": self.net.state_dict(), "optimizer": self.optimizer.state_dict(),
-            "bonus": self.bonus.state_dict(),
+            "bonus": self.bonus.state_dict(), "bonus_schedule": self.schedule.state_dict(),
             **{observer.name: observer.state_dict() for observer in self.observers},
             "rng": {"torch": self.generator.get_state(), "numpy": self.np_rng.bit_generator.state},
         }
@@ -126,6 +128,7 @@ class Trainer:
         self.net.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.bonus.load_state_dict(state["bonus"])
+        self.schedule.load_state_dict(state.get("bonus_schedule", {}))  # a checkpoint from before: constant
         for observer in self.observers:
             if observer.name in state:
                 observer.load_state_dict(state[observer.name])
@@ -232,12 +235,17 @@ class Trainer:
         return self.bonus.compute_rewards(self.bonus_batch(ro) if batch is None else batch)
 
     # --- 4. advantages ----------------------------------------------------------------------
+    def bonus_weight(self) -> float:
+        """This update's factor on int_coef (`cfg.bonus_schedule`)."""
+        return self.schedule.weight(max(self.update_idx, 1))
+
     def advantages(self, ro: Rollout, int_rewards: torch.Tensor | None,
                    next_values: tuple[torch.Tensor, torch.Tensor]) -> Advantages:
         cfg = self.cfg
         return two_stream_advantages(ro, int_rewards, *next_values, gamma=cfg.gamma,
                                      int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
-                                     int_coef=cfg.int_coef, int_episodic=cfg.int_episodic)
+                                     int_coef=cfg.int_coef * self.bonus_weight(), int_episodic=cfg.int_episodic,
+                                     streams=cfg.reward_streams, int_ext_cap=cfg.int_ext_cap)
 
     # --- 5. update --------------------------------------------------------------------------
     def _value_loss(self, new: torch.Tensor, old: torch.Tensor, ret: torch.Tensor) -> torch.Tensor:
@@ -278,7 +286,7 @@ class Trainer:
                                     -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)).mean()
                 v_loss = self._value_loss(out.value_ext, b_v_ext[mb], b_ret_ext[mb])
                 v_loss_int = (self._value_loss(out.value_int, b_v_int[mb], b_ret_int[mb])
-                              if self.bonus.pays_reward else torch.zeros((), device=self.device))
+                              if adv.int_stream else torch.zeros((), device=self.device))
                 loss = pg_loss - cfg.ent_coef * entropy + cfg.vf_coef * (v_loss + v_loss_int)
                 logs = {"policy_loss": pg_loss.detach(), "value_loss": v_loss.detach(),
                         "value_loss_int": v_loss_int.detach(), "entropy": entropy.detach(), "approx_kl": approx_kl}
@@ -319,12 +327,17 @@ class Trainer:
             batch = self.bonus_batch(ro)
         bonus = self.intrinsic_rewards(ro, batch)
         adv = self.advantages(ro, bonus.reward if self.bonus.pays_reward else None, next_values)
+        paid = (bonus.reward * (self.cfg.int_coef * self.bonus_weight())).cpu().numpy() \
+            if self.bonus.pays_reward else None
+        for observer in self.observers:  # where the bonus was paid (the weighted reward, as it entered)
+            observer.paid(paid)
         loss_logs = self.update(ro, adv)
         # the bonus's own model learns from the same batch (its head outputs: from before the update)
         loss_logs.update({f"losses/{k}": v for k, v in self.bonus.update(batch).items()})
         t3 = time.perf_counter()
         metrics = {"global_step": self.global_step, "update": self.update_idx,
                    "charts/learning_rate": self.optimizer.param_groups[0]["lr"],
+                   "charts/bonus_weight": self.bonus_weight() if self.bonus.pays_reward else 0.0,
                    "charts/episodes": len(episodes),
                    "time/rollout_s": t1 - t0, "time/targets_s": t2 - t1, "time/update_s": t3 - t2}
         if episodes:
@@ -332,6 +345,7 @@ class Trainer:
             metrics["charts/episodic_length"] = float(np.mean([e.length for e in episodes]))
             suite_figures = self.suite.episode_metrics(episodes)  # success rate, score, achievements
             metrics.update({f"charts/{k}": v for k, v in suite_figures.items() if not np.isnan(v)})
+            self.schedule.observe(suite_figures.get("success_rate"))  # the next update's weight reads it
         metrics.update({f"charts/{k}": v for k, v in {**target_logs, **bonus.logs}.items()})
         metrics.update(loss_logs)
         metrics.update({f"charts/{k}": v for k, v in adv.scale_logs().items()})

@@ -6,7 +6,8 @@ no branch for iLLM(hop), iLLM(obs) or a suite's extras:
 - a state source (`TextStates`, `HopStates`, `NoStates`): `current(obs)` -> (the records of the
   pool's current observations, the network's context [N, C] or None), `advance(obs, actions, ends,
   next_obs)` after each step; `context_dim` is C (0: none);
-- a step observer (`VisitObserver`): `observe(obs)` with every new observation, `state_dict` /
+- a step observer (`VisitObserver`): `observe(obs)` with every new observation, `paid(reward)` with
+  each rollout's intrinsic reward as paid ([T, N]; None where the run pays none), `state_dict` /
   `load_state_dict` (kept in the checkpoint under its `name`), `save(run_dir)` beside it.
 
 `make_states` and `make_observers` pick them from the run's config and its first observations.
@@ -100,7 +101,8 @@ def make_states(cfg: TrainConfig, suite, image_shape: tuple[int, ...], action_na
 
 class VisitObserver:
     """Per-cell visit counts where the env reports the agent's position (`info["agent_pos"]`: MiniGrid,
-    paper Figure 1), saved as `visitation.npy` with each checkpoint."""
+    paper Figure 1), saved as `visitation.npy` with each checkpoint; and where the bonus was paid
+    (`paid`: each step's intrinsic reward added at the cell the agent acted from), `bonus_visitation.npy`."""
 
     name = "visits"
 
@@ -108,19 +110,38 @@ class VisitObserver:
         from illm_tools.rl.visitation import VisitCounts
 
         self.counts = VisitCounts()
+        self.bonus = VisitCounts(weighted=True)
         self.counts.add(first_obs.positions)
+        self._current = np.asarray(first_obs.positions)
+        self._acted: list[np.ndarray] = []  # this rollout's positions acted from, one [N, 2] per step
 
     def observe(self, obs) -> None:
         self.counts.add(obs.positions)
+        self._acted.append(self._current)
+        self._current = np.asarray(obs.positions)
+
+    def paid(self, reward) -> None:
+        """The rollout's intrinsic reward paid, [T, N] (t-major), each at the cell its step acted from
+        (None: the run pays none; the rollout's positions are dropped)."""
+        steps = self._acted[-len(reward):] if reward is not None else []
+        if steps:
+            self.bonus.add(np.stack(steps), np.asarray(reward, dtype=np.float64)[-len(steps):])
+        self._acted.clear()
 
     def state_dict(self) -> dict:
-        return self.counts.state_dict()
+        return {**self.counts.state_dict(), "bonus": self.bonus.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         self.counts.load_state_dict(state)
+        if "bonus" in state:  # a checkpoint from before the bonus map: it starts empty
+            self.bonus.load_state_dict(state["bonus"])
 
     def save(self, run_dir) -> None:
+        from illm_tools.rl.visitation import BONUS_FILE
+
         self.counts.save(run_dir)
+        if self.bonus.counts.size:
+            self.bonus.save(run_dir, BONUS_FILE)
 
 
 def make_observers(first_obs) -> list:

@@ -3,7 +3,9 @@
 Owns `Rollout` (preallocated [T, N, ...] tensors of one rollout: what the loss reads and what
 every intrinsic bonus may read, `illm_tools.intrinsic.base`; LLM targets included),
 `gae` (generalised advantage estimation) and `two_stream_advantages` (RND-style extrinsic +
-intrinsic streams, each with its own value head and GAE, summed with coefficients).
+intrinsic streams, each with its own value head and GAE, summed with coefficients; or the paper's
+one stream of r* = r + b with one critic), with `capped` (the intrinsic part held to a multiple of
+the extrinsic one where the task pays).
 
 Convention: `ends[t]` is True when the transition taken at step t ended its episode
 (terminated or truncated; truncation is treated like termination, as in CleanRL, because the
@@ -129,35 +131,77 @@ class Advantages:
     the two weighted parts of the sum, to watch the bonus's scale."""
 
     advantages: torch.Tensor   # [T, N] ext_part + int_part
-    returns_ext: torch.Tensor  # [T, N]
-    returns_int: torch.Tensor  # [T, N] (zeros without a bonus)
+    returns_ext: torch.Tensor  # [T, N] (one stream: the return of r* = ext_coef r + int_coef b)
+    returns_int: torch.Tensor  # [T, N] (zeros without a bonus, and with one stream)
     ext_part: torch.Tensor     # [T, N] ext_coef * A_ext
     int_part: torch.Tensor     # [T, N] int_coef * A_int (zeros without a bonus)
+    int_stream: bool = True
+    """Whether the intrinsic value head has a return to learn (two streams and a bonus paid)."""
+    int_scale: float = 1.0
+    """The factor `int_ext_cap` put on the intrinsic part this rollout (1: not capped)."""
 
     def scale_logs(self) -> dict[str, float]:
         """How big the bonus is next to the task reward, per update: mean |ext_coef A_ext| and
         mean |int_coef A_int| (`adv_ext_abs`, `adv_int_abs`), their ratio `adv_int_ext_ratio`
         (int / max(ext, 1e-8); above 1 the bonus steers the normalised advantage more than the
-        task does, and it is the bonus alone while no episode has paid a reward), and the mean GAE
-        return of each stream (`return_ext`, `return_int`, the latter in normalised-bonus units)."""
+        task does, and it is the bonus alone while no episode has paid a reward), the mean GAE
+        return of each stream (`return_ext`, `return_int`, the latter in normalised-bonus units),
+        and the cap's factor (`int_scale`)."""
         ext, intr = float(self.ext_part.abs().mean()), float(self.int_part.abs().mean())
         return {"adv_ext_abs": ext, "adv_int_abs": intr, "adv_int_ext_ratio": intr / max(ext, 1e-8),
-                "return_ext": float(self.returns_ext.mean()), "return_int": float(self.returns_int.mean())}
+                "return_ext": float(self.returns_ext.mean()), "return_int": float(self.returns_int.mean()),
+                "int_scale": self.int_scale}
+
+
+def capped(ext_part: torch.Tensor, int_part: torch.Tensor, cap: float) -> tuple[torch.Tensor, float]:
+    """The intrinsic part scaled down so that its mean |.| is at most `cap` times the extrinsic
+    part's, in a rollout where the task paid anything (mean |ext_part| > 0); else as it is. 0: no
+    cap. The bonus steers alone while nothing is found, and gives way to the task's advantage,
+    in proportion, where the task pays: a scale that follows the task's reward, with no per-level
+    weight."""
+    if cap <= 0:
+        return int_part, 1.0
+    ext, intr = float(ext_part.abs().mean()), float(int_part.abs().mean())
+    if ext <= 0 or intr <= cap * ext:
+        return int_part, 1.0
+    scale = cap * ext / intr
+    return int_part * scale, scale
 
 
 def two_stream_advantages(ro: Rollout, int_rewards: torch.Tensor | None, next_value_ext: torch.Tensor,
                           next_value_int: torch.Tensor, *, gamma: float, int_gamma: float, lam: float,
-                          ext_coef: float, int_coef: float, int_episodic: bool) -> Advantages:
-    """Extrinsic GAE on the env reward plus, when `int_rewards` is given, intrinsic GAE on it.
+                          ext_coef: float, int_coef: float, int_episodic: bool, streams: int = 2,
+                          int_ext_cap: float = 0.0) -> Advantages:
+    """Extrinsic GAE on the env reward plus, when `int_rewards` is given, the bonus's advantage.
+
+    streams 2 (RND's): intrinsic GAE on the bonus with its own value head (`values_int`), its own
+    discount and, unless `int_episodic`, no cut at episode ends; the two advantages summed with
+    their coefficients. streams 1 (the paper's Algorithm 1, line 11): one reward r* = ext_coef r +
+    int_coef b, one critic (`values_ext`), one episodic GAE at `gamma`; its intrinsic part is the
+    (gamma lambda)-discounted sum of int_coef b within the episode (GAE is linear in the rewards,
+    so ext_part = A(r*) - int_part exactly) and the intrinsic head learns nothing.
+    `int_ext_cap` > 0 caps the intrinsic part at that multiple of the extrinsic one (`capped`).
 
     The bonus enters here, after it is computed and before the loss reads the advantages
     (the order rllte got wrong). Without a bonus the intrinsic stream is absent (zeros).
     """
-    adv_ext, ret_ext = gae(ro.rewards, ro.values_ext, next_value_ext, ro.ends, gamma, lam)
+    if streams not in (1, 2):
+        raise ValueError(f"streams is 1 or 2, got {streams}")
     if int_rewards is None:
+        adv_ext, ret_ext = gae(ro.rewards, ro.values_ext, next_value_ext, ro.ends, gamma, lam)
         zeros = torch.zeros_like(ret_ext)
-        return Advantages(ext_coef * adv_ext, ret_ext, zeros, ext_coef * adv_ext, zeros)
+        return Advantages(ext_coef * adv_ext, ret_ext, zeros, ext_coef * adv_ext, zeros, int_stream=False)
+    if streams == 1:
+        shaped = ext_coef * ro.rewards + int_coef * int_rewards
+        adv, ret = gae(shaped, ro.values_ext, next_value_ext, ro.ends, gamma, lam)
+        zeros = torch.zeros_like(ret)
+        int_part = gae(int_coef * int_rewards, zeros, zeros[0], ro.ends, gamma, lam)[0]
+        ext_part = adv - int_part
+        int_part, scale = capped(ext_part, int_part, int_ext_cap)
+        return Advantages(ext_part + int_part, ret, zeros, ext_part, int_part, int_stream=False, int_scale=scale)
+    adv_ext, ret_ext = gae(ro.rewards, ro.values_ext, next_value_ext, ro.ends, gamma, lam)
     int_ends = ro.ends if int_episodic else torch.zeros_like(ro.ends)
     adv_int, ret_int = gae(int_rewards, ro.values_int, next_value_int, int_ends, int_gamma, lam)
-    ext_part, int_part = ext_coef * adv_ext, int_coef * adv_int
-    return Advantages(ext_part + int_part, ret_ext, ret_int, ext_part, int_part)
+    ext_part = ext_coef * adv_ext
+    int_part, scale = capped(ext_part, int_coef * adv_int, int_ext_cap)
+    return Advantages(ext_part + int_part, ret_ext, ret_int, ext_part, int_part, int_scale=scale)

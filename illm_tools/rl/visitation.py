@@ -1,10 +1,13 @@
 """Per-cell visit counts of a training run (paper Figure 1's heatmaps), for envs that report the
-agent's position (MiniGrid/BabyAI: `info["agent_pos"]`).
+agent's position (MiniGrid/BabyAI: `info["agent_pos"]`), and where its bonus was paid.
 
 `VisitCounts` adds the positions of every step's new states into an int64 grid indexed [y, x],
 growing as needed; the trainer saves it as `visitation.npy` in the run folder with each checkpoint
-(and keeps it in the checkpoint, so a resumed run goes on counting). `heatmap_png` draws a grid
-(log-scaled colours, cells never visited left blank) with matplotlib's Agg backend.
+(and keeps it in the checkpoint, so a resumed run goes on counting). With `weighted=True` it sums
+a weight per position instead (float64): the intrinsic reward paid at each cell, saved as
+`bonus_visitation.npy` (`BONUS_FILE`), so bonus / visits is the bonus paid per visit of a cell.
+`heatmap_png` draws a grid (log-scaled colours, cells never visited left blank) with matplotlib's
+Agg backend.
 """
 from __future__ import annotations
 
@@ -14,43 +17,49 @@ from pathlib import Path
 import numpy as np
 
 FILE = "visitation.npy"
+BONUS_FILE = "bonus_visitation.npy"
 
 
 class VisitCounts:
-    def __init__(self, counts: np.ndarray | None = None):
-        self._counts = np.zeros((0, 0), np.int64) if counts is None else np.asarray(counts, np.int64).copy()
+    def __init__(self, counts: np.ndarray | None = None, *, weighted: bool = False):
+        self.dtype = np.float64 if weighted else np.int64
+        self._counts = np.zeros((0, 0), self.dtype) if counts is None else np.asarray(counts, self.dtype).copy()
 
     @property
     def counts(self) -> np.ndarray:
         """int64 [H, W]: visits per cell (row y, column x)."""
         return self._counts
 
-    def add(self, positions: np.ndarray) -> None:
-        """Count int [N, 2] (x, y) positions; rows with a negative x (no position) are skipped."""
+    def add(self, positions: np.ndarray, weights: np.ndarray | None = None) -> None:
+        """Count int [N, 2] (x, y) positions (or, weighted, add `weights` [N] at them); rows with a
+        negative x (no position) are skipped."""
         positions = np.asarray(positions, dtype=np.int64).reshape(-1, 2)
-        positions = positions[positions[:, 0] >= 0]
+        weights = np.ones(len(positions)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+        keep = positions[:, 0] >= 0
+        positions, weights = positions[keep], weights[keep]
         if not len(positions):
             return
         need = (int(positions[:, 1].max()) + 1, int(positions[:, 0].max()) + 1)
         if need[0] > self._counts.shape[0] or need[1] > self._counts.shape[1]:
-            grown = np.zeros((max(need[0], self._counts.shape[0]), max(need[1], self._counts.shape[1])), np.int64)
+            grown = np.zeros((max(need[0], self._counts.shape[0]), max(need[1], self._counts.shape[1])), self.dtype)
             grown[:self._counts.shape[0], :self._counts.shape[1]] = self._counts
             self._counts = grown
-        np.add.at(self._counts, (positions[:, 1], positions[:, 0]), 1)
+        np.add.at(self._counts, (positions[:, 1], positions[:, 0]), weights.astype(self.dtype))
 
-    def save(self, run_dir: str | os.PathLike) -> Path:
-        """Write run_dir/visitation.npy atomically."""
+    def save(self, run_dir: str | os.PathLike, name: str = FILE) -> Path:
+        """Write run_dir/`name` (visitation.npy) atomically."""
         from illm_tools import durable
 
-        path = Path(run_dir) / FILE
+        path = Path(run_dir) / name
         with durable.staged(path) as fh:
             np.save(fh, self._counts)
         return durable.commit(fh.name, path)
 
     @classmethod
-    def load(cls, run_dir: str | os.PathLike) -> VisitCounts:
-        path = Path(run_dir) / FILE
-        return cls(np.load(path)) if path.is_file() else cls()
+    def load(cls, run_dir: str | os.PathLike, name: str = FILE) -> VisitCounts:
+        path = Path(run_dir) / name
+        weighted = name == BONUS_FILE
+        return cls(np.load(path), weighted=weighted) if path.is_file() else cls(weighted=weighted)
 
     def state_dict(self) -> dict:
         """For checkpoint.pt (a tensor: checkpoints load with torch's weights_only, which refuses numpy)."""
@@ -60,7 +69,7 @@ class VisitCounts:
 
     def load_state_dict(self, state: dict) -> None:
         counts = state["counts"]
-        self._counts = np.array(counts.numpy() if hasattr(counts, "numpy") else counts, dtype=np.int64)
+        self._counts = np.array(counts.numpy() if hasattr(counts, "numpy") else counts, dtype=self.dtype)
 
 
 def heatmap_png(counts: np.ndarray, path: str | os.PathLike, title: str = "") -> Path:
