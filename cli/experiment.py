@@ -22,6 +22,14 @@ def _parameters() -> list[inspect.Parameter]:
     return dataclass_parameters(ExperimentConfig, arguments={"spec"})
 
 
+def frames_text(spec) -> str:
+    """"151,552 frames each", or with per-env frames "151,552 to 409,600 frames per run"."""
+    counts = sorted({spec.env_frames.get(env, spec.frames) for env in spec.envs})
+    if len(counts) == 1:
+        return f"{counts[0]:,} frames each"
+    return f"{counts[0]:,} to {counts[-1]:,} frames per run (env_frames)"
+
+
 def register(app: typer.Typer) -> None:
     def experiment(**options) -> None:
         """Train every run of a spec's grid (methods x envs x settings x seeds) into one results folder;
@@ -36,7 +44,7 @@ def register(app: typer.Typer) -> None:
         counts = {s: sum(r.status == s for r in runs) for s in ("done", "resume", "new")}
         typer.echo(f"{loaded.name}: {counted(len(runs), 'run')} ({counted(len(loaded.envs), 'env')} x "
                    f"{counted(len({r.label for r in runs}), 'configuration')} x {counted(len(loaded.seeds), 'seed')}, "
-                   f"{loaded.frames:,} frames each): {counts['done']} "
+                   f"{frames_text(loaded)}): {counts['done']} "
                    f"finished, {counts['resume']} to resume, {counts['new']} to start -> {results}")
         missing = unavailable_models(runs)
         if missing:

@@ -4,7 +4,9 @@ results folder, run N at a time, finished runs skipped and unfinished ones resum
 A spec (YAML; experiments/specs/ holds the paper's tables at CPU budgets):
 
     name: table1-distractors
-    frames: 50000                 # per run (the paper: 100M; `--frames` overrides)
+    frames: 50000                 # per run (the paper: 100M; `--frames` overrides, env_frames too)
+    env_frames:                   # per env, over `frames` (a level that needs more)
+      BabyAI-GoToLocal-v0: 60000
     seeds: [0, 1, 2]              # or a count: 3 (`--seeds` overrides)
     envs: [BabyAI-GoToLocal-v0]
     methods: [ppo, rnd, illm]
@@ -49,8 +51,8 @@ from typing import Any
 
 from illm_tools.errors import IllmError, UsageError
 
-TOP_KEYS = ("name", "frames", "seeds", "envs", "methods", "grid", "method_grid", "settings", "method_settings",
-            "description", "paper", "cluster")
+TOP_KEYS = ("name", "frames", "env_frames", "seeds", "envs", "methods", "grid", "method_grid", "settings",
+            "method_settings", "description", "paper", "cluster")
 LAUNCHERS = ("local", "slurm", "submitit-local")
 """How runs start: local (`--jobs` processes here), slurm (a job each through submitit, one array),
 submitit-local (submitit's local executor: the slurm path on this machine, for trying it)."""
@@ -150,6 +152,8 @@ class Spec:
     seeds: list[int]
     envs: list[str]
     methods: list[str]
+    env_frames: dict[str, int] = field(default_factory=dict)
+    """Per env, frames per run over `frames`."""
     grid: dict[str, list] = field(default_factory=dict)
     method_grid: dict[str, dict[str, list]] = field(default_factory=dict)
     """Per method, more grid values crossed with `grid` for that method's runs alone."""
@@ -268,8 +272,20 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
     total = frames if frames is not None else data.get("frames", 50_000)
     if not isinstance(total, int) or total <= 0:
         raise UsageError(f"{path} line {spec_lines.get(('frames',), '?')}: frames must be a positive integer")
+    envs = [str(e) for e in as_list("envs")]
+    env_frames = {} if frames is not None else (data.get("env_frames") or {})
+    if not isinstance(env_frames, dict):
+        raise UsageError(f"{path} line {spec_lines.get(('env_frames',), '?')}: env_frames must be a mapping of env id "
+                         "-> frames")
+    for env_id, count in env_frames.items():
+        where = f"{path} line {spec_lines.get(('env_frames', env_id), '?')}"
+        if env_id not in envs:
+            raise UsageError(f"{where}: env_frames names {env_id!r}, which is not among the spec's envs")
+        if not isinstance(count, int) or isinstance(count, bool) or count <= 0:
+            raise UsageError(f"{where}: env_frames.{env_id} must be a positive integer, got {count!r}")
     return Spec(name=str(data.get("name") or path.stem), path=path, text=text, frames=total, seeds=seed_list,
-                envs=[str(e) for e in as_list("envs")], methods=[str(m) for m in as_list("methods")], grid=grid,
+                env_frames={str(k): int(v) for k, v in env_frames.items()},
+                envs=envs, methods=[str(m) for m in as_list("methods")], grid=grid,
                 method_grid=method_grid, settings=settings, method_settings=per_method, paper=paper or {},
                 cluster=cluster, lines=spec_lines)
 
@@ -368,7 +384,8 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
             run_dir = results / env_id.replace("/", "-") / label / f"seed{seed}"
             try:
                 cfg = TrainConfig(**{**base, **weights, "env_id": env_id, "method": method, "seed": seed,
-                                     "total_steps": spec.frames, "run_dir": run_dir, "threads": 1})
+                                     "total_steps": spec.env_frames.get(env_id, spec.frames), "run_dir": run_dir,
+                                     "threads": 1})
             except (IllmError, TypeError) as e:
                 raise UsageError(f"{spec.line('settings')}: the run {env_id} {label} seed {seed} is refused: "
                                  f"{e}") from None

@@ -145,6 +145,12 @@ method_settings:
         plan(load_spec(bad), tmp_path / "r2")
 
 
+METHOD_SETTINGS = ("layout", "action_target", "reward_streams", "live_budget")
+"""How the method is run, where the toolkit may depart from the paper's Algorithm 1 and B.2 (issue 28):
+the prompt layout, f^a's target, the reward streams and the live budget. A spec of an iLLM table names
+the paper's value of each in its `paper:` block, and says why where it differs."""
+
+
 def _value(cfg, key: str):
     """A run's value of a paper setting: the model as served, an env option, or the field."""
     if key == "model":
@@ -182,8 +188,12 @@ def test_a_spec_sets_what_the_paper_sets_or_says_why_not(spec, tmp_path):
     for method, values_of in method_grid.items():
         for key, values in values_of.items():
             same(key, {str(_value(r.config, key)) for r in runs if r.config.method == method} == {str(v) for v in values})
+    if any(m.startswith("illm") for m in methods):  # the method's own settings, named in every iLLM spec
+        assert set(METHOD_SETTINGS) <= set(paper), f"{spec.name}: paper: names none of {set(METHOD_SETTINGS) - set(paper)}"
     for key, value in paper.items():
-        same(key, all(_value(r.config, key) == value for r in runs))
+        # the LLM's and the bonus's settings, compared where the run reads targets (ppo's are unused defaults)
+        of = [r for r in runs if r.config.needs_targets] if key in METHOD_SETTINGS else runs
+        same(key, all(_value(r.config, key) == value for r in of))
 
 
 def test_a_dry_run_names_the_models_this_machine_cannot_load(tmp_path, monkeypatch):
@@ -202,3 +212,19 @@ def test_a_dry_run_names_the_models_this_machine_cannot_load(tmp_path, monkeypat
     assert result.exit_code == 0, result.output
     assert "not loadable on this machine offline" in result.output and "far-away (2 runs)" in result.output
     assert not (tmp_path / "r").exists()
+
+
+def test_env_frames_give_a_level_its_own_frames(tmp_path):
+    text = TINY.replace("envs: [BabyAI-GoToLocal-v0]", "envs: [BabyAI-GoToLocal-v0, BabyAI-UnlockLocal-v0]")
+    spec = write(tmp_path, text + "env_frames:\n  BabyAI-UnlockLocal-v0: 128\n")
+    frames = {r.env_id: r.config.total_steps for r in plan(load_spec(spec), tmp_path / "results")}
+    assert frames == {"BabyAI-GoToLocal-v0": 64, "BabyAI-UnlockLocal-v0": 128}
+    # --frames sets every run's frames, env_frames included
+    assert {r.config.total_steps for r in plan(load_spec(spec, frames=32), tmp_path / "r2")} == {32}
+    out = runner.invoke(app, ["experiment", str(spec), "--out", str(tmp_path / "r3"), "--dry-run"])
+    assert out.exit_code == 0 and "64 to 128 frames per run" in out.output
+    for bad, message in (("  BabyAI-GoToObj-v0: 128\n", "line 14: env_frames names 'BabyAI-GoToObj-v0', which is not"),
+                         ("  BabyAI-UnlockLocal-v0: -5\n", "line 14: env_frames.BabyAI-UnlockLocal-v0 must be a positive")):
+        path = write(tmp_path, text + "env_frames:\n" + bad, "bad.yaml")
+        with pytest.raises(UsageError, match=message):
+            load_spec(path)
