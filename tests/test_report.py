@@ -281,3 +281,43 @@ def test_redraw_draws_an_old_report_again_from_its_results_json(tmp_path):
     assert (out / "results.json").read_text() == "{not json"
     result = CliRunner().invoke(app, ["report", str(tmp_path / "none"), "--redraw"])
     assert result.exit_code != 0 and "no results.json" in result.output
+
+
+@pytest.mark.slow
+def test_a_suite_report_aggregates_over_levels_and_shows_why_the_bonus_helps_or_hurts(tmp_path):
+    """Over levels: rliable's IQM of all runs and the probability of improvement over ppo; per level:
+    the diagnostics (the bonus's share of the advantage, f^a's agreement, the bonus paid before and
+    after the level is solved) and where the bonus was paid, from real (tiny) training runs."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fakes import FakePool, make_trainer
+
+    from illm_tools.report.build import build_report, redraw_report
+
+    runs = []
+    for env in ("BabyAI-GoToLocal-v0", "BabyAI-UnlockLocal-v0"):
+        for mode in ("ppo", "illm"):
+            for seed in (0, 1):
+                folder = tmp_path / env / mode / f"seed{seed}"
+                trainer, _ = make_trainer(folder, mode=mode, updates=3, seed=seed, env_id=env,
+                                          pool=FakePool(4, seed=seed, positions=True))
+                trainer.train()
+                runs.append(folder / "run")
+    results = build_report(runs, tmp_path / "report", every=128, reps=200)
+    across = results["aggregate"]
+    assert across["envs"] == ["BabyAI-GoToLocal-v0", "BabyAI-UnlockLocal-v0"] and across["baseline"] == "ppo"
+    rows = {r["label"]: r for r in across["rows"]}
+    assert rows["ppo"]["poi"] is None and 0 <= rows["illm"]["poi"] <= 1 and rows["illm"]["seeds"] == [0, 1]
+    assert rows["illm"]["ci_low"] <= rows["illm"]["iqm"] <= rows["illm"]["ci_high"]
+    illm = [r for r in results["rows"] if r["label"] == "illm"]
+    assert all(r["diagnostics"] and len(r["diagnostics"]["head_agreement"]) == len(r["frames"]) for r in illm)
+    assert all(r["diagnostics"] is None for r in results["rows"] if r["label"] == "ppo")  # no bonus, no heads
+    assert all(r["bonus_map"] and (tmp_path / "report" / r["bonus_map"]["png"]).is_file() for r in illm)
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "## Across the levels" in text and "P(improvement over ppo)" in text and "f^a agreement" in text
+    assert (tmp_path / "report" / "diagnostics-BabyAI-UnlockLocal-v0.png").is_file()
+    again = redraw_report(tmp_path / "report")  # the aggregate and the diagnostics survive a redraw
+    assert again["aggregate"] == results["aggregate"] and "## Across the levels" in \
+        (tmp_path / "report" / "report.md").read_text()

@@ -4,8 +4,12 @@ DIR/report.md (markdown tables: per env, each configuration's final score as IQM
 mean ± std over seeds; a methods × envs table when there are several envs; what was grouped),
 DIR/curves-<env>.png (learning curves with bootstrap bands), DIR/final.png (final scores with
 their intervals), DIR/visitation-<env>-<label>.png (per configuration, for runs that saved
-visitation.npy, summed over seeds), DIR/quality.png (with probe files: final score against the
-annotator's probe agreement, `quality.py`) and DIR/results.json (every number behind them).
+visitation.npy, summed over seeds; and bonus-<env>-<label>.png, the bonus paid per visit of each
+cell, for runs that saved bonus_visitation.npy), DIR/diagnostics-<env>.png (the bonus's scale,
+f^a's agreement and the bonus paid over training, `diagnostics.py`), DIR/quality.png (with probe
+files: final score against the annotator's probe agreement, `quality.py`) and DIR/results.json
+(every number behind them). With several envs of one score, an aggregate over them: rliable's IQM
+over all runs and the probability of improvement over ppo (`aggregate.py`).
 
 A seed's final score is the mean of its last `final_points` curve points (`curves.summarise`: the
 points every seed of the row has, so a row's final frame is its shortest seed's last point).
@@ -23,7 +27,9 @@ import numpy as np
 
 from illm_tools.errors import UsageError
 from illm_tools.report import plots, stats
+from illm_tools.report.aggregate import aggregate
 from illm_tools.report.curves import load_curve, summarise
+from illm_tools.report.diagnostics import diagnostics_png, row_diagnostics
 
 DEFAULT_BOOTSTRAP = 2000
 BOOTSTRAP_SEED = 0
@@ -137,20 +143,31 @@ def _row(env_id: str, label: str, group: dict, every: int, final_points: int, re
             "coverage": group["coverage"] if group["reads_targets"] else None}
 
 
+def _png_name(kind: str, row: dict, taken: set[str]) -> str:
+    name = f"{kind}-{slug(row['env_id'])}-{slug(row['label'])}"
+    while name + ".png" in taken:  # two labels with the same slug
+        name += "_"
+    taken.add(name + ".png")
+    return name + ".png"
+
+
 def _visitation(row: dict, out: Path, taken: set[str]) -> None:
-    from illm_tools.rl.visitation import FILE
+    from illm_tools.rl.visitation import BONUS_FILE, FILE
 
     have = [run for run in row["runs"] if (Path(run) / FILE).is_file()]
     if not have:
         return
-    name = f"visitation-{slug(row['env_id'])}-{slug(row['label'])}"
-    while name + ".png" in taken:  # two labels with the same slug
-        name += "_"
-    taken.add(name + ".png")
+    name = _png_name("visitation", row, taken)
     grids = [np.load(Path(run) / FILE) for run in have]
-    plots.visitation_png(grids, out / f"{name}.png",
-                         f"{row['env_id']}\n{row['label']}, {len(have)} seed{'s' * (len(have) > 1)} summed")
-    row["visitation"] = {"png": f"{name}.png", "runs": have}
+    seeds = f"{len(have)} seed{'s' * (len(have) > 1)}"
+    plots.visitation_png(grids, out / name, f"{row['env_id']}\n{row['label']}, {seeds} summed")
+    row["visitation"] = {"png": name, "runs": have}
+    paid = [run for run in have if (Path(run) / BONUS_FILE).is_file()]
+    if paid:
+        name = _png_name("bonus", row, taken)
+        plots.bonus_png([np.load(Path(run) / FILE) for run in paid], [np.load(Path(run) / BONUS_FILE) for run in paid],
+                        out / name, f"{row['env_id']}\n{row['label']}: bonus paid per visit, {len(paid)} seeds")
+        row["bonus_map"] = {"png": name, "runs": paid}
 
 
 def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int = 1,
@@ -173,7 +190,9 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
     envs = list(dict.fromkeys(r["env_id"] for r in rows))
     taken: set[str] = set()
     for row in rows:
+        row["bonus_map"] = None
         _visitation(row, out, taken)
+        row["diagnostics"] = row_diagnostics(row, every)
     quality_result = None
     if probe_figures:
         from illm_tools.report.quality import quality
@@ -190,7 +209,7 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
                 "not drawn; the probes stay in results.json")
     settings = {"every": every, "final_points": final_points, "bootstrap_reps": reps, "bootstrap_seed": seed,
                 "confidence": stats.CONFIDENCE, "interval": "percentile, stratified bootstrap over seeds (rliable)"}
-    return _write(out, settings, envs, rows, quality_result)
+    return _write(out, settings, envs, rows, quality_result, aggregate(rows, envs, reps, seed))
 
 
 def _figures(out: Path, envs: list[str], rows: list[dict], quality_result: dict | None) -> dict:
@@ -218,16 +237,24 @@ def _figures(out: Path, envs: list[str], rows: list[dict], quality_result: dict 
 
         quality_file = "quality.png"
         quality_png(quality_result, {env: score_name(env) for env in envs}, out / quality_file)
+    diagnostics_files = {}
+    for env in envs:
+        shown = [r for r in rows if r["env_id"] == env and r.get("diagnostics")]
+        if shown:
+            diagnostics_files[env] = f"diagnostics-{slug(env)}.png"
+            diagnostics_png(env, shown, out / diagnostics_files[env], colour)
     return {"report": "report.md", "curves": curve_files, "final": final_file, "quality": quality_file,
+            "diagnostics": diagnostics_files,
             "visitation": {f"{r['env_id']} / {r['label']}": r["visitation"]["png"] for r in rows if r["visitation"]}}
 
 
-def _write(out: Path, settings: dict, envs: list[str], rows: list[dict], quality_result: dict | None) -> dict:
+def _write(out: Path, settings: dict, envs: list[str], rows: list[dict], quality_result: dict | None,
+           across: dict | None = None) -> dict:
     """Figures, report.md and results.json of a report into `out`; returns results.json's content."""
     from illm_tools.report.markdown import render
 
     results = _clean({"settings": settings, "envs": envs, "rows": rows, "quality": quality_result,
-                      "files": _figures(out, envs, rows, quality_result)})
+                      "aggregate": across, "files": _figures(out, envs, rows, quality_result)})
     from illm_tools import durable
 
     durable.write_text(out / "report.md", render(results))
@@ -269,7 +296,7 @@ def redraw_report(folder: str | Path) -> dict:
             pairs = [p.strip().split(" ", 1) for p in (parsed["settings"] or "").split(",") if p.strip()] \
                 if parsed else []
             row["settings"] = {k: _number(v) for k, *rest in pairs for v in rest}
-        for name in ("visitation",):
+        for name in ("visitation", "bonus_map"):
             if row.get(name) and not (folder / row[name]["png"]).is_file():
                 row[name] = None  # its heatmap is gone and cannot be drawn again without the runs
-    return _write(folder, settings, envs, rows, results.get("quality"))
+    return _write(folder, settings, envs, rows, results.get("quality"), results.get("aggregate"))

@@ -43,7 +43,8 @@ def _table(header: list[str], lines: list[list[str]]) -> list[str]:
             + ["| " + " | ".join(_esc(c) for c in line) + " |" for line in lines])
 
 
-def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | None) -> list[str]:
+def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | None,
+                 diagnostics_png: str | None = None) -> list[str]:
     score, k = rows[0]["score_name"], settings["final_points"]
     out = [f"## {env} ({score})", "",
            f"Final {score}: each seed's mean over its last {k} curve point{'s' * (k > 1)} (windows of "
@@ -77,6 +78,63 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
             n = len(r["visitation"]["runs"])
             out += [f"- {_esc(r['label'])} ({n} of {len(r['runs'])} seeds saved visitation.npy): "
                     f"![visitation, {_esc(r['label'])}]({r['visitation']['png']})"]
+    paid = [r for r in rows if r.get("bonus_map")]
+    if paid:
+        out += ["", "Where the bonus was paid (the bonus paid per visit of each cell, seeds summed):", ""]
+        out += [f"- {_esc(r['label'])}: ![bonus, {_esc(r['label'])}]({r['bonus_map']['png']})" for r in paid]
+    return out + diagnostics_section(rows, diagnostics_png) + [""]
+
+
+def _span(values) -> str:
+    """A series' first and last window: "0.52 → 3.10"."""
+    known = [v for v in values if v is not None]
+    return f"{known[0]:.3g} → {known[-1]:.3g}" if known else "-"
+
+
+def diagnostics_section(rows: list[dict], png: str | None) -> list[str]:
+    """Per configuration with a bonus or heads: each series' first → last window, and the bonus paid
+    per step before and after the level was solved (`illm_tools.report.diagnostics`)."""
+    shown = [r for r in rows if r.get("diagnostics")]
+    if not shown:
+        return []
+    from illm_tools.report.diagnostics import SOLVED
+
+    def cell(x) -> str:
+        return "-" if x is None else f"{x:.3g}"
+
+    out = ["", f"Diagnostics over training (means over seeds, first window → last): |A_int| / |A_ext| (the bonus's "
+           f"share of the summed advantage), f^a's agreement with the annotator (its best action = the annotator's), "
+           f"the bonus paid per step as it entered the advantages, and that bonus in windows with success below / at "
+           f"least {SOLVED:g} (does it go on paying once the level is solved?):", ""]
+    out += _table(["method", "|A_int| / |A_ext|", "f^a agreement", "bonus paid per step", "success",
+                   f"bonus < {SOLVED:g} / ≥ {SOLVED:g} success"],
+                  [[r["label"], _span(r["diagnostics"]["adv_ratio"]), _span(r["diagnostics"]["head_agreement"]),
+                    _span(r["diagnostics"]["bonus_paid"]), _span(r["diagnostics"]["success"]),
+                    f"{cell(r['diagnostics']['paid_unsolved'])} / {cell(r['diagnostics']['paid_solved'])}"]
+                   for r in shown])
+    if png:
+        out += ["", f"![diagnostics]({png})"]
+    return out
+
+
+def aggregate_section(result: dict | None) -> list[str]:
+    """The suite's aggregate (`illm_tools.report.aggregate`)."""
+    if not result:
+        return []
+    n = len(result["envs"])
+    out = ["## Across the levels", "",
+           f"Over {n} levels ({', '.join(result['envs'])}): the IQM of the final {result['score_name']} over all runs "
+           "(levels × seeds) with a stratified-bootstrap 95% interval, and the probability of improvement over "
+           f"{result['baseline'] or 'ppo (not in this report)'}: P(a run of the row scores above a run of the baseline "
+           "on the same level), averaged over levels, with its 95% interval (rliable). Seeds: those with a final score "
+           "on every level.", ""]
+    def iv(x, lo, hi) -> str:
+        return "-" if x is None else f"{num(x)} [{num(lo)}, {num(hi)}]"
+
+    out += _table(["method", f"IQM over {n} levels [95% CI]", f"P(improvement over {result['baseline'] or '-'})",
+                   "seeds"],
+                  [[r["label"], iv(r["iqm"], r["ci_low"], r["ci_high"]), iv(r["poi"], r["poi_low"], r["poi_high"]),
+                    str(len(r["seeds"]))] for r in result["rows"]])
     return out + [""]
 
 
@@ -152,9 +210,10 @@ def render(results: dict) -> str:
              f"{settings['every']:,} frames. Numbers: results.json; figures: PNG files beside this one.", ""]
     for env in results["envs"]:
         lines += _env_section(env, [r for r in rows if r["env_id"] == env], settings,
-                              results["files"]["curves"].get(env))
+                              results["files"]["curves"].get(env), results["files"].get("diagnostics", {}).get(env))
     if len(results["envs"]) > 1:
         lines += _wide(results)
+    lines += aggregate_section(results.get("aggregate"))
     if results["files"]["final"]:
         lines += [f"Final scores with their intervals: ![final scores]({results['files']['final']})", ""]
     if results.get("quality"):

@@ -168,3 +168,28 @@ def visitation_png(grids: list[np.ndarray], path: Path, title: str) -> Path:
     from illm_tools.rl.visitation import heatmap_png
 
     return heatmap_png(summed_counts(grids), path, title)
+
+
+def bonus_png(visits: list[np.ndarray], paid: list[np.ndarray], path: Path, title: str) -> Path:
+    """Where the bonus was paid: the seeds' bonus summed per cell over their visits summed (the bonus
+    paid per visit of a cell; cells never visited left blank), linear colours."""
+    plt = _pyplot()
+    from mpl_toolkits.axes_grid1 import make_axes_locatable
+
+    count = summed_counts(visits).astype(float)
+    total = np.zeros(count.shape)
+    for grid in paid:
+        grid = np.asarray(grid, dtype=float)[:count.shape[0], :count.shape[1]]
+        total[:grid.shape[0], :grid.shape[1]] += grid
+    per_visit = np.ma.masked_where(count <= 0, total / np.maximum(count, 1))
+    h, w = count.shape if count.size else (1, 1)
+    fig, ax = plt.subplots(figsize=(4.5, min(6.0, max(1.8, 3.6 * h / max(w, 1) + 0.9))), dpi=100)
+    image = ax.imshow(per_visit, cmap="magma", interpolation="nearest")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title(title, fontsize=9)
+    fig.colorbar(image, cax=make_axes_locatable(ax).append_axes("right", size="4%", pad=0.08), label="bonus per visit")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
