@@ -52,9 +52,11 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
            f"stratified-bootstrap percentile interval (rliable, {settings['bootstrap_reps']:,} resamples, seed "
            f"{settings['bootstrap_seed']}); mean ± std (population std) over seeds beside it. With one seed no "
            "interval can be computed and the single value is shown.", ""]
-    out += _table(["method", "IQM [95% CI]", "mean ± std", "seeds", "frames"],
+    covered = any(r.get("coverage") is not None for r in rows)  # the share of steps with a target, where read
+    out += _table(["method", "IQM [95% CI]", "mean ± std", "seeds", "frames"] + ["target coverage"] * covered,
                   [[r["label"], iqm_cell(r["final"]), mean_cell(r["final"]), str(r["final"]["n"]),
-                    _frames(r["final"]["frames"])] for r in rows])
+                    _frames(r["final"]["frames"])]
+                   + ["-" if r.get("coverage") is None else f"{r['coverage']:.0%}"] * covered for r in rows])
     split = [_split(r["label"]) for r in rows]
     from illm_tools.report.plots import setting_order
 
