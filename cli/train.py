@@ -16,7 +16,8 @@ ALIASES = {"env_id": "--env", "run_dir": "--out", "obs_mode": ("--mode",),
            "total_steps": "--frames", "history_len": "--history", "model_dtype": "--dtype"}
 DICT_FLAGS = {"bonus_options": "--bonus-option", "network_options": "--network-option", "env_options": "--env-option",
               "task_weights": "--task-weight"}
-WEIGHTS = ("lambda_a", "beta_hc", "ext_coef", "int_coef")
+WEIGHTS = ("lambda_a", "beta_hc", "ext_coef", "int_coef", "reward_streams", "action_target", "bonus_schedule",
+           "int_ext_cap")  # illm_tools.rl.config.PRESET_FIELDS: what a --bonus-preset names
 NOT_OPTIONS = {"embedding_dim"}  # set from the model's hidden size when the run starts
 EXAMPLE = ("Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm --frames 200000 --seed 0 "
            "--out runs/gotolocal-illm")
@@ -49,7 +50,7 @@ def resumed_config(ctx: typer.Context, out: Path, fields: dict):
 
     stored = read_config(out)
     given = _given(ctx) - {"resume", "run_dir"}
-    if "bonus_preset" in given:  # a preset stands for its four weights
+    if "bonus_preset" in given:  # a preset stands for its settings
         given |= {w for w in WEIGHTS if w not in given}
     changes = {name: fields[name] for name in given if name in fields}
     refused = sorted(f"{_flag(k)} (the run has {stored.get(k)!r})"
@@ -109,7 +110,7 @@ def adopted(ctx: typer.Context, cfg):
 def _train_parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.intrinsic.registry import method_help  # light: names only, no torch
-    from illm_tools.rl.config import BONUS_PRESETS, TrainConfig
+    from illm_tools.rl.config import BONUS_PRESETS, TrainConfig, preset_text
 
     params = dataclass_parameters(
         TrainConfig, aliases=ALIASES, dict_flags=DICT_FLAGS, exclude=NOT_OPTIONS, required={"run_dir"},
@@ -120,9 +121,9 @@ def _train_parameters() -> list[inspect.Parameter]:
                     "network_options": "chibit: blocks=1, model=smollm2-135m."})
     preset = inspect.Parameter("bonus_preset", inspect.Parameter.KEYWORD_ONLY, annotation=typing.Optional[str],
                                default=typer.Option(None, "--bonus-preset", help=(
-                                   " | ".join(f"{k} ({', '.join(f'{n} {v:g}' for n, v in w.items())})"
-                                              for k, w in BONUS_PRESETS.items())
-                                   + "; default: the method's own (rnd: rnd, ngu: ngu, others: paper); explicit weights win.")))
+                                   " | ".join(f"{k} ({preset_text(k)})" for k in BONUS_PRESETS)
+                                   + "; default: the method's own (rnd: rnd, ngu: ngu, others: paper); explicit "
+                                     "settings win.")))
     ctx = inspect.Parameter("ctx", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=typer.Context)
     return [ctx, *params, preset]
 

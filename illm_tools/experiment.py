@@ -341,7 +341,7 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
     from illm_tools.envs import suite_of
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.checkpoint import CHECKPOINT_NAME, load_checkpoint
-    from illm_tools.rl.config import TrainConfig, bonus_weights
+    from illm_tools.rl.config import PRESET_FIELDS, TrainConfig, bonus_weights
 
     results = Path(results)
     for i, method in enumerate(spec.methods):
@@ -379,7 +379,7 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
             else:
                 _apply(base, name, value, spec, (*where[name], name))
         weights = bonus_weights(base.pop("bonus_preset", None) or get_method(method).preset,
-                                **{w: base.pop(w, None) for w in ("lambda_a", "beta_hc", "ext_coef", "int_coef")})
+                                **{w: base.pop(w, None) for w in PRESET_FIELDS})
         for seed in spec.seeds:
             run_dir = results / env_id.replace("/", "-") / label / f"seed{seed}"
             try:

@@ -175,11 +175,15 @@ def test_trainer_logs_the_bonus_scale_every_update(tmp_path):
 
 
 def test_bonus_presets_and_explicit_flags_win():
-    assert bonus_weights("paper") == {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0}
+    defaults = {"reward_streams": 2, "action_target": "distribution", "bonus_schedule": "constant", "int_ext_cap": 0.0}
+    assert bonus_weights("paper") == {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0, **defaults}
     assert bonus_weights("rnd", int_coef=0.5, lambda_a=None) == {"lambda_a": 0.8, "beta_hc": 0.5,
-                                                                 "ext_coef": 2.0, "int_coef": 0.5}
+                                                                 "ext_coef": 2.0, "int_coef": 0.5, **defaults}
     assert bonus_weights("ngu")["int_coef"] == 0.3  # NGU's r = r_e + beta r_i, beta 0.3 (Badia et al. 2020)
-    with pytest.raises(UsageError, match="paper, rnd, ngu, small"):
+    literal = bonus_weights("paper-literal")  # Algorithm 1: one stream, the argmax action
+    assert (literal["reward_streams"], literal["action_target"], literal["lambda_a"]) == (1, "argmax", 0.8)
+    assert bonus_weights("paper-literal", reward_streams=2)["reward_streams"] == 2  # explicit settings win
+    with pytest.raises(UsageError, match="paper, rnd, ngu, small, paper-literal"):
         bonus_weights("apt")
 
 

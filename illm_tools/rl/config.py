@@ -19,13 +19,19 @@ from illm_tools.tasks.setup import AnnotationSetup
 MODES = METHODS  # the bonus registry, name -> method (a live mapping: methods registered later count)
 LIVE_MODES = ("sync", "async")
 OBS_MODES = ("obs", "hop")
-BONUS_PRESETS = {  # `illm train --bonus-preset`: bonus weights and advantage weights together
+BONUS_PRESETS = {  # `illm train --bonus-preset`: how the bonus enters the advantages, in one name
     "paper": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0},  # Appendix B
     "rnd": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 2.0, "int_coef": 1.0},    # CleanRL RND's advantage weights
     "ngu": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 0.3},    # NGU's r = r_e + 0.3 r_i
     # the paper's weights / 10: the measured better choice on BabyAI at CPU budgets (README, the positive control)
     "small": {"lambda_a": 0.08, "beta_hc": 0.05, "ext_coef": 1.0, "int_coef": 1.0},
+    # Algorithm 1 as printed: r* = r + r^a + r^hc in one stream (one critic), f^a's target the argmax action
+    "paper-literal": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0, "reward_streams": 1,
+                      "action_target": "argmax"},
 }
+PRESET_FIELDS = ("lambda_a", "beta_hc", "ext_coef", "int_coef", "reward_streams", "action_target", "bonus_schedule",
+                 "int_ext_cap")
+"""The settings a preset names (a preset leaves out those it keeps at TrainConfig's default)."""
 
 
 def parse_budget(value: int | str) -> int | str:
@@ -53,12 +59,20 @@ def parse_seeds(value) -> tuple[int, ...]:
     return seeds
 
 
-def bonus_weights(preset: str, **given: float | None) -> dict[str, float]:
-    """lambda_a, beta_hc, ext_coef and int_coef of a BONUS_PRESETS entry; `given` values not None win."""
+def bonus_weights(preset: str, **given) -> dict:
+    """Every PRESET_FIELDS setting of a BONUS_PRESETS entry (TrainConfig's default where the preset
+    names none); `given` values not None win."""
     if preset not in BONUS_PRESETS:
         raise UsageError(f"--bonus-preset must be one of {', '.join(BONUS_PRESETS)}, got {preset!r}")
-    return {k: v if given.get(k) is None else float(given[k]) for k, v in BONUS_PRESETS[preset].items()}
+    defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig) if f.name in PRESET_FIELDS}
+    chosen = {**defaults, **BONUS_PRESETS[preset]}
+    return {k: v if given.get(k) is None else (float(given[k]) if isinstance(v, float) else given[k])
+            for k, v in chosen.items()}
 
+
+def preset_text(preset: str) -> str:
+    """A preset as --help shows it: "lambda_a 0.8, beta_hc 0.5, ...", the settings it names."""
+    return ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}" for k, v in BONUS_PRESETS[preset].items())
 
 
 RENAMED = {"mode": "method"}
