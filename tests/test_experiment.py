@@ -228,3 +228,23 @@ def test_env_frames_give_a_level_its_own_frames(tmp_path):
         path = write(tmp_path, text + "env_frames:\n" + bad, "bad.yaml")
         with pytest.raises(UsageError, match=message):
             load_spec(path)
+
+
+@pytest.mark.parametrize("name", ["suite-tune", "suite-calibration", "suite-calibration-2"])
+def test_the_suite_specs_validate_with_a_dry_run(tmp_path, name):
+    """The positive-control suite's specs (issue 28) plan every run, each level at its own frames."""
+    spec = Path(__file__).resolve().parents[1] / "experiments" / "specs" / f"{name}.yaml"
+    out = runner.invoke(app, ["experiment", str(spec), "--out", str(tmp_path / "r"), "--dry-run"])
+    assert out.exit_code == 0, out.output
+    runs = plan(load_spec(spec), tmp_path / "r2")
+    assert len({r.env_id for r in runs}) >= 4 and all(r.status == "new" for r in runs)
+    if name == "suite-tune":  # every illm setting is a row of its own, the controls at the small weights
+        labels = {r.label for r in runs}
+        assert {"illm-setting=paper", "illm-setting=small", "illm-setting=paper-literal", "illm-setting=small-gated",
+                "illm-setting=capped", "illm-setting=bulk-small", "ppo", "rnd", "illm-shuffled",
+                "illm-noreward"} == labels
+        literal = next(r.config for r in runs if r.label == "illm-setting=paper-literal")
+        assert literal.reward_streams == 1 and literal.action_target == "argmax"
+        bulk = next(r.config for r in runs if r.label == "illm-setting=bulk-small")
+        assert bulk.live_budget == 0 and bulk.cache.name == "ann-bulk"
+        assert {r.config.total_steps for r in runs} == {61440, 81920, 122880, 151552}
