@@ -10,7 +10,8 @@ from cli.common import counted, stop_on_signals
 from cli.errors import friendly
 
 EXAMPLE = ("Example: illm serve --cache data/ann --model smollm2-135m --port 8765, then "
-           "illm train ... --cache data/ann --annotator http://127.0.0.1:8765")
+           "illm train ... --cache data/ann --annotator http://127.0.0.1:8765. For a cluster: "
+           "export ILLM_SERVE_TOKEN=... (on the server and the trainers), illm serve --host 0.0.0.0 ...")
 
 
 def _parameters() -> list[inspect.Parameter]:
@@ -24,7 +25,8 @@ def register(app: typer.Typer) -> None:
     def serve(**options) -> None:
         """Serve live annotation for several training runs with one loaded model: requests are batched
         across runs, highest visit counts first, into the shared cache. GET /stats reports the queue
-        and throughput."""
+        and throughput. Beyond loopback it needs a token (--token or ILLM_SERVE_TOKEN), which every
+        request must carry."""
         import asyncio
         import dataclasses
         import os
@@ -50,13 +52,16 @@ def register(app: typer.Typer) -> None:
                            "choose another)", err=True)
         torch.set_num_threads(config.threads or os.cpu_count() or 1)
         llm = config.llm.placed()
-        server = AnnotationServer(llm.load(), store, llm=llm, batch_size=config.batch_size, chunk=config.chunk)
+        server = AnnotationServer(llm.load(), store, llm=llm, batch_size=config.batch_size, chunk=config.chunk,
+                                  max_clients=config.max_clients, max_states=config.max_states,
+                                  max_queue=config.max_queue)
         host, port, model, cache = config.host, config.port, llm.model, config.cache
+        access = "every request must carry the token" if config.token else "no token: this machine only"
 
         def ready(addresses) -> None:
             where = ", ".join(f"http://{a[0]}:{a[1]}" for a in addresses)
-            typer.echo(f"serving {model} on {where} for the cache {cache} (GET /stats for the queue); "
-                       "Ctrl-C stops after the batch in progress", err=True)
+            typer.echo(f"serving {model} on {where} for the cache {cache} ({access}; GET /stats for the queue); "
+                       "Ctrl-C or SIGTERM stops after the batch in progress", err=True)
 
         async def main(stop_flag) -> None:
             stop = asyncio.Event()
@@ -68,7 +73,8 @@ def register(app: typer.Typer) -> None:
 
             watcher = asyncio.ensure_future(watch())
             try:
-                await run(server, host, port, stop, on_ready=ready)
+                await run(server, host, port, stop, on_ready=ready, token=config.token,
+                          request_timeout=config.request_timeout)
             except OSError as e:
                 raise UsageError(f"cannot listen on {host}:{port} ({e.strerror or e}): check --host (an address of this "
                                  "machine) and --port (a free one, or 0)") from None
@@ -80,7 +86,8 @@ def register(app: typer.Typer) -> None:
         s = server.stats()
         typer.echo(f"served {s['requests']:,} requests: {s['annotated_states']:,} states annotated ({s['rows']:,} rows) "
                    f"in {counted(s['batches'], 'batch', 'batches')}, {s['states_per_s']:.2f} states/s while annotating; "
-                   f"{s['queue']:,} states left queued")
+                   f"{s['queue']:,} states left queued; refused: {s['refused']:,} malformed, {s['unauthorized']:,} without "
+                   f"the token, {s['busy']:,} busy (503), {s['timeouts']:,} too slow (408)")
 
     serve.__signature__ = inspect.Signature(_parameters())
     app.command(epilog=EXAMPLE)(friendly(serve))

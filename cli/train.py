@@ -111,6 +111,7 @@ def _train_parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.intrinsic.registry import method_help  # light: names only, no torch
     from illm_tools.rl.config import BONUS_PRESETS, TrainConfig, preset_text
+    from illm_tools.rl.live import AnnotatorAccess
 
     params = dataclass_parameters(
         TrainConfig, aliases=ALIASES, dict_flags=DICT_FLAGS, exclude=NOT_OPTIONS, required={"run_dir"},
@@ -125,7 +126,23 @@ def _train_parameters() -> list[inspect.Parameter]:
                                    + "; default: the method's own (rnd: rnd, ngu: ngu, others: paper); explicit "
                                      "settings win.")))
     ctx = inspect.Parameter("ctx", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=typer.Context)
-    return [ctx, *params, preset]
+    return [ctx, *params, preset, *dataclass_parameters(AnnotatorAccess)]
+
+
+def use_token(token: str | None, annotator: str | None) -> None:
+    """Hand `--annotator-token` to the run's `RemoteLive` through the environment variable it reads
+    (so the token never enters the run's settings, which are written to its folder)."""
+    import os
+
+    from illm_tools.annotate.wire import TOKEN_ENV, check_token
+    from illm_tools.errors import UsageError
+
+    if token is None:
+        return
+    if annotator is None:
+        raise UsageError("--annotator-token is the token of an --annotator server: give --annotator URL too, or "
+                         "leave the token out")
+    os.environ[TOKEN_ENV] = check_token(token, "--annotator-token")
 
 
 def register(app: typer.Typer) -> None:
@@ -135,7 +152,9 @@ def register(app: typer.Typer) -> None:
         from the run folder."""
         from illm_tools.rl.run import train as run
 
+        token = options.pop("annotator_token")
         cfg = train_config(ctx, options)
+        use_token(token, cfg.annotator)
         out, method, env = cfg.run_dir, cfg.method, cfg.env_id
         from illm_tools.envs import suite_of
 

@@ -7,11 +7,23 @@ worker of its own; the server annotates them through the same `Annotator` and ca
 trainer finds them on a later rollout (as with its own asynchronous worker: the trainer never
 waits). One model in memory serves every trainer.
 
-Scheduling. Each client (a trainer, named by its run) has one pending list, replaced by its newest
-request (its priorities move as its run goes on, as the local worker keeps only the newest list).
-A batch takes `chunk` states across all clients, highest visit count first; a state two trainers
-both missed (same keys) is annotated once, with their visits summed. Each batch is written as one
-shard through the cache's locked manifest, whole or not at all.
+Scheduling. Each trainer has one pending list, replaced by its newest request (its priorities move
+as its run goes on, as the local worker keeps only the newest list). A trainer is named by `client`
+(its run) and `session` (a random id it makes when it starts): the list belongs to the pair, so no
+other trainer (a stranger using the same client name, a resumed copy of the run) can replace or
+withdraw it. A batch takes `chunk` states across all trainers, highest visit count first; a state
+two trainers both missed (same keys) is annotated once, with their visits summed. Each batch is
+written as one shard through the cache's locked manifest, whole or not at all.
+
+Access and limits (`ServeConfig`). With a token, every request must carry `Authorization: Bearer
+TOKEN` (compared in constant time; 401 and one line without it); without one the server listens on
+loopback only. A request carries at most `max_states` states (413), the server queues states of at
+most `max_clients` trainers and `max_queue` states in all: a request beyond either gets 503 with
+`Retry-After` (seconds), and the trainer backs off and goes on training. A client has
+`request_timeout` seconds to send its request (408 after, the connection closed), and an idle
+connection is closed after as long, so a slow or stalled client holds no worker. Stopping (Ctrl-C,
+SIGTERM) finishes the batch in progress and writes it; requests meanwhile get 503 (their trainers
+send them again to the next server).
 
 The HTTP side is aiohttp's server (an asyncio server from the package registry; the standard
 library's `http.server` handles one request at a time per thread and has no request size limit,
@@ -19,15 +31,17 @@ body timeouts or graceful shutdown). The model runs in one executor thread, so r
 `/stats` are answered while a batch is being annotated.
 
 Endpoints (JSON):
-- `POST /annotate` {"client", "model_fingerprint", "env_id", "renderer", "history_len", "layout",
-  "tasks", "states": [{"mission", "history": [[obs, action], ...], "observation",
-  "valid_actions", "visits"[, "frames", "prev_actions" for a hop state]}]} -> 202 {"queued", "queue", "landed"} (`landed`: the client's
-  states annotated since its previous request). An empty `states` list withdraws the client's
-  pending states. Malformed requests get a 4xx status and {"error": one line}: 400 bad JSON or
-  fields, 409 a model fingerprint that is not the server's (the keys would never meet), 413 too
-  large.
-- `GET /stats` -> the queue (states waiting, states being annotated now, clients), totals (states annotated, rows written, batches),
-  throughput (states/s over the annotating time and since start), the model and cache.
+- `POST /annotate` {"client", "session", "model_fingerprint", "env_id", "renderer", "history_len",
+  "layout", "tasks", "states": [{"mission", "history": [[obs, action], ...], "observation",
+  "valid_actions", "visits"[, "frames", "prev_actions" for a hop state]}]} -> 202 {"queued",
+  "queue", "landed"} (`landed`: the trainer's states annotated since its previous request). An
+  empty `states` list withdraws the trainer's pending states. Refused requests get a 4xx or 503
+  status and {"error": one line}: 400 bad JSON or fields, 401 no or a wrong token, 408 sent too
+  slowly, 409 a model fingerprint that is not the server's (the keys would never meet), 413 too
+  large (bytes or states), 503 the queue or the trainer count is full, or the server is stopping.
+- `GET /stats` -> the queue (states waiting, states being annotated now, trainers), totals (states
+  annotated, rows written, batches, requests, refusals by kind), throughput (states/s over the
+  annotating time and since start), the limits, the model and cache.
 A client that disconnects mid-request leaves nothing behind: a request is queued only once it
 has been read and checked whole. A hop state (iLLM(hop)) also carries its observation window:
 each raw observation as shape, dtype and base64 bytes, and each step's previous action; the
@@ -40,6 +54,8 @@ import asyncio
 import base64
 import binascii
 import logging
+import math
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -47,6 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
+from illm_tools.annotate.wire import PROTOCOL, TOKEN_ENV, check_token
 from illm_tools.annotate.wire import record_to_json  # noqa: F401  (the request format: re-exported)
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
@@ -57,16 +74,36 @@ log = logging.getLogger(__name__)
 
 MAX_REQUEST_BYTES = 16 * 1024 * 1024
 """Largest request body accepted (413 above): thousands of states with 3-step histories."""
-PROTOCOL = 1
-"""Version of the request format, answered by /stats (a client checks it when it starts)."""
+MAX_RETRY_AFTER = 60
+"""Longest Retry-After a busy server answers (seconds)."""
 
 
 class RequestError(ValueError):
-    """A request the server refuses: its HTTP status and one line."""
+    """A request the server refuses: its HTTP status and one line (503: with Retry-After seconds)."""
 
-    def __init__(self, status: int, message: str):
+    def __init__(self, status: int, message: str, retry_after: int | None = None):
         super().__init__(message)
         self.status = status
+        self.retry_after = retry_after
+
+
+def is_loopback(host: str) -> bool:
+    """Whether listening on `host` keeps the server on this machine: a loopback address (127.0.0.0/8,
+    ::1) or a name that resolves only to loopback addresses ("localhost"); "" (every address) is not."""
+    import ipaddress
+    import socket
+
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        pass
+    if not host:
+        return False
+    try:
+        found = {info[4][0].split("%")[0] for info in socket.getaddrinfo(host, None)}
+    except OSError:
+        return False
+    return bool(found) and all(ipaddress.ip_address(a).is_loopback for a in found)
 
 
 @dataclass
@@ -80,21 +117,45 @@ class ServeConfig:
     port: int = 8765
     """TCP port (0: any free one, printed when ready)."""
     host: str = "127.0.0.1"
-    """Address to listen on (localhost by default: the server has no authentication)."""
+    """Address to listen on: loopback by default; any other (0.0.0.0, this machine's cluster address)
+    needs a token."""
+    token: str | None = field(default=None, repr=False)
+    """Token every request must carry (401 without it; trainers pass it with --annotator-token), at
+    least 16 characters; default: the ILLM_SERVE_TOKEN environment variable, which keeps it out of
+    `ps` and the shell's history. Required to listen beyond loopback. Never printed or logged."""
     batch_size: int = 8
     """States per LLM batch."""
     chunk: int = 16
     """States taken per round across all trainers (highest visit counts first), written as one shard."""
     threads: int = 0
     """Torch threads of the model; 0: every core."""
+    max_clients: int = 64
+    """Trainers whose states are queued at once; a further one gets 503 with Retry-After until a list drains."""
+    max_states: int = 1024
+    """States in one request (413 above; a trainer sends at most this many per rollout)."""
+    max_queue: int = 8192
+    """States queued across all trainers; a request that would go beyond gets 503 with Retry-After
+    (the trainer backs off and goes on training)."""
+    request_timeout: float = 30.0
+    """Seconds a client has to send a request (408 after), and an idle connection stays open: a
+    slow or stalled client holds no worker."""
 
     def __post_init__(self) -> None:
         from illm_tools.settings import check_folder, check_numbers
 
         self.cache = Path(self.cache)
-        check_numbers(self, positive=("batch_size", "chunk"), non_negative=("threads", "port"))
+        check_numbers(self, positive=("batch_size", "chunk", "max_clients", "max_states", "max_queue",
+                                      "request_timeout"), non_negative=("threads", "port"))
         if self.port >= 65536:
             raise UsageError(f"--port must be in 0..65535, got {self.port}")
+        if self.token is None:
+            self.token = os.environ.get(TOKEN_ENV) or None
+        if self.token is not None:
+            check_token(self.token, "--token")
+        elif not is_loopback(self.host):
+            raise UsageError(f"--host {self.host or '(every address)'} listens beyond this machine, where anyone could "
+                             f"send states: give the server a token (--token, or the {TOKEN_ENV} environment variable) "
+                             "and pass it to every trainer (--annotator-token, or the same variable)")
         check_folder(self.cache, "--cache")
 
 
@@ -172,7 +233,9 @@ def parse_state(item, hop: bool = False) -> tuple[StateRecord, int]:
 class AnnotationServer:
     """The queue, the scheduler and the model behind `illm serve` (the HTTP layer is `make_app`)."""
 
-    def __init__(self, lm, cache, *, llm: LLMSpec, batch_size: int = 8, chunk: int = 16):
+    def __init__(self, lm, cache, *, llm: LLMSpec, batch_size: int = ServeConfig.batch_size,
+                 chunk: int = ServeConfig.chunk, max_clients: int = ServeConfig.max_clients,
+                 max_states: int = ServeConfig.max_states, max_queue: int = ServeConfig.max_queue):
         from illm_tools.keys import fingerprint_hash
         from illm_tools.llm.backend import as_backend
 
@@ -182,27 +245,42 @@ class AnnotationServer:
         """The model as it was loaded (placed: its device and dtype resolved)."""
         self.model = llm.model
         self.batch_size, self.chunk = batch_size, chunk
+        self.max_clients, self.max_states, self.max_queue = max_clients, max_states, max_queue
         self.annotating = 0
         """States in the batch being annotated now (0: idle)."""
         self.fingerprint = fingerprint_hash(self.lm.fingerprint)
         self._annotators: dict[tuple, object] = {}
-        self._clients: dict[str, dict[tuple, Pending]] = {}  # client -> (setup, record) -> its pending entry
-        self._landed: dict[str, int] = {}
+        # (client, session) -> (setup, record) -> its pending entry: a trainer's list, its own only
+        self._clients: dict[tuple[str, str], dict[tuple, Pending]] = {}
+        self._landed: dict[tuple[str, str], int] = {}
+        self._seen: dict[tuple[str, str], float] = {}  # when each trainer last sent (to forget the gone)
         self._wake = asyncio.Event()
+        self._stop: asyncio.Event | None = None
         self.started = time.time()
-        self.totals = {"states": 0, "rows": 0, "batches": 0, "requests": 0, "refused": 0, "seconds": 0.0,
-                       "errors": 0}
+        self.totals = {"states": 0, "rows": 0, "batches": 0, "requests": 0, "refused": 0, "busy": 0,
+                       "unauthorized": 0, "timeouts": 0, "seconds": 0.0, "errors": 0}
         self.last_error: str | None = None
+
+    @property
+    def stopping(self) -> bool:
+        """Whether a stop was asked: the batch in progress is finished, nothing more is queued."""
+        return self._stop is not None and self._stop.is_set()
+
+    def retry_after(self) -> int:
+        """Seconds a refused trainer should wait: about one batch's time at the throughput so far."""
+        rate = self.totals["states"] / self.totals["seconds"] if self.totals["seconds"] else 0.0
+        return min(MAX_RETRY_AFTER, max(1, math.ceil(self.chunk / rate))) if rate else 5
 
     # --- requests ------------------------------------------------------------------------------
     def submit(self, body) -> dict:
-        """Queue a parsed request body for its client (replacing the client's pending list)."""
+        """Queue a parsed request body for its trainer (replacing that trainer's pending list)."""
         if not isinstance(body, dict):
             raise RequestError(400, "the request body must be a JSON object")
-        missing = [k for k in ("client", "model_fingerprint", "states") if k not in body]
+        missing = [k for k in ("client", "session", "model_fingerprint", "states") if k not in body]
         if missing:
-            raise RequestError(400, f"the request lacks {', '.join(missing)}")
-        client = _text(body["client"], "client")
+            raise RequestError(400, f"the request lacks {', '.join(missing)} (a trainer of protocol {PROTOCOL} "
+                                    "sends them: use the server's illm version)")
+        trainer = (_text(body["client"], "client"), _text(body["session"], "session"))
         if body["model_fingerprint"] != self.fingerprint:
             raise RequestError(409, f"this server annotates with {self.llm.options()} (fingerprint {self.fingerprint}); "
                                     f"the request's fingerprint {body['model_fingerprint']!r} is another model setup: "
@@ -213,6 +291,12 @@ class AnnotationServer:
             raise RequestError(400, str(e)) from None
         if not isinstance(body["states"], list):
             raise RequestError(400, "states must be a list")
+        if len(body["states"]) > self.max_states:
+            raise RequestError(413, f"a request carries at most {self.max_states:,} states (the server's --max-states), "
+                                    f"this one {len(body['states']):,}: send the most visited first")
+        if self.stopping:
+            raise RequestError(503, "the server is stopping: send the states again when it is back",
+                               self.retry_after())
         hop, history_len = setup.hop, setup.history_len
         entries = {}
         for item in body["states"]:
@@ -220,16 +304,43 @@ class AnnotationServer:
             if len(record.history) > history_len:
                 raise RequestError(400, f"a state has {len(record.history)} history steps, more than history_len "
                                         f"{history_len}")
-            entry = entries.setdefault((setup, record), Pending(setup, record, 0, {client}))
+            entry = entries.setdefault((setup, record), Pending(setup, record, 0, {trainer}))
             entry.visits += visits
-        self.totals["requests"] += 1
         if entries:
-            self._clients[client] = entries
+            self._check_room(trainer, entries)
+        self.totals["requests"] += 1
+        self._seen[trainer] = time.monotonic()
+        if entries:
+            self._clients[trainer] = entries
             self._wake.set()
-        else:
-            self._clients.pop(client, None)
-        landed = self._landed.pop(client, 0)
+        else:  # withdrawn: the trainer is done
+            self._clients.pop(trainer, None)
+            self._seen.pop(trainer, None)
+        self._forget_gone()
+        landed = self._landed.pop(trainer, 0)
         return {"queued": len(entries), "queue": self.queue_size(), "landed": landed}
+
+    def _check_room(self, trainer: tuple[str, str], entries: dict) -> None:
+        """RequestError(503) when queueing `entries` for `trainer` (in place of its list) would go
+        beyond the trainer or state limits; the trainer's current list stays queued."""
+        if trainer not in self._clients and len(self._clients) >= self.max_clients:
+            raise RequestError(503, f"the server queues the states of {len(self._clients)} trainers, its limit "
+                                    "(--max-clients): this run backs off and sends them again", self.retry_after())
+        others = {k for who, pending in self._clients.items() if who != trainer for k in pending}
+        total = len(others | entries.keys())
+        if total > self.max_queue:
+            raise RequestError(503, f"the queue would hold {total:,} states, beyond the server's --max-queue "
+                                    f"{self.max_queue:,}: this run backs off and sends them again", self.retry_after())
+
+    def _forget_gone(self) -> None:
+        """Drop what is kept of trainers that went away without withdrawing (their landed counts)
+        once there are many: those with no pending list, longest unseen first."""
+        if len(self._seen) <= 4 * self.max_clients:
+            return
+        idle = sorted((t, who) for who, t in self._seen.items() if who not in self._clients)
+        for _, who in idle[: len(self._seen) - 2 * self.max_clients]:
+            self._seen.pop(who, None)
+            self._landed.pop(who, None)
 
     def queue_size(self) -> int:
         return len({k for entries in self._clients.values() for k in entries})
@@ -243,7 +354,11 @@ class AnnotationServer:
                 "annotating": self.annotating, "clients": len(self._clients),
                 "annotated_states": self.totals["states"], "rows": self.totals["rows"],
                 "batches": self.totals["batches"], "requests": self.totals["requests"],
-                "refused": self.totals["refused"], "errors": self.totals["errors"], "last_error": self.last_error,
+                "refused": self.totals["refused"], "busy": self.totals["busy"],
+                "unauthorized": self.totals["unauthorized"], "timeouts": self.totals["timeouts"],
+                "errors": self.totals["errors"], "last_error": self.last_error, "stopping": self.stopping,
+                "limits": {"max_clients": self.max_clients, "max_states": self.max_states,
+                           "max_queue": self.max_queue},
                 "states_per_s": self.totals["states"] / busy if busy else 0.0,
                 "states_per_s_since_start": self.totals["states"] / up if up else 0.0, "uptime_s": up}
 
@@ -293,8 +408,10 @@ class AnnotationServer:
         return done, rows
 
     async def run(self, stop: asyncio.Event) -> None:
-        """Annotate batches until `stop` is set; the batch in progress is finished first."""
+        """Annotate batches until `stop` is set; the batch in progress is finished first (and
+        requests meanwhile are refused with 503: `stopping`)."""
         loop = asyncio.get_running_loop()
+        self._stop = stop
         while not stop.is_set():
             batch = self.next_batch()
             if not batch:
@@ -320,26 +437,53 @@ class AnnotationServer:
             self.totals["states"] += done[0]
             self.totals["rows"] += done[1]
             self.totals["batches"] += 1
-            for p in batch:  # in the cache now (annotated, or already there): landed for each asker
-                for client in p.clients:
-                    self._landed[client] = self._landed.get(client, 0) + 1
+            for p in batch:  # in the cache now (annotated, or already there): landed for each asker still here
+                for trainer in p.clients & self._seen.keys():
+                    self._landed[trainer] = self._landed.get(trainer, 0) + 1
 
 
-def make_app(server: AnnotationServer):
-    """The aiohttp application of a server: POST /annotate, GET /stats."""
+def make_app(server: AnnotationServer, *, token: str | None = None,
+             request_timeout: float = ServeConfig.request_timeout):
+    """The aiohttp application of a server: POST /annotate, GET /stats; with `token`, every request
+    must carry it (`Authorization: Bearer TOKEN`, compared in constant time)."""
+    import hmac
     import json
 
     from aiohttp import web
 
-    def error(status: int, message: str) -> web.Response:
-        server.totals["refused"] += 1
-        return web.json_response({"error": message}, status=status)
+    def error(status: int, message: str, retry_after: int | None = None) -> web.Response:
+        server.totals["busy" if status == 503 else "timeouts" if status == 408 else "refused"] += 1
+        headers = {"Retry-After": str(retry_after)} if retry_after is not None else None
+        return web.json_response({"error": message}, status=status, headers=headers)
+
+    expected = token.encode() if token else None
+
+    @web.middleware
+    async def access(request: web.Request, handler):
+        if expected is not None:
+            scheme, _, given = request.headers.get("Authorization", "").partition(" ")
+            given_bytes = given.strip().encode(errors="surrogateescape")  # as sent, whatever its bytes
+            if scheme.lower() != "bearer" or not hmac.compare_digest(given_bytes, expected):
+                server.totals["unauthorized"] += 1
+                what = "a wrong token" if given else "no token"
+                response = web.json_response(
+                    {"error": f"this server needs its token and the request has {what}: pass the server's token "
+                              f"with --annotator-token, or set {TOKEN_ENV}"},
+                    status=401, headers={"WWW-Authenticate": 'Bearer realm="illm serve"'})
+                if request.can_read_body:  # do not read a stranger's body: close the connection instead
+                    response.force_close()
+                return response
+        return await handler(request)
 
     async def annotate(request: web.Request) -> web.Response:
         try:
-            raw = await request.read()
+            raw = await asyncio.wait_for(request.read(), request_timeout)
         except web.HTTPRequestEntityTooLarge:
             return error(413, f"the request is larger than {MAX_REQUEST_BYTES // 2**20} MiB: send fewer states")
+        except asyncio.TimeoutError:  # a slow or stalled client: cut off, so it holds nothing
+            response = error(408, f"the request was not sent whole within {request_timeout:g} s")
+            response.force_close()
+            return response
         except (ConnectionError, asyncio.IncompleteReadError, OSError):  # the client went away mid-request
             return web.Response(status=400)
         try:
@@ -349,24 +493,27 @@ def make_app(server: AnnotationServer):
         try:
             answer = server.submit(body)
         except RequestError as e:
-            return error(e.status, str(e))
+            return error(e.status, str(e), e.retry_after)
         return web.json_response(answer, status=202)
 
     async def stats(request: web.Request) -> web.Response:
         return web.json_response(server.stats())
 
-    app = web.Application(client_max_size=MAX_REQUEST_BYTES)
+    app = web.Application(client_max_size=MAX_REQUEST_BYTES, middlewares=[access])
     app.router.add_post("/annotate", annotate)
     app.router.add_get("/stats", stats)
     return app
 
 
-async def serve(server: AnnotationServer, host: str, port: int, stop: asyncio.Event,
-                on_ready=None) -> None:
-    """Serve until `stop` is set, then finish the batch in progress (its shard is written whole)."""
+async def serve(server: AnnotationServer, host: str, port: int, stop: asyncio.Event, on_ready=None, *,
+                token: str | None = None, request_timeout: float = ServeConfig.request_timeout) -> None:
+    """Serve until `stop` is set, then finish the batch in progress (its shard is written whole).
+    `token`: required on every request; `request_timeout`: seconds a client has to send a request,
+    and an idle connection stays open."""
     from aiohttp import web
 
-    runner = web.AppRunner(make_app(server), access_log=None, handle_signals=False)
+    runner = web.AppRunner(make_app(server, token=token, request_timeout=request_timeout), access_log=None,
+                           handle_signals=False, keepalive_timeout=request_timeout)
     await runner.setup()
     site = web.TCPSite(runner, host, port)
     await site.start()

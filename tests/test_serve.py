@@ -1,19 +1,25 @@
 """`illm serve`: one model annotating the live requests of several `illm train --annotator URL`
 runs. The scheduler merges the runs' missed states, highest summed visits first; malformed
 requests get a 4xx and one line; a client that dies mid-request leaves nothing behind; two
-trainers through one server fill one cache that verifies, with nothing stored twice."""
+trainers through one server fill one cache that verifies, with nothing stored twice. For a
+cluster: a token on every request (and required beyond loopback), limits answered with 413/503
+and Retry-After, a trainer's pending list its own, a stalled client cut off, SIGTERM finishing the
+batch in progress, and a trainer that survives its server killed and restarted."""
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
+import signal
 import socket
 import subprocess
 import sys
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -23,7 +29,7 @@ from illm_tools.llm.spec import LLMSpec
 from illm_tools.cache import AnnotationCache, verify
 from illm_tools.keys import fingerprint_hash
 from illm_tools.llm.stub import StubBackend
-from illm_tools.serve import AnnotationServer, RequestError, record_to_json
+from illm_tools.serve import AnnotationServer, RequestError, ServeConfig, record_to_json
 from illm_tools.tasks.state import StateRecord
 
 runner = CliRunner()
@@ -32,14 +38,17 @@ ACTIONS = ("turn left", "turn right", "go forward")
 MODEL = "stub:16"
 LLM = LLMSpec(backend="stub", model=MODEL, dtype="float32")
 FINGERPRINT = fingerprint_hash(StubBackend(MODEL).fingerprint)
+TOKEN = "test-token-0123456789abcdef"
+ENV_OFFLINE = {**os.environ, "HF_HUB_OFFLINE": "1"}
+ENV_OFFLINE.pop("ILLM_SERVE_TOKEN", None)
 
 
 def state(i: int) -> StateRecord:
     return StateRecord("go to the red ball", (), f"You see a red ball {i} steps forward", ACTIONS)
 
 
-def request(pending, client="run-a", **changes) -> dict:
-    body = {"client": client, "model_fingerprint": FINGERPRINT, "env_id": ENV, "renderer": "babyai-text@1",
+def request(pending, client="run-a", session="s1", **changes) -> dict:
+    body = {"client": client, "session": session, "model_fingerprint": FINGERPRINT, "env_id": ENV, "renderer": "babyai-text@1",
             "history_len": 0, "layout": "shared", "tasks": ["action", "summary"],
             "states": [{**record_to_json(s), "visits": n} for s, n in pending]}
     body.update(changes)
@@ -51,8 +60,9 @@ def test_the_scheduler_takes_the_most_visited_states_across_clients_once(tmp_pat
     assert server.submit(request([(state(1), 5), (state(2), 1)], client="a"))["queued"] == 2
     assert server.submit(request([(state(2), 9), (state(3), 2), (state(4), 1)], client="b"))["queue"] == 4
     batch = server.next_batch()  # state 2: 1 + 9 visits from two runs, one entry
-    assert [(p.record, p.visits, p.clients) for p in batch] == [(state(2), 10, {"a", "b"}), (state(1), 5, {"a"}),
-                                                                (state(3), 2, {"b"})]
+    a, b = ("a", "s1"), ("b", "s1")
+    assert [(p.record, p.visits, p.clients) for p in batch] == [(state(2), 10, {a, b}), (state(1), 5, {a}),
+                                                                (state(3), 2, {b})]
     assert server.queue_size() == 1
     assert server.submit(request([(state(7), 1)], client="b"))["queued"] == 1  # a newer list replaces b's
     assert [p.record for p in server.next_batch()] == [state(7)]
@@ -77,37 +87,88 @@ def test_malformed_requests_are_refused_with_their_reason(tmp_path, change, stat
     assert e.value.status == status and server.queue_size() == 0
 
 
+SLOW_SERVER = """
+import os, sys, time
+from illm_tools.llm.backend import BACKENDS
+from illm_tools.llm.stub import StubBackend
+
+class SlowStub(StubBackend):  # the stub's answers and fingerprint, each batch taking SLOW_S seconds
+    def score(self, *args, **kwargs):
+        time.sleep(float(os.environ["SLOW_S"]))
+        return super().score(*args, **kwargs)
+
+BACKENDS.register("slow", SlowStub)
+from cli.main import main
+sys.argv = ["illm", *sys.argv[1:]]
+main()
+"""
+
+
 @pytest.fixture
-def served(tmp_path):
+def start_server(tmp_path):
+    """Start `illm serve` on the stub backend (`slow`: batches that take `slow` seconds each) as a
+    user starts it, on a free port (or `port`); every server started is stopped at the end."""
+    procs = []
+
+    def start(*extra, env=None, port=0, slow: float = 0.0):
+        env = {**ENV_OFFLINE, **(env or {}), **({"SLOW_S": str(slow)} if slow else {})}
+        head = [sys.executable, "-c", SLOW_SERVER] if slow else [sys.executable, "-m", "cli.main"]
+        proc = subprocess.Popen([*head, "serve", "--cache", str(tmp_path / "ann"), "--backend",
+                                 "slow" if slow else "stub", "--model", MODEL, "--port", str(port), "--chunk", "8",
+                                 *map(str, extra)], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+        procs.append(proc)
+        line = proc.stderr.readline()
+        found = re.search(r"http://127\.0\.0\.1:(\d+)", line)
+        assert found, line + proc.stderr.read()
+        return f"http://127.0.0.1:{found.group(1)}", proc
+
+    yield start
+    for proc in procs:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=30)
+
+
+@pytest.fixture
+def served(start_server):
     """`illm serve` on the stub backend, on a free port, as a user starts it."""
-    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "serve", "--cache", str(tmp_path / "ann"), "--backend",
-                             "stub", "--model", MODEL, "--port", "0", "--chunk", "8"],
-                            stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
-    line = proc.stderr.readline()
-    found = re.search(r"http://127\.0\.0\.1:(\d+)", line)
-    assert found, line + proc.stderr.read()
-    yield f"http://127.0.0.1:{found.group(1)}", proc
+    url, proc = start_server()
+    yield url, proc
     if proc.poll() is None:
         proc.send_signal(2)
         proc.wait(30)
 
 
-def call(url: str, body=None, raw: bytes | None = None) -> tuple[int, dict]:
+def call(url: str, body=None, raw: bytes | None = None, token: str | None = None,
+         headers: dict | None = None) -> tuple[int, dict]:
     data = raw if raw is not None else (None if body is None else json.dumps(body).encode())
+    auth = {"Authorization": f"Bearer {token}"} if token else {}
     try:
-        with urllib.request.urlopen(urllib.request.Request(url, data=data, method="GET" if data is None else "POST"),
-                                    timeout=30) as r:
+        with urllib.request.urlopen(urllib.request.Request(url, data=data, method="GET" if data is None else "POST",
+                                                           headers=auth), timeout=30) as r:
             return r.status, json.loads(r.read())
     except urllib.error.HTTPError as e:
+        if headers is not None:
+            headers.update(e.headers)
         return e.code, json.loads(e.read())
+
+
+def wait_for(check, seconds: float = 60.0, what: str = ""):
+    """Poll `check()` every 0.1 s until it returns something true (returned), at most `seconds`."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        found = check()
+        if found:
+            return found
+        time.sleep(0.1)
+    raise AssertionError(f"not within {seconds:g} s: {what}")
 
 
 def test_the_server_refuses_bad_requests_survives_a_dying_client_and_reports(served):
     url, proc = served
     assert call(url + "/annotate", raw=b"{not json")[0] == 400
     status, answer = call(url + "/annotate", {"client": "x"})
-    assert status == 400 and answer["error"].startswith("the request lacks model_fingerprint")
+    assert status == 400 and answer["error"].startswith("the request lacks session, model_fingerprint, states")
     assert call(url + "/annotate", raw=b"[" + b" " * (17 * 2**20) + b"]")[0] == 413
     host, port = url.split("//")[1].split(":")
     with socket.create_connection((host, int(port))) as s:  # a client that dies mid-request
@@ -134,7 +195,7 @@ def test_two_trainers_share_one_server_and_one_cache(tmp_path, served):
     common = [sys.executable, "-m", "cli.main", "train", "--env", ENV, "--method", "illm", "--cache", str(ann),
               "--backend", "stub", "--model", MODEL, "--history", "0", "--num-envs", "2", "--num-steps", "32",
               "--frames", "320", "--live-budget", "32", "--annotator", url]
-    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    env = ENV_OFFLINE
     runs = [subprocess.Popen([*common, "--seed", str(i), "--out", str(tmp_path / f"run{i}")], env=env,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
     for proc in runs:
@@ -219,3 +280,159 @@ def test_a_hop_run_annotates_through_the_server(tmp_path, served):
             break
         time.sleep(0.1)
     assert stats["annotated_states"] > 0 and stats["errors"] == 0 and stats["refused"] == 0
+
+
+# --- a server for a cluster: access, limits, faults -------------------------------------------------------
+
+
+def test_a_trainer_cannot_replace_or_withdraw_another_trainers_list(tmp_path):
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, chunk=8)
+    server.submit(request([(state(1), 1), (state(2), 1)], client="runs/a", session="first"))
+    # the same client name from another trainer (a stranger, a resumed copy of the run): a list of its own
+    assert server.submit(request([(state(3), 1)], client="runs/a", session="other"))["queue"] == 3
+    assert server.submit(request([], client="runs/a", session="other"))["queue"] == 2  # withdraws its own only
+    assert {p.record for p in server.next_batch()} == {state(1), state(2)}
+
+
+def test_limits_answer_413_and_503_with_retry_after_as_documented(tmp_path):
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, max_clients=2,
+                              max_states=3, max_queue=4)
+    with pytest.raises(RequestError, match=r"at most 3 states \(the server's --max-states\), this one 4") as e:
+        server.submit(request([(state(i), 1) for i in range(4)]))
+    assert e.value.status == 413
+    server.submit(request([(state(1), 1), (state(2), 1), (state(3), 1)], client="a"))
+    with pytest.raises(RequestError, match="beyond the server's --max-queue 4") as e:
+        server.submit(request([(state(4), 1), (state(5), 1)], client="b"))
+    assert e.value.status == 503 and 1 <= e.value.retry_after <= 60
+    assert server.queue_size() == 3  # nothing of the refused request queued, a's list kept
+    server.submit(request([(state(3), 1), (state(4), 1)], client="b"))  # one state shared with a's: 4 in all
+    assert server.submit(request([(state(1), 1), (state(2), 1), (state(4), 1)], client="a"))["queue"] == 4  # its own replaced
+    with pytest.raises(RequestError, match="states of 2 trainers, its limit") as e:
+        server.submit(request([(state(1), 1)], client="c"))
+    assert e.value.status == 503
+
+
+def test_a_non_loopback_listen_needs_a_token(tmp_path, monkeypatch):
+    monkeypatch.delenv("ILLM_SERVE_TOKEN", raising=False)
+    for host in ("0.0.0.0", "::", ""):
+        out = runner.invoke(app, ["serve", "--cache", str(tmp_path / "ann"), "--backend", "stub", "--host", host])
+        assert out.exit_code == 1 and "listens beyond this machine" in out.output and "--token" in out.output
+        assert len(out.output.strip().splitlines()) == 1
+    assert ServeConfig(host="localhost").token is None and ServeConfig(host="::1").token is None
+    assert ServeConfig(host="0.0.0.0", token=TOKEN).token == TOKEN
+    assert TOKEN not in repr(ServeConfig(host="0.0.0.0", token=TOKEN))
+    monkeypatch.setenv("ILLM_SERVE_TOKEN", TOKEN)
+    assert ServeConfig(host="0.0.0.0").token == TOKEN  # from the environment
+    out = runner.invoke(app, ["serve", "--cache", str(tmp_path / "ann"), "--backend", "stub", "--token", "tooshort-xyz"])
+    assert out.exit_code == 1 and "at least 16 printable characters" in out.output and "tooshort" not in out.output
+
+
+def test_the_token_is_required_on_every_request(tmp_path, start_server):
+    url, proc = start_server("--max-queue", 2, env={"ILLM_SERVE_TOKEN": TOKEN})
+    for body in (None, request([(state(1), 1)])):
+        for token in (None, "wrong-token-0123456789"):
+            status, answer = call(url + ("/stats" if body is None else "/annotate"), body, token=token)
+            assert status == 401 and "pass the server's token with --annotator-token" in answer["error"]
+    status, stats = call(url + "/stats", token=TOKEN)
+    assert status == 200 and stats["unauthorized"] == 4 and stats["queue"] == 0
+    headers = {}
+    status, answer = call(url + "/annotate", request([(state(i), 1) for i in range(3)]), token=TOKEN, headers=headers)
+    assert status == 503 and int(headers["Retry-After"]) >= 1 and "--max-queue 2" in answer["error"]
+    out = runner.invoke(app, ["train", "--env", ENV, "--method", "illm", "--cache", str(tmp_path / "ann"),
+                              "--backend", "stub", "--model", MODEL, "--history", "0", "--num-envs", "2",
+                              "--num-steps", "16", "--frames", "32", "--annotator", url, "--out", str(tmp_path / "r")],
+                        env={"ILLM_SERVE_TOKEN": ""})
+    assert out.exit_code == 1 and "needs a token and this run has none: pass the server's token with " \
+                                  "--annotator-token" in out.output
+    assert len(out.output.strip().splitlines()) == 1
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    assert TOKEN not in out + err  # never printed
+
+
+def test_a_stalled_client_is_cut_off_and_holds_no_worker(start_server):
+    url, _ = start_server("--request-timeout", 1)
+    host, port = url.split("//")[1].split(":")
+    body = json.dumps(request([(state(1), 3)])).encode()
+    with socket.create_connection((host, int(port))) as stalled, socket.create_connection((host, int(port))) as idle:
+        stalled.sendall(b"POST /annotate HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                        + f"Content-Length: {len(body)}\r\n\r\n".encode() + body[:50])
+        started = time.monotonic()
+        assert call(url + "/annotate", request([(state(2), 1)], client="b"))[0] == 202  # served meanwhile
+        wait_for(lambda: call(url + "/stats")[1]["annotated_states"] == 1, 30, "the other client's state annotated")
+        stalled.settimeout(10)
+        answer = stalled.recv(4096).decode()
+        assert answer.startswith("HTTP/1.1 408") and "not sent whole within 1 s" in answer
+        assert time.monotonic() - started < 10
+        idle.settimeout(10)
+        assert idle.recv(1) == b""  # an idle connection is closed too
+    stats = call(url + "/stats")[1]
+    assert stats["timeouts"] == 1 and stats["queue"] == 0
+
+
+def test_sigterm_finishes_the_batch_in_progress_and_writes_it(tmp_path, start_server):
+    url, proc = start_server(slow=1.0)
+    assert call(url + "/annotate", request([(state(i), 1) for i in range(4)]))[0] == 202
+    wait_for(lambda: call(url + "/stats")[1]["annotating"] == 4, 30, "the batch started")
+    proc.send_signal(signal.SIGTERM)
+    status, answer = wait_for(lambda: (lambda r: r if r[0] == 503 else None)(
+        call(url + "/annotate", request([(state(9), 1)], client="late"))), 10, "refused while stopping")
+    assert "the server is stopping" in answer["error"]
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and "SIGTERM: finishing the batch in progress" in err and "Traceback" not in err
+    assert "4 states annotated (8 rows)" in out
+    report = verify(tmp_path / "ann")
+    assert report.ok and report.rows == 8 == len(AnnotationCache(tmp_path / "ann"))
+
+
+def test_a_remote_trainer_backs_off_a_full_server_and_says_so_once(tmp_path, start_server, caplog):
+    from illm_tools.rl.live import RemoteLive
+    from illm_tools.tasks.setup import AnnotationSetup
+
+    url, _ = start_server("--max-queue", 2, env={"ILLM_SERVE_TOKEN": TOKEN})
+    setup = AnnotationSetup(ENV, "babyai-text@1", history_len=0)
+    live = RemoteLive(url, client="run", llm=LLM, setup=setup, budget=8, token=TOKEN)
+    with caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
+        assert live.submit([state(i) for i in range(3)], [1, 1, 1]) == 0  # more states than the queue holds
+        wait_for(lambda: live.counts["busy"] == 1, 30, "the server's 503")
+        for _ in range(4):  # the next rollouts, within the Retry-After (5 s: no throughput measured yet)
+            assert live.submit([state(i) for i in range(3)], [1, 1, 1]) == 0
+            time.sleep(0.2)
+    assert live.counts["sent"] == 1 and not live.idle  # it waits out the Retry-After, the newest list kept
+    assert sum("is full" in r.getMessage() for r in caplog.records) == 1
+    live.close()
+
+
+@pytest.mark.slow  # 25 s
+def test_a_trainer_survives_its_server_killed_and_restarted(tmp_path, start_server):
+    url, first = start_server(env={"ILLM_SERVE_TOKEN": TOKEN})
+    port = int(url.rsplit(":", 1)[1])
+    ann = tmp_path / "ann"
+    trainer = subprocess.Popen(
+        [sys.executable, "-m", "cli.main", "train", "--env", ENV, "--method", "illm", "--cache", str(ann),
+         "--backend", "stub", "--model", MODEL, "--history", "0", "--num-envs", "2", "--num-steps", "16",
+         "--frames", "64000", "--live-budget", "8", "--annotator", url, "--annotator-token", TOKEN,
+         "--no-tensorboard", "--out", str(tmp_path / "run")],
+        env=ENV_OFFLINE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: call(url + "/stats", token=TOKEN)[1]["annotated_states"] >= 8, 120, "states annotated")
+        first.kill()  # no goodbye: its queue and the batch in progress are gone
+        first.communicate(timeout=30)
+        time.sleep(2.0)  # the trainer meets a dead server (and says so once)
+        assert trainer.poll() is None
+        rows_before = len(AnnotationCache(ann))
+        url2, second = start_server(port=port, env={"ILLM_SERVE_TOKEN": TOKEN})
+        assert url2 == url
+        wait_for(lambda: call(url + "/stats", token=TOKEN)[1]["annotated_states"] >= 8, 120,
+                 "the trainer's states landing after the restart")
+        assert len(AnnotationCache(ann)) > rows_before
+    finally:
+        trainer.send_signal(signal.SIGINT)  # stop after the update in progress
+        out, err = trainer.communicate(timeout=120)
+    assert trainer.returncode == 130 and "stopped at" in out, err[-2000:]
+    assert err.count("does not answer") == 1 and err.count("answers again") == 1, err[-2000:]
+    assert TOKEN not in out + err + (tmp_path / "run" / "config.json").read_text()
+    report = verify(ann)
+    assert report.ok and report.rows == len(AnnotationCache(ann))  # nothing annotated twice
+    tasks = AnnotationCache(ann).tasks()
+    assert tasks["action"] == tasks["summary"] > 8
