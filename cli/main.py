@@ -107,6 +107,27 @@ def _register() -> None:
     experiment.register(app)
     serve.register(app)
     probe.register(app)
+    _unwrapped_help(app)
+
+
+def _unwrapped_help(typer_app: typer.Typer) -> None:
+    """Each command's help as Rich lays it out: its docstring's paragraphs with their hard line breaks
+    undone (Rich keeps them, breaking a summary mid-sentence in `illm --help`), and its row in the
+    command list the first sentence alone. Groups (`illm data`, `illm cache`) likewise, recursively."""
+    import inspect
+
+    for info in typer_app.registered_commands:
+        doc = info.help or inspect.getdoc(info.callback) or ""
+        paragraphs = [" ".join(p.split()) for p in doc.split("\n\n") if p.strip()]
+        if not paragraphs:
+            continue
+        info.help = "\n\n".join(paragraphs)
+        if info.short_help is None:
+            first = paragraphs[0]
+            end = first.find(". ")
+            info.short_help = first if end < 0 else first[:end + 1]
+    for group in typer_app.registered_groups:
+        _unwrapped_help(group.typer_instance)
 
 
 _register()

@@ -204,3 +204,22 @@ def test_probe_refuses_an_out_it_would_overwrite_or_cannot_write_before_probing(
         result = runner.invoke(app, ["probe", "--backend", "oracle", "--states", "4", "--out", str(out)])
         assert result.exit_code == 1 and said in result.output and len(result.output.strip().splitlines()) == 1
     assert kept.read_text() == "{}"
+
+
+def test_every_commands_summary_is_one_unbroken_sentence():
+    """`illm --help`'s rows: a docstring's hard line breaks no longer reach Rich's layout (issue 31), and
+    each command's row is its first sentence."""
+    from cli.main import app
+
+    def commands(typer_app):
+        for info in typer_app.registered_commands:
+            yield info
+        for group in typer_app.registered_groups:
+            yield from commands(group.typer_instance)
+
+    infos = list(commands(app))
+    assert len(infos) >= 12
+    for info in infos:
+        assert info.short_help and "\n" not in info.short_help, info.name
+        assert ". " not in info.short_help.rstrip("."), info.short_help
+        assert all("\n" not in p for p in info.help.split("\n\n")), info.name
