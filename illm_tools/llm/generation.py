@@ -26,7 +26,7 @@ import numpy as np
 
 from illm_tools.errors import UsageError
 from illm_tools.llm.loading import LoadedModel
-from illm_tools.llm.scoring import PrefixState, extend, length_batches
+from illm_tools.llm.scoring import PrefixState, cache_kwargs, extend, length_batches
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +152,7 @@ def greedy_from(lm: LoadedModel, state: PrefixState, max_new_tokens: int) -> lis
         with torch.inference_mode():
             out = lm.model(input_ids=torch.tensor(feed, device=lm.device)[:, None],
                            attention_mask=mask[:, :width + step + 1], position_ids=positions[:, None],
-                           past_key_values=cache, use_cache=True, logits_to_keep=1, output_hidden_states=True)
+                           **cache_kwargs(cache), use_cache=True, logits_to_keep=1, output_hidden_states=True)
         sums.index_add_(0, torch.tensor(rows), out.hidden_states[-1][:, -1].double().cpu())
         chosen = out.logits[:, -1].max(dim=-1).indices.tolist()
         positions = positions + 1

@@ -7,6 +7,10 @@ next token) and the three steps built on it:
     score_continuations(lm, state, ...)  per-token log-probs of K token continuations per row
     score_candidates(lm, contexts, ...)  tokenise, batch states sorted by length, score
 
+`extend(..., grad=True)` and `continuation_logprobs` (the tensor under `score_continuations`) run
+the same computation with autograd on: `illm distil` trains a student through this path, so the
+scores it learns are the scores the annotator computes.
+
 Padding scheme. Each new segment is left-padded so that every row's last real token sits in the
 last column: its logits give the first candidate token's log-prob for all rows at once. Padding
 columns are masked out in `attention_mask`, and position ids count real tokens only, so a
@@ -32,6 +36,7 @@ So the sum is always log P(candidate's tokens | the tokens before them), joint t
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -149,12 +154,42 @@ def has_sliding_window(lm: LoadedModel) -> bool:
     return getattr(config, "sliding_window", None) is not None
 
 
+@functools.lru_cache(maxsize=1)
+def _cache_name() -> str:
+    """The keyword a causal LM's forward takes its KV cache under: `cache` since transformers 5.24
+    (which warns on the older `past_key_values`), `past_key_values` before."""
+    import inspect
+
+    from transformers import LlamaForCausalLM
+
+    return "cache" if "cache" in inspect.signature(LlamaForCausalLM.forward).parameters else "past_key_values"
+
+
+def cache_kwargs(cache: Any) -> dict:
+    """{keyword: cache} for a model's forward, under the name the installed transformers reads."""
+    return {_cache_name(): cache}
+
+
+def returned_cache(out: Any) -> Any:
+    """The KV cache a forward returned (`out.cache` since transformers 5.24, `past_key_values` before)."""
+    return out.cache if _cache_name() == "cache" else out.past_key_values
+
+
+def _forward_mode(grad: bool):
+    """autograd on (training: `illm distil`) or inference mode (annotation, probing)."""
+    import contextlib
+
+    import torch
+
+    return contextlib.nullcontext() if grad else torch.inference_mode()
+
+
 def extend(lm: LoadedModel, rows: Sequence[Sequence[int]], past: PrefixState | None = None, *,
-           hidden: bool = False, embeds: Any = None) -> PrefixState:
+           hidden: bool = False, embeds: Any = None, grad: bool = False) -> PrefixState:
     """Run `rows` (one token list per batch row, left-padded here) after `past` and return the
     new state; `past` (of batch 1 or len(rows)) is left untouched and can be extended again.
     `embeds` (float [B, L, d], every row L real positions) runs input embeddings instead of tokens
-    (iLLM(hop)'s translated observations; `rows` is then ignored)."""
+    (iLLM(hop)'s translated observations; `rows` is then ignored). `grad`: keep autograd on."""
     import torch
     from transformers import DynamicCache
 
@@ -182,15 +217,15 @@ def extend(lm: LoadedModel, rows: Sequence[Sequence[int]], past: PrefixState | N
     last = torch.tensor([ids.shape[1] - 1], device=lm.device)
     inputs = {"input_ids": ids} if embeds is None else {
         "inputs_embeds": embeds.to(device=lm.device, dtype=lm.model.get_input_embeddings().weight.dtype)}
-    with torch.inference_mode():
+    with _forward_mode(grad):
         out = lm.model(**inputs, attention_mask=full_mask, position_ids=position_ids,
-                       past_key_values=cache, use_cache=True, logits_to_keep=last,
+                       **cache_kwargs(cache), use_cache=True, logits_to_keep=last,
                        output_hidden_states=hidden)
     logprobs = torch.log_softmax(out.logits[:, -1].float(), dim=-1)
     n_new = mask.sum(1)
     if past is not None and bool((n_new == 0).any()):  # rows with nothing new keep their log-probs
         logprobs = torch.where((n_new == 0)[:, None], past.last_logprobs, logprobs)
-    return PrefixState(out.past_key_values, full_mask, before + n_new, logprobs,
+    return PrefixState(returned_cache(out), full_mask, before + n_new, logprobs,
                        out.hidden_states[-1] if hidden else None)
 
 
@@ -202,39 +237,54 @@ def score_continuations(lm: LoadedModel, state: PrefixState, continuations: Sequ
     candidate are fed but not scored (context tokens after a straddling boundary). `state` is
     left untouched, so the same state can score further candidates.
     """
-    import torch
-
-    if len(continuations) != state.batch_size:
-        raise ValueError(f"{len(continuations)} candidate lists for {state.batch_size} rows")
     flat = [list(c) for cands in continuations for c in cands]
     skips = [s for row in (skip or [[0] * len(c) for c in continuations]) for s in row]
     if not flat:
+        if len(continuations) != state.batch_size:
+            raise ValueError(f"{len(continuations)} candidate lists for {state.batch_size} rows")
         return [[] for _ in continuations]
-    index = torch.tensor([i for i, cands in enumerate(continuations) for _ in cands], device=lm.device)
-    width = max(len(c) for c in flat)
-    ids = torch.full((len(flat), max(width, 1)), lm.pad_id, dtype=torch.long)
-    for r, cand in enumerate(flat):
-        ids[r, :len(cand)] = torch.as_tensor(cand, dtype=torch.long)
-    ids = ids.to(lm.device)
-    logps = torch.zeros(ids.shape, dtype=torch.float32, device=lm.device)
-    logps[:, 0] = state.last_logprobs[index].gather(1, ids[:, :1])[:, 0]
-    if width > 1:  # tokens 2.. come from one forward of the candidates behind the repeated cache
-        rows = state.select(index)
-        inputs = ids[:, :-1]
-        cand_mask = torch.tensor([[int(t < len(c)) for t in range(width - 1)] for c in flat], device=lm.device)
-        position_ids = rows.lengths[:, None] + torch.arange(width - 1, device=lm.device)
-        with torch.inference_mode():
-            out = lm.model(input_ids=inputs, attention_mask=torch.cat([rows.attention_mask, cand_mask], 1),
-                           position_ids=position_ids, past_key_values=rows.cache, use_cache=True)
-        logits = out.logits.float()
-        logps[:, 1:] = logits.gather(2, ids[:, 1:, None])[..., 0] - torch.logsumexp(logits, dim=-1)
-    values = logps.tolist()
+    values = continuation_logprobs(lm, state, continuations).tolist()
     per_row = [vals[s:len(c)] for vals, c, s in zip(values, flat, skips)]
     result, start = [], 0
     for cands in continuations:
         result.append(per_row[start:start + len(cands)])
         start += len(cands)
     return result
+
+
+def continuation_logprobs(lm: LoadedModel, state: PrefixState, continuations: Sequence[Sequence[Sequence[int]]], *,
+                          grad: bool = False) -> Any:
+    """float32 [N, W]: the log-prob of each token of each continuation after its row of `state`
+    (rows' continuations flattened in order, N in all, right-padded to the longest, W; positions
+    past a continuation's end hold 0). The first token's log-prob is the state's last logits';
+    tokens 2.. come from one forward of the continuations behind the row's cache, repeated once per
+    continuation. `grad`: keep autograd on (training)."""
+    import torch
+
+    if len(continuations) != state.batch_size:
+        raise ValueError(f"{len(continuations)} candidate lists for {state.batch_size} rows")
+    flat = [list(c) for cands in continuations for c in cands]
+    index = torch.tensor([i for i, cands in enumerate(continuations) for _ in cands], device=lm.device)
+    width = max(max(len(c) for c in flat), 1)
+    ids = torch.full((len(flat), width), lm.pad_id, dtype=torch.long)
+    real = torch.zeros((len(flat), width), dtype=torch.bool)
+    for r, cand in enumerate(flat):
+        ids[r, :len(cand)] = torch.as_tensor(cand, dtype=torch.long)
+        real[r, :len(cand)] = True
+    ids, real = ids.to(lm.device), real.to(lm.device)
+    first = state.last_logprobs[index].gather(1, ids[:, :1])
+    if width == 1:
+        return torch.where(real, first, torch.zeros_like(first))
+    rows = state.select(index)
+    inputs = ids[:, :-1]
+    position_ids = rows.lengths[:, None] + torch.arange(width - 1, device=lm.device)
+    with _forward_mode(grad):
+        out = lm.model(input_ids=inputs, attention_mask=torch.cat([rows.attention_mask, real[:, :-1].long()], 1),
+                       position_ids=position_ids, **cache_kwargs(rows.cache), use_cache=True)
+        logits = out.logits.float()
+        rest = logits.gather(2, ids[:, 1:, None])[..., 0] - torch.logsumexp(logits, dim=-1)
+        logps = torch.cat([first, rest], dim=1)
+        return torch.where(real, logps, torch.zeros_like(logps))
 
 
 @dataclass(frozen=True)
