@@ -189,6 +189,13 @@ class AnnotationCache:
         """The given columns of every distinct key's row."""
         return self._gather(np.flatnonzero(self._index.first_rows()), columns)
 
+    def table(self, columns: Sequence[str]) -> pa.Table:
+        """The given columns of every distinct key's row (what `illm distil` reads of a teacher)."""
+        unknown = sorted(set(columns) - set(self.schema.names))
+        if unknown:
+            raise CacheError(f"no columns {unknown} in the annotation schema")
+        return self._distinct(list(columns))
+
     def setups(self) -> list[dict]:
         """The distinct setups the cache holds (the SETUP_COLUMNS every key of a run shares), each
         with its entry count and one of its prompts (from which a template layout can be read)."""
