@@ -34,7 +34,10 @@ class CollectConfig:
     seed: int = 0
     """Base seed: episode seeds and the random policy derive from it."""
     policy: str = "random"
-    """'random', or a training run folder whose policy picks the actions."""
+    """'random'; 'bot' (BabyAI levels: minigrid's expert bot, with --bot-epsilon random actions); or a training
+    run folder whose policy picks the actions."""
+    bot_epsilon: float = 0.25
+    """With --policy bot: the share of uniformly random actions (states off the bot's path; it replans)."""
     action_space: str = "auto"
     """Action vocabulary: BabyAI's original (3), augmented (6) or irrelevant (9), paper Table 5
     (other suites offer one each); auto: the suite's default (BabyAI: original for the GoTo levels,
@@ -59,7 +62,8 @@ class CollectConfig:
         from illm_tools.settings import check_folder, check_numbers
 
         self.out = Path(self.out)
-        check_numbers(self, positive=("steps", "num_envs", "shard_rows"), non_negative=("seed", "num_dists"))
+        check_numbers(self, positive=("steps", "num_envs", "shard_rows"), non_negative=("seed", "num_dists"),
+                      unit=("bot_epsilon",))
         check_folder(self.out, "--out")
         if self.write not in ("new", "append", "overwrite"):
             raise UsageError(f"unknown write mode {self.write!r}: new, append or overwrite")
@@ -89,7 +93,7 @@ class RandomPolicy:
 def resolved_action_space(config: CollectConfig) -> str:
     """config.action_space, or for "auto" with a trained policy the action space its run recorded
     (so the policy's actions fit the env); "auto" otherwise, resolved by the env pool."""
-    if config.action_space != "auto" or config.policy == "random":
+    if config.action_space != "auto" or config.policy in ("random", "bot"):
         return config.action_space
     from illm_tools.rl.checkpoint import read_config
 
@@ -131,6 +135,10 @@ def check_append(config: CollectConfig, names: list[str]) -> None:
 def make_policy(config: CollectConfig, pool) -> Policy:
     if config.policy == "random":
         return RandomPolicy(len(pool.action_names), config.seed)
+    if config.policy == "bot":
+        from illm_tools.envs.babyai_bot import BotPolicy
+
+        return BotPolicy(pool, config.bot_epsilon, config.seed)
     from illm_tools.rl.checkpoint import load_policy  # a trained run's policy
 
     return load_policy(config.policy, pool)
