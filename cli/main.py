@@ -94,7 +94,7 @@ def root(
 
 
 def _register() -> None:
-    from cli import annotate, cache, collect, data, envs, experiment, models, probe, report, serve, train
+    from cli import annotate, cache, collect, data, distil, envs, experiment, models, probe, report, serve, train
 
     envs.register(app)
     collect.register(app)
@@ -107,6 +107,7 @@ def _register() -> None:
     experiment.register(app)
     serve.register(app)
     probe.register(app)
+    distil.register(app)
     _unwrapped_help(app)
 
 

@@ -31,6 +31,7 @@ COMMANDS = {
     ("experiment",): (["illm_tools.experiment.run_experiment"], ["{spec}", "--out", "{tmp}/results"]),
     ("report",): (["illm_tools.report.build.build_report"], ["{run}", "--out", "{tmp}/report"]),
     ("data", "coverage"): (["illm_tools.annotate.coverage.measure_coverage"], ["{traj}"]),
+    ("distil",): (["illm_tools.distil.run.distil"], ["{tmp}/ann", "--out", "{tmp}/student"]),
 }
 FOLDER_OPTIONS = {"--out", "--cache", "--run-dir", "--into"}
 """Options naming a folder a command writes (a file there must be refused)..."""

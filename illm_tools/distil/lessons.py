@@ -1,0 +1,243 @@
+"""A teacher's annotations as a student's lessons: which rows of a cache `illm distil` learns from,
+how its states split into training and held-out ones, and their tokens.
+
+A teacher is one model of the cache (its rows' `model` and fingerprint: `oracle`, a large model
+annotated through vLLM, ...). A lesson is one state of the teacher's: for each task asked for, the
+row's prompt as the annotator rendered it and what the teacher answered there, the candidates'
+summed log-probabilities of a ranking task (`action`) and the text of a text task (`summary`,
+`goal`, `plan`). The student reads the very prompt the annotator renders, so a state it annotates
+later is asked the same way it was taught.
+
+The split is by state, stable: states are ordered by a salted hash of what makes them one state
+(renderer, history length, mission, history, observation); the first `held_out` are held out, the
+next `states` are taught. The chosen rows' keys are written to the work folder when a run starts
+(`LessonPlan`), so a resumed run teaches the same lessons whatever the cache gained meanwhile.
+
+Tokens (`tokenise`): each task's prompt and its targets tokenised as the annotator tokenises them
+(`illm_tools.llm.scoring.plan_state`: context and candidate together), a text target followed by
+the end-of-text token (the student learns to stop where the teacher stopped). The prompts of a
+state share their first part (the task line and the history, with the `shared` layout): that part
+is one `shared` token list, run once per state (not on sliding-window models, `can_share_prefix`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from illm_tools.errors import UsageError
+from illm_tools.keys import canonical_json
+
+COLUMNS = ("key", "task", "renderer", "model", "model_fingerprint", "history_len", "goal", "history",
+           "observation", "prompt", "candidates", "cand_logprob_sum", "chosen_index", "text")
+"""The cache columns a lesson is made of."""
+SPLIT_SALT = "illm-distil-split@1"
+
+
+@dataclass(frozen=True)
+class Target:
+    """What the teacher answered to one task's prompt in one state."""
+
+    task: str
+    kind: str
+    """ranking (the teacher's log-probabilities of the candidates) or text (its text)."""
+    key: str
+    """The teacher's cache row."""
+    prompt: str
+    candidates: tuple[str, ...] = ()
+    """ranking: the candidates as scored after the prompt (with their leading space)."""
+    teacher_logprobs: tuple[float, ...] = ()
+    """ranking: the teacher's summed log-probability of each candidate."""
+    text: str = ""
+    """text: the teacher's text."""
+
+    @property
+    def best(self) -> int:
+        """ranking: the teacher's top candidate (first on ties, as `chosen_index`)."""
+        return max(range(len(self.teacher_logprobs)), key=self.teacher_logprobs.__getitem__)
+
+
+@dataclass(frozen=True)
+class Lesson:
+    """One state of the teacher's, with its targets in task order."""
+
+    state: str
+    """Salted hash of the state (the split's order)."""
+    targets: tuple[Target, ...]
+
+
+@dataclass(frozen=True)
+class Teacher:
+    """A model whose rows a cache holds."""
+
+    model: str
+    fingerprint: str
+    rows: int
+
+
+def teachers(table) -> list[Teacher]:
+    """The models of a cache table's rows (`COLUMNS`), most rows first."""
+    counts: dict[tuple[str, str], int] = {}
+    for model, fp in zip(table.column("model").to_pylist(), table.column("model_fingerprint").to_pylist()):
+        counts[(model, fp)] = counts.get((model, fp), 0) + 1
+    return [Teacher(m, fp, n) for (m, fp), n in sorted(counts.items(), key=lambda x: (-x[1], x[0]))]
+
+
+def pick_teacher(found: Sequence[Teacher], name: str | None, cache: str) -> Teacher:
+    """The teacher named (`--teacher`), or the cache's only one; refused in one line otherwise."""
+    names = ", ".join(f"{t.model} ({t.rows:,} rows)" for t in found)
+    if name is not None:
+        found = [t for t in found if t.model == name]
+        if not found:
+            raise UsageError(f"the cache {cache} holds no rows of the teacher {name!r} for these tasks (it holds "
+                             f"{names or 'none'}): pass one of those as --teacher")
+    if len(found) > 1:
+        if len({t.model for t in found}) == 1:
+            raise UsageError(f"the cache {cache} holds rows of {found[0].model} under {len(found)} fingerprints "
+                             "(another dtype, quantisation or revision): distil from a cache holding one of them "
+                             "(`illm cache info` lists the setups)")
+        raise UsageError(f"the cache {cache} holds rows of several models ({names}): name the teacher with --teacher")
+    return found[0]
+
+
+def state_hash(row: dict) -> str:
+    """The salted hash of a row's state (its renderer, history length and rendered parts)."""
+    return hashlib.sha256(canonical_json([SPLIT_SALT, row["renderer"], row["history_len"], row["goal"],
+                                          row["history"], row["observation"]]).encode()).hexdigest()
+
+
+def lessons_of(rows: Sequence[dict], tasks: Sequence[str]) -> list[Lesson]:
+    """The lessons of one teacher's rows: one per state holding a ranking task's row (a state the
+    teacher never ranked teaches no ranking and is left out), its tasks in `tasks` order, in the
+    split's order (by `state_hash`)."""
+    from illm_tools.tasks.registry import get_task
+
+    by_state: dict[str, dict[str, dict]] = {}
+    for row in sorted(rows, key=lambda r: r["key"]):  # of a state's two rows of a task (two layouts): the first key
+        by_state.setdefault(state_hash(row), {}).setdefault(row["task"], row)
+    lessons = []
+    for state in sorted(by_state):
+        got = by_state[state]
+        if not any(get_task(t).kind == "ranking" for t in got):
+            continue
+        lessons.append(Lesson(state, tuple(target_of(got[t]) for t in tasks if t in got)))
+    return lessons
+
+
+def target_of(row: dict) -> Target:
+    """A cache row as a target (the candidates get back the leading space they were scored with)."""
+    from illm_tools.tasks.registry import get_task
+
+    kind = get_task(row["task"]).kind
+    if kind == "ranking":
+        return Target(row["task"], kind, row["key"], row["prompt"], tuple(" " + c for c in row["candidates"]),
+                      tuple(float(x) for x in row["cand_logprob_sum"]))
+    return Target(row["task"], kind, row["key"], row["prompt"], text=row["text"] or "")
+
+
+@dataclass(frozen=True)
+class LessonPlan:
+    """The rows taught and held out, by key: what a run writes when it starts and a resumed run
+    reads back (`lessons.json` in the work folder)."""
+
+    teacher: str
+    teacher_fingerprint: str
+    tasks: tuple[str, ...]
+    train: tuple[tuple[str, ...], ...]
+    """Per training state, its rows' keys in task order."""
+    held_out: tuple[tuple[str, ...], ...]
+
+    def to_json(self) -> str:
+        return json.dumps({"teacher": self.teacher, "teacher_fingerprint": self.teacher_fingerprint,
+                           "tasks": list(self.tasks), "train": [list(k) for k in self.train],
+                           "held_out": [list(k) for k in self.held_out]})
+
+    @classmethod
+    def from_json(cls, text: str) -> LessonPlan:
+        d = json.loads(text)
+        return cls(d["teacher"], d["teacher_fingerprint"], tuple(d["tasks"]), tuple(tuple(k) for k in d["train"]),
+                   tuple(tuple(k) for k in d["held_out"]))
+
+    @classmethod
+    def split(cls, teacher: Teacher, tasks: Sequence[str], lessons: Sequence[Lesson], *, held_out: int,
+              states: int | None) -> LessonPlan:
+        keys = [tuple(t.key for t in lesson.targets) for lesson in lessons]
+        train = keys[held_out:]
+        return cls(teacher.model, teacher.fingerprint, tuple(tasks),
+                   tuple(train[:states] if states is not None else train), tuple(keys[:held_out]))
+
+
+def lessons_from_plan(cache, keys: Sequence[Sequence[str]]) -> list[Lesson]:
+    """The lessons of a plan's keys, read back from the cache; a key the cache no longer holds (a
+    damaged shard dropped by `illm cache repair`) is refused in one line."""
+    flat = [k for row in keys for k in row]
+    rows = cache.lookup(flat)
+    missing = [k for k in flat if k not in rows]
+    if missing:
+        raise UsageError(f"the cache {cache.root} no longer holds {len(missing):,} of the rows this distillation "
+                         "was started with (a repaired cache?): start it afresh in another --out")
+    return [Lesson(state_hash(rows[row[0]]), tuple(target_of(rows[k]) for k in row)) for row in keys]
+
+
+# --- tokens ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Branch:
+    """One target's tokens after the state's shared part: the rest of its prompt, then what is
+    scored (a ranking task's candidates; a text task's one continuation, the text and the end)."""
+
+    task: str
+    kind: str
+    suffix: tuple[int, ...]
+    continuations: tuple[tuple[int, ...], ...]
+    skip: tuple[int, ...]
+    """Per continuation, the leading tokens that belong to the prompt (a token straddling the
+    boundary, `plan_state`): fed, not scored."""
+    teacher_logprobs: tuple[float, ...] = ()
+    best: int = 0
+
+
+@dataclass(frozen=True)
+class Example:
+    """A lesson's tokens: the shared part of its prompts, then one branch per target."""
+
+    shared: tuple[int, ...]
+    branches: tuple[Branch, ...]
+
+    @property
+    def tokens(self) -> int:
+        """Tokens run through the model for this example."""
+        return len(self.shared) + sum(len(b.suffix) + sum(len(c) for c in b.continuations) for b in self.branches)
+
+    @property
+    def longest(self) -> int:
+        """The longest sequence the model reads for it (a prompt and its longest continuation)."""
+        return len(self.shared) + max(len(b.suffix) + max(len(c) for c in b.continuations) for b in self.branches)
+
+
+def text_target(text: str) -> str:
+    """A teacher's text as the continuation of its prompt: after a space unless it starts with one."""
+    return text if text[:1].isspace() else " " + text
+
+
+def tokenise(lm, lesson: Lesson, *, share: bool = True) -> Example:
+    """The lesson's tokens for the student `lm` (a `LoadedModel`; module docstring)."""
+    from illm_tools.llm.scoring import common_prefix, plan_state
+
+    plans = []
+    for target in lesson.targets:
+        if target.kind == "ranking":
+            plans.append(plan_state(lm, target.prompt, list(target.candidates)))
+        else:
+            plan = plan_state(lm, target.prompt, [text_target(target.text)])
+            eos = lm.eos_ids[:1] if lm.eos_ids else ()
+            plans.append(type(plan)(plan.prefix, [[*plan.continuations[0], *eos]], plan.skip))
+    shared = 0
+    if share and len(plans) > 1:
+        # keep one token of each prompt out of the shared part: its logits score the first token after it
+        shared = min(min(common_prefix(plans[0].prefix, p.prefix), len(p.prefix) - 1) for p in plans)
+    branches = tuple(Branch(t.task, t.kind, tuple(p.prefix[shared:]), tuple(tuple(c) for c in p.continuations),
+                            tuple(p.skip), t.teacher_logprobs, t.best if t.kind == "ranking" else 0)
+                     for t, p in zip(lesson.targets, plans))
+    return Example(tuple(plans[0].prefix[:shared]) if shared else (), branches)

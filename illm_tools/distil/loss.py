@@ -1,0 +1,149 @@
+"""The student's answers to a batch of lessons, and how far they are from the teacher's.
+
+One forward pass per batch through the annotator's own scoring path (`illm_tools.llm.scoring`:
+`extend` and `continuation_logprobs`, with autograd on while training): the states' shared prompt
+part once, then each task's branch, the rest of its prompt and what is scored after it.
+
+- ranking task (`action`): the student's summed log-probability of each candidate, as the
+  annotator sums it; its distribution over the candidates is their softmax (the `sum`
+  calibration, the paper's), and the loss is KL(teacher || student), the teacher's distribution
+  being the softmax of its own sums (for the oracle: softmax(-2 * steps left)). The student
+  agrees with the teacher where its top candidate is the teacher's.
+- text task (`summary`, ...): the mean negative log-likelihood per token of the teacher's text and
+  the end-of-text token after it (teacher forcing).
+
+loss = KL (mean over states) + `text_weight` * NLL (mean over the states' texts).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from illm_tools.distil.lessons import Example
+
+
+@dataclass
+class BatchResult:
+    """The loss of a batch and the figures behind it."""
+
+    loss: object
+    """Scalar tensor (with its graph while training)."""
+    ranking_kl: float = 0.0
+    """Mean KL(teacher || student) over the batch's ranked states, nats."""
+    text_nll: float = 0.0
+    """Mean negative log-likelihood per token of the teacher's texts, nats."""
+    agree: int = 0
+    """Ranked states whose top candidate is the teacher's."""
+    ranked: int = 0
+    texts: int = 0
+    tokens: int = 0
+    """Tokens run through the model."""
+    student_best: list[int] = field(default_factory=list)
+
+
+def lesson_loss(lm, batch: Sequence[Example], *, text_weight: float = 1.0, grad: bool = False) -> BatchResult:
+    """The loss of `batch` for the student `lm` (a `LoadedModel`, its `model` possibly wrapped with
+    adapters); `grad`: keep the graph for a backward pass."""
+    import torch
+
+    from illm_tools.llm.scoring import extend
+
+    shared = None
+    if all(e.shared for e in batch):
+        shared = extend(lm, [list(e.shared) for e in batch], grad=grad)
+    kl_terms, nll_terms = [], []
+    out = BatchResult(loss=None, tokens=sum(e.tokens for e in batch))
+    tasks = list(dict.fromkeys(b.task for e in batch for b in e.branches))
+    for task in tasks:
+        rows = [i for i, e in enumerate(batch) if any(b.task == task for b in e.branches)]
+        branches = [next(b for b in batch[i].branches if b.task == task) for i in rows]
+        if shared is not None:
+            state = extend(lm, [list(b.suffix) for b in branches], past=shared.select(rows), grad=grad)
+        else:
+            state = extend(lm, [[*batch[i].shared, *b.suffix] for i, b in zip(rows, branches)], grad=grad)
+        sums = _continuation_sums(lm, state, branches, grad)
+        if branches[0].kind == "ranking":
+            for b, s in zip(branches, sums):
+                student = torch.log_softmax(s, dim=0)
+                teacher = torch.log_softmax(torch.tensor(b.teacher_logprobs, dtype=student.dtype,
+                                                         device=student.device), dim=0)
+                kl_terms.append(torch.sum(teacher.exp() * (teacher - student)))
+                top = int(torch.argmax(s.detach()))
+                out.student_best.append(top)
+                out.agree += int(top == b.best)
+                out.ranked += 1
+        else:
+            for b, s in zip(branches, sums):
+                scored = len(b.continuations[0]) - b.skip[0]
+                nll_terms.append(-s[0] / max(scored, 1))
+                out.texts += 1
+    zero = torch.zeros((), device=lm.device)
+    kl = torch.stack(kl_terms).mean() if kl_terms else zero
+    nll = torch.stack(nll_terms).mean() if nll_terms else zero
+    out.loss = kl + text_weight * nll
+    out.ranking_kl, out.text_nll = float(kl.detach()), float(nll.detach())
+    return out
+
+
+def _continuation_sums(lm, state, branches, grad: bool) -> list:
+    """Per branch, a tensor of its continuations' summed log-probs (the skipped tokens left out)."""
+    import torch
+
+    from illm_tools.llm.scoring import continuation_logprobs
+
+    logps = continuation_logprobs(lm, state, [list(map(list, b.continuations)) for b in branches], grad=grad)
+    width = logps.shape[1]
+    keep = torch.zeros_like(logps, dtype=torch.bool)
+    r = 0
+    for b in branches:
+        for cont, skip in zip(b.continuations, b.skip):
+            keep[r, skip:min(len(cont), width)] = True
+            r += 1
+    summed = torch.where(keep, logps, torch.zeros_like(logps)).sum(1)
+    out, r = [], 0
+    for b in branches:
+        out.append(summed[r:r + len(b.continuations)])
+        r += len(b.continuations)
+    return out
+
+
+@dataclass
+class Measure:
+    """The student's (or its base's) figures over held-out lessons."""
+
+    states: int = 0
+    agreement: float = 0.0
+    """Share of ranked states whose top candidate is the teacher's."""
+    ranking_kl: float = 0.0
+    text_nll: float = 0.0
+    seconds: float = 0.0
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def measure(lm, examples: Sequence[Example], *, batch_size: int = 8, text_weight: float = 1.0,
+            on_progress=None) -> Measure:
+    """Agreement with the teacher's top action, KL and text NLL over `examples`, without gradients
+    (batches sorted by length, as the annotator batches); `on_progress(n)` after each batch."""
+    import time
+
+    from illm_tools.llm.scoring import length_batches
+
+    start = time.perf_counter()
+    m = Measure(states=len(examples))
+    kl = nll = 0.0
+    ranked = texts = agree = 0
+    for batch in length_batches([e.longest for e in examples], batch_size):
+        r = lesson_loss(lm, [examples[i] for i in batch], text_weight=text_weight, grad=False)
+        kl += r.ranking_kl * r.ranked
+        nll += r.text_nll * r.texts
+        ranked, texts, agree = ranked + r.ranked, texts + r.texts, agree + r.agree
+        if on_progress is not None:
+            on_progress(len(batch))
+    m.agreement = agree / ranked if ranked else 0.0
+    m.ranking_kl = kl / ranked if ranked else 0.0
+    m.text_nll = nll / texts if texts else 0.0
+    m.seconds = time.perf_counter() - start
+    return m

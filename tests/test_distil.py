@@ -1,0 +1,272 @@
+"""`illm distil`: a tiny random model distilled on a small oracle cache learns the teacher's ranking
+(the loss falls, it ranks the teacher's best action first more often than its base), through the
+annotator's own scoring path; an interrupted run resumes to the very student an uninterrupted one
+makes; the student is a model folder `--model PATH` loads, with its own fingerprint; bad inputs get
+one line and leave nothing behind. Also `illm collect --policy bot`, the student's lessons' source."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from cli.main import app
+
+runner = CliRunner()
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def model_cache(tmp_path_factory):
+    """illm's model cache (file hashes) in a folder of this module's own."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("ILLM_CACHE_DIR", str(tmp_path_factory.mktemp("illm-cache")))
+        yield
+SMALL = dict(held_out=24, states=64, max_tokens=1024, batch_size=8, rank=8, save_every=4, learning_rate=3e-3)
+"""A distillation the tiny model finishes in seconds (its byte-level tokenizer makes long prompts)."""
+
+
+@pytest.fixture(scope="module")
+def oracle_cache(tmp_path_factory):
+    """BabyAI UnlockLocal states of the bot's episodes, annotated by the oracle (history 0)."""
+    from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
+    from illm_tools.collect import CollectConfig, collect
+    from illm_tools.llm.spec import LLMSpec
+
+    tmp = tmp_path_factory.mktemp("distil-data")
+    collect(CollectConfig(env_id="BabyAI-UnlockLocal-v0", out=tmp / "traj", steps=400, num_envs=4, seed=1000,
+                          policy="bot"))
+    annotate_dataset(AnnotateConfig(data=tmp / "traj", cache=tmp / "ann", llm=LLMSpec(backend="oracle"), history=0))
+    return tmp / "ann"
+
+
+@pytest.fixture(scope="module")
+def tiny_folder(tiny_lm):
+    return tiny_lm.spec.path
+
+
+def _distil(cache, out, student, **options):
+    from illm_tools.distil.run import DistilConfig, distil
+
+    return distil(DistilConfig(cache=cache, out=out, student=student, **{**SMALL, **options}))
+
+
+@pytest.fixture(scope="module")
+def distilled(oracle_cache, tiny_folder, tmp_path_factory):
+    out = tmp_path_factory.mktemp("students") / "tiny-student"
+    return _distil(oracle_cache, out, tiny_folder, epochs=3), out
+
+
+def test_the_student_learns_the_teachers_ranking(distilled):
+    result, out = distilled
+    assert not result.stopped and result.steps == result.steps_done == 24  # 3 epochs of 64 states, 8 a step
+    assert result.left_out_long == 0 and result.train_states == 64
+    assert result.loss_last < 0.6 * result.loss_first
+    base, student = result.base_measure, result.student_measure
+    assert student["states"] == base["states"] > 0
+    assert student["agreement"] > base["agreement"] + 0.2  # the teacher's best action first, held-out states
+    assert student["ranking_kl"] < 0.5 * base["ranking_kl"]
+    assert student["text_nll"] < base["text_nll"]
+    report = json.loads((out / "distil" / "report.json").read_text())
+    assert report["student_measure"] == student
+
+
+def test_the_student_is_a_model_folder_with_its_own_fingerprint(distilled, tiny_folder):
+    """`--model PATH` loads it offline as any model folder; its fingerprint (a digest of its files)
+    differs from its base's, so its cache rows never mix with the base's."""
+    from illm_tools.llm.spec import LLMSpec
+
+    result, out = distilled
+    student, base = LLMSpec(model=str(out), dtype="float32"), LLMSpec(model=str(tiny_folder), dtype="float32")
+    assert student.fingerprint() == result.student_fingerprint != base.fingerprint() == result.base_fingerprint
+    assert (out / "config.json").is_file() and (out / "model.safetensors").is_file()
+    assert not any(p.name.startswith(".tmp") for p in out.iterdir())
+    info = json.loads((out / "illm_student.json").read_text())
+    assert info["teacher"] == "oracle" and info["base_fingerprint"] == result.base_fingerprint
+    loaded = student.load()
+    assert not any(n.startswith("base_model") or "lora" in n for n, _ in loaded.lm.model.named_parameters())
+
+
+def test_the_students_scores_are_the_annotators(distilled, oracle_cache):
+    """The held-out agreement measured through the training forward is the agreement of the saved
+    student scored by the annotator's own path (`Backend.score`, the rows `illm annotate` writes)."""
+    import numpy as np
+
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.distil.lessons import LessonPlan, lessons_from_plan
+    from illm_tools.llm.spec import LLMSpec
+
+    result, out = distilled
+    plan = LessonPlan.from_json((out / "distil" / "lessons.json").read_text())
+    lessons = lessons_from_plan(AnnotationCache(oracle_cache), plan.held_out)
+    backend = LLMSpec(model=str(out), dtype="float32").load()
+    actions = [t for lesson in lessons for t in lesson.targets if t.kind == "ranking"]
+    scores = backend.score([t.prompt for t in actions], [list(t.candidates) for t in actions])
+    agree = np.mean([s.best == t.best for s, t in zip(scores, actions)])
+    assert agree == pytest.approx(result.student_measure["agreement"])
+
+
+def test_the_training_forward_is_the_annotators_scoring(tiny_folder, oracle_cache, tmp_path):
+    """The training forward (autograd on, the shared prompt prefix once, batched) scores the
+    candidates as `score_candidates` does, and a text's log-likelihood as a plain forward does."""
+    import math
+
+    import torch
+
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.distil.lessons import COLUMNS, lessons_of, text_target, tokenise
+    from illm_tools.distil.loss import _continuation_sums
+    from illm_tools.llm.loading import load_model
+    from illm_tools.llm.scoring import extend, score_candidates
+    from conftest import plain_scores
+
+    tiny_lm = load_model(str(tiny_folder), dtype="float32", cache_dir=tmp_path)
+    tiny_lm.model.requires_grad_(True)
+    rows = AnnotationCache(oracle_cache).table(COLUMNS).to_pylist()
+    lessons = lessons_of(rows, ("action", "summary"))[:5]
+    examples = [tokenise(tiny_lm, lesson) for lesson in lessons]
+    assert all(e.shared for e in examples)
+    shared = extend(tiny_lm, [list(e.shared) for e in examples], grad=True)
+    for task, n in (("action", 0), ("summary", 1)):
+        branches = [e.branches[n] for e in examples]
+        state = extend(tiny_lm, [list(b.suffix) for b in branches], past=shared, grad=True)
+        sums = _continuation_sums(tiny_lm, state, branches, grad=True)
+        assert all(s.requires_grad for s in sums)
+        targets = [lesson.targets[n] for lesson in lessons]
+        if task == "action":
+            want = score_candidates(tiny_lm, [t.prompt for t in targets], [list(t.candidates) for t in targets])
+            for s, w in zip(sums, want):
+                assert s.detach().tolist() == pytest.approx(w.sums, abs=1e-4)
+        else:
+            for s, t in zip(sums, targets):
+                eos = tiny_lm.tokenizer.convert_ids_to_tokens(tiny_lm.eos_ids[0])
+                plain = plain_scores(tiny_lm, t.prompt, [text_target(t.text) + eos])
+                assert float(s[0]) == pytest.approx(math.fsum(plain[0]), abs=1e-3)
+    torch.stack([s.sum() for s in sums]).sum().backward()  # the graph reaches the weights
+    assert float(tiny_lm.model.model.layers[0].mlp.up_proj.weight.grad.abs().sum()) > 0
+
+
+def test_an_interrupted_distillation_resumes_to_the_same_student(oracle_cache, tiny_folder, tmp_path):
+    from safetensors.torch import load_file
+
+    from illm_tools.distil.run import DistilConfig, distil
+
+    calls = []
+
+    def stop_after_5():
+        calls.append(1)
+        return len(calls) >= 5
+
+    config = DistilConfig(cache=oracle_cache, out=tmp_path / "a", student=tiny_folder, **SMALL)
+    first = distil(config, should_stop=stop_after_5)
+    assert first.stopped and first.steps_done == 5 and not (tmp_path / "a" / "config.json").exists()
+    assert sorted(p.name for p in (tmp_path / "a" / "distil" / "checkpoints").iterdir()) == \
+        ["checkpoint-4", "checkpoint-5"]
+    resumed = distil(config)
+    assert resumed.resumed_from == 5 and resumed.steps_done == resumed.steps == 8 and not resumed.stopped
+    whole = _distil(oracle_cache, tmp_path / "b", tiny_folder)
+    a, b = load_file(tmp_path / "a" / "model.safetensors"), load_file(tmp_path / "b" / "model.safetensors")
+    assert a.keys() == b.keys() and all(bool((a[k] == b[k]).all()) for k in a)
+    assert [h["loss"] for h in resumed.log_history] == [h["loss"] for h in whole.log_history]
+    again = distil(config)  # the student is there: nothing is trained again
+    assert again.already and again.student_measure == resumed.student_measure
+
+
+def test_a_damaged_checkpoint_is_set_aside_and_an_older_one_resumes(oracle_cache, tiny_folder, tmp_path):
+    from illm_tools.distil.run import DistilConfig, distil
+
+    calls = []
+    config = DistilConfig(cache=oracle_cache, out=tmp_path / "s", student=tiny_folder, **{**SMALL, "save_every": 2})
+    assert distil(config, should_stop=lambda: calls.append(1) or len(calls) >= 5).stopped
+    checkpoints = tmp_path / "s" / "distil" / "checkpoints"
+    newest = checkpoints / "checkpoint-5" / "optimizer.pt"
+    newest.write_bytes(newest.read_bytes()[:100])  # cut short, as a kill while writing leaves it
+    resumed = distil(config)
+    assert resumed.resumed_from == 4 and not resumed.stopped
+    assert [p.name.split("-")[:2] for p in (tmp_path / "s" / "distil" / "damaged").iterdir()] == [["checkpoint", "5"]]
+
+
+def test_the_command_reports_in_illms_own_lines(oracle_cache, tiny_folder, tmp_path):
+    out = tmp_path / "student"
+    args = ["distil", str(oracle_cache), "--student", str(tiny_folder), "--out", str(out), "--held-out", "24",
+            "--states", "32", "--max-tokens", "1024", "--rank", "4"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    text = result.output
+    assert f"distilled oracle's action,summary into {out}" in text and "32 training states, 24 held out" in text
+    assert "agreement with the teacher's top action" in text and f"--model {out}" in text
+    for noise in ("Writing model shards", "it/s]", "Warning", "WARNING", "deprecated", "{'loss'"):
+        assert noise not in text
+    again = runner.invoke(app, args)
+    assert again.exit_code == 0 and "already holds this student" in again.output
+
+
+# --- bad inputs: one line, a non-zero exit, nothing written -------------------------------------------
+def _refused(args, out, *expected):
+    result = runner.invoke(app, ["distil", *args, "--out", str(out)])
+    assert result.exit_code == 1, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    assert "Traceback" not in result.output
+    for part in expected:
+        assert part in lines[0], lines[0]
+    return lines[0]
+
+
+def test_bad_inputs_get_one_line(oracle_cache, tiny_folder, tmp_path):
+    from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
+    from illm_tools.cache import layout
+    from illm_tools.collect import CollectConfig, collect
+    from illm_tools.llm.spec import LLMSpec
+
+    out = tmp_path / "student"
+    student = ["--student", str(tiny_folder)]
+    _refused([str(tmp_path / "nowhere"), *student], out, "no annotation cache at", "illm annotate")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    _refused([str(empty), *student], out, "is empty", "illm annotate")
+    layout.write_manifest(empty, layout.empty_manifest())  # a cache whose manifest lists no shard
+    _refused([str(empty), *student], out, "is empty", "illm annotate")
+    _refused([str(tmp_path), *student], out, "is not an annotation cache")
+    collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=tmp_path / "traj", steps=40, num_envs=2))
+    annotate_dataset(AnnotateConfig(data=tmp_path / "traj", cache=tmp_path / "summaries", llm=LLMSpec(backend="oracle"),
+                                    history=0, tasks=("summary",)))
+    _refused([str(tmp_path / "summaries"), *student], out, "holds no action rows", "--tasks action,summary")
+    _refused([str(oracle_cache), "--student", str(tmp_path / "no-model")], out, "no-model")
+    (tmp_path / "not-a-model").mkdir()
+    _refused([str(oracle_cache), "--student", str(tmp_path / "not-a-model")], out, "no config.json")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "config.json").write_text("{not json")
+    _refused([str(oracle_cache), "--student", str(broken)], out, "cannot be loaded")
+    _refused([str(oracle_cache), *student, "--teacher", "llama3"], out, "no rows of the teacher 'llama3'", "oracle")
+    _refused([str(oracle_cache), *student, "--held-out", "100000"], out, "--held-out")
+    _refused([str(oracle_cache), *student, "--tasks", "summary"], out, "no ranking task")
+    _refused([str(oracle_cache), *student, "--dtype", "float16"], out, "--dtype")
+    assert not out.exists()
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    _refused([str(oracle_cache), *student], out, "not a distillation's")
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+
+
+def test_a_different_distillation_in_the_same_folder_is_refused(oracle_cache, tiny_folder, tmp_path):
+    out = tmp_path / "s"
+    assert _distil(oracle_cache, out, tiny_folder, states=16).train_states == 16
+    before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+    _refused([str(oracle_cache), "--student", str(tiny_folder), "--held-out", "24", "--states", "16",
+              "--max-tokens", "1024", "--rank", "4"], out, "other settings", "rank=8")
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before
+
+
+# --- where the lessons come from: the BabyAI bot as a collection policy --------------------------------
+def test_collect_with_the_bot_logs_the_experts_episodes(tmp_path):
+    from illm_tools.collect import CollectConfig, collect
+
+    summary = collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=tmp_path / "t", steps=300, num_envs=4,
+                                    policy="bot", bot_epsilon=0.0))
+    assert summary["policy"] == "bot" and summary["episodes_finished"] >= 10 and summary["success_rate"] == 1.0
+    result = runner.invoke(app, ["collect", "--env", "MiniGrid-DoorKey-5x5-v0", "--policy", "bot", "--steps", "10",
+                                 "--out", str(tmp_path / "u")])
+    assert result.exit_code == 1 and "BabyAI-*" in result.output and not (tmp_path / "u").exists()
