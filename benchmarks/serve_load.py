@@ -298,7 +298,7 @@ class Run:
                 said = time.monotonic()
                 rss = server.samples[-1][1] / 2**20 if server.samples else 0.0
                 landed = len({r for _, r in list(self.watcher.landed)})
-                print(f"{what} {(said - self.t0) / 60:.0f} min: {landed:,} states landed, {s.get('queue', '?')} queued, "
+                print(f"{(said - self.t0) / 60:.0f} min in ({what}): {landed:,} states landed, {s.get('queue', '?')} queued, "
                       f"server RSS {rss:,.0f} MB", flush=True)
             time.sleep(1.0)
         return False
