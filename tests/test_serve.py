@@ -351,6 +351,14 @@ def test_the_token_is_required_on_every_request(tmp_path, start_server):
     assert TOKEN not in out + err  # never printed
 
 
+def test_an_annotator_token_without_an_annotator_is_refused_in_one_line(tmp_path):
+    out = runner.invoke(app, ["train", "--env", ENV, "--method", "illm", "--cache", str(tmp_path / "ann"),
+                              "--backend", "stub", "--model", MODEL, "--history", "0", "--frames", "32",
+                              "--annotator-token", TOKEN, "--out", str(tmp_path / "r")])
+    assert out.exit_code == 1 and "give --annotator URL too" in out.output and TOKEN not in out.output
+    assert len(out.output.strip().splitlines()) == 1 and not (tmp_path / "r").exists()
+
+
 def test_a_stalled_client_is_cut_off_and_holds_no_worker(start_server):
     url, _ = start_server("--request-timeout", 1)
     host, port = url.split("//")[1].split(":")
