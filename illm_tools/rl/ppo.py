@@ -328,7 +328,7 @@ class Trainer:
         bonus = self.intrinsic_rewards(ro, batch)
         adv = self.advantages(ro, bonus.reward if self.bonus.pays_reward else None, next_values)
         paid = (bonus.reward * (self.cfg.int_coef * self.bonus_weight())).cpu().numpy() \
-            if self.bonus.pays_reward else None
+            if self.bonus.pays_reward and self.observers else None
         for observer in self.observers:  # where the bonus was paid (the weighted reward, as it entered)
             observer.paid(paid)
         loss_logs = self.update(ro, adv)
