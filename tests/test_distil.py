@@ -270,3 +270,23 @@ def test_collect_with_the_bot_logs_the_experts_episodes(tmp_path):
     result = runner.invoke(app, ["collect", "--env", "MiniGrid-DoorKey-5x5-v0", "--policy", "bot", "--steps", "10",
                                  "--out", str(tmp_path / "u")])
     assert result.exit_code == 1 and "BabyAI-*" in result.output and not (tmp_path / "u").exists()
+
+
+@pytest.mark.slow
+def test_the_embedded_model_distils_into_a_student_probe_and_annotate_load(oracle_cache, tmp_path):
+    """SmolLM2-135M (the GGUF de-quantised, tied embeddings) through the whole command: a few steps,
+    the merged student saved, then `illm probe` and `illm annotate` read it with `--model PATH`."""
+    out = tmp_path / "smollm2-student"
+    result = runner.invoke(app, ["distil", str(oracle_cache), "--student", "smollm2-135m", "--out", str(out),
+                                 "--held-out", "8", "--states", "16", "--rank", "4"])
+    assert result.exit_code == 0, result.output
+    assert "16 training states, 8 held out; 2 steps" in result.output
+    probe = runner.invoke(app, ["probe", "--env", "BabyAI-UnlockLocal-v0", "--model", str(out), "--dtype", "float32",
+                                "--states", "6"])
+    assert probe.exit_code == 0 and probe.output.startswith(f"probe {out} (float32)"), probe.output
+    traj = tmp_path / "traj"
+    assert runner.invoke(app, ["collect", "--env", "BabyAI-UnlockLocal-v0", "--policy", "bot", "--steps", "8",
+                               "--num-envs", "2", "--seed", "5", "--out", str(traj)]).exit_code == 0
+    annotated = runner.invoke(app, ["annotate", str(traj), "--cache", str(tmp_path / "ann"), "--model", str(out),
+                                    "--dtype", "float32", "--history", "0"])
+    assert annotated.exit_code == 0 and "annotated" in annotated.output, annotated.output
