@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# Issue 29: the student annotator the README reports, rebuilt by one command (its weights are not in git).
+# 1. collect BabyAI UnlockLocal and GoToLocal trajectories: minigrid's expert bot with 25% random actions
+#    (episode seeds from 1,000,000 up) and a uniformly random policy (from 2,000,000 up): no episode is one
+#    `illm probe` plays (its seeds run from 0);
+# 2. annotate every distinct state with the oracle (history 0, tasks action and summary): the teacher;
+# 3. `illm distil` SmolLM2-135M on that cache (LoRA rank 16, merged) into OUT;
+# 4. `illm probe` the student and its base on UnlockLocal and GoToLocal (the bot's states of episodes the
+#    student was not trained on) and on PickupLoc (a level none of its training states came from).
+# Every step is resumable: a dataset or probe file that exists is kept, annotation does what is missing, the
+# distillation resumes from its last checkpoint and does nothing once the student is there.
+# Usage: bash experiments/distil.sh [OUT]   (default models/smollm2-135m-babyai)
+# Environment (defaults: the full-size run, about 30 minutes of fine-tuning on 2 cores in float32):
+#   DATA (data/distil), BOT_STEPS (4000 per level), RANDOM_STEPS (1000 per level), STATES (1500), HELD_OUT (200),
+#   EPOCHS (1), MAX_TOKENS (256), RANK (16), LR (1e-3), DTYPE (float32), PROBE_STATES (400), PROBES (probe files:
+#   OUT/probes), BASE_PROBES (1: probe the base model too).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+OUT=${1:-models/smollm2-135m-babyai}
+ILLM=${ILLM:-.venv/bin/illm}
+DATA=${DATA:-data/distil}
+BOT_STEPS=${BOT_STEPS:-4000}
+RANDOM_STEPS=${RANDOM_STEPS:-1000}
+STATES=${STATES:-1500}
+HELD_OUT=${HELD_OUT:-200}
+EPOCHS=${EPOCHS:-1}
+MAX_TOKENS=${MAX_TOKENS:-256}
+RANK=${RANK:-16}
+LR=${LR:-1e-3}
+DTYPE=${DTYPE:-float32}
+PROBE_STATES=${PROBE_STATES:-400}
+PROBES=${PROBES:-$OUT/probes}
+BASE_PROBES=${BASE_PROBES:-1}
+export HF_HUB_OFFLINE=1 TOKENIZERS_PARALLELISM=false
+
+for level in UnlockLocal GoToLocal; do
+  for policy in bot random; do
+    steps=$BOT_STEPS seed=1000000; [ "$policy" = random ] && steps=$RANDOM_STEPS seed=2000000
+    traj="$DATA/traj-$level-$policy"
+    [ -f "$traj/state.json" ] || "$ILLM" collect --env "BabyAI-$level-v0" --policy "$policy" --steps "$steps" \
+        --num-envs 8 --seed "$seed" --out "$traj"
+    "$ILLM" annotate "$traj" --cache "$DATA/ann-oracle" --backend oracle --history 0 --tasks action,summary
+  done
+done
+"$ILLM" cache info "$DATA/ann-oracle"
+
+time "$ILLM" distil "$DATA/ann-oracle" --student smollm2-135m --out "$OUT" --states "$STATES" --held-out "$HELD_OUT" \
+    --epochs "$EPOCHS" --max-tokens "$MAX_TOKENS" --rank "$RANK" --learning-rate "$LR" --dtype "$DTYPE"
+
+mkdir -p "$PROBES"
+models=("$OUT")
+[ "$BASE_PROBES" = 1 ] && models+=(smollm2-135m)
+for level in UnlockLocal GoToLocal PickupLoc; do
+  for model in "${models[@]}"; do
+    name=$( [ "$model" = "$OUT" ] && echo student || echo "$model" )
+    f="$PROBES/$level-$name.json"
+    [ -f "$f" ] || "$ILLM" probe --env "BabyAI-$level-v0" --model "$model" --dtype float32 --states "$PROBE_STATES" \
+        --out "$f"
+    "${PYTHON:-.venv/bin/python}" -c "import json,sys; d=json.load(open(sys.argv[1])); c=d['calibrations']['sum']; \
+print(f\"{sys.argv[2]:>12s} {sys.argv[3]:<14s} agreement {c['agreement']:.3f} (always {d['baselines']['majority_action']}: \
+{d['baselines']['majority_agreement']:.3f}, chance {d['baselines']['chance_agreement']:.3f})\")" "$f" "$level" "$name"
+  done
+done
