@@ -174,11 +174,12 @@ class DistilResult:
 def _check_out(config: DistilConfig) -> None:
     """Refuse an --out holding something other than this command's work."""
     out, work = config.out, config.out / WORK
-    if out.is_dir() and any(out.iterdir()) and not (work / "settings.json").is_file():
+    ours = (work / "settings.json").is_file() or (work / "lessons.json").is_file()
+    if out.is_dir() and any(out.iterdir()) and not ours:
         raise UsageError(f"--out {out} already holds files that are not a distillation's: pass a new folder")
 
 
-def _check_settings(work: Path, settings: dict, plan_teacher: str | None) -> None:
+def _check_settings(work: Path, settings: dict) -> None:
     """A resumed run must be the same distillation (one line naming what differs)."""
     path = work / "settings.json"
     if not path.is_file():
@@ -205,8 +206,6 @@ def _read_json(path: Path):
 def distil(config: DistilConfig, *, on_progress: Progress | None = None,
            should_stop: Callable[[], bool] | None = None) -> DistilResult:
     """Teach the student the teacher's answers (module docstring); resumable."""
-    from illm_tools.cache.store import AnnotationCache
-    from illm_tools.distil.lessons import LessonPlan, lessons_from_plan
     from illm_tools.keys import fingerprint_hash
     from illm_tools.llm.loading import load_model
 
@@ -224,21 +223,21 @@ def distil(config: DistilConfig, *, on_progress: Progress | None = None,
     device = resolve_device(config.device)
     lm = load_model(config.student, dtype="float32", device=device)
     settings = {**config.settings(), "student_fingerprint": fingerprint_hash(lm.fingerprint)}
-    _check_settings(work, settings, plan.teacher)
+    _check_settings(work, settings)
     result = DistilResult(str(config.out), plan.teacher, plan.teacher_fingerprint, config.student,
                           fingerprint_hash(lm.fingerprint), machine=_machine(config, device))
     finished = _read_json(work / "report.json")
     if finished is not None and (config.out / "config.json").is_file():
-        done = DistilResult(**{**finished, "already": True, "stopped": False})
-        return done
-    train, held, long = _examples(lm, cache, plan, lessons_from_plan, config.max_tokens)
+        return DistilResult(**{**finished, "already": True, "stopped": False})
+    train, held, long = _examples(lm, cache, plan, config.max_tokens)
     if not train:
         raise UsageError(f"no training state is at most --max-tokens {config.max_tokens} tokens long "
                          f"({long:,} left out): raise --max-tokens")
     result.train_states, result.held_out_states, result.left_out_long = len(train), len(held), long
-    if not (work / "settings.json").is_file():
-        work.mkdir(parents=True, exist_ok=True)
+    work.mkdir(parents=True, exist_ok=True)
+    if not (work / "lessons.json").is_file():
         durable.write_text(work / "lessons.json", plan.to_json())
+    if not (work / "settings.json").is_file():
         durable.write_text(work / "settings.json", json.dumps(settings, indent=2, sort_keys=True))
 
     from illm_tools.distil.loss import Measure, measure
@@ -334,9 +333,9 @@ def _new_plan(cache, config: DistilConfig):
     return LessonPlan.split(teacher, config.tasks, lessons, held_out=config.held_out, states=config.states)
 
 
-def _examples(lm, cache, plan, lessons_from_plan, max_tokens: int):
+def _examples(lm, cache, plan, max_tokens: int):
     """The plan's lessons tokenised for the student; those longer than max_tokens left out."""
-    from illm_tools.distil.lessons import tokenise
+    from illm_tools.distil.lessons import lessons_from_plan, tokenise
     from illm_tools.llm.joint import can_share_prefix
 
     share = can_share_prefix(lm)
