@@ -83,6 +83,13 @@ def _score(row: dict) -> float:
     return float(value) if value else 0.0
 
 
+def in_window(steps: np.ndarray, end: int, every: int) -> np.ndarray:
+    """Which updates (by their global step) fall in the curve point ending at frame `end`: the window
+    (F - every, end] with F the window's start on the `every` grid (a last, shorter window ends at the
+    run's last step)."""
+    return (steps > (end - 1) // every * every) & (steps <= end)
+
+
 def load_curve(run_dir: Path, every: int) -> Curve:
     from illm_tools.rl.checkpoint import read_config
     from illm_tools.rl.config import TrainConfig
@@ -100,7 +107,7 @@ def load_curve(run_dir: Path, every: int) -> Curve:
     if last_step % every and last_step > every // 2:  # a last, shorter window up to the run's end
         ends.append(last_step)
     for end in ends:
-        window = (steps > (end - 1) // every * every) & (steps <= end)
+        window = in_window(steps, end, every)
         n = eps[window].sum()
         frames.append(end)
         points.append(float((succ[window] * eps[window]).sum() / n) if n else float("nan"))

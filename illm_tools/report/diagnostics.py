@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from illm_tools.report.curves import in_window
+
 SERIES = {  # name -> (metrics.jsonl column(s), axis label)
     "success": ("charts/success_rate", "success rate"),
     "adv_ratio": ("charts/adv_int_ext_ratio", "|A_int| / |A_ext|"),
@@ -45,7 +47,7 @@ def run_series(run_dir: Path, frames: list[int], every: int) -> dict[str, list[f
         values = np.array([_value(r, column) for r in rows], dtype=float)
         points = []
         for end in frames:
-            window = values[(steps > (end - 1) // every * every) & (steps <= end)]
+            window = values[in_window(steps, end, every)]
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 points.append(float(np.nanmean(window)) if window.size else np.nan)
