@@ -111,6 +111,10 @@ def curves_png(env_id: str, score_name: str, rows: list[dict], path: Path, colou
     return path
 
 
+FINAL_PANELS_PER_ROW = 3
+"""Panels of final.png side by side before it wraps to the next row."""
+
+
 def final_png(panels_: list[dict], path: Path, colour: dict[str, tuple] | None = None) -> Path:
     """Final scores drawn as rliable draws interval estimates (`plot_interval_estimates`): per env a
     panel, per configuration a bar spanning its 95% interval with a black tick at its IQM, each
@@ -123,8 +127,12 @@ def final_png(panels_: list[dict], path: Path, colour: dict[str, tuple] | None =
         lines.update({row["label"]: line for row, (_, line) in zip(panel["rows"], panels(panel["rows"])[1])})
     colour = {**colours(list(dict.fromkeys(lines.values()))), **(colour or {})}
     height = max(2.0, 0.42 * max(len(p["rows"]) for p in shown) + 1.1)
-    fig, axes = plt.subplots(1, len(shown), figsize=(4.6 * len(shown), height), dpi=100, squeeze=False)
-    for ax, panel in zip(axes[0], shown):
+    across = min(len(shown), FINAL_PANELS_PER_ROW)  # a suite of levels wraps into rows, not one long strip
+    down = -(-len(shown) // across)
+    fig, axes = plt.subplots(down, across, figsize=(4.6 * across, height * down), dpi=100, squeeze=False)
+    for ax in axes.ravel()[len(shown):]:
+        ax.set_visible(False)
+    for ax, panel in zip(axes.ravel(), shown):
         titles = panel_titles(panel["rows"])
         placed = dict(zip((r["label"] for r in panel["rows"]), (t for t, _ in panels(panel["rows"])[1])))
         rows = sorted((r for r in panel["rows"] if r["final"]["iqm"] is not None),
