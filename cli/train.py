@@ -147,9 +147,10 @@ def use_token(token: str | None, annotator: str | None) -> None:
 
 def register(app: typer.Typer) -> None:
     def train(ctx: typer.Context, **options) -> None:
-        """Train PPO with the method's intrinsic bonus (iLLM: heads and rewards on LLM targets read from
-        the cache). Every setting of a run is an option named as its field; --resume reads them
-        from the run folder."""
+        """Train PPO with a method's bonus; iLLM's heads learn LLM targets from the cache.
+
+        iLLM pays its bonus where those heads still disagree with the targets. Every setting of a run is
+        an option named as its field; --resume reads them from the run folder."""
         from illm_tools.rl.run import train as run
 
         token = options.pop("annotator_token")
@@ -168,6 +169,11 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"--frames {cfg.total_steps:,} is not a whole number of rollouts ({cfg.num_envs} envs × "
                        f"{cfg.num_steps} steps = {cfg.batch_size:,} frames each): the run trains "
                        f"{cfg.num_updates * cfg.batch_size:,} frames", err=True)
+        if cfg.needs_targets and cfg.live_budget == "all" and (cfg.annotator or cfg.live_mode == "async"):
+            where = "the server's answers" if cfg.annotator else "the worker's answers (it first loads the model)"
+            typer.echo(f"--live-budget all promises a target on every step only with --live-mode sync: {where} "
+                       "land beside the rollouts, and later rollouts use them; pass --live-mode sync to wait "
+                       "for every missed state", err=True)
         last: dict = {}
         coverage: list[float] = []
         live_total = [0.0]  # states the live annotator (worker, server or this process) put in the cache
@@ -206,9 +212,10 @@ def register(app: typer.Typer) -> None:
     app.command(epilog=EXAMPLE)(friendly(train))
 
     def evaluate(**options) -> None:
-        """Score (the suite's: success rate, Crafter score, mean return), success rate and mean return
-        of trained policies on the same fresh episodes (a markdown table; --json: a list with one
-        object per run)."""
+        """Evaluate trained runs on the same fresh episodes: score, success rate, mean return.
+
+        The score is the suite's (success rate, Crafter score, mean return); a markdown table, or with
+        --json a list with one object per run."""
         from cli.options import config_from_options
         from illm_tools.rl.config import EvalConfig
         from illm_tools.rl.run import evaluate as run

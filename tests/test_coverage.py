@@ -208,6 +208,7 @@ def test_async_worker_rows_reach_a_later_rollout_and_a_killed_worker_leaves_the_
         later = targets.targets(rollout)  # a later rollout reads what the worker wrote to the shared cache
         assert later.mask.all() and np.isfinite(later.embeddings).all()
         assert targets.stats()["live_annotations"] == 6 and targets.stats()["live_queue"] == 0
+        assert 0 < targets.stats()["live_worker_startup_s"] < 120  # spawn, imports, the model loaded
 
         targets.targets([state(k) for k in range(10, 40)])  # more work; then the worker dies mid-run
         # Kill it as soon as it holds the work (the tiny model may finish 6 states between two polls, so
@@ -236,3 +237,13 @@ def test_train_with_async_live_annotation_logs_its_queue(tmp_path, tiny_lm):
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 5 and all("charts/live_queue" in r for r in rows)
     assert "steps with an LLM target" in out.output and verify(cache).ok
+    assert "--live-budget all" not in out.output  # a number: no promise of every step to take back
+
+
+def test_live_budget_all_with_async_says_before_it_starts_that_only_sync_promises_every_step(tmp_path):
+    out = runner.invoke(app, ["train", "--env", ENV, "--method", "illm", "--backend", "oracle", "--history", "0",
+                              "--live-budget", "all", "--new-setup", "--cache", str(tmp_path / "ann"),
+                              "--num-envs", "2", "--num-steps", "8", "--frames", "16", "--out", str(tmp_path / "run")])
+    assert out.exit_code == 0, out.output
+    said = [line for line in out.output.splitlines() if line.startswith("--live-budget all")]
+    assert len(said) == 1 and "--live-mode sync" in said[0]

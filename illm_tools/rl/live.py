@@ -15,7 +15,10 @@ counted over the run so far, `illm_tools.rl.targets`) and write their answers th
   rollout. A worker that dies is restarted (at most `max_restarts` times, each logged as one
   line); after that the run goes on with the targets the cache has. The worker is a spawned
   process (not forked: a forked torch with live OpenMP threads can hang) with its own torch
-  thread count, one core of a 2-core machine by default.
+  thread count, one core of a 2-core machine by default. Its start-up (spawn, imports, the model
+  loaded) is logged as `live_worker_startup_s`: no answer lands before it, so a run shorter than a
+  few rollouts gets few live targets in this mode (`--live-budget all` promises every step only
+  with sync; `illm train` says so before such a run starts).
 """
 
 from __future__ import annotations
@@ -83,21 +86,24 @@ class WorkerSpec:
     model_cache_dir: str | None = None
 
 
-def _worker_main(spec: WorkerSpec, inbox, stop, queued, done, errors) -> None:  # pragma: no cover - child
+def _worker_main(spec: WorkerSpec, inbox, stop, queued, done, errors, ready) -> None:  # pragma: no cover - child
     """The worker process. Ctrl-C reaches the whole process group: the worker ignores it and
     stops when the trainer sets `stop`. An error goes back to the trainer as one line."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        _work(spec, inbox, stop, queued, done)
+        _work(spec, inbox, stop, queued, done, ready)
     except Exception as e:  # noqa: BLE001 - reported to the trainer, which logs it as one line
         errors.put(f"{type(e).__name__}: {e}")
         raise SystemExit(1) from None
 
 
-def _work(spec: WorkerSpec, inbox, stop, queued, done) -> None:  # pragma: no cover - runs in the child
-    """Newest priority list in, shards out, until `stop` is set."""
+def _work(spec: WorkerSpec, inbox, stop, queued, done, ready) -> None:  # pragma: no cover - runs in the child
+    """Newest priority list in, shards out, until `stop` is set; `ready` gets the wall time at which
+    the model is loaded and the worker takes its first list."""
+    import time
+
     import torch
 
     from illm_tools.annotate.engine import Annotator
@@ -107,6 +113,7 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done) -> None:  # pragma: no co
     lm = spec.llm.load(cache_dir=spec.model_cache_dir)
     annotator = Annotator.of_setup(lm, AnnotationCache(spec.cache), spec.llm, spec.setup, batch_size=spec.batch_size,
                                    chunk=spec.chunk)
+    ready.value = time.time()
     pending: list[StateRecord] = []
     while not stop.is_set():
         try:  # the newest list replaces the old one; wait for one when idle
@@ -137,18 +144,23 @@ class AsyncLive:
         self._ctx = mp.get_context("spawn")
         self._queued = self._ctx.Value("l", 0)
         self._done = self._ctx.Value("l", 0)
+        self._ready = self._ctx.Value("d", 0.0)
         self._reported = 0
         self.restarts = 0
         self.failed = False
         self._start()
 
     def _start(self) -> None:
+        import time
+
+        self.started_at = time.time()
+        self._ready.value = 0.0
         self._inbox = self._ctx.Queue()
         self._errors = self._ctx.Queue()
         self._stop = self._ctx.Event()
         self.process = self._ctx.Process(target=_worker_main, name="illm-live-annotation", daemon=True,
                                          args=(self.spec, self._inbox, self._stop, self._queued, self._done,
-                                               self._errors))
+                                               self._errors, self._ready))
         self.process.start()
 
     def _check(self) -> bool:
@@ -190,7 +202,9 @@ class AsyncLive:
     def stats(self) -> dict[str, float]:
         if not hasattr(self, "_queued"):  # closed
             return self._last_stats
-        return {"live_queue": float(self._queued.value), "live_worker_restarts": float(self.restarts)}
+        ready = self._ready.value
+        return {"live_queue": float(self._queued.value), "live_worker_restarts": float(self.restarts),
+                **({"live_worker_startup_s": ready - self.started_at} if ready else {})}
 
     def close(self, timeout: float = 30.0) -> None:
         """Ask the worker to stop after its current chunk (written whole or not at all); end it
@@ -208,7 +222,7 @@ class AsyncLive:
         # Release the shared objects' semaphores now: left to interpreter shutdown, their finalizers may
         # run after the resource tracker's check, which then warns about "leaked semaphore objects".
         self._last_stats = self.stats()
-        for name in ("_inbox", "_errors", "_stop", "_queued", "_done"):
+        for name in ("_inbox", "_errors", "_stop", "_queued", "_done", "_ready"):
             delattr(self, name)
         import gc
 
