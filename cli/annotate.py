@@ -24,8 +24,10 @@ def _parameters() -> list[inspect.Parameter]:
 
 def register(app: typer.Typer) -> None:
     def annotate(**options) -> None:
-        """Annotate every distinct state once with the LLM, into the shared cache: its next-action ranking
-        and 64-token summary, and the goal and plan tasks when --tasks names them."""
+        """Annotate every distinct state once with the LLM, into the shared cache.
+
+        What it stores: the LLM's next-action ranking and 64-token summary, and the goal and plan tasks
+        when --tasks names them."""
         from cli.options import config_from_options
         from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset, distributed_state
 

@@ -23,8 +23,10 @@ def info(
     path: Path = typer.Argument(..., help="Annotation cache folder."),
     as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
 ) -> None:
-    """Entries per task and model, embedding dimension, shards and size, and the setups the entries
-    belong to (model with dtype and quantisation, history length, layout, template, renderer)."""
+    """Entries per task and model, shards, size, and the setups the entries belong to.
+
+    Also the embedding dimension; a setup is the model with its dtype and quantisation, the history
+    length, layout, template and renderer."""
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.errors import UsageError
 
@@ -111,7 +113,9 @@ def export(
     fmt: str = typer.Option("parquet", "--format", help="parquet (one file; `datasets.Dataset.from_parquet` reads it)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
 ) -> None:
-    """Write every entry of a cache to one file, to share it (e.g. as a Hugging Face dataset)."""
+    """Write every entry of a cache to one file, to share it.
+
+    The file can be published as a Hugging Face dataset, for one."""
     from illm_tools.cache.share import export as run
 
     report = run(path, out, fmt=fmt, overwrite=overwrite)
@@ -124,7 +128,9 @@ def import_(
     path: Path = typer.Argument(..., help="Parquet file written by `illm cache export` (or `datasets`' to_parquet)."),
     into: Path = typer.Option(..., "--into", help="Cache to add the entries to (created if absent)."),
 ) -> None:
-    """Add a shared file's entries to a cache; keys it already holds are skipped, none is stored twice."""
+    """Add a shared file's entries to a cache; keys it already holds are skipped.
+
+    No key is stored twice."""
     from illm_tools.cache.share import import_parquet
 
     report = import_parquet(path, into)
@@ -139,8 +145,9 @@ def repair(
     drop_damaged: bool = typer.Option(False, "--drop-damaged", help="Also drop shards that fail verification (their "
                                       "files move to damaged/; annotating again redoes their entries)."),
 ) -> None:
-    """Adopt complete shards left unlisted by an interrupted write, remove temp files; with
-    --drop-damaged, first take damaged shards (or an unreadable manifest) out of the cache."""
+    """Adopt complete shards an interrupted write left unlisted, and remove temp files.
+
+    With --drop-damaged, first take damaged shards (or an unreadable manifest) out of the cache."""
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.cache.verify import DAMAGED_DIR
     from illm_tools.cache.verify import drop_damaged as drop

@@ -61,7 +61,9 @@ def coverage(
     quant: str = typer.Option("none", "--quant", help="LLM quantisation (as in `illm annotate`)."),
     as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
 ) -> None:
-    """Per history length: distinct states, the share of steps the cache answers, the share the k
+    """What annotating a dataset would cost and reach, per history length.
+
+    Per history length: distinct states, the share of steps the cache answers, the share the k
     most visited states cover (what annotating them with `illm annotate --limit k` reaches on this
     data), and a held-out estimate of what they reach on a run's new episodes (the top k of half
     the episodes against the other half's steps)."""

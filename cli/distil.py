@@ -26,8 +26,10 @@ def _parameters() -> list[inspect.Parameter]:
 
 def register(app: typer.Typer) -> None:
     def distil(**options) -> None:
-        """Fine-tune a small causal LM (LoRA adapters, merged) on a teacher's annotations in a cache: to rank the
-        valid actions as the teacher did, through the annotator's own candidate scoring, and to write its texts.
+        """Fine-tune a small causal LM on a teacher's annotations into a student annotator.
+
+        LoRA adapters, merged; the student learns from the cache to rank the valid actions as the teacher
+        did, through the annotator's own candidate scoring, and to write its texts.
         Checkpoints as it goes; the same command again resumes. The student is a model folder: --model OUT."""
         from cli.options import config_from_options
         from illm_tools.distil.run import DistilConfig, distil as run

@@ -32,8 +32,10 @@ def frames_text(spec) -> str:
 
 def register(app: typer.Typer) -> None:
     def experiment(**options) -> None:
-        """Train every run of a spec's grid (methods x envs x settings x seeds) into one results folder;
-        finished runs are skipped, unfinished ones resumed, so the same command continues a grid."""
+        """Train every run of a spec's grid into one results folder; run again to resume.
+
+        The grid is methods x envs x settings x seeds; finished runs are skipped, unfinished ones
+        resumed."""
         from cli.options import config_from_options
         from illm_tools.experiment import ExperimentConfig, plan, run_experiment, unavailable_models
 

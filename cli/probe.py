@@ -30,9 +30,11 @@ def _parameters() -> list[inspect.Parameter]:
 
 def register(app: typer.Typer) -> None:
     def probe(**options) -> None:
-        """Agreement of the LLM's next-action ranking (calibrations sum, mean, pmi) with the BabyAI
-        expert bot, against always choosing the expert's most frequent action; mutual information
-        between state and ranking; log-loss; pairwise AUROC."""
+        """Measure how well an LLM's next-action ranking agrees with the BabyAI expert bot.
+
+        Per calibration (sum, mean, pmi): agreement with the bot, against always choosing the expert's
+        most frequent action; mutual information between state and ranking; log-loss; pairwise
+        AUROC."""
         import json
 
         from cli.options import config_from_options

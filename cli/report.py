@@ -21,9 +21,11 @@ def _parameters() -> list[inspect.Parameter]:
 
 def register(app: typer.Typer) -> None:
     def report(**options) -> None:
-        """The suite's score against frames (success rate; Crafter score; Atari's mean return), mean ±
-        std over seeds, one row per configuration (a markdown table), then what was grouped: runs
-        are seeds of one row when their config.json agree on everything that changes what is learned.
+        """Report runs: the score against frames over seeds, one row per configuration.
+
+        The suite's score (success rate; Crafter score; Atari's mean return), mean ± std over seeds, one
+        row per configuration (a markdown table), then what was grouped: runs are seeds of one row when
+        their config.json agree on everything that changes what is learned.
         With --out, also a report folder readable without the toolkit: final scores as IQM with a
         stratified-bootstrap 95% interval over seeds (rliable) and mean ± std, learning curves with
         bands, visitation heatmaps where runs saved visitation.npy, and results.json."""

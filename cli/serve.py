@@ -23,8 +23,9 @@ def _parameters() -> list[inspect.Parameter]:
 
 def register(app: typer.Typer) -> None:
     def serve(**options) -> None:
-        """Serve live annotation for several training runs with one loaded model: requests are batched
-        across runs, highest visit counts first, into the shared cache. GET /stats reports the queue
+        """Serve live annotation to several training runs from one loaded model.
+
+        Requests are batched across runs, highest visit counts first, into the shared cache. GET /stats reports the queue
         and throughput. Beyond loopback it needs a token (--token or ILLM_SERVE_TOKEN), which every
         request must carry."""
         import asyncio

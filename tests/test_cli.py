@@ -223,3 +223,21 @@ def test_every_commands_summary_is_one_unbroken_sentence():
         assert info.short_help and "\n" not in info.short_help, info.name
         assert ". " not in info.short_help.rstrip("."), info.short_help
         assert all("\n" not in p for p in info.help.split("\n\n")), info.name
+
+
+@pytest.mark.parametrize("group", [(), ("data",), ("cache",)], ids=lambda g: " ".join(("illm", *g)))
+def test_each_commands_row_in_help_is_one_line_at_100_columns(group):
+    """`illm --help` is a first screen (issue 31): at 100 columns every command's summary fits its row,
+    so no row of the Commands panel runs onto a second line."""
+    result = runner.invoke(app, [*group, "--help"], env={"COLUMNS": "100"})
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert max(len(line) for line in lines) <= 100
+    start = next(i for i, line in enumerate(lines) if "─ Commands ─" in line)
+    rows = []
+    for line in lines[start + 1:]:
+        if line.startswith("╰"):
+            break
+        rows.append(line.strip("│ \n"))
+        assert not line.startswith("│  "), f"a summary runs onto a second line: {line!r}"
+    assert {row.split()[0] for row in rows} == {p[-1] for p in commands() if p[:-1] == group and p}
