@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from illm_tools import provenance
 from illm_tools.errors import UsageError
 from illm_tools.report import plots, stats
 from illm_tools.report.aggregate import aggregate
@@ -140,7 +141,8 @@ def _row(env_id: str, label: str, group: dict, every: int, final_points: int, re
             "seeds": group["seeds"], "runs": group["runs"], "short_runs": group["short_runs"],
             "trained_frames": trained, "frames": group["frames"], "mean": mean, "std": group["std"],
             "band_low": low, "band_high": high, "final": final, "visitation": None,
-            "coverage": group["coverage"] if group["reads_targets"] else None}
+            "coverage": group["coverage"] if group["reads_targets"] else None,
+            "provenance": {run: provenance.read(Path(run)) for run in [*group["runs"], *group["short_runs"]]}}
 
 
 def _png_name(kind: str, row: dict, taken: set[str]) -> str:
@@ -208,7 +210,7 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
                 "annotator (the same env, backend, model, history and layout as a --probe file), so quality.png is "
                 "not drawn; the probes stay in results.json")
     settings = {"every": every, "final_points": final_points, "bootstrap_reps": reps, "bootstrap_seed": seed,
-                "confidence": stats.CONFIDENCE, "interval": "percentile, stratified bootstrap over seeds (rliable)"}
+                "code": provenance.code(), "command": provenance.command(), "confidence": stats.CONFIDENCE, "interval": "percentile, stratified bootstrap over seeds (rliable)"}
     return _write(out, settings, envs, rows, quality_result, aggregate(rows, envs, reps, seed))
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from illm_tools import provenance
+
 
 def num(x) -> str:
     """A score: 3 decimals (success rates, Crafter scores), 1 from 100 on (Atari returns)."""
@@ -202,6 +204,34 @@ def quality_markdown(result: dict) -> list[str]:
     return out + ["", "![final score against annotator quality](quality.png)", ""]
 
 
+def _provenance(settings: dict, rows: list[dict]) -> list[str]:
+    """Which code wrote the report and trained its runs; says when runs predate the report's commit."""
+    code = settings.get("code")
+    if not code:  # a report written before provenance was recorded
+        return []
+    commit = code.get("commit")
+    head = f"Written by `{settings.get('command', 'illm report')}` at " + \
+        (f"commit {commit[:12]}{' with uncommitted changes' if code.get('dirty') else ''}" if commit
+         else f"illm {code.get('version')} (no git commit)")
+    entries = {run: e for r in rows for run, e in (r.get("provenance") or {}).items()}
+    unknown = sorted(run for run, e in entries.items() if not e)
+    older: dict[str, list[str]] = {}
+    for run, e in entries.items():
+        for c in provenance.predating([x.get("commit") for x in e], commit):
+            older.setdefault(c, []).append(run)
+    said = [f"{head}."]
+    if older:
+        parts = ", ".join(f"{c[:12]} ({len(runs)} run{'s' * (len(runs) != 1)})" for c, runs in sorted(older.items()))
+        said.append(f"**Runs predate the current code**: trained (in part) by {parts}; each run's "
+                    "provenance.json and results.json name the commands.")
+    elif entries and len(unknown) < len(entries):
+        said.append("Every run with a provenance was trained at this commit.")
+    if unknown:
+        said.append(f"{len(unknown)} run{'s' * (len(unknown) != 1)} recorded no provenance (trained before illm "
+                    "recorded it): their code is unknown.")
+    return [" ".join(said), ""]
+
+
 def render(results: dict) -> str:
     settings, rows = results["settings"], results["rows"]
     runs, short = sum(len(r["runs"]) for r in rows), sum(len(r["short_runs"]) for r in rows)
@@ -210,6 +240,7 @@ def render(results: dict) -> str:
              + f", {len(rows)} configuration{'s' * (len(rows) != 1)}, {len(results['envs'])} "
              f"env{'s' * (len(results['envs']) != 1)}. Curve points: the suite's score over windows of "
              f"{settings['every']:,} frames. Numbers: results.json; figures: PNG files beside this one.", ""]
+    lines += _provenance(settings, rows)
     for env in results["envs"]:
         lines += _env_section(env, [r for r in rows if r["env_id"] == env], settings,
                               results["files"]["curves"].get(env), results["files"].get("diagnostics", {}).get(env))

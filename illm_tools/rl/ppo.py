@@ -105,6 +105,9 @@ class Trainer:
             raise OutputExistsError(f"{run_dir} already holds a run; pass --resume to continue it "
                                     "or choose another run dir")
         write_config(run_dir, cfg.to_dict())
+        from illm_tools import provenance
+
+        provenance.append(run_dir, from_frame=self.global_step)  # the code and command of this start
         self.log = MetricsLog(run_dir, tensorboard=cfg.tensorboard,
                               keep_until_update=self.update_idx if cfg.resume else 0)
 
