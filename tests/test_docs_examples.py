@@ -1,0 +1,94 @@
+"""The documentation's plug-in examples run: docs/examples/ holds the one-file bonus, suite, backend and
+language task that docs/extending/*.md quote (the pages include these files, so what a reader copies is
+what runs here). Each is found only through a (fake) entry point of its group, as an installed package
+would declare it, and goes through collect, annotate and train with no edit to illm."""
+
+from __future__ import annotations
+
+import csv
+import importlib.metadata
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from cli.main import app
+from illm_tools.envs import SUITES
+from illm_tools.intrinsic.registry import METHODS
+from illm_tools.llm.backend import BACKENDS
+from illm_tools.rl.checkpoint import load_checkpoint
+from illm_tools.tasks.registry import LANGUAGE_TASKS
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "docs" / "examples"
+ENV = "Corridor-Walk-v0"
+SMALL = ["--num-envs", 2, "--num-steps", 16, "--frames", 32]
+runner = CliRunner()
+
+
+def ok(*args) -> str:
+    result = runner.invoke(app, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+@pytest.fixture
+def examples(monkeypatch):
+    """The four examples as entry points of their groups, as the docs' pyproject snippet declares them."""
+    monkeypatch.syspath_prepend(str(EXAMPLES))
+    points = {
+        "illm.methods": [("count", "count_bonus:METHOD")],
+        "illm.suites": [("corridor", "corridor_suite:SUITE")],
+        "illm.backends": [("keywords", "keyword_backend:KeywordBackend")],
+        "illm.tasks": [("hint", "hint_task:TASK")],
+    }
+    real = importlib.metadata.entry_points
+
+    def entry_points(**selection):
+        group = selection.get("group")
+        if group not in points:
+            return real(**selection)
+        return [importlib.metadata.EntryPoint(name, value, group) for name, value in points[group]]
+
+    monkeypatch.setattr(importlib.metadata, "entry_points", entry_points)
+    registries = (METHODS, SUITES, BACKENDS, LANGUAGE_TASKS)
+    added = [registry.read_plugins(again=True) for registry in registries]
+    yield added
+    for registry, names in zip(registries, added):
+        for name in names:
+            del registry[name]
+
+
+def test_the_docs_plugin_examples_collect_annotate_and_train(examples, tmp_path):
+    assert examples == [["count"], ["corridor"], ["keywords"], ["hint"]]
+    traj, ann = tmp_path / "traj", tmp_path / "ann"
+    assert ENV in ok("envs", "--ids")
+
+    # the suite: collected with one of its options, trained with a bonus that reads observations
+    ok("collect", "--env", ENV, "--env-option", "length=4", "--steps", 48, "--num-envs", 2, "--out", traj)
+    ok("train", "--env", ENV, "--method", "rnd", *SMALL, "--out", tmp_path / "rnd")
+
+    # the bonus: its option parsed into its config, its reward reaching the advantages
+    ok("train", "--env", ENV, "--method", "count", "--bonus-option", "scale=0.5", *SMALL, "--out", tmp_path / "count")
+    with open(tmp_path / "count" / "metrics.csv", newline="") as fh:
+        assert float(next(csv.DictReader(fh))["adv_int_abs"]) > 0
+    last = json.loads((tmp_path / "count" / "metrics.jsonl").read_text().splitlines()[-1])
+    assert last["charts/count_distinct"] >= 1
+
+    # the backend: annotates the suite's states into a cache and gives iLLM its targets
+    said = ok("annotate", traj, "--cache", ann, "--backend", "keywords", "--history", 0)
+    assert "states" in said
+    assert "--backend keywords --model keywords" in ok("cache", "info", ann)
+    ok("train", "--env", ENV, "--method", "illm", "--cache", ann, "--backend", "keywords", "--history", 0, *SMALL,
+       "--live-budget", "all", "--live-mode", "sync", "--out", tmp_path / "illm")
+    with open(tmp_path / "illm" / "metrics.csv", newline="") as fh:
+        assert all(float(r["target_coverage"]) == 1.0 for r in csv.DictReader(fh))
+
+    # the task: annotated with the others, a head and a bonus of its own
+    ok("annotate", traj, "--cache", ann, "--backend", "keywords", "--history", 0, "--tasks", "action,summary,hint")
+    run = tmp_path / "hint"
+    ok("train", "--env", ENV, "--method", "illm", "--cache", ann, "--backend", "keywords", "--history", 0,
+       "--tasks", "action,summary,hint", "--task-weight", "hint=0.5", *SMALL, "--live-budget", "all",
+       "--live-mode", "sync", "--out", run)
+    last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
+    assert "charts/intrinsic_reward_hint" in last and "f_hint.2.weight" in load_checkpoint(run)["model"]
