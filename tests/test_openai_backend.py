@@ -27,12 +27,16 @@ ACTIONS = ("turn left", "turn right", "go forward")
 
 class Server:
     """/v1/models, /version, /v1/completions (echo + logprobs, or greedy completion) and
-    /v1/embeddings, answered by `lm` (a LoadedModel); `fail` answers that many requests with 503."""
+    /v1/embeddings, answered by `lm` (a LoadedModel); `fail` answers that many requests with 503.
+    As engines that differ: `single` answers a list of prompts with 500 (llama-cpp-python's server),
+    `shifted` scores each echoed token with the logits at its own position instead of the previous
+    one (its echo), `no_echo` gives no prompt log-probs."""
 
-    def __init__(self, lm, name: str = "tiny"):
+    def __init__(self, lm, name: str = "tiny", *, single: bool = False, shifted: bool = False, no_echo: bool = False):
         from aiohttp import web
 
         self.lm, self.name, self.fail, self.requests = lm, name, 0, 0
+        self.single, self.shifted, self.no_echo = single, shifted, no_echo
         self.backend = TransformersBackend(lm)
         app = web.Application()
         app.router.add_get("/v1/models", lambda r: web.json_response({"data": [{"id": self.name}]}))
@@ -56,10 +60,23 @@ class Server:
         with torch.inference_mode():
             logprobs = torch.log_softmax(self.lm.model(input_ids=torch.tensor([full])).logits[0].float(), -1)
         skip = len(self.lm.bos_ids)
-        token_lp = [None if skip + i == 0 else float(logprobs[skip + i - 1, t]) for i, t in enumerate(ids)]
+        at = (lambda i: skip + i) if self.shifted else (lambda i: skip + i - 1)  # the logits that score token i
+        token_lp = [None if at(i) < 0 else float(logprobs[at(i), t]) for i, t in enumerate(ids)]
+        if self.no_echo:
+            return {"text": prompt + " x", "finish_reason": "length", "logprobs": None}
         return {"text": prompt + " x", "finish_reason": "length",
                 "logprobs": {"tokens": ["?"] * (len(ids) + 1), "token_logprobs": token_lp + [-1.0],
                              "text_offset": offsets + [len(prompt)]}}
+
+    def _next(self, prompt: str) -> dict:
+        ids = [*self.lm.bos_ids, *self.lm.tokenizer(prompt, add_special_tokens=False)["input_ids"]]
+        with torch.inference_mode():
+            logprobs = torch.log_softmax(self.lm.model(input_ids=torch.tensor([ids])).logits[0, -1].float(), -1)
+        top = torch.topk(logprobs, 5)
+        texts = [self.lm.tokenizer.decode([int(t)]) for t in top.indices]
+        return {"text": texts[0], "finish_reason": "length",
+                "logprobs": {"tokens": texts[:1], "token_logprobs": [float(top.values[0])], "text_offset": [len(prompt)],
+                             "top_logprobs": [dict(zip(reversed(texts), reversed(top.values.tolist())))]}}
 
     async def completions(self, request):
         from aiohttp import web
@@ -70,8 +87,12 @@ class Server:
             return web.json_response({"error": "busy"}, status=503)
         body = await request.json()
         prompts = body["prompt"] if isinstance(body["prompt"], list) else [body["prompt"]]
+        if self.single and isinstance(body["prompt"], list):
+            return web.json_response({"error": "internal_server_error"}, status=500)
         if body.get("echo"):
             choices = [self._echo(p) for p in prompts]
+        elif body.get("logprobs") and body["max_tokens"] == 1:  # one greedy token with its log-prob
+            choices = [self._next(p) for p in prompts]
         else:
             gens = self.backend.generate(prompts, max_new_tokens=body["max_tokens"])
             choices = [{"text": g.text, "finish_reason": "stop" if g.finished else "length",
@@ -152,3 +173,42 @@ def test_bad_endpoints_and_models_are_refused_in_one_line(server):
         load_backend("openai", resolve_model("openai", "tiny", endpoint="http://127.0.0.1:9/v1"))
     with pytest.raises(UsageError, match="--endpoint and --api-key-env are the openai backend's"):
         resolve_model("transformers", None, endpoint=server.url)
+
+
+@pytest.mark.parametrize("engine", [{"single": True}, {}])
+def test_an_engine_taking_one_prompt_per_request_is_detected_and_answers_the_same(tiny_lm, tmp_path, engine, caplog):
+    import logging
+
+    server = Server(tiny_lm, name=f"tiny-{'single' if engine else 'list'}", **engine)
+    spec = resolve_model("openai", server.name, endpoint=server.url)
+    with caplog.at_level(logging.INFO, logger="illm_tools"):
+        remote = load_backend("openai", spec)
+    said = [r.getMessage() for r in caplog.records if "one prompt per request" in r.getMessage()]
+    assert remote.engine.batches is not bool(engine) and remote.engine.aligned
+    assert ("one prompt per request" in remote.fingerprint["engine"]) is bool(engine) and len(said) == int(bool(engine))
+    local = _rows(TransformersBackend(tiny_lm), tmp_path, "local")
+    served = _rows(remote, tmp_path, "remote")
+    for key, row in local.items():
+        if row["task"] == "action":
+            assert np.allclose(row["cand_logprob_sum"], served[key]["cand_logprob_sum"], atol=1e-4), key
+        else:
+            assert row["text"] == served[key]["text"]
+
+
+@pytest.mark.parametrize("engine", ["shifted", "no_echo"])
+def test_ranking_through_an_engine_failing_the_alignment_check_is_refused_summaries_still_run(tiny_lm, tmp_path,
+                                                                                              engine):
+    server = Server(tiny_lm, name=f"tiny-{engine}", **{engine: True})
+    spec = resolve_model("openai", server.name, endpoint=server.url)
+    remote = load_backend("openai", spec)
+    cache = AnnotationCache(tmp_path / "ann")
+    with pytest.raises(EndpointError) as refused:
+        Annotator(remote, cache, model=spec, history_len=0).annotate_states(_records(), "BabyAI-GoToLocal-v0",
+                                                                            "babyai-text@1")
+    line = str(refused.value)
+    assert "\n" not in line and "cannot rank actions" in line and "--tasks summary" in line and "version test-1" in line
+    assert ("shifted by one position" in line) is (engine == "shifted")
+    assert len(AnnotationCache(tmp_path / "ann")) == 0  # nothing of a ranking it would get wrong
+    Annotator(remote, cache, model=spec, history_len=0, tasks=["summary"]).annotate_states(
+        _records(), "BabyAI-GoToLocal-v0", "babyai-text@1")
+    assert len(AnnotationCache(tmp_path / "ann")) == len(_records())  # summaries through the same engine

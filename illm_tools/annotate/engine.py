@@ -94,6 +94,9 @@ class Annotator:
         self.batch_size = batch_size
         self.chunk = chunk
         self.model_fingerprint = fingerprint_hash(self.lm.fingerprint)
+        check = getattr(type(self.lm), "check_ranking", None)  # a backend that cannot rank refuses (openai)
+        if check is not None and any(get_task(t).kind == "ranking" for t in self.tasks):
+            check(model)
         self._builders: dict[tuple[str, str], PromptBuilder] = {}
         self._neutral: dict[tuple[str, ...], list[float]] = {}
         self._hop: dict[tuple, object] = {}

@@ -26,6 +26,15 @@ server). The model spec is "NAME@URL" (and "#VAR"), so every place that names a 
 - The fingerprint carries the served model's name, the engine and its version (`GET /version`,
   vLLM's; else the `Server` header), the embedder, and never the URL (the same engine and model on
   another host answer the same) nor the key.
+- On connecting (once per process and endpoint), two probes (`_probe_engine`):
+  * whether the engine takes a list of prompts per request (vLLM, SGLang do; llama-cpp-python's
+    server answers 500): where it does not, every prompt goes alone, still `concurrency` at a time.
+    Said in one line and written into the fingerprint's engine description.
+  * whether its echoed prompt log-probs are aligned: generate one token after a fixed context
+    with the log-probs of the likely next tokens, then score context + one of them with echo; the
+    two log-probs of that token must agree within `ALIGNMENT_TOLERANCE`. An engine that scores token i with the logits at position i
+    instead of i-1 (llama-cpp-python 0.3.x) fails, and ranking through it is refused in one line
+    before anything is annotated (its rankings would be noise); summaries still run through it.
 - Requests go `concurrency` at a time (threads: the waiting is on the network), each with a
   timeout; 429 and 5xx answers and lost connections are retried with exponential backoff
   (`retries` times), then refused in one line. Annotation writes a chunk only when all of its
@@ -37,6 +46,7 @@ Hop mode is refused: an endpoint takes text, not input embeddings.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import time
@@ -44,6 +54,7 @@ import urllib.error
 import urllib.request
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -53,6 +64,20 @@ NAME = "openai"
 DEFAULT_KEY_ENV = "OPENAI_API_KEY"
 _SPEC = re.compile(r"^(?P<model>[^@#\s]+)@(?P<url>https?://[^#\s]+?)/?(?:#(?P<key>[A-Za-z_][A-Za-z0-9_]*))?$")
 _FINGERPRINTS: dict[str, dict] = {}
+_ENGINES: dict[str, "EngineProbe"] = {}
+log = logging.getLogger(__name__)
+
+ALIGNMENT_CONTEXTS = ("One, two, three, four, five,", "The capital of France is")
+"""The alignment probe's contexts, tried in turn until one of its likely next tokens stays one token
+when scored with it; whatever the token, the check compares the engine with itself."""
+ALIGNMENT_TOP = 5
+"""Likely next tokens asked for (`logprobs` of the generation): the probe scores the most likely one
+that is whole text and stays one token after the context (a byte-level token is not)."""
+ALIGNMENT_TOLERANCE = 0.1
+"""Nats by which the generated token's log-prob and the echoed one may differ. The two come from
+the same weights through two paths (a decode step; a prefill), which differ by rounding: under
+0.01 nats in float32, a few hundredths in bfloat16 on a GPU. A shifted echo is off by nats (8.3 for
+SmolLM2-135M's " six" under llama-cpp-python 0.3.x)."""
 
 
 class EndpointError(IllmError):
@@ -77,6 +102,18 @@ def parse_spec(spec: str) -> tuple[str, str, str]:
         raise UsageError(f"--backend openai names its model as the server serves it, with --endpoint URL (model spec "
                          f"NAME@URL), not {spec!r}")
     return m.group("model"), m.group("url"), m.group("key") or DEFAULT_KEY_ENV
+
+
+@dataclass(frozen=True)
+class EngineProbe:
+    """What the connection probes found (`_probe_engine`)."""
+
+    batches: bool
+    """The engine takes a list of prompts in one request."""
+    aligned: bool | None
+    """Its echoed prompt log-probs agree with its generation's (None: it gives no prompt log-probs)."""
+    detail: str
+    """The probe's figures, for the refusal's line."""
 
 
 class Client:
@@ -139,6 +176,12 @@ def _fingerprint(spec: str) -> dict:
             dim = len(answer["data"][0]["embedding"])
         except (EndpointError, KeyError, IndexError, TypeError):
             pass
+        probe = _probe_engine(Client(url, key, timeout=60.0, retries=0), model)
+        _ENGINES[spec] = probe
+        if not probe.batches:
+            engine += "; one prompt per request"
+            log.info("the engine at %s (%s) takes one prompt per request: illm sends them one at a time, "
+                     "--concurrency at a time", url, engine.split(";")[0])
         if dim:
             embedder = f"endpoint /v1/embeddings ({dim})"
         else:
@@ -149,6 +192,58 @@ def _fingerprint(spec: str) -> dict:
                                "revision": None, "embedder": embedder, "embedding_dim": dim, "dtype": "served",
                                "quant": "served"}
     return dict(_FINGERPRINTS[spec])
+
+
+def _probe_engine(client: Client, model: str) -> EngineProbe:
+    """Ask the engine once: does it take a list of prompts; are its echoed prompt log-probs those its
+    generation gives (see the module docstring)?"""
+    try:
+        answer, _ = client.call("/completions", {"model": model, "prompt": ["One,", "Two,"], "max_tokens": 1,
+                                                 "temperature": 0})
+        batches = len(answer.get("choices", [])) == 2
+    except EndpointError:
+        batches = False
+    detail = "its echo never scored one of the likely next tokens as one token after the context"
+    for context in ALIGNMENT_CONTEXTS:
+        try:
+            generated, _ = client.call("/completions", {"model": model, "prompt": context, "max_tokens": 1,
+                                                        "temperature": 0, "logprobs": ALIGNMENT_TOP})
+            lp = generated["choices"][0]["logprobs"]
+            top = (lp.get("top_logprobs") or [None])[0] or {lp["tokens"][0]: lp["token_logprobs"][0]}
+        except (EndpointError, KeyError, IndexError, TypeError, AttributeError):
+            return EngineProbe(batches, None, "it gives no log-probabilities with its completions")
+        for token, generated_lp in sorted(top.items(), key=lambda kv: -float(kv[1])):
+            if not token.strip() or "\ufffd" in token:  # a byte of a character: its text is not the token
+                continue
+            text = context + token
+            try:
+                echoed, _ = client.call("/completions", {"model": model, "prompt": text, "max_tokens": 1,
+                                                         "temperature": 0, "echo": True, "logprobs": 1})
+                lp = echoed["choices"][0]["logprobs"]
+                scored = [(o, v) for o, v in zip(lp["text_offset"], lp["token_logprobs"]) if o < len(text)]
+            except (EndpointError, KeyError, IndexError, TypeError):
+                return EngineProbe(batches, None, "it gives no prompt log-probabilities (echo with logprobs)")
+            after = [v for o, v in scored if o >= len(context)]
+            if len(after) != 1 or after[0] is None or len(context) not in [o for o, _ in scored]:
+                continue  # the token is not one token once scored with the context: the next likely one
+            echo_lp = float(after[0])
+            detail = (f"the token {token!r} after {context!r} has log-prob {float(generated_lp):.2f} when generated and "
+                      f"{echo_lp:.2f} when scored with echo")
+            return EngineProbe(batches, abs(echo_lp - float(generated_lp)) <= ALIGNMENT_TOLERANCE, detail)
+    return EngineProbe(batches, None, detail)
+
+
+def _check_ranking(spec: str) -> None:
+    """Raise `EndpointError` (one line) unless the engine serving `spec` passed the alignment probe."""
+    _fingerprint(spec)
+    probe = _ENGINES[spec]
+    if probe.aligned:
+        return
+    what = ("its prompt log-probabilities are not those of its own generation (as if shifted by one position)"
+            if probe.aligned is False else "it cannot score prompt tokens")
+    raise EndpointError(f"the engine at {parse_spec(spec)[1]} ({_fingerprint(spec)['engine']}) cannot rank actions: "
+                        f"{what}: {probe.detail}; rank with vLLM or --backend transformers, or pass --tasks summary to "
+                        "write only summaries through this engine; nothing was annotated")
 
 
 class OpenAIBackend:
@@ -169,6 +264,7 @@ class OpenAIBackend:
         dim = _fingerprint(spec)["embedding_dim"]
         self.client = Client(url, key, timeout=timeout, retries=retries)
         self.concurrency = concurrency
+        self.engine = _ENGINES[spec]
         self.remote_embeddings = dim is not None
         self.hidden_size = int(dim) if dim else self._local_dim()
 
@@ -204,16 +300,30 @@ class OpenAIBackend:
         with ThreadPoolExecutor(max_workers=min(self.concurrency, len(items))) as pool:
             return list(pool.map(fn, items))
 
+    def _choices(self, prompts: list[str], body: dict) -> list[dict]:
+        """The engine's choices for `prompts` (one request, or one per prompt where the engine takes a
+        single prompt), in prompt order."""
+        if not self.engine.batches and len(prompts) > 1:
+            return [c for p in prompts for c in self._choices([p], body)]
+        answer, _ = self.client.call("/completions", {"model": self.served, **body,
+                                                      "prompt": prompts if self.engine.batches else prompts[0]})
+        choices = sorted(answer.get("choices", []), key=lambda c: c.get("index", 0))
+        if len(choices) != len(prompts):
+            raise EndpointError(f"{self.client.url}/completions answered {len(choices)} choices for {len(prompts)} prompts")
+        return choices
+
+    @staticmethod
+    def check_ranking(model: str) -> None:
+        """Refuse, in one line, ranking through an engine whose echoed log-probs failed the
+        connection's probe (see the module docstring); text tasks need no check."""
+        _check_ranking(model)
+
     def _ranking(self, item):
         from illm_tools.llm.scoring import CandidateScores
 
         context, candidates = item
         prompts = [context + c for c in candidates]
-        answer, _ = self.client.call("/completions", {"model": self.served, "prompt": prompts, "max_tokens": 1,
-                                                      "temperature": 0, "echo": True, "logprobs": 1})
-        choices = sorted(answer.get("choices", []), key=lambda c: c.get("index", 0))
-        if len(choices) != len(prompts):
-            raise EndpointError(f"{self.client.url}/completions answered {len(choices)} choices for {len(prompts)} prompts")
+        choices = self._choices(prompts, {"max_tokens": 1, "temperature": 0, "echo": True, "logprobs": 1})
         out = []
         for prompt, choice in zip(prompts, choices):
             lp = choice.get("logprobs") or {}
@@ -228,27 +338,26 @@ class OpenAIBackend:
         return CandidateScores.from_logprobs(out)
 
     def score(self, contexts, candidates, *, batch_size: int = 8):
+        _check_ranking(self.model)
         return self._map(self._ranking, list(zip(contexts, [list(c) for c in candidates])))
 
     def _completion(self, item):
         prompts, max_new_tokens = item
-        answer, _ = self.client.call("/completions", {"model": self.served, "prompt": prompts, "temperature": 0,
-                                                      "max_tokens": max_new_tokens, "logprobs": 0})
-        choices = sorted(answer.get("choices", []), key=lambda c: c.get("index", 0))
-        if len(choices) != len(prompts):
-            raise EndpointError(f"{self.client.url}/completions answered {len(choices)} choices for {len(prompts)} prompts")
+        choices = self._choices(prompts, {"temperature": 0, "max_tokens": max_new_tokens, "logprobs": 0})
         return [(c.get("text", ""), len((c.get("logprobs") or {}).get("tokens") or []),
                  c.get("finish_reason") != "length") for c in choices]
 
     def generate(self, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
         from illm_tools.llm.generation import Generation
 
-        batches = [(list(prompts[i:i + batch_size]), max_new_tokens) for i in range(0, len(prompts), batch_size)]
+        size = batch_size if self.engine.batches else 1  # one prompt per request: `concurrency` requests at a time
+        batches = [(list(prompts[i:i + size]), max_new_tokens) for i in range(0, len(prompts), size)]
         texts = [t for batch in self._map(self._completion, batches) for t in batch]
         embeddings = self.embed([t for t, _, _ in texts])
         return [Generation(text, list(range(n)), finished, emb) for (text, n, finished), emb in zip(texts, embeddings)]
 
     def score_and_generate(self, contexts, candidates, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
+        _check_ranking(self.model)  # before any summary is generated
         return (self.score(contexts, candidates, batch_size=batch_size),
                 self.generate(prompts, max_new_tokens=max_new_tokens, batch_size=batch_size))
 

@@ -100,6 +100,15 @@ class LLMSpec:
 
         check_backend_use(self.backend, env_id, renderer)
 
+    def check_ranking(self) -> None:
+        """Refuse in one line a ranking task the backend cannot answer with this model (the openai
+        backend: an engine whose echoed log-probs fail its alignment probe)."""
+        from illm_tools.llm.backend import backend_class
+
+        check = getattr(backend_class(self.backend), "check_ranking", None)
+        if check is not None:
+            check(self.model)
+
     def options(self) -> str:
         """The flags that select this model ("--model smollm2-135m --dtype bfloat16 --quant none",
         "--backend oracle --oracle-noise 0.5"; `selecting_options`)."""
