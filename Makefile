@@ -61,7 +61,7 @@ demo: install
 # The documentation site (mkdocs-material, mkdocs.yml): every command's options table is generated from the
 # command itself at build time (docs/hooks.py); --strict turns a broken link or a page left out into an error.
 docs: install
-	$(BIN)/mkdocs build --strict -d site
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict -d site
 
 bench: install
 	$(BIN)/python benchmarks/collect.py
