@@ -142,16 +142,16 @@ def test_illm_warnings_are_plain_lines(tmp_path):
     assert handler.format(record) == "warning: worker stopped"
 
 
-def test_readme_model_table_and_illm_models_list_the_same_aliases():
+def test_the_docs_model_table_and_illm_models_list_the_same_aliases():
     import re
     from pathlib import Path
 
     from illm_tools.llm.registry import list_models
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    table = readme[readme.index("| alias | model | notes |"):].split("\n\n")[0]
-    in_readme = {a for line in table.splitlines()[2:] for a in re.findall(r"`([a-z0-9.\-]+)`", line.split("|")[1])}
-    assert in_readme == {m.alias for m in list_models()}
+    page = (Path(__file__).resolve().parents[1] / "docs" / "concepts" / "models.md").read_text()
+    table = page[page.index("| alias | model | notes |"):].split("\n\n")[0]
+    in_docs = {a for line in table.splitlines()[2:] for a in re.findall(r"`([a-z0-9.\-]+)`", line.split("|")[1])}
+    assert in_docs == {m.alias for m in list_models()}
 
 
 def test_frames_rounded_to_whole_rollouts_is_said(tmp_path, monkeypatch):
