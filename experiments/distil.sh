@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 29: the student annotator the README reports, rebuilt by one command (its weights are not in git).
+# Issue 29: the student annotator the docs report, rebuilt by one command (its weights are not in git).
 # 1. collect BabyAI UnlockLocal and GoToLocal trajectories: minigrid's expert bot with 25% random actions
 #    (episode seeds from 1,000,000 up) and a uniformly random policy (from 2,000,000 up): no episode is one
 #    `illm probe` plays (its seeds run from 0);

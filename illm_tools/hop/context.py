@@ -12,7 +12,7 @@ in every key already. The arrays ride along (not compared, not hashed) for the L
 records, and keeps each step's translation; `HopContext` turns the windows into Z_h, the LLM's
 last hidden state after reading the translated steps as input embeddings (no prompt around them),
 which the policy reads beside its own torso. Both run every rollout step: on a CPU this costs one
-forward pass of the LLM over N windows of at most K positions per step (README: measured cost).
+forward pass of the LLM over N windows of at most K positions per step (docs/measured.md: the cost of hop).
 """
 from __future__ import annotations
 

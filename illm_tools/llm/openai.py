@@ -159,7 +159,7 @@ def _fingerprint(spec: str) -> dict:
         try:
             models, headers = client.call("/models")
         except EndpointError as e:
-            raise UsageError(f"no OpenAI-compatible server answers at {url} ({e}): start one (README: serving "
+            raise UsageError(f"no OpenAI-compatible server answers at {url} ({e}): start one (docs/scale.md: serving "
                              "Llama-3-8B with vLLM) or check --endpoint") from None
         served = [m.get("id") for m in models.get("data", [])]
         if model not in served:
@@ -330,7 +330,7 @@ class OpenAIBackend:
             offsets, logprobs = lp.get("text_offset"), lp.get("token_logprobs")
             if not offsets or logprobs is None:
                 raise EndpointError(f"{self.client.url}/completions gave no prompt log-probabilities (echo with logprobs): "
-                                    "this engine cannot rank candidates; vLLM can (README)")
+                                    "this engine cannot rank candidates; vLLM can (docs/scale.md)")
             ends = list(offsets[1:]) + [len(prompt) + 10**9]
             token_lp = [float(logprobs[i]) for i in range(len(offsets))
                         if offsets[i] < len(prompt) and ends[i] > len(context) and logprobs[i] is not None]

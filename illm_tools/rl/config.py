@@ -23,7 +23,7 @@ BONUS_PRESETS = {  # `illm train --bonus-preset`: how the bonus enters the advan
     "paper": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0},  # Appendix B
     "rnd": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 2.0, "int_coef": 1.0},    # CleanRL RND's advantage weights
     "ngu": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 0.3},    # NGU's r = r_e + 0.3 r_i
-    # the paper's weights / 10: the measured better choice on BabyAI at CPU budgets (README, the positive control)
+    # the paper's weights / 10: the measured better choice on BabyAI at CPU budgets (docs/experiments: the positive control)
     "small": {"lambda_a": 0.08, "beta_hc": 0.05, "ext_coef": 1.0, "int_coef": 1.0},
     # Algorithm 1 as printed: r* = r + r^a + r^hc in one stream (one critic), f^a's target the argmax action
     "paper-literal": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0, "reward_streams": 1,

@@ -6,7 +6,7 @@ the calibration is chosen at training time without re-running the LLM:
 - `mean`: the mean per token (removes the length penalty of multi-token actions);
 - `pmi`: summed log-prob minus the log-prob after a neutral prompt (removes the model's prior
   preference for an action whatever the state; small models' raw rankings collapse onto one
-  action: README, "Prior probe").
+  action: docs/experiments, "Prior probe").
 
 f^a's target is either that distribution (`distribution`, the default) or the one-hot of its
 argmax (`argmax`): the paper's Algorithm 1 line 7 and Appendix A pick the action with the highest
