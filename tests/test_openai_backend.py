@@ -212,3 +212,17 @@ def test_ranking_through_an_engine_failing_the_alignment_check_is_refused_summar
     Annotator(remote, cache, model=spec, history_len=0, tasks=["summary"]).annotate_states(
         _records(), "BabyAI-GoToLocal-v0", "babyai-text@1")
     assert len(AnnotationCache(tmp_path / "ann")) == len(_records())  # summaries through the same engine
+
+
+def test_a_training_run_with_live_ranking_through_a_shifted_engine_is_refused_before_it_starts(tiny_lm, tmp_path):
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    server = Server(tiny_lm, name="tiny-shifted-train", shifted=True)
+    out = CliRunner().invoke(app, ["train", "--env", "BabyAI-GoToLocal-v0", "--method", "illm", "--backend", "openai",
+                                   "--model", server.name, "--endpoint", server.url, "--history", "0", "--new-setup",
+                                   "--cache", str(tmp_path / "ann"), "--frames", "64", "--num-envs", "2",
+                                   "--num-steps", "32", "--out", str(tmp_path / "run")])
+    assert out.exit_code == 1 and "cannot rank actions" in out.output and "Traceback" not in out.output
+    assert not (tmp_path / "run").exists() and not list((tmp_path / "ann").glob("shard-*"))
