@@ -1,10 +1,14 @@
 """Fakes shared by the trainer's tests: `FakePool` (the EnvPool interface over a toy task),
 `FakeProvider` (deterministic LLM targets from a hash of each record), `RefusingProvider` (for
-methods that must never ask) and `make_trainer` (a small Trainer over them)."""
+methods that must never ask), `make_trainer` (a small Trainer over them) and `plugins_installed`
+(entry points as an installed package would declare them)."""
 
 from __future__ import annotations
 
+import importlib.metadata
 import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from types import SimpleNamespace
 
 import numpy as np
@@ -94,3 +98,33 @@ def make_trainer(tmp_path, mode="illm", updates=2, pool=None, **kw):
     pool = pool or FakePool(cfg.num_envs)
     provider = FakeProvider(len(pool.action_names), cfg.embedding_dim) if mode != "ppo" else RefusingProvider()
     return Trainer(cfg, pool, provider), provider
+
+
+@contextmanager
+def plugins_installed(monkeypatch, points: dict[str, list[tuple[str, str]]]) -> Iterator[list[list[str]]]:
+    """Plug-ins as if installed: `importlib.metadata.entry_points` answers `points` ({group: [(name,
+    "module:object")]}) for their groups and the installed ones for other groups; every registry
+    reads them. Yields the names each registry added (methods, tasks, backends, suites); removes them
+    after."""
+    from illm_tools.envs import SUITES
+    from illm_tools.intrinsic.registry import METHODS
+    from illm_tools.llm.backend import BACKENDS
+    from illm_tools.tasks.registry import LANGUAGE_TASKS
+
+    real = importlib.metadata.entry_points
+
+    def entry_points(**selection):
+        group = selection.get("group")
+        if group not in points:  # other libraries' look-ups: the installed ones
+            return real(**selection)
+        return [importlib.metadata.EntryPoint(name, value, group) for name, value in points[group]]
+
+    monkeypatch.setattr(importlib.metadata, "entry_points", entry_points)
+    registries = (METHODS, LANGUAGE_TASKS, BACKENDS, SUITES)
+    added = [registry.read_plugins(again=True) for registry in registries]
+    try:
+        yield added
+    finally:
+        for registry, names in zip(registries, added):
+            for name in names:
+                del registry[name]

@@ -6,7 +6,6 @@ would declare it, and goes through collect, annotate and train with no edit to i
 from __future__ import annotations
 
 import csv
-import importlib.metadata
 import json
 from pathlib import Path
 
@@ -14,11 +13,8 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
-from illm_tools.envs import SUITES
-from illm_tools.intrinsic.registry import METHODS
-from illm_tools.llm.backend import BACKENDS
+from fakes import plugins_installed
 from illm_tools.rl.checkpoint import load_checkpoint
-from illm_tools.tasks.registry import LANGUAGE_TASKS
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "docs" / "examples"
 ENV = "Corridor-Walk-v0"
@@ -42,25 +38,12 @@ def examples(monkeypatch):
         "illm.backends": [("keywords", "keyword_backend:KeywordBackend")],
         "illm.tasks": [("hint", "hint_task:TASK")],
     }
-    real = importlib.metadata.entry_points
-
-    def entry_points(**selection):
-        group = selection.get("group")
-        if group not in points:
-            return real(**selection)
-        return [importlib.metadata.EntryPoint(name, value, group) for name, value in points[group]]
-
-    monkeypatch.setattr(importlib.metadata, "entry_points", entry_points)
-    registries = (METHODS, SUITES, BACKENDS, LANGUAGE_TASKS)
-    added = [registry.read_plugins(again=True) for registry in registries]
-    yield added
-    for registry, names in zip(registries, added):
-        for name in names:
-            del registry[name]
+    with plugins_installed(monkeypatch, points) as added:
+        yield added
 
 
 def test_the_docs_plugin_examples_collect_annotate_and_train(examples, tmp_path):
-    assert examples == [["count"], ["corridor"], ["keywords"], ["hint"]]
+    assert examples == [["count"], ["hint"], ["keywords"], ["corridor"]]  # methods, tasks, backends, suites
     traj, ann = tmp_path / "traj", tmp_path / "ann"
     assert ENV in ok("envs", "--ids")
 

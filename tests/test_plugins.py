@@ -7,7 +7,6 @@ any registry; and the one `Registry` shape: lazy entries, a type check, one unkn
 from __future__ import annotations
 
 import csv
-import importlib.metadata
 from dataclasses import dataclass
 
 import pytest
@@ -18,17 +17,16 @@ from cli.main import app
 import numpy as np
 from torch import nn
 
-from illm_tools.envs import SUITES
 from illm_tools.envs.observations import Observation
 from illm_tools.envs.suite import ObsSpec
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic import BonusRewards, IntrinsicBonus
-from illm_tools.intrinsic.registry import METHODS, Method
-from illm_tools.llm.backend import BACKENDS
+from illm_tools.intrinsic.registry import Method
 from illm_tools.rl.networks import GridMissionNet
 from illm_tools.rl.targets import CachedTargets
 from illm_tools.registry import Registry
-from illm_tools.tasks.registry import LANGUAGE_TASKS, LanguageTask
+from illm_tools.tasks.registry import LanguageTask
+from fakes import plugins_installed
 from test_backends import TinyBackend
 from test_suites import TINY, TinySuite
 
@@ -155,21 +153,8 @@ def plugins(tmp_path, monkeypatch):
         "illm.suites": [("tiny", f"{__name__}:PLUGIN_SUITE"), ("ruler", f"{__name__}:PLUGIN_RULER")],
     }
 
-    real = importlib.metadata.entry_points
-
-    def entry_points(**selection):
-        if selection.get("group") not in points:  # other libraries' look-ups: the installed ones
-            return real(**selection)
-        group = selection["group"]
-        return [importlib.metadata.EntryPoint(name, value, group) for name, value in points[group]]
-
-    monkeypatch.setattr(importlib.metadata, "entry_points", entry_points)
-    registries = (METHODS, LANGUAGE_TASKS, BACKENDS, SUITES)
-    added = [registry.read_plugins(again=True) for registry in registries]
-    yield added
-    for registry, names in zip(registries, added):
-        for name in names:
-            del registry[name]
+    with plugins_installed(monkeypatch, points) as added:
+        yield added
 
 
 def ok(*args):
