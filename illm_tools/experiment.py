@@ -291,12 +291,19 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
 
 
 def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> None:
-    """Set a TrainConfig field (or env_options.KEY) in `fields`, refusing unknown names."""
+    """Set a TrainConfig field (or env_options.KEY, or bonus_preset) in `fields`, refusing unknown names."""
     from illm_tools.rl.config import TrainConfig
 
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     if name.startswith("env_options."):
         fields.setdefault("env_options", {})[name.split(".", 1)[1]] = value
+        return
+    if name == "bonus_preset":  # a preset stands for its settings (`bonus_weights`, below), as in `illm train`
+        from illm_tools.rl.config import BONUS_PRESETS
+
+        if value not in BONUS_PRESETS:
+            raise UsageError(f"{spec.line(*where)}: bonus_preset must be one of {', '.join(BONUS_PRESETS)}, got {value!r}")
+        fields[name] = value
         return
     if name in ("env_id", "method", "seed", "run_dir", "total_steps", "resume"):
         raise UsageError(f"{spec.line(*where)}: {name} is set by the grid itself (envs, methods, seeds, frames, "
