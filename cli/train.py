@@ -123,10 +123,17 @@ def _train_parameters() -> list[inspect.Parameter]:
     preset = inspect.Parameter("bonus_preset", inspect.Parameter.KEYWORD_ONLY, annotation=typing.Optional[str],
                                default=typer.Option(None, "--bonus-preset", help=(
                                    " | ".join(f"{k} ({preset_text(k)})" for k in BONUS_PRESETS)
-                                   + "; default: the method's own (rnd: rnd, ngu: ngu, others: paper); explicit "
-                                     "settings win.")))
+                                   + f"; default: the method's own ({own_presets()}); explicit settings win.")))
     ctx = inspect.Parameter("ctx", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=typer.Context)
     return [ctx, *params, preset, *dataclass_parameters(AnnotatorAccess)]
+
+
+def own_presets() -> str:
+    """The methods' own `--bonus-preset`s, from the registry ("illm: small, rnd: rnd, ..., others: paper")."""
+    from illm_tools.intrinsic.registry import METHODS
+
+    own = [f"{name}: {method.preset}" for name, method in METHODS.items() if method.preset != "paper"]
+    return ", ".join([*own, "others: paper"])
 
 
 def use_token(token: str | None, annotator: str | None) -> None:

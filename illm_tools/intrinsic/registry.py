@@ -223,9 +223,11 @@ def method_help() -> str:
     return " | ".join(f"{m.name} ({m.summary})" for m in METHODS.values())
 
 
-register(Method("illm", "iLLM heads + bonus", "illm_tools.intrinsic.illm:ILLMBonus"))
+# The iLLM methods' default weights: `small` (the paper's / 10), the one setting chosen on the suite's tune half
+# (docs/experiments/suite.md); `--bonus-preset paper` gives Appendix B's.
+register(Method("illm", "iLLM heads + bonus", "illm_tools.intrinsic.illm:ILLMBonus", preset="small"))
 register(Method("illm-noreward", "iLLM heads only, no bonus: paper Table 3", "illm_tools.intrinsic.illm:ILLMBonus",
-                pays_reward=False))
+                pays_reward=False, preset="small"))
 register(Method("ppo", "no bonus", None, pays_reward=False))
 register(Method("rnd", "Random Network Distillation; advantage weights 2 / 1", "illm_tools.intrinsic.rnd:RNDBonus",
                 preset="rnd"))
@@ -237,4 +239,4 @@ register(Method("ngu", "Never Give Up: episodic kNN novelty x RND life-long fact
                 "illm_tools.intrinsic.ngu:NGUBonus", preset="ngu"))
 register(Method("apt", "Active Pre-Training: kNN particle entropy in the rollout", "illm_tools.intrinsic.apt:APTBonus"))
 register(Method("illm-shuffled", "iLLM on another cached state's targets (fixed permutation): control",
-                "illm_tools.intrinsic.illm:ILLMBonus", target_shuffle=0))
+                "illm_tools.intrinsic.illm:ILLMBonus", target_shuffle=0, preset="small"))
