@@ -65,11 +65,16 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
     start = time.perf_counter()
     try:
         last = trainer.train()
+        trained = time.perf_counter() - start  # the training's rate; the worker's shutdown is timed apart
     finally:
         if live_async:
+            closing = time.perf_counter()
             provider.close()
+            last_close = time.perf_counter() - closing
     last["phases"] = "  ".join(f"{k[5:-2]} {v:.3f}s" for k, v in phases.items())
-    return cfg.num_updates * cfg.batch_size / (time.perf_counter() - start), last
+    if live_async:
+        last["phases"] += f"  (worker shutdown after the run: {last_close:.1f}s)"
+    return cfg.num_updates * cfg.batch_size / trained, last
 
 
 def main() -> None:
