@@ -13,6 +13,7 @@ import pyarrow.compute as pc
 
 from illm_tools.data.trajectories import TrajectoryWriter
 from illm_tools.errors import UsageError
+from illm_tools.registry import Registry
 
 NO_RENDERER = "none"
 """The `renderer` of rows from a suite without a text observation (their `obs_text` is empty)."""
@@ -93,7 +94,7 @@ class RandomPolicy:
 def resolved_action_space(config: CollectConfig) -> str:
     """config.action_space, or for "auto" with a trained policy the action space its run recorded
     (so the policy's actions fit the env); "auto" otherwise, resolved by the env pool."""
-    if config.action_space != "auto" or config.policy in ("random", "bot"):
+    if config.action_space != "auto" or config.policy in POLICIES:
         return config.action_space
     from illm_tools.rl.checkpoint import read_config
 
@@ -132,13 +133,26 @@ def check_append(config: CollectConfig, names: list[str]) -> None:
                          "to add new episodes")
 
 
-def make_policy(config: CollectConfig, pool) -> Policy:
-    if config.policy == "random":
-        return RandomPolicy(len(pool.action_names), config.seed)
-    if config.policy == "bot":
-        from illm_tools.envs.babyai_bot import BotPolicy
+def random_policy(config: CollectConfig, pool) -> Policy:
+    """`--policy random`: uniform over the pool's actions, seeded by --seed."""
+    return RandomPolicy(len(pool.action_names), config.seed)
 
-        return BotPolicy(pool, config.bot_epsilon, config.seed)
+
+def _factory_problem(entry) -> str | None:
+    return None if callable(entry) else "is not a factory (a callable taking the CollectConfig and the env pool)"
+
+
+POLICIES: Registry = Registry("collection policy", "illm.policies", check=_factory_problem, hint="--policy")
+"""Named `--policy`s: name -> factory(config, pool) returning a `Policy`. Another is one file with its
+factory plus one `register` here (or an `illm.policies` entry point of an installed package); a
+--policy that names none of them is a trained run's folder."""
+POLICIES.register("random", random_policy)
+POLICIES.register("bot", "illm_tools.envs.babyai_bot:bot_policy")  # minigrid's expert bot, BabyAI levels
+
+
+def make_policy(config: CollectConfig, pool) -> Policy:
+    if config.policy in POLICIES:
+        return POLICIES[config.policy](config, pool)
     from illm_tools.rl.checkpoint import load_policy  # a trained run's policy
 
     return load_policy(config.policy, pool)

@@ -215,3 +215,33 @@ def test_one_registry_shape_lazy_checked_and_one_message():
         reg.register("one", 2)
     reg["one"] = 2  # code may replace an entry on purpose
     assert reg["one"] == 2
+
+
+class FirstActionPolicy:
+    """A collection policy the collect stage has never heard of: always the first action."""
+
+    name = "first"
+
+    def __init__(self, pool):
+        self.num_envs = pool.num_envs
+
+    def act(self, obs):
+        return np.zeros(self.num_envs, dtype=np.int64)
+
+
+def test_a_collection_policy_is_one_factory_and_one_registry_entry(tmp_path):
+    from illm_tools.collect import POLICIES
+    from illm_tools.data.trajectories import open_table
+
+    POLICIES.register("first", lambda config, pool: FirstActionPolicy(pool))
+    try:
+        out = ok("collect", "--env", "BabyAI-GoToLocal-v0", "--policy", "first", "--steps", 32, "--num-envs", 2,
+                 "--out", tmp_path / "traj")
+        assert "32" in out
+        actions = open_table(tmp_path / "traj", columns=["action"])["action"].to_pylist()
+        assert len(actions) == 32 and set(actions) == {0}
+    finally:
+        del POLICIES["first"]
+    refused = runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocal-v0", "--policy", "first", "--steps", "8",
+                                  "--out", str(tmp_path / "again")])
+    assert refused.exit_code != 0 and "Traceback" not in refused.output  # no longer a policy: read as a run folder

@@ -64,3 +64,8 @@ class BotPolicy:
                 actions[i] = int(self.rng.integers(len(self.to_minigrid)))
             self.taken[i] = self.to_minigrid[actions[i]]
         return actions
+
+
+def bot_policy(config, pool) -> BotPolicy:
+    """`illm collect --policy bot` (the collect stage's `POLICIES`): the bot with --bot-epsilon random actions."""
+    return BotPolicy(pool, config.bot_epsilon, config.seed)
