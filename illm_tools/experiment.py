@@ -299,10 +299,12 @@ def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> Non
         fields.setdefault("env_options", {})[name.split(".", 1)[1]] = value
         return
     if name == "bonus_preset":  # a preset stands for its settings (`bonus_weights`, below), as in `illm train`
-        from illm_tools.rl.config import BONUS_PRESETS
+        from illm_tools.rl.config import bonus_weights
 
-        if value not in BONUS_PRESETS:
-            raise UsageError(f"{spec.line(*where)}: bonus_preset must be one of {', '.join(BONUS_PRESETS)}, got {value!r}")
+        try:
+            bonus_weights(value)
+        except UsageError as e:
+            raise UsageError(f"{spec.line(*where)}: {e}") from None
         fields[name] = value
         return
     if name in ("env_id", "method", "seed", "run_dir", "total_steps", "resume"):

@@ -236,13 +236,13 @@ def _probe_engine(client: Client, model: str) -> EngineProbe:
 
 def _check_ranking(spec: str) -> None:
     """Raise `EndpointError` (one line) unless the engine serving `spec` passed the alignment probe."""
-    _fingerprint(spec)
+    engine = _fingerprint(spec)["engine"]  # probes the engine on first use
     probe = _ENGINES[spec]
     if probe.aligned:
         return
     what = ("its prompt log-probabilities are not those of its own generation (as if shifted by one position)"
             if probe.aligned is False else "it cannot score prompt tokens")
-    raise EndpointError(f"the engine at {parse_spec(spec)[1]} ({_fingerprint(spec)['engine']}) cannot rank actions: "
+    raise EndpointError(f"the engine at {parse_spec(spec)[1]} ({engine}) cannot rank actions: "
                         f"{what}: {probe.detail}; rank with vLLM or --backend transformers, or pass --tasks summary to "
                         "write only summaries through this engine; nothing was annotated")
 
@@ -358,7 +358,6 @@ class OpenAIBackend:
         return [Generation(text, list(range(n)), finished, emb) for (text, n, finished), emb in zip(texts, embeddings)]
 
     def score_and_generate(self, contexts, candidates, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
-        _check_ranking(self.model)  # before any summary is generated
         return (self.score(contexts, candidates, batch_size=batch_size),
                 self.generate(prompts, max_new_tokens=max_new_tokens, batch_size=batch_size))
 
