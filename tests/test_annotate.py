@@ -77,6 +77,7 @@ def test_annotate_writes_each_distinct_key_once(trajectories, tmp_path, tiny_lm)
     assert again.hits == again.keys and again.annotated_states == 0 and len(AnnotationCache(cache)) == len(ann)
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_with_only_what_is_missing(trajectories, tmp_path, tiny_lm, monkeypatch):
     cache = tmp_path / "ann"
     writes = []
@@ -119,6 +120,7 @@ def test_two_annotate_processes_share_a_cache(trajectories, tmp_path, tiny_lm):
     assert report.ok and report.keys == report.rows == keys[0] == keys[1]
 
 
+@pytest.mark.slow
 def test_trainer_keys_hit_the_rows_annotate_wrote_and_live_fallback_writes_back(trajectories, tmp_path, tiny_lm):
     from illm_tools.annotate.engine import Annotator
     from illm_tools.envs.pool import EnvPool

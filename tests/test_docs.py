@@ -100,6 +100,7 @@ def broken_copy(tmp_path: Path) -> Path:
     return root
 
 
+@pytest.mark.slow  # a strict build per damage, 2-3 s each
 @pytest.mark.parametrize("damage, said", [
     ("link", "no-such-page.md"),
     ("orphan", "orphan.md"),

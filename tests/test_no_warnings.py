@@ -22,6 +22,7 @@ LIBRARIES = ("transformers", "datasets", "accelerate", "peft", "torch", "gymnasi
 the test listens to each directly."""
 
 
+@pytest.mark.slow  # 12 s: three stages end to end
 @pytest.mark.filterwarnings("error")
 def test_annotate_and_train_raise_no_third_party_warning(tmp_path, tiny_lm, caplog):
     model, traj, ann = tiny_lm.spec.path, tmp_path / "traj", tmp_path / "ann"
