@@ -66,6 +66,7 @@ def _report(config, result, stop) -> None:
         typer.echo(f"{config.out} already holds this student: nothing to train (its figures below)")
     m = result.machine
     rank = f"LoRA rank {config.rank}, merged" if config.rank else "every weight"
+    rank += f", top {config.layers} blocks" if config.layers else ""
     typer.echo(f"distilled {result.teacher}'s {','.join(config.tasks)} into {result.out} ({result.base}, {rank}): "
                f"{result.train_states:,} training states, {result.held_out_states:,} held out"
                + (f", {result.left_out_long:,} longer than --max-tokens left out" if result.left_out_long else "")

@@ -7,6 +7,7 @@ one line and leave nothing behind. Also `illm collect --policy bot`, the student
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -202,6 +203,24 @@ def test_the_command_reports_in_illms_own_lines(oracle_cache, tiny_folder, tmp_p
     assert again.exit_code == 0 and "already holds this student" in again.output
 
 
+@pytest.mark.parametrize("rank", [4, 0])
+def test_layers_trains_the_top_blocks_only(oracle_cache, tiny_folder, tmp_path, rank):
+    """--layers N: adapters (or, at rank 0, trained weights) in the top N blocks only, so the saved
+    student's weights differ from its base's in those blocks and nowhere else."""
+    from safetensors.torch import load_file
+
+    out = tmp_path / f"top-rank{rank}"
+    result = _distil(oracle_cache, out, tiny_folder, states=16, rank=rank, layers=1)
+    assert not result.stopped and (out / "config.json").is_file()
+    folder = Path(tiny_folder)
+    base, student = load_file(next(iter(folder.glob("*.safetensors")))), load_file(out / "model.safetensors")
+    blocks = json.loads((folder / "config.json").read_text())["num_hidden_layers"]
+    top = f"layers.{blocks - 1}."
+    changed = {name for name in base if not (base[name] == student[name]).all()}
+    assert changed and all(top in name for name in changed), changed
+    assert json.loads((out / "distil" / "settings.json").read_text())["layers"] == 1
+
+
 # --- bad inputs: one line, a non-zero exit, nothing written -------------------------------------------
 def _refused(args, out, *expected):
     result = runner.invoke(app, ["distil", *args, "--out", str(out)])
@@ -244,6 +263,8 @@ def test_bad_inputs_get_one_line(oracle_cache, tiny_folder, tmp_path):
     _refused([str(oracle_cache), *student, "--held-out", "100000"], out, "--held-out")
     _refused([str(oracle_cache), *student, "--tasks", "summary"], out, "no ranking task")
     _refused([str(oracle_cache), *student, "--dtype", "float16"], out, "--dtype")
+    _refused([str(oracle_cache), *student, "--layers", "99"], out, "--layers 99 is more than", "transformer blocks")
+    _refused([str(oracle_cache), *student, "--layers", "0"], out, "--layers must be positive")
     assert not out.exists()
     out.mkdir()
     (out / "notes.txt").write_text("mine")

@@ -86,6 +86,9 @@ class DistilConfig:
     """AdamW's peak learning rate (linear warm-up over 5% of the steps, then linear decay)."""
     rank: int = 16
     """LoRA rank of the adapters on every linear layer (alpha = 2 x rank); 0: fine-tune every weight."""
+    layers: int | None = None
+    """Adapters (or, at rank 0, trained weights) in the top N transformer blocks only: the backward pass stops
+    below them (on 2 CPU cores the top half of SmolLM2's 30 blocks makes a step 1.6x faster); default every block."""
     text_weight: float = 1.0
     """Weight of the text tasks' loss (per-token NLL of the teacher's texts) beside the ranking loss (KL from
     the teacher's distribution over the valid actions)."""
@@ -109,7 +112,7 @@ class DistilConfig:
 
         self.cache, self.out = Path(self.cache), Path(self.out)
         check_numbers(self, positive=("states", "max_tokens", "epochs", "batch_size", "learning_rate", "save_every",
-                                      "max_minutes"),
+                                      "max_minutes", "layers"),
                       non_negative=("held_out", "rank", "text_weight", "seed"))
         self.tasks = parse_tasks(self.tasks)
         if not any(get_task(t).kind == "ranking" for t in self.tasks):
@@ -127,7 +130,8 @@ class DistilConfig:
         """What decides the student beside the lessons (checked when a run resumes)."""
         keep = ("student", "states", "held_out", "max_tokens", "epochs", "batch_size", "learning_rate", "rank",
                 "text_weight", "seed", "dtype")
-        return {"version": SETTINGS_VERSION, **{k: getattr(self, k) for k in keep}}
+        layers = {"layers": self.layers} if self.layers is not None else {}  # absent: as before the setting was
+        return {"version": SETTINGS_VERSION, **{k: getattr(self, k) for k in keep}, **layers}
 
 
 @dataclass
@@ -222,6 +226,9 @@ def distil(config: DistilConfig, *, on_progress: Progress | None = None,
 
     device = resolve_device(config.device)
     lm = load_model(config.student, dtype="float32", device=device)
+    from illm_tools.distil.training import top_blocks
+
+    top_blocks(lm.model, config.layers)  # more --layers than the student has: refused before anything is written
     settings = {**config.settings(), "student_fingerprint": fingerprint_hash(lm.fingerprint)}
     _check_settings(work, settings)
     result = DistilResult(str(config.out), plan.teacher, plan.teacher_fingerprint, config.student,

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from illm_tools import durable
 from illm_tools.distil.lessons import Example
+from illm_tools.errors import UsageError
 
 log = logging.getLogger(__name__)
 
@@ -68,13 +69,17 @@ def _train(lm, examples, config, checkpoints: Path, say, should_stop) -> Trained
     torch.manual_seed(config.seed)
     model = lm.model
     model.train()
+    top = top_blocks(model, config.layers)
     if config.rank:
         from peft import LoraConfig, get_peft_model
 
+        targets = "all-linear" if top is None else linear_modules(top)
         model = get_peft_model(model, LoraConfig(r=config.rank, lora_alpha=2 * config.rank, lora_dropout=LORA_DROPOUT,
-                                                 target_modules="all-linear", task_type="CAUSAL_LM"))
+                                                 target_modules=targets, task_type="CAUSAL_LM"))
     else:
-        model.requires_grad_(True)
+        model.requires_grad_(top is None)
+        for _, block in top or ():
+            block.requires_grad_(True)
     student = replace(lm, model=model)
     resume = latest_checkpoint(checkpoints)
     data = datasets.Dataset.from_dict({"index": list(range(len(examples))),
@@ -146,6 +151,38 @@ def _train(lm, examples, config, checkpoints: Path, say, should_stop) -> Trained
         merged.requires_grad_(False)
     return Trained(merged, state.global_step, state.max_steps, _step_of(resume), seconds, figures["tokens"], stopped,
                    history)
+
+
+def top_blocks(model, layers: int | None) -> list[tuple[str, object]] | None:
+    """The top `layers` transformer blocks of `model` as (qualified name, module), or None for every block.
+
+    The blocks are the model's longest `ModuleList` (`model.layers` in Llama-like models,
+    `transformer.h` in GPT-2), found by shape rather than by name so that any causal LM of
+    transformers works; more layers than it has is refused in one line."""
+    import torch
+
+    if layers is None:
+        return None
+    lists = [(name, m) for name, m in model.named_modules() if isinstance(m, torch.nn.ModuleList)]
+    if not lists:
+        raise UsageError("--layers needs a model whose transformer blocks are a ModuleList; leave --layers out")
+    name, blocks = max(lists, key=lambda item: len(item[1]))
+    if layers > len(blocks):
+        raise UsageError(f"--layers {layers} is more than the student's {len(blocks)} transformer blocks: pass at most "
+                         f"{len(blocks)}, or leave --layers out (every block)")
+    return [(f"{name}.{i}", blocks[i]) for i in range(len(blocks) - layers, len(blocks))]
+
+
+def linear_modules(blocks) -> list[str]:
+    """The qualified names of the linear layers inside `blocks` (peft's target_modules for them)."""
+    import torch
+
+    out = []
+    for prefix, block in blocks:
+        out += [f"{prefix}.{name}" for name, m in block.named_modules() if isinstance(m, torch.nn.Linear)]
+    if not out:
+        raise UsageError("the student's top blocks hold no linear layer for adapters: leave --layers out")
+    return out
 
 
 def _step_of(checkpoint: Path | None) -> int:
