@@ -23,7 +23,7 @@ def register(app: typer.Typer) -> None:
             return
         for r in rows:
             mark = "ok " if r.available else "-- "
-            typer.echo(f"{mark}{r.alias:14s} {r.source:13s} {r.model_id}")
+            typer.echo(f"{mark}{r.alias:20s} {r.source:13s} {r.model_id}")
             typer.echo(f"     {r.where if r.available else 'unavailable: ' + r.where}")
             if r.notes:
                 typer.echo(f"     {r.notes}")

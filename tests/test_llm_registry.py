@@ -58,6 +58,20 @@ def test_list_models_reports_offline_availability():
     assert not rows["llama3"].available and "hf download" in rows["llama3"].where
 
 
+def test_student_alias_is_a_folder_under_the_models_folder(tmp_path, monkeypatch, tiny_lm):
+    monkeypatch.setenv(registry.MODELS_ENV, str(tmp_path))
+    spec = resolve("smollm2-135m-babyai")
+    assert spec.source == "local" and spec.path == str(tmp_path / "smollm2-135m-babyai")
+    with pytest.raises(ModelNotFoundError, match="not built here.*experiments/distil.sh.*ILLM_MODELS"):
+        registry.locate(spec)
+    row = {r.alias: r for r in list_models()}["smollm2-135m-babyai"]
+    assert not row.available and "experiments/distil.sh" in row.where
+    shutil.copytree(tiny_lm.spec.path, tmp_path / "smollm2-135m-babyai")  # as `illm distil` saves it
+    by_alias = load_model("smollm2-135m-babyai", dtype="float32", cache_dir=tmp_path / "illm")
+    by_path = load_model(str(tmp_path / "smollm2-135m-babyai"), dtype="float32", cache_dir=tmp_path / "illm")
+    assert by_alias.fingerprint == by_path.fingerprint and by_alias.fingerprint["sha256"]  # one model, one key
+
+
 def _fake_hub_cache(root, repo: str, commit: str, model_dir) -> None:
     base = root / f"models--{repo.replace('/', '--')}"
     shutil.copytree(model_dir, base / "snapshots" / commit)

