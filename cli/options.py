@@ -137,4 +137,6 @@ def config_from_options(cls: type, options: dict, dict_flags: dict[str, str] | N
             fields[name] = tuple(v.strip() for v in value.split(",") if v.strip())
         elif typing.get_origin(hint) is tuple and isinstance(value, list):  # a positional list
             fields[name] = tuple(value)
+        elif typing.get_origin(hint) is list and value is None:  # a repeatable option not given: the field's default
+            del fields[name]
     return cls(**fields)

@@ -4,29 +4,32 @@
 #    (episode seeds from 1,000,000 up) and a uniformly random policy (from 2,000,000 up): no episode is one
 #    `illm probe` plays (its seeds run from 0);
 # 2. annotate every distinct state with the oracle (history 0, tasks action and summary): the teacher;
-# 3. `illm distil` SmolLM2-135M on that cache (LoRA rank 16, merged) into OUT;
+# 3. `illm distil` SmolLM2-135M on that cache (LoRA rank 16 in the top 15 blocks, merged) into OUT;
 # 4. `illm probe` the student and its base on UnlockLocal and GoToLocal (the bot's states of episodes the
 #    student was not trained on) and on PickupLoc (a level none of its training states came from).
 # Every step is resumable: a dataset or probe file that exists is kept, annotation does what is missing, the
 # distillation resumes from its last checkpoint and does nothing once the student is there.
 # Usage: bash experiments/distil.sh [OUT]   (default models/smollm2-135m-babyai)
-# Environment (defaults: the full-size run, about 30 minutes of fine-tuning on 2 cores in float32):
-#   DATA (data/distil), BOT_STEPS (4000 per level), RANDOM_STEPS (1000 per level), STATES (1500), HELD_OUT (200),
-#   EPOCHS (1), MAX_TOKENS (256), RANK (16), LR (1e-3), DTYPE (float32), PROBE_STATES (400), PROBES (probe files:
-#   OUT/probes), BASE_PROBES (1: probe the base model too).
+# Environment (defaults: the full-size run, about 30 minutes of fine-tuning on 2 AVX2 cores in float32):
+#   DATA (data/distil), BOT_STEPS (12000 per level), RANDOM_STEPS (1000 per level), STATES (1600 lessons),
+#   HELD_OUT (200), EPOCHS (1), MAX_TOKENS (256), RANK (16), LAYERS (15: adapters in the top 15 of 30 blocks),
+#   LR (1e-3), BALANCE (0.75: the rare actions' states repeated, see `illm distil --help`), DTYPE (float32),
+#   PROBE_STATES (400), PROBES (probe files: OUT/probes), BASE_PROBES (1: probe the base model too).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-models/smollm2-135m-babyai}
 ILLM=${ILLM:-.venv/bin/illm}
 DATA=${DATA:-data/distil}
-BOT_STEPS=${BOT_STEPS:-4000}
+BOT_STEPS=${BOT_STEPS:-12000}
 RANDOM_STEPS=${RANDOM_STEPS:-1000}
-STATES=${STATES:-1500}
+STATES=${STATES:-1600}
 HELD_OUT=${HELD_OUT:-200}
 EPOCHS=${EPOCHS:-1}
 MAX_TOKENS=${MAX_TOKENS:-256}
 RANK=${RANK:-16}
+LAYERS=${LAYERS:-15}
 LR=${LR:-1e-3}
+BALANCE=${BALANCE:-0.75}
 DTYPE=${DTYPE:-float32}
 PROBE_STATES=${PROBE_STATES:-400}
 PROBES=${PROBES:-$OUT/probes}
@@ -45,7 +48,7 @@ done
 "$ILLM" cache info "$DATA/ann-oracle"
 
 time "$ILLM" distil "$DATA/ann-oracle" --student smollm2-135m --out "$OUT" --states "$STATES" --held-out "$HELD_OUT" \
-    --epochs "$EPOCHS" --max-tokens "$MAX_TOKENS" --rank "$RANK" --learning-rate "$LR" --dtype "$DTYPE"
+    --epochs "$EPOCHS" --max-tokens "$MAX_TOKENS" --rank "$RANK" --layers "$LAYERS" --balance "$BALANCE" --learning-rate "$LR" --dtype "$DTYPE"
 
 mkdir -p "$PROBES"
 models=("$OUT")

@@ -221,6 +221,74 @@ def test_layers_trains_the_top_blocks_only(oracle_cache, tiny_folder, tmp_path, 
     assert json.loads((out / "distil" / "settings.json").read_text())["layers"] == 1
 
 
+def test_balanced_quotas_share_the_lessons_between_actions():
+    from illm_tools.distil.lessons import balanced_quotas
+
+    counts = {"go forward": 8000, "turn right": 3000, "turn left": 2800, "pick up": 120, "toggle": 36}
+    assert balanced_quotas(counts, 1700, 0.0) == {"go forward": 975, "turn right": 365, "turn left": 341,
+                                                  "pick up": 15, "toggle": 4}  # the cache's own shares
+    half = balanced_quotas(counts, 1700, 0.5)  # shares as the square roots of the counts
+    assert sum(half.values()) == 1700 and half["pick up"] == 87 and half["go forward"] == 710
+    assert set(balanced_quotas(counts, 1700, 1.0).values()) == {340}  # equal: toggle's 36 states 9-10 times each
+    assert balanced_quotas({"a": 5, "b": 0}, 3, 1.0) == {"a": 3, "b": 0}
+
+
+def test_balance_teaches_the_rare_actions_more_often(oracle_cache, tiny_folder, tmp_path):
+    """--balance: the lessons' top actions nearer equal shares, a rare action's states repeated; the
+    held-out states unchanged."""
+    import collections
+
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.distil.lessons import LessonPlan, lessons_from_plan, top_action
+    from illm_tools.distil.run import DistilConfig, _new_plan
+
+    cache = AnnotationCache(oracle_cache)
+
+    def plan(balance):
+        config = DistilConfig(cache=oracle_cache, out=tmp_path / f"b{balance}", student=tiny_folder,
+                              **{**SMALL, "states": 200, "balance": balance})
+        return _new_plan(cache, config)
+
+    natural, even = plan(0.0), plan(1.0)
+    assert natural.held_out == even.held_out and len(natural.train) == len(even.train) == 200
+    shares = [collections.Counter(map(top_action, lessons_from_plan(cache, p.train))) for p in (natural, even)]
+    assert max(shares[1].values()) - min(shares[1].values()) <= 1 < max(shares[0].values()) - min(shares[0].values())
+    repeated = [k for k, n in collections.Counter(even.train).items() if n > 1]
+    assert repeated and not set(even.train) & set(even.held_out)
+    assert all(a != b for a, b in zip(even.train, even.train[1:]))  # a state's repeats are spread out
+    assert LessonPlan.from_json(even.to_json()) == even
+
+
+def test_visits_draw_the_lessons_as_often_as_an_agent_meets_their_states(oracle_cache, tiny_folder, tmp_path):
+    """--visits: every lesson's state is found in the trajectories the cache was annotated from, and
+    the lessons are drawn in proportion to the steps spent in each state (seeded, repeatable)."""
+    import collections
+
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.distil.lessons import COLUMNS, lessons_of, visits_of
+    from illm_tools.distil.run import DistilConfig, _new_plan
+
+    traj = oracle_cache.parent / "traj"
+    cache = AnnotationCache(oracle_cache)
+    lessons = lessons_of(cache.table(COLUMNS).to_pylist(), ("action", "summary"))
+    visits = visits_of([traj], [0])
+    assert sum(visits.values()) == 400 and all(visits[lesson.state] > 0 for lesson in lessons)
+
+    def plan(seed):
+        config = DistilConfig(cache=oracle_cache, out=tmp_path / "v", student=tiny_folder, visits=[traj],
+                              **{**SMALL, "states": 2000, "seed": seed})
+        return _new_plan(cache, config)
+
+    drawn = plan(0)
+    assert drawn == plan(0) != plan(1) and len(drawn.train) == 2000 and not set(drawn.train) & set(drawn.held_out)
+    by_state = {tuple(t.key for t in lesson.targets): visits[lesson.state] for lesson in lessons}
+    taught = {k: v for k, v in by_state.items() if k not in set(drawn.held_out)}
+    most = max(taught, key=taught.get)
+    counts = collections.Counter(drawn.train)
+    expected = 2000 * taught[most] / sum(taught.values())
+    assert abs(counts[most] - expected) < 4 * expected ** 0.5  # the most visited state: as often as it is met
+
+
 # --- bad inputs: one line, a non-zero exit, nothing written -------------------------------------------
 def _refused(args, out, *expected):
     result = runner.invoke(app, ["distil", *args, "--out", str(out)])
@@ -265,6 +333,9 @@ def test_bad_inputs_get_one_line(oracle_cache, tiny_folder, tmp_path):
     _refused([str(oracle_cache), *student, "--dtype", "float16"], out, "--dtype")
     _refused([str(oracle_cache), *student, "--layers", "99"], out, "--layers 99 is more than", "transformer blocks")
     _refused([str(oracle_cache), *student, "--layers", "0"], out, "--layers must be positive")
+    _refused([str(oracle_cache), *student, "--balance", "2"], out, "--balance must be between 0 and 1")
+    _refused([str(oracle_cache), *student, "--balance", "0.5", "--visits", str(tmp_path)], out, "pass one of them")
+    _refused([str(oracle_cache), *student, "--visits", str(tmp_path / "nowhere")], out, "nowhere")
     assert not out.exists()
     out.mkdir()
     (out / "notes.txt").write_text("mine")

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -162,11 +163,84 @@ class LessonPlan:
 
     @classmethod
     def split(cls, teacher: Teacher, tasks: Sequence[str], lessons: Sequence[Lesson], *, held_out: int,
-              states: int | None) -> LessonPlan:
+              states: int | None, balance: float = 0.0, visits: Counter | None = None,
+              seed: int = 0) -> LessonPlan:
+        """The first `held_out` lessons (in hash order) held out, then `states` lessons of the rest
+        taught:
+        - by default the first ones;
+        - with `visits` (steps per state hash, `visits_of`), `states` draws (with replacement,
+          seeded) in proportion to each state's visits; states never visited are not taught;
+        - with `balance` > 0 each top action's quota (`balanced_quotas`), an action's lessons taken
+          in hash order and repeated where its quota is larger than they are (oversampling: its
+          distinct states are what the cache has), the whole in the order of a hash of (lesson,
+          repeat), so a state's repeats fall in different batches."""
         keys = [tuple(t.key for t in lesson.targets) for lesson in lessons]
-        train = keys[held_out:]
-        return cls(teacher.model, teacher.fingerprint, tuple(tasks),
-                   tuple(train[:states] if states is not None else train), tuple(keys[:held_out]))
+        rest = list(range(held_out, len(lessons)))
+        if visits is not None:
+            import numpy as np
+
+            pool = [i for i in rest if visits.get(lessons[i].state, 0) > 0]
+            if not pool:
+                raise UsageError("no state of the cache (held-out ones aside) is visited in the --visits datasets: "
+                                 "pass the trajectories the cache was annotated from")
+            weights = np.array([visits[lessons[i].state] for i in pool], dtype=np.float64)
+            drawn = np.random.default_rng(seed).choice(len(pool), size=states or len(pool), p=weights / weights.sum())
+            rest = [pool[j] for j in drawn]
+        elif balance > 0 and rest:
+            groups: dict[str, list[int]] = {}
+            for i in rest:
+                groups.setdefault(top_action(lessons[i]), []).append(i)
+            quotas = balanced_quotas({a: len(g) for a, g in groups.items()}, states or len(rest), balance)
+            chosen = [(g[n % len(g)], n // len(g)) for a, g in groups.items() for n in range(quotas[a])]
+            rest = [i for i, _ in sorted(chosen, key=lambda c: hashlib.sha256(f"{lessons[c[0]].state}/{c[1]}".encode())
+                                         .hexdigest())]
+        elif states is not None:
+            rest = rest[:states]
+        return cls(teacher.model, teacher.fingerprint, tuple(tasks), tuple(keys[i] for i in rest),
+                   tuple(keys[:held_out]))
+
+
+def visits_of(datasets: Sequence, history_lens: Sequence[int]) -> Counter:
+    """Steps per state (`state_hash`) in trajectory datasets, at each of the teacher's history lengths:
+    how often an agent of those datasets met each state (a distinct state is one lesson; its visits
+    say how much it matters). Refuses a folder that is no trajectory dataset, in one line."""
+    from illm_tools.data.trajectories import open_table, require_text
+    from illm_tools.tasks.prompts import format_history
+    from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
+
+    counts: Counter = Counter()
+    for path in datasets:
+        table = open_table(path, columns=TABLE_COLUMNS + ["renderer"])
+        require_text(table, path)
+        renderers = table.column("renderer").to_pylist()
+        for k in sorted(set(history_lens)):
+            records, _ = records_from_table(table, k)
+            counts.update(state_hash({"renderer": renderer, "history_len": k, "goal": r.mission,
+                                      "history": format_history(r), "observation": r.observation})
+                          for r, renderer in zip(records, renderers))
+    return counts
+
+
+def top_action(lesson: Lesson) -> str:
+    """The teacher's top candidate of the lesson's (first) ranking task."""
+    ranking = next(t for t in lesson.targets if t.kind == "ranking")
+    return ranking.candidates[ranking.best]
+
+
+def balanced_quotas(counts: dict[str, int], total: int, balance: float) -> dict[str, int]:
+    """How many of `total` lessons each group gets: shares in proportion to count ** (1 - balance)
+    (0: the groups' own shares; 1: equal), a group's quota possibly more than its count (its
+    lessons are then repeated); whole numbers summing to `total`, largest remainders first, a
+    group with no lesson getting none."""
+    weights = {a: n ** (1.0 - balance) if n else 0.0 for a, n in counts.items()}
+    whole = sum(weights.values())
+    if not whole:
+        return {a: 0 for a in counts}
+    shares = {a: total * w / whole for a, w in weights.items()}
+    quotas = {a: int(v) for a, v in shares.items()}
+    for a in sorted(shares, key=lambda a: (-(shares[a] - quotas[a]), a))[:total - sum(quotas.values())]:
+        quotas[a] += 1
+    return quotas
 
 
 def lessons_from_plan(cache, keys: Sequence[Sequence[str]]) -> list[Lesson]:

@@ -72,7 +72,19 @@ class DistilConfig:
     """Tasks taught: a ranking task (action: the teacher's distribution over the valid actions) and text
     tasks (summary, goal, plan: the teacher's texts)."""
     states: int | None = None
-    """Training states at most (taken in the split's hash order); default: every state not held out."""
+    """Lessons taught per epoch (states in the split's hash order; with --balance, a rare action's states
+    repeated); default: every state not held out."""
+    balance: float = 0.0
+    """How the lessons share the teacher's top actions: each action's share in proportion to its states in the
+    cache to the power 1 - balance (0: as the cache holds them; 1: equal shares). An action with fewer distinct
+    states than its share has them repeated: in BabyAI the states that call for pick up or toggle are few as
+    texts but frequent in play (of the 4,060 distinct states of 12,000 UnlockLocal steps of the bot, 120 call
+    for pick up, though the bot picks up in 9% of its steps). Held-out states keep the cache's shares."""
+    visits: list[Path] = field(default_factory=list)
+    """Trajectory datasets (`illm collect`) that weight the lessons: --states lessons drawn (with replacement,
+    seeded by --seed) in proportion to how often each state is visited there, so the student learns the states
+    an agent meets as often as it meets them (in BabyAI the states calling for pick up or toggle are few as texts
+    but frequent in play); states they never visit are not taught. Default: each distinct state once."""
     held_out: int = 200
     """States held out of training (the first by a salted hash of the state), on which the base and the
     student are measured."""
@@ -113,13 +125,16 @@ class DistilConfig:
         self.cache, self.out = Path(self.cache), Path(self.out)
         check_numbers(self, positive=("states", "max_tokens", "epochs", "batch_size", "learning_rate", "save_every",
                                       "max_minutes", "layers"),
-                      non_negative=("held_out", "rank", "text_weight", "seed"))
+                      non_negative=("held_out", "rank", "text_weight", "seed"), unit=("balance",))
         self.tasks = parse_tasks(self.tasks)
         if not any(get_task(t).kind == "ranking" for t in self.tasks):
             raise UsageError(f"--tasks {','.join(self.tasks)} has no ranking task: add action (the student learns "
                              "to rank the valid actions)")
         if self.dtype not in DTYPES:
             raise UsageError(f"--dtype must be float32 or bfloat16, got {self.dtype!r}")
+        self.visits = [Path(v) for v in self.visits]
+        if self.visits and self.balance:
+            raise UsageError("--visits and --balance are two ways to weight the lessons: pass one of them")
         check_device(self.device)
         check_folder(self.out, "--out")
         if self.out.resolve() == self.cache.resolve():
@@ -130,8 +145,10 @@ class DistilConfig:
         """What decides the student beside the lessons (checked when a run resumes)."""
         keep = ("student", "states", "held_out", "max_tokens", "epochs", "batch_size", "learning_rate", "rank",
                 "text_weight", "seed", "dtype")
-        layers = {"layers": self.layers} if self.layers is not None else {}  # absent: as before the setting was
-        return {"version": SETTINGS_VERSION, **{k: getattr(self, k) for k in keep}, **layers}
+        later = {k: getattr(self, k) for k, unset in (("layers", None), ("balance", 0.0)) if getattr(self, k) != unset}
+        if self.visits:
+            later["visits"] = [str(v) for v in self.visits]
+        return {"version": SETTINGS_VERSION, **{k: getattr(self, k) for k in keep}, **later}  # unset: as before them
 
 
 @dataclass
@@ -316,7 +333,7 @@ def _new_plan(cache, config: DistilConfig):
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    from illm_tools.distil.lessons import COLUMNS, LessonPlan, lessons_of, pick_teacher, teachers
+    from illm_tools.distil.lessons import COLUMNS, LessonPlan, lessons_of, pick_teacher, teachers, visits_of
     from illm_tools.tasks.registry import get_task
 
     if not len(cache):
@@ -333,11 +350,14 @@ def _new_plan(cache, config: DistilConfig):
     teacher = pick_teacher(teachers(ranked), config.teacher, str(cache.root))
     mine = table.filter(pc.and_(pc.equal(table.column("model"), teacher.model),
                                 pc.equal(table.column("model_fingerprint"), teacher.fingerprint)))
-    lessons = lessons_of(mine.to_pylist(), config.tasks)
+    rows = mine.to_pylist()
+    lessons = lessons_of(rows, config.tasks)
+    visits = visits_of(config.visits, sorted({r["history_len"] for r in rows})) if config.visits else None
     if len(lessons) <= config.held_out:
         raise UsageError(f"the cache {cache.root} holds {len(lessons):,} states of {teacher.model}, not more than "
                          f"--held-out {config.held_out}: annotate more states, or hold out fewer")
-    return LessonPlan.split(teacher, config.tasks, lessons, held_out=config.held_out, states=config.states)
+    return LessonPlan.split(teacher, config.tasks, lessons, held_out=config.held_out, states=config.states,
+                            balance=config.balance, visits=visits, seed=config.seed)
 
 
 def _examples(lm, cache, plan, max_tokens: int):

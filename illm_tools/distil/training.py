@@ -30,7 +30,9 @@ from illm_tools.errors import UsageError
 log = logging.getLogger(__name__)
 
 CHECKPOINT_INFO = "illm_checkpoint.json"
-LORA_DROPOUT = 0.05
+LORA_DROPOUT = 0.0
+"""No dropout on the adapters' inputs: one epoch over fresh states needs no such regularisation, and peft's
+dropout draws a mask over every adapted layer's input (10% of a step on 2 CPU cores, measured with cProfile)."""
 WARMUP = 0.05
 """Share of the steps with a linear warm-up of the learning rate."""
 
