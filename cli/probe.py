@@ -88,6 +88,8 @@ def register(app: typer.Typer) -> None:
         typer.echo("MI bits: mutual information between the state and the LLM's distribution (0: it ignores the "
                    "state); top-1 H: entropy of the LLM's top action across states, bits")
         best = result.calibrations[result.best]
+        typer.echo(f"agreement per expert action ({result.best}): " + ", ".join(
+            f"{n} {a:.2f}" for n, a in sorted(best["per_action"].items(), key=lambda x: -result.expert_share[x[0]])))
         if best["agreement"] <= b["majority_agreement"]:
             typer.echo(f"reading: no calibration beats always \"{b['majority_action']}\" "
                        f"({b['majority_agreement']:.3f}); the best, {result.best}, agrees on {best['agreement']:.3f}")

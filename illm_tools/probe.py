@@ -39,6 +39,14 @@ def agreement(scores: np.ndarray, expert: np.ndarray) -> float:
     return float(np.mean(np.argmax(scores, axis=1) == expert))
 
 
+def agreement_per_action(scores: np.ndarray, expert: np.ndarray, actions: tuple[str, ...]) -> dict[str, float]:
+    """Per expert action, the share of its states where the LLM's top action is it (its recall): where the
+    overall agreement comes from, e.g. a student right on "go forward" and never on the rare "pick up".
+    Actions the expert never took are left out."""
+    top = np.argmax(scores, axis=1)
+    return {name: float(np.mean(top[expert == i] == i)) for i, name in enumerate(actions) if np.any(expert == i)}
+
+
 def entropy_bits(p: np.ndarray) -> np.ndarray:
     """Entropy in bits along the last axis (0 log 0 = 0)."""
     p = np.asarray(p, dtype=np.float64)
@@ -229,7 +237,8 @@ def calibration_metrics(sums: np.ndarray, counts: np.ndarray, neutral_sums: np.n
     scores = action_scores(sums, counts, neutral_sums, calibration)
     probs = action_distribution(sums, counts, neutral_sums, calibration).astype(np.float64)
     top = np.bincount(np.argmax(scores, axis=1), minlength=len(actions))
-    return {"agreement": agreement(scores, expert), "log_loss": log_loss(probs, expert),
+    return {"agreement": agreement(scores, expert), "per_action": agreement_per_action(scores, expert, actions),
+            "log_loss": log_loss(probs, expert),
             "auroc": pairwise_auroc(scores, expert), "mutual_information_bits": mutual_information_bits(probs),
             "top_choice_entropy_bits": top_choice_entropy_bits(scores),
             "top_action": actions[int(np.argmax(top))], "top_action_share": float(top.max() / len(expert))}

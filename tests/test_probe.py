@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
-from illm_tools.probe import (agreement, expert_states, log_loss, mutual_information_bits, pairwise_auroc,
-                              top_choice_entropy_bits)
+from illm_tools.probe import (agreement, agreement_per_action, expert_states, log_loss, mutual_information_bits,
+                              pairwise_auroc, top_choice_entropy_bits)
 
 runner = CliRunner()
 
@@ -31,6 +31,8 @@ def test_metrics_have_their_known_values():
     assert mutual_information_bits(onehot) == pytest.approx(1.5)  # H(.5,.25,.25) - 0
     assert top_choice_entropy_bits(onehot) == pytest.approx(1.5)
     assert log_loss(np.full((4, 3), 1 / 3), expert) == pytest.approx(np.log(3))
+    half = np.eye(3)[[0, 1, 0, 0]]  # right in states 0 and 1; wrong in state 2 (action 2) and 3 (the second 1)
+    assert agreement_per_action(half, expert, ("a", "b", "c", "d")) == {"a": 1.0, "b": 0.5, "c": 0.0}  # d: never taken
 
 
 def test_the_bots_states_are_seeded_and_labelled_with_valid_actions():
@@ -51,6 +53,7 @@ def test_probe_prints_its_table_and_json(tmp_path):
     out = runner.invoke(app, args)
     assert out.exit_code == 0, out.output
     assert "LLM, pmi" in out.output and "always go forward" in out.output and "reading:" in out.output
+    assert "agreement per expert action" in out.output
     figures = json.loads((tmp_path / "p.json").read_text())
     assert figures["states"] == 30 and set(figures["calibrations"]) == {"sum", "mean", "pmi"}
     assert 0.0 <= figures["calibrations"]["sum"]["auroc"] <= 1.0
