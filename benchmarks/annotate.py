@@ -45,12 +45,15 @@ def matmul_rate(dtype, seconds: float = 2.0, device: str = "cpu") -> float:
     return n * 2 * 2048 * 576 * 1536 / (time.perf_counter() - start) / 1e9
 
 
-def babyai_states(n: int, history: int, workdir: Path):
+def babyai_states(n: int, history: int, workdir: Path, env_id: str = "BabyAI-GoToLocal-v0", seed: int = 0,
+                  steps: int | None = None):
+    """Up to `n` distinct states of a random-policy collection of `env_id` (`steps` steps, default 4 n), each
+    with a full history of `history` steps (benchmarks/student.py shares it)."""
     from illm_tools.collect import CollectConfig, collect
     from illm_tools.data.trajectories import open_table
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
-    collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=workdir / "traj", steps=max(4 * n, 64), num_envs=4, seed=0))
+    collect(CollectConfig(env_id=env_id, out=workdir / "traj", steps=steps or max(4 * n, 64), num_envs=4, seed=seed))
     records, _ = records_from_table(open_table(workdir / "traj", columns=TABLE_COLUMNS), history)
     full = [r for r in dict.fromkeys(records) if len(r.history) == history]  # states with a full history
     return full[:n]
@@ -94,6 +97,7 @@ def main() -> None:
     from illm_tools.annotate.engine import Annotator
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.devices import resolve_device
+    from illm_tools.envs import renderer_of
     from illm_tools.llm.loading import load_model
     from illm_tools.llm.dtype import resolve_dtype
     from illm_tools.tasks.prompts import SUMMARY_TOKENS
@@ -108,7 +112,7 @@ def main() -> None:
         annotator = Annotator(lm, AnnotationCache(Path(tmp) / "ann"), model=args.model, layout=args.layout,
                               batch_size=args.batch_size, chunk=args.states, history_len=args.history)
         plan = annotator.plan(annotator.visited(records, ["BabyAI-GoToLocal-v0"] * len(records),
-                                                ["babyai-text@1"] * len(records)))
+                                                [renderer_of("BabyAI-GoToLocal-v0")] * len(records)))
         jobs = [(s[0], s[1]) for s in plan]
         tokens = [0]
 

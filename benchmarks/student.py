@@ -17,11 +17,15 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from annotate import babyai_states  # noqa: E402  (benchmarks/annotate.py: distinct states of a collection)
 
 
 def main() -> None:
@@ -39,23 +43,19 @@ def main() -> None:
 
     from illm_tools.annotate.engine import Annotator
     from illm_tools.cache.store import AnnotationCache
-    from illm_tools.collect import CollectConfig, collect
-    from illm_tools.data.trajectories import open_table
     from illm_tools.devices import resolve_device
+    from illm_tools.envs import renderer_of
     from illm_tools.llm.dtype import resolve_dtype
     from illm_tools.llm.spec import LLMSpec
     from illm_tools.tasks.prompts import SUMMARY_TOKENS
-    from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
     args.device = resolve_device(args.device)
     args.dtype = resolve_dtype(args.dtype, args.device)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
-        collect(CollectConfig(env_id=args.env, out=Path(tmp) / "traj", steps=max(8 * args.states, 256), num_envs=4,
-                              seed=3_000_000))
-        records, _ = records_from_table(open_table(Path(tmp) / "traj", columns=TABLE_COLUMNS), 0)
-        records = list(dict.fromkeys(records))[:args.states]
-        envs, renderers = [args.env] * len(records), ["babyai-text@1"] * len(records)
+        records = babyai_states(args.states, 0, Path(tmp), env_id=args.env, seed=3_000_000,
+                                steps=max(8 * args.states, 256))
+        envs, renderers = [args.env] * len(records), [renderer_of(args.env)] * len(records)
         for name, model in (("teacher (oracle)", None), ("base", args.base), ("student", args.student)):
             spec = LLMSpec(backend="oracle") if model is None else LLMSpec(model=model, dtype=args.dtype,
                                                                            device=args.device)

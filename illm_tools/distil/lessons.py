@@ -105,8 +105,13 @@ def pick_teacher(found: Sequence[Teacher], name: str | None, cache: str) -> Teac
 
 def state_hash(row: dict) -> str:
     """The salted hash of a row's state (its renderer, history length and rendered parts)."""
-    return hashlib.sha256(canonical_json([SPLIT_SALT, row["renderer"], row["history_len"], row["goal"],
-                                          row["history"], row["observation"]]).encode()).hexdigest()
+    return hash_state(row["renderer"], row["history_len"], row["goal"], row["history"], row["observation"])
+
+
+def hash_state(renderer: str, history_len: int, goal: str, history: str, observation: str) -> str:
+    """`state_hash` from the state's parts (a trajectory's record: its mission, `format_history`, observation)."""
+    return hashlib.sha256(canonical_json([SPLIT_SALT, renderer, history_len, goal, history,
+                                          observation]).encode()).hexdigest()
 
 
 def lessons_of(rows: Sequence[dict], tasks: Sequence[str]) -> list[Lesson]:
@@ -215,8 +220,7 @@ def visits_of(datasets: Sequence, history_lens: Sequence[int]) -> Counter:
         renderers = table.column("renderer").to_pylist()
         for k in sorted(set(history_lens)):
             records, _ = records_from_table(table, k)
-            counts.update(state_hash({"renderer": renderer, "history_len": k, "goal": r.mission,
-                                      "history": format_history(r), "observation": r.observation})
+            counts.update(hash_state(renderer, k, r.mission, format_history(r), r.observation)
                           for r, renderer in zip(records, renderers))
     return counts
 

@@ -83,8 +83,8 @@ class DistilConfig:
     visits: list[Path] = field(default_factory=list)
     """Trajectory datasets (`illm collect`) that weight the lessons: --states lessons drawn (with replacement,
     seeded by --seed) in proportion to how often each state is visited there, so the student learns the states
-    an agent meets as often as it meets them (in BabyAI the states calling for pick up or toggle are few as texts
-    but frequent in play); states they never visit are not taught. Default: each distinct state once."""
+    an agent meets as often as it meets them; states they never visit are not taught. Default: each distinct
+    state once."""
     held_out: int = 200
     """States held out of training (the first by a salted hash of the state), on which the base and the
     student are measured."""
