@@ -13,8 +13,9 @@
 # Environment (defaults: the full-size run, about 30 minutes of fine-tuning on 2 AVX2 cores in float32):
 #   DATA (data/distil), BOT_STEPS (12000 per level), RANDOM_STEPS (1000 per level), STATES (1600 lessons),
 #   HELD_OUT (200), EPOCHS (1), MAX_TOKENS (256), RANK (16), LAYERS (15: adapters in the top 15 of 30 blocks),
-#   LR (1e-3), LESSONS (visits: drawn as often as the collected trajectories visit their states; balance: the
-#   rare actions' states repeated toward equal shares, BALANCE 0.75; see `illm distil --help`), DTYPE (float32),
+#   LR (1e-3), LESSONS (visits: drawn as often as the collected trajectories visit their states, the top actions'
+#   shares of the visits evened by BALANCE; balance: each distinct state once, the rare actions' states repeated
+#   toward equal shares by BALANCE; see `illm distil --help`), BALANCE (0.5), DTYPE (float32),
 #   PROBE_STATES (400), PROBES (probe files: OUT/probes), BASE_PROBES (1: probe the base model too).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -31,7 +32,7 @@ RANK=${RANK:-16}
 LAYERS=${LAYERS:-15}
 LR=${LR:-1e-3}
 LESSONS=${LESSONS:-visits}
-BALANCE=${BALANCE:-0.75}
+BALANCE=${BALANCE:-0.5}
 DTYPE=${DTYPE:-float32}
 PROBE_STATES=${PROBE_STATES:-400}
 PROBES=${PROBES:-$OUT/probes}
@@ -50,7 +51,7 @@ done
 "$ILLM" cache info "$DATA/ann-oracle"
 
 weighting=(--balance "$BALANCE")  # LESSONS=balance: the rare actions' states repeated
-[ "$LESSONS" = visits ] && weighting=($(for d in "$DATA"/traj-*; do echo --visits "$d"; done))
+[ "$LESSONS" = visits ] && weighting+=($(for d in "$DATA"/traj-*; do echo --visits "$d"; done))
 time "$ILLM" distil "$DATA/ann-oracle" --student smollm2-135m --out "$OUT" --states "$STATES" --held-out "$HELD_OUT" \
     --epochs "$EPOCHS" --max-tokens "$MAX_TOKENS" --rank "$RANK" --layers "$LAYERS" "${weighting[@]}" --learning-rate "$LR" --dtype "$DTYPE"
 

@@ -289,6 +289,36 @@ def test_visits_draw_the_lessons_as_often_as_an_agent_meets_their_states(oracle_
     assert abs(counts[most] - expected) < 4 * expected ** 0.5  # the most visited state: as often as it is met
 
 
+def test_balance_on_visits_evens_the_actions_shares_of_the_draws(oracle_cache, tiny_folder, tmp_path):
+    """--visits with --balance: each top action's share of the draws goes from its share of the visits
+    toward equal (its visits' share to the power 1 - balance), the states never visited still untaught."""
+    import collections
+
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.distil.lessons import lessons_from_plan, top_action, visit_balance, visits_of
+    from illm_tools.distil.run import DistilConfig, _new_plan
+
+    assert list(visit_balance(["a", "b", "a"], [1.0, 4.0, 3.0], 0.5)) == [0.5, 0.5, 0.5]  # a: 4 visits, b: 4
+    assert list(visit_balance(["a", "b"], [1.0, 4.0], 1.0)) == [1.0, 0.25]
+    traj = oracle_cache.parent / "traj"
+    cache = AnnotationCache(oracle_cache)
+    visits = visits_of([traj], [0])
+
+    def shares(balance):
+        config = DistilConfig(cache=oracle_cache, out=tmp_path / f"vb{balance}", student=tiny_folder, visits=[traj],
+                              **{**SMALL, "states": 4000, "balance": balance})
+        plan = _new_plan(cache, config)
+        assert all(visits[lesson.state] > 0 for lesson in lessons_from_plan(cache, plan.train[:50]))
+        counts = collections.Counter(map(top_action, lessons_from_plan(cache, plan.train)))
+        return {a: n / 4000 for a, n in counts.items()}
+
+    natural, half, even = shares(0.0), shares(0.5), shares(1.0)
+    assert len(natural) > 1 and natural.keys() == half.keys() == even.keys()
+    rarest = min(natural, key=natural.get)
+    assert natural[rarest] < half[rarest] < even[rarest]
+    assert max(even.values()) - min(even.values()) < 0.05
+
+
 # --- bad inputs: one line, a non-zero exit, nothing written -------------------------------------------
 def _refused(args, out, *expected):
     result = runner.invoke(app, ["distil", *args, "--out", str(out)])
@@ -334,7 +364,6 @@ def test_bad_inputs_get_one_line(oracle_cache, tiny_folder, tmp_path):
     _refused([str(oracle_cache), *student, "--layers", "99"], out, "--layers 99 is more than", "transformer blocks")
     _refused([str(oracle_cache), *student, "--layers", "0"], out, "--layers must be positive")
     _refused([str(oracle_cache), *student, "--balance", "2"], out, "--balance must be between 0 and 1")
-    _refused([str(oracle_cache), *student, "--balance", "0.5", "--visits", str(tmp_path)], out, "pass one of them")
     _refused([str(oracle_cache), *student, "--visits", str(tmp_path / "nowhere")], out, "nowhere")
     assert not out.exists()
     out.mkdir()

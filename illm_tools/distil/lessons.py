@@ -174,7 +174,9 @@ class LessonPlan:
         taught:
         - by default the first ones;
         - with `visits` (steps per state hash, `visits_of`), `states` draws (with replacement,
-          seeded) in proportion to each state's visits; states never visited are not taught;
+          seeded) in proportion to each state's visits; states never visited are not taught; with
+          `balance` > 0 as well, each top action's share of the draws is its share of the visits to
+          the power 1 - balance (`visit_balance`), its states keeping their visits' proportions;
         - with `balance` > 0 each top action's quota (`balanced_quotas`), an action's lessons taken
           in hash order and repeated where its quota is larger than they are (oversampling: its
           distinct states are what the cache has), the whole in the order of a hash of (lesson,
@@ -189,6 +191,8 @@ class LessonPlan:
                 raise UsageError("no state of the cache (held-out ones aside) is visited in the --visits datasets: "
                                  "pass the trajectories the cache was annotated from")
             weights = np.array([visits[lessons[i].state] for i in pool], dtype=np.float64)
+            if balance > 0:
+                weights *= visit_balance([top_action(lessons[i]) for i in pool], weights, balance)
             drawn = np.random.default_rng(seed).choice(len(pool), size=states or len(pool), p=weights / weights.sum())
             rest = [pool[j] for j in drawn]
         elif balance > 0 and rest:
@@ -223,6 +227,18 @@ def visits_of(datasets: Sequence, history_lens: Sequence[int]) -> Counter:
             counts.update(hash_state(renderer, k, r.mission, format_history(r), r.observation)
                           for r, renderer in zip(records, renderers))
     return counts
+
+
+def visit_balance(actions: Sequence[str], weights, balance: float):
+    """Per state, the factor that brings each top action's share of the visits `weights` (states in
+    the order of `actions`) to that share to the power 1 - balance (`balanced_quotas`' shares, over
+    visits rather than distinct states): an action's states all get its total visits ** -balance."""
+    import numpy as np
+
+    totals: dict[str, float] = {}
+    for a, w in zip(actions, weights):
+        totals[a] = totals.get(a, 0.0) + float(w)
+    return np.array([totals[a] ** -balance for a in actions], dtype=np.float64)
 
 
 def top_action(lesson: Lesson) -> str:

@@ -79,7 +79,8 @@ class DistilConfig:
     cache to the power 1 - balance (0: as the cache holds them; 1: equal shares). An action with fewer distinct
     states than its share has them repeated: in BabyAI the states that call for pick up or toggle are few as
     texts but frequent in play (of the 4,060 distinct states of 12,000 UnlockLocal steps of the bot, 120 call
-    for pick up, though the bot picks up in 9% of its steps). Held-out states keep the cache's shares."""
+    for pick up, though the bot picks up in 9% of its steps). With --visits, the shares are of the visits
+    instead, each action's states drawn in proportion to their visits. Held-out states keep the cache's shares."""
     visits: list[Path] = field(default_factory=list)
     """Trajectory datasets (`illm collect`) that weight the lessons: --states lessons drawn (with replacement,
     seeded by --seed) in proportion to how often each state is visited there, so the student learns the states
@@ -133,8 +134,6 @@ class DistilConfig:
         if self.dtype not in DTYPES:
             raise UsageError(f"--dtype must be float32 or bfloat16, got {self.dtype!r}")
         self.visits = [Path(v) for v in self.visits]
-        if self.visits and self.balance:
-            raise UsageError("--visits and --balance are two ways to weight the lessons: pass one of them")
         check_device(self.device)
         check_folder(self.out, "--out")
         if self.out.resolve() == self.cache.resolve():
