@@ -15,7 +15,7 @@
 #   HELD_OUT (200), EPOCHS (1), MAX_TOKENS (256), RANK (16), LAYERS (15: adapters in the top 15 of 30 blocks),
 #   LR (1e-3), LESSONS (visits: drawn as often as the collected trajectories visit their states, the top actions'
 #   shares of the visits evened by BALANCE; balance: each distinct state once, the rare actions' states repeated
-#   toward equal shares by BALANCE; see `illm distil --help`), BALANCE (0.5), DTYPE (float32),
+#   toward equal shares by BALANCE; see `illm distil --help`), BALANCE (visits 0, balance 0.75), DTYPE (float32),
 #   PROBE_STATES (400), PROBES (probe files: OUT/probes), BASE_PROBES (1: probe the base model too).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -32,7 +32,7 @@ RANK=${RANK:-16}
 LAYERS=${LAYERS:-15}
 LR=${LR:-1e-3}
 LESSONS=${LESSONS:-visits}
-BALANCE=${BALANCE:-0.5}
+BALANCE=${BALANCE:-$([ "$LESSONS" = balance ] && echo 0.75 || echo 0)}
 DTYPE=${DTYPE:-float32}
 PROBE_STATES=${PROBE_STATES:-400}
 PROBES=${PROBES:-$OUT/probes}
