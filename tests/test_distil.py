@@ -148,6 +148,35 @@ def test_the_training_forward_is_the_annotators_scoring(tiny_folder, oracle_cach
     assert float(tiny_lm.model.model.layers[0].mlp.up_proj.weight.grad.abs().sum()) > 0
 
 
+def test_the_argmax_target_is_the_cross_entropy_of_the_teachers_top_action(tiny_folder, oracle_cache, tmp_path):
+    """--ranking-target argmax: the ranking loss is -log p_student(teacher's top candidate), the
+    texts' loss unchanged, and the KL reported beside it the same as under the distribution target."""
+    import torch
+
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.distil.lessons import COLUMNS, lessons_of, tokenise
+    from illm_tools.distil.loss import _continuation_sums, lesson_loss
+    from illm_tools.distil.run import DistilConfig
+    from illm_tools.llm.loading import load_model
+    from illm_tools.llm.scoring import extend
+
+    lm = load_model(str(tiny_folder), dtype="float32", cache_dir=tmp_path)
+    rows = AnnotationCache(oracle_cache).table(COLUMNS).to_pylist()
+    examples = [tokenise(lm, lesson) for lesson in lessons_of(rows, ("action", "summary"))[:6]]
+    soft = lesson_loss(lm, examples, text_weight=0.5)
+    hard = lesson_loss(lm, examples, text_weight=0.5, ranking_target="argmax")
+    assert hard.ranking_kl == pytest.approx(soft.ranking_kl) and hard.text_nll == pytest.approx(soft.text_nll)
+    shared = extend(lm, [list(e.shared) for e in examples])
+    branches = [e.branches[0] for e in examples]
+    sums = _continuation_sums(lm, extend(lm, [list(b.suffix) for b in branches], past=shared), branches, False)
+    cross_entropy = torch.stack([-torch.log_softmax(s, 0)[b.best] for s, b in zip(sums, branches)]).mean()
+    assert float(hard.loss) == pytest.approx(float(cross_entropy) + 0.5 * hard.text_nll, rel=1e-4)
+    assert float(soft.loss) == pytest.approx(soft.ranking_kl + 0.5 * soft.text_nll, rel=1e-4)
+    config = DistilConfig(cache=oracle_cache, out=tmp_path / "s", student=tiny_folder, ranking_target="argmax")
+    assert config.settings()["ranking_target"] == "argmax"
+    assert "ranking_target" not in DistilConfig(cache=oracle_cache, out=tmp_path / "s", student=tiny_folder).settings()
+
+
 def test_an_interrupted_distillation_resumes_to_the_same_student(oracle_cache, tiny_folder, tmp_path):
     from safetensors.torch import load_file
 
@@ -364,6 +393,7 @@ def test_bad_inputs_get_one_line(oracle_cache, tiny_folder, tmp_path):
     _refused([str(oracle_cache), *student, "--layers", "99"], out, "--layers 99 is more than", "transformer blocks")
     _refused([str(oracle_cache), *student, "--layers", "0"], out, "--layers must be positive")
     _refused([str(oracle_cache), *student, "--balance", "2"], out, "--balance must be between 0 and 1")
+    _refused([str(oracle_cache), *student, "--ranking-target", "top"], out, "--ranking-target must be")
     _refused([str(oracle_cache), *student, "--visits", str(tmp_path / "nowhere")], out, "nowhere")
     assert not out.exists()
     out.mkdir()

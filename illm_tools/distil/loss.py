@@ -7,12 +7,14 @@ part once, then each task's branch, the rest of its prompt and what is scored af
 - ranking task (`action`): the student's summed log-probability of each candidate, as the
   annotator sums it; its distribution over the candidates is their softmax (the `sum`
   calibration, the paper's), and the loss is KL(teacher || student), the teacher's distribution
-  being the softmax of its own sums (for the oracle: softmax(-2 * steps left)). The student
-  agrees with the teacher where its top candidate is the teacher's.
+  being the softmax of its own sums (for the oracle: softmax(-2 * steps left)); with
+  `ranking_target="argmax"`, the cross-entropy of the teacher's top candidate instead (the one-hot
+  target of the paper's Algorithm 1 for f^a: the runner-up earns nothing). The student agrees with
+  the teacher where its top candidate is the teacher's.
 - text task (`summary`, ...): the mean negative log-likelihood per token of the teacher's text and
   the end-of-text token after it (teacher forcing).
 
-loss = KL (mean over states) + `text_weight` * NLL (mean over the states' texts).
+loss = KL or cross-entropy (mean over states) + `text_weight` * NLL (mean over the states' texts).
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from dataclasses import dataclass, field
 
 from illm_tools.distil.lessons import Example
 
+RANKING_TARGETS = ("distribution", "argmax")
+
 
 @dataclass
 class BatchResult:
@@ -30,7 +34,7 @@ class BatchResult:
     loss: object
     """Scalar tensor (with its graph while training)."""
     ranking_kl: float = 0.0
-    """Mean KL(teacher || student) over the batch's ranked states, nats."""
+    """Mean KL(teacher || student) over the batch's ranked states, nats (whatever the ranking target)."""
     text_nll: float = 0.0
     """Mean negative log-likelihood per token of the teacher's texts, nats."""
     agree: int = 0
@@ -42,9 +46,11 @@ class BatchResult:
     student_best: list[int] = field(default_factory=list)
 
 
-def lesson_loss(lm, batch: Sequence[Example], *, text_weight: float = 1.0, grad: bool = False) -> BatchResult:
+def lesson_loss(lm, batch: Sequence[Example], *, text_weight: float = 1.0, grad: bool = False,
+                ranking_target: str = "distribution") -> BatchResult:
     """The loss of `batch` for the student `lm` (a `LoadedModel`, its `model` possibly wrapped with
-    adapters); `grad`: keep the graph for a backward pass."""
+    adapters); `grad`: keep the graph for a backward pass; `ranking_target`: distribution (KL from
+    the teacher's) or argmax (cross-entropy of its top candidate)."""
     import torch
 
     from illm_tools.llm.scoring import extend
@@ -52,7 +58,7 @@ def lesson_loss(lm, batch: Sequence[Example], *, text_weight: float = 1.0, grad:
     shared = None
     if all(e.shared for e in batch):
         shared = extend(lm, [list(e.shared) for e in batch], grad=grad)
-    kl_terms, nll_terms = [], []
+    kl_terms, rank_terms, nll_terms = [], [], []
     out = BatchResult(loss=None, tokens=sum(e.tokens for e in batch))
     tasks = list(dict.fromkeys(b.task for e in batch for b in e.branches))
     for task in tasks:
@@ -69,6 +75,7 @@ def lesson_loss(lm, batch: Sequence[Example], *, text_weight: float = 1.0, grad:
                 teacher = torch.log_softmax(torch.tensor(b.teacher_logprobs, dtype=student.dtype,
                                                          device=student.device), dim=0)
                 kl_terms.append(torch.sum(teacher.exp() * (teacher - student)))
+                rank_terms.append(kl_terms[-1] if ranking_target == "distribution" else -student[b.best])
                 top = int(torch.argmax(s.detach()))
                 out.student_best.append(top)
                 out.agree += int(top == b.best)
@@ -80,8 +87,9 @@ def lesson_loss(lm, batch: Sequence[Example], *, text_weight: float = 1.0, grad:
                 out.texts += 1
     zero = torch.zeros((), device=lm.device)
     kl = torch.stack(kl_terms).mean() if kl_terms else zero
+    ranking = torch.stack(rank_terms).mean() if rank_terms else zero
     nll = torch.stack(nll_terms).mean() if nll_terms else zero
-    out.loss = kl + text_weight * nll
+    out.loss = ranking + text_weight * nll
     out.ranking_kl, out.text_nll = float(kl.detach()), float(nll.detach())
     return out
 

@@ -39,6 +39,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from illm_tools import durable
+from illm_tools.distil.loss import RANKING_TARGETS
 from illm_tools.errors import UsageError
 from illm_tools.tasks.registry import DEFAULT_TASKS
 
@@ -102,6 +103,11 @@ class DistilConfig:
     layers: int | None = None
     """Adapters (or, at rank 0, trained weights) in the top N transformer blocks only: the backward pass stops
     below them (on 2 CPU cores the top half of SmolLM2's 30 blocks makes a step 1.6x faster); default every block."""
+    ranking_target: str = "distribution"
+    """What the ranking is taught from: distribution (KL from the teacher's distribution over the valid actions)
+    or argmax (cross-entropy of the teacher's top action, the one-hot target of the paper's Algorithm 1 for f^a:
+    the teacher's runner-up earns nothing, so a student that tells two actions apart weakly is not pulled to
+    the runner-up). Held-out figures are the same either way (agreement, KL)."""
     text_weight: float = 1.0
     """Weight of the text tasks' loss (per-token NLL of the teacher's texts) beside the ranking loss (KL from
     the teacher's distribution over the valid actions)."""
@@ -131,6 +137,8 @@ class DistilConfig:
         if not any(get_task(t).kind == "ranking" for t in self.tasks):
             raise UsageError(f"--tasks {','.join(self.tasks)} has no ranking task: add action (the student learns "
                              "to rank the valid actions)")
+        if self.ranking_target not in RANKING_TARGETS:
+            raise UsageError(f"--ranking-target must be distribution or argmax, got {self.ranking_target!r}")
         if self.dtype not in DTYPES:
             raise UsageError(f"--dtype must be float32 or bfloat16, got {self.dtype!r}")
         self.visits = [Path(v) for v in self.visits]
@@ -144,7 +152,8 @@ class DistilConfig:
         """What decides the student beside the lessons (checked when a run resumes)."""
         keep = ("student", "states", "held_out", "max_tokens", "epochs", "batch_size", "learning_rate", "rank",
                 "text_weight", "seed", "dtype")
-        later = {k: getattr(self, k) for k, unset in (("layers", None), ("balance", 0.0)) if getattr(self, k) != unset}
+        later = {k: getattr(self, k) for k, unset in (("layers", None), ("balance", 0.0),
+                                                      ("ranking_target", "distribution")) if getattr(self, k) != unset}
         if self.visits:
             later["visits"] = [str(v) for v in self.visits]
         return {"version": SETTINGS_VERSION, **{k: getattr(self, k) for k in keep}, **later}  # unset: as before them

@@ -98,7 +98,8 @@ def _train(lm, examples, config, checkpoints: Path, say, should_stop) -> Trained
     class LessonTrainer(Trainer):
         def compute_loss(self, model, inputs, return_outputs=False, num_items_in_batch=None):
             batch = [examples[i] for i in inputs["index"].tolist()]
-            r = lesson_loss(replace(student, model=model), batch, text_weight=config.text_weight, grad=True)
+            r = lesson_loss(replace(student, model=model), batch, text_weight=config.text_weight, grad=True,
+                            ranking_target=config.ranking_target)
             figures["tokens"] += r.tokens
             figures["kl"] += r.ranking_kl
             figures["nll"] += r.text_nll
