@@ -42,6 +42,13 @@ def register(app: typer.Typer) -> None:
             redraw_report(config.runs[0])
             typer.echo(f"report redrawn in {config.runs[0] / 'report.md'} (figures beside it)")
             return
+        if config.merge:
+            from illm_tools.report.build import merge_reports
+
+            merge_reports(list(config.runs), config.out)
+            typer.echo(f"report written to {config.out / 'report.md'} from {len(config.runs)} reports (figures and "
+                       "results.json beside it)")
+            return
         runs, every, out = config.run_folders(), config.every, config.out
         groups = summarise(list(runs), every)
         if out is not None:

@@ -283,6 +283,57 @@ def test_redraw_draws_an_old_report_again_from_its_results_json(tmp_path):
     assert result.exit_code != 0 and "no results.json" in result.output
 
 
+def test_merge_joins_the_reports_of_a_grid_run_in_parts(tmp_path):
+    """`illm report PART1 PART2 --merge --out DIR`: the parts' runs are gone; the joined report has
+    every part's rows and the aggregate over all their envs that one report of all the runs has;
+    parts reported otherwise, an env in two parts or one folder alone are refused in one line."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    def report(args):
+        return CliRunner().invoke(app, ["report", *map(str, args)])
+
+    envs = ("BabyAI-GoToLocal-v0", "BabyAI-UnlockLocal-v0")
+    runs = {env: [] for env in envs}
+    for k, env in enumerate(envs):
+        for seed in range(3):
+            for mode, final in (("ppo", 0.2 + 0.1 * seed), ("illm", 0.5 + 0.1 * seed + 0.1 * k)):
+                runs[env].append(tmp_path / f"{env}-{mode}-{seed}")
+                fake_run(runs[env][-1], seed, [(100, final / 2, 1), (200, final, 1)], mode=mode, env_id=env)
+    flags = ["--every", "100", "--bootstrap", "200"]
+    assert report([*runs[envs[0]], *runs[envs[1]], *flags, "--out", tmp_path / "whole"]).exit_code == 0
+    for k, env in enumerate(envs):
+        assert report([*runs[env], *flags, "--out", tmp_path / f"part{k}"]).exit_code == 0
+    assert report([*runs[envs[0]], "--every", "50", "--out", tmp_path / "other"]).exit_code == 0
+    for env_runs in runs.values():
+        for run in env_runs:
+            for f in run.iterdir():
+                f.unlink()
+            run.rmdir()
+
+    result = report([tmp_path / "part0", tmp_path / "part1", "--merge", "--out", tmp_path / "joined"])
+    assert result.exit_code == 0, result.output
+    whole = json.loads((tmp_path / "whole" / "results.json").read_text())
+    joined = json.loads((tmp_path / "joined" / "results.json").read_text())
+    assert joined["envs"] == list(envs) and len(joined["rows"]) == 4
+    assert [r["final"] for r in joined["rows"]] == [r["final"] for r in whole["rows"]]
+    assert joined["aggregate"] is not None and joined["aggregate"] == whole["aggregate"]
+    assert [p["folder"] for p in joined["settings"]["parts"]] == [str(tmp_path / "part0"), str(tmp_path / "part1")]
+    text = (tmp_path / "joined" / "report.md").read_text()
+    assert "IQM over 2 levels" in text and "| illm |" in text
+    assert (tmp_path / "joined" / "final.png").read_bytes()[:8] == PNG
+
+    for args, message in (([tmp_path / "part0", tmp_path / "other"], "other every"),
+                          ([tmp_path / "part0", tmp_path / "part0"], "in two of the parts"),
+                          ([tmp_path / "part0"], "two or more report folders"),
+                          ([tmp_path / "part0", tmp_path / "nowhere"], "no results.json")):
+        result = report([*args, "--merge", "--out", tmp_path / "refused"])
+        assert result.exit_code != 0 and message in result.output, result.output
+        assert len(result.output.strip().splitlines()) == 1 and "Traceback" not in result.output
+    assert not (tmp_path / "refused").exists()
+
+
 @pytest.mark.slow
 def test_a_suite_report_aggregates_over_levels_and_shows_why_the_bonus_helps_or_hurts(tmp_path):
     """Over levels: rliable's IQM of all runs and the probability of improvement over ppo; per level:

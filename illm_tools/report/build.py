@@ -58,6 +58,11 @@ class ReportConfig:
     redraw: bool = False
     """Draw a report folder's figures and report.md again from its results.json (the runs may be gone;
     heatmaps are kept): `illm report docs/results/table1 --redraw`."""
+    merge: bool = False
+    """Join report folders (each written by `illm report --out`, the runs may be gone) into the --out folder:
+    a grid run in parts, one report per part, read as one: every part's rows, heatmaps and diagnostics, and the
+    aggregate over all their envs (`illm report docs/results/part1 docs/results/part2 --merge --out DIR`). The
+    parts must share --every, --final-points and --bootstrap, and no env may be in two of them."""
 
     def __post_init__(self) -> None:
         from illm_tools.settings import check_numbers
@@ -70,6 +75,13 @@ class ReportConfig:
                 raise UsageError("--redraw takes one report folder and no --out or --probe: `illm report DIR --redraw`")
             if self.runs[0].exists() and not self.runs[0].is_dir():
                 raise UsageError(f"{self.runs[0]} is a file: --redraw takes a folder `illm report --out` wrote")
+            return
+        if self.merge:
+            if len(self.runs) < 2 or self.out is None or self.probe:
+                raise UsageError("--merge takes two or more report folders and --out, no --probe: "
+                                 "`illm report PART1 PART2 --merge --out DIR`")
+            if self.out.exists() and not self.out.is_dir():
+                raise UsageError(f"--out {self.out} is a file: pass a folder for the report")
             return
         check_numbers(self, positive=("every", "final_points", "bootstrap"))
         if self.out is not None and self.out.exists() and not self.out.is_dir():
@@ -262,6 +274,60 @@ def _write(out: Path, settings: dict, envs: list[str], rows: list[dict], quality
     durable.write_text(out / "report.md", render(results))
     durable.write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
     return results
+
+
+def merge_reports(parts: list[Path], out: Path) -> dict:
+    """Write the report folder `out` from the report folders `parts` (`ReportConfig.merge`): their rows
+    as they are, the heatmaps copied beside them, the aggregate over every env computed afresh with the
+    parts' bootstrap settings. Hand-written rather than re-reading the runs: a grid run in parts over
+    several sessions keeps its reports, not always its runs."""
+    import shutil
+
+    out = Path(out)
+    loaded = []
+    for part in map(Path, parts):
+        try:
+            results = json.loads((part / "results.json").read_text())
+            loaded.append((part, results["settings"], results["envs"], results["rows"]))
+        except FileNotFoundError:
+            raise UsageError(f"no results.json in {part}: --merge takes report folders written by "
+                             "`illm report --out`") from None
+        except (ValueError, KeyError, TypeError):
+            raise UsageError(f"{part / 'results.json'} is damaged: write that part's report again from its runs "
+                             "(`illm report RUNS --out DIR`)") from None
+    keys = ("every", "final_points", "bootstrap_reps", "bootstrap_seed")
+    first = loaded[0][1]
+    for part, settings, _, _ in loaded[1:]:
+        differ = [k for k in keys if settings.get(k) != first.get(k)]
+        if differ:
+            raise UsageError(f"{part} was reported with other {', '.join(differ)} than {loaded[0][0]}: write the "
+                             f"parts' reports again with the same --every, --final-points and --bootstrap")
+    envs: list[str] = []
+    for part, _, part_envs, _ in loaded:
+        twice = [e for e in part_envs if e in envs]
+        if twice:
+            raise UsageError(f"{twice[0]} is in two of the parts ({part} and an earlier one): report each env in one "
+                             "part, or report its runs together")
+        envs += part_envs
+    if any(out.resolve() == part.resolve() for part, *_ in loaded):
+        raise UsageError("--out is one of the parts: pass a new folder for the joined report")
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for part, _, _, part_rows in loaded:
+        for row in part_rows:
+            for name in ("visitation", "bonus_map"):
+                if row.get(name):
+                    if (part / row[name]["png"]).is_file():
+                        shutil.copyfile(part / row[name]["png"], out / row[name]["png"])
+                    else:
+                        row[name] = None
+            rows.append(row)
+    settings = {**{k: first[k] for k in keys}, "code": provenance.code(), "command": provenance.command(),
+                "confidence": first.get("confidence", stats.CONFIDENCE), "interval": first.get("interval"),
+                "parts": [{"folder": str(part), "command": s.get("command"), "code": s.get("code")}
+                          for part, s, _, _ in loaded]}
+    return _write(out, settings, envs, rows, None,
+                  aggregate(rows, envs, first["bootstrap_reps"], first["bootstrap_seed"]))
 
 
 def _number(text: str):
