@@ -276,6 +276,21 @@ def _write(out: Path, settings: dict, envs: list[str], rows: list[dict], quality
     return results
 
 
+def read_results(folder: Path, what: str) -> dict:
+    """A report folder's results.json (rows, envs and settings there); missing or damaged, one line
+    (`what`: the option's need, "--redraw takes a report folder")."""
+    try:
+        results = json.loads((Path(folder) / "results.json").read_text())
+        if not all(isinstance(results.get(k), t) for k, t in (("rows", list), ("envs", list), ("settings", dict))):
+            raise ValueError("rows, envs or settings missing")
+        return results
+    except FileNotFoundError:
+        raise UsageError(f"no results.json in {folder}: {what} written by `illm report --out`") from None
+    except (ValueError, TypeError, AttributeError):
+        raise UsageError(f"{Path(folder) / 'results.json'} is damaged: write the report again from its runs "
+                         "(`illm report RUNS --out DIR`)") from None
+
+
 def merge_reports(parts: list[Path], out: Path) -> dict:
     """Write the report folder `out` from the report folders `parts` (`ReportConfig.merge`): their rows
     as they are, the heatmaps copied beside them, the aggregate over every env computed afresh with the
@@ -286,15 +301,8 @@ def merge_reports(parts: list[Path], out: Path) -> dict:
     out = Path(out)
     loaded = []
     for part in map(Path, parts):
-        try:
-            results = json.loads((part / "results.json").read_text())
-            loaded.append((part, results["settings"], results["envs"], results["rows"]))
-        except FileNotFoundError:
-            raise UsageError(f"no results.json in {part}: --merge takes report folders written by "
-                             "`illm report --out`") from None
-        except (ValueError, KeyError, TypeError):
-            raise UsageError(f"{part / 'results.json'} is damaged: write that part's report again from its runs "
-                             "(`illm report RUNS --out DIR`)") from None
+        results = read_results(part, "--merge takes report folders")
+        loaded.append((part, results["settings"], results["envs"], results["rows"]))
     keys = ("every", "final_points", "bootstrap_reps", "bootstrap_seed")
     first = loaded[0][1]
     for part, settings, _, _ in loaded[1:]:
@@ -349,15 +357,8 @@ def redraw_report(folder: str | Path) -> dict:
     are gone. Visitation heatmaps need the runs' counts and are kept as they are. A row of an older
     report without its settings gets them from its label ("illm (num_dists 16)")."""
     folder = Path(folder)
-    try:
-        results = json.loads((folder / "results.json").read_text())
-        rows, envs, settings = results["rows"], results["envs"], results["settings"]
-    except FileNotFoundError:
-        raise UsageError(f"no results.json in {folder}: --redraw takes a report folder written by "
-                         "`illm report --out`") from None
-    except (ValueError, KeyError, TypeError):
-        raise UsageError(f"{folder / 'results.json'} is damaged: write the report again from its runs "
-                         "(`illm report RUNS --out DIR`)") from None
+    results = read_results(folder, "--redraw takes a report folder")
+    rows, envs, settings = results["rows"], results["envs"], results["settings"]
     for row in rows:
         if row.get("settings") is None:
             parsed = _LABEL.match(row["label"])
