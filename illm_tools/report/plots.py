@@ -180,7 +180,9 @@ def visitation_png(grids: list[np.ndarray], path: Path, title: str) -> Path:
 
 def bonus_png(visits: list[np.ndarray], paid: list[np.ndarray], path: Path, title: str) -> Path:
     """Where the bonus was paid: the seeds' bonus summed per cell over their visits summed (the bonus
-    paid per visit of a cell; cells never visited left blank), linear colours."""
+    paid per visit of a cell; cells never visited left blank), linear colours from 0 (or the lowest
+    value, where a bonus is negative): a scale fitted to the cells' own range would paint a nearly even
+    bonus (0.0030 to 0.0032) as black against white."""
     plt = _pyplot()
     from mpl_toolkits.axes_grid1 import make_axes_locatable
 
@@ -192,7 +194,8 @@ def bonus_png(visits: list[np.ndarray], paid: list[np.ndarray], path: Path, titl
     per_visit = np.ma.masked_where(count <= 0, total / np.maximum(count, 1))
     h, w = count.shape if count.size else (1, 1)
     fig, ax = plt.subplots(figsize=(4.5, min(6.0, max(1.8, 3.6 * h / max(w, 1) + 0.9))), dpi=100)
-    image = ax.imshow(per_visit, cmap="magma", interpolation="nearest")
+    low = min(0.0, float(per_visit.min())) if per_visit.count() else 0.0
+    image = ax.imshow(per_visit, cmap="magma", interpolation="nearest", vmin=low)
     ax.set_xticks([])
     ax.set_yticks([])
     ax.set_title(title, fontsize=9)
