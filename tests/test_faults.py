@@ -155,10 +155,11 @@ def test_a_damaged_metrics_csv_is_refused_by_report_naming_the_line(tmp_path):
 
 
 def _annotate_cmd(trajectories, cache, model) -> list[str]:
+    """Chunks of 8 states: many shards from a small dataset, so a signal lands with work still to do."""
     import sys
 
     return [sys.executable, "-m", "cli.main", "annotate", str(trajectories), "--cache", str(cache), "--model", model,
-            "--dtype", "float32", "--history", "0", "--batch-size", "2"]
+            "--dtype", "float32", "--history", "0", "--batch-size", "2", "--chunk", "8"]
 
 
 def _wait_for_shards(cache, proc, n: int = 1, timeout: float = 120.0) -> None:
@@ -183,7 +184,7 @@ def test_sigterm_during_annotate_keeps_whole_chunks_and_a_rerun_finishes_the_sam
     from conftest import collect_babyai
     from illm_tools.cache.verify import verify
 
-    trajectories = collect_babyai(tmp_path_factory, steps=400, seed=3, action_space="original")
+    trajectories = collect_babyai(tmp_path_factory, steps=160, seed=3, action_space="original")
     repo = Path(__file__).resolve().parents[1]
     cache = tmp_path / "ann"
     proc = subprocess.Popen(_annotate_cmd(trajectories, cache, tiny_lm.spec.path), cwd=repo,
