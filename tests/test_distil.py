@@ -262,6 +262,43 @@ def test_balanced_quotas_share_the_lessons_between_actions():
     assert balanced_quotas({"a": 5, "b": 0}, 3, 1.0) == {"a": 3, "b": 0}
 
 
+def test_min_share_raises_the_rare_actions_and_keeps_the_common_ones_proportions(oracle_cache, tiny_folder, tmp_path):
+    """--min-share: every top action at least that share of the lessons (or of the --visits draws), the
+    others keeping their proportions to one another, where --balance's power moves them together."""
+    import collections
+
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.distil.lessons import balanced_quotas, floor_shares, lessons_from_plan, top_action, visit_balance
+    from illm_tools.distil.run import DistilConfig, _new_plan
+
+    shares = {"go forward": 0.57, "turn right": 0.21, "turn left": 0.19, "pick up": 0.025, "toggle": 0.005}
+    floored = floor_shares(shares, 0.08)
+    assert floored["pick up"] == floored["toggle"] == 0.08 and abs(sum(floored.values()) - 1) < 1e-12
+    assert abs(floored["go forward"] / floored["turn left"] - 0.57 / 0.19) < 1e-9  # the common ones' ratio kept
+    assert floor_shares(shares, 0.0) == shares and floor_shares({"a": 0.9, "b": 0.1, "c": 0.0}, 0.5) == \
+        {"a": 0.5, "b": 0.5, "c": 0.0}
+    assert floor_shares({"a": 0.7, "b": 0.2, "c": 0.1}, 0.25) == {"a": 0.5, "b": 0.25, "c": 0.25}  # b pushed below too
+    counts = {"go forward": 8000, "turn right": 3000, "turn left": 2800, "pick up": 120, "toggle": 36}
+    quotas = balanced_quotas(counts, 1700, 0.0, min_share=0.08)
+    assert sum(quotas.values()) == 1700 and quotas["pick up"] == quotas["toggle"] == 136
+    assert abs(quotas["go forward"] / quotas["turn left"] - 8000 / 2800) < 0.01
+    powered = balanced_quotas(counts, 1700, 0.75)  # the power evens go forward and turn left as well
+    assert powered["go forward"] / powered["turn left"] < 1.4 < quotas["go forward"] / quotas["turn left"]
+    factors = visit_balance(["a", "b", "a"], [1.0, 2.0, 7.0], 0.0, 0.3)  # a: 8 of 10 visits, b: 2
+    draws = {"a": factors[0] * 1.0 + factors[2] * 7.0, "b": factors[1] * 2.0}
+    assert abs(draws["b"] / (draws["a"] + draws["b"]) - 0.3) < 1e-9 and factors[0] == factors[2]
+
+    cache = AnnotationCache(oracle_cache)
+    traj = oracle_cache.parent / "traj"
+    for visits in ([], [traj]):
+        config = DistilConfig(cache=oracle_cache, out=tmp_path / f"m{len(visits)}", student=tiny_folder, visits=visits,
+                              **{**SMALL, "states": 3000, "min_share": 0.1})
+        plan = _new_plan(cache, config)
+        top = collections.Counter(map(top_action, lessons_from_plan(cache, plan.train)))
+        assert len(top) > 2 and min(top.values()) / 3000 > (0.099 if not visits else 0.08), top
+        assert config.settings()["min_share"] == 0.1
+
+
 def test_balance_teaches_the_rare_actions_more_often(oracle_cache, tiny_folder, tmp_path):
     """--balance: the lessons' top actions nearer equal shares, a rare action's states repeated; the
     held-out states unchanged."""
@@ -393,6 +430,7 @@ def test_bad_inputs_get_one_line(oracle_cache, tiny_folder, tmp_path):
     _refused([str(oracle_cache), *student, "--layers", "99"], out, "--layers 99 is more than", "transformer blocks")
     _refused([str(oracle_cache), *student, "--layers", "0"], out, "--layers must be positive")
     _refused([str(oracle_cache), *student, "--balance", "2"], out, "--balance must be between 0 and 1")
+    _refused([str(oracle_cache), *student, "--min-share", "0.9"], out, "--min-share 0.9 is more than 1 /")
     _refused([str(oracle_cache), *student, "--ranking-target", "top"], out, "--ranking-target must be")
     _refused([str(oracle_cache), *student, "--visits", str(tmp_path / "nowhere")], out, "nowhere")
     assert not out.exists()

@@ -169,7 +169,7 @@ class LessonPlan:
     @classmethod
     def split(cls, teacher: Teacher, tasks: Sequence[str], lessons: Sequence[Lesson], *, held_out: int,
               states: int | None, balance: float = 0.0, visits: Counter | None = None,
-              seed: int = 0) -> LessonPlan:
+              seed: int = 0, min_share: float = 0.0) -> LessonPlan:
         """The first `held_out` lessons (in hash order) held out, then `states` lessons of the rest
         taught:
         - by default the first ones;
@@ -177,7 +177,8 @@ class LessonPlan:
           seeded) in proportion to each state's visits; states never visited are not taught; with
           `balance` > 0 as well, each top action's share of the draws is its share of the visits to
           the power 1 - balance (`visit_balance`), its states keeping their visits' proportions;
-        - with `balance` > 0 each top action's quota (`balanced_quotas`), an action's lessons taken
+          `min_share` > 0 then raises each action's share of the draws to at least that;
+        - with `balance` or `min_share` > 0 each top action's quota (`balanced_quotas`), an action's lessons taken
           in hash order and repeated where its quota is larger than they are (oversampling: its
           distinct states are what the cache has), the whole in the order of a hash of (lesson,
           repeat), so a state's repeats fall in different batches."""
@@ -191,15 +192,15 @@ class LessonPlan:
                 raise UsageError("no state of the cache (held-out ones aside) is visited in the --visits datasets: "
                                  "pass the trajectories the cache was annotated from")
             weights = np.array([visits[lessons[i].state] for i in pool], dtype=np.float64)
-            if balance > 0:
-                weights *= visit_balance([top_action(lessons[i]) for i in pool], weights, balance)
+            if balance > 0 or min_share > 0:
+                weights *= visit_balance([top_action(lessons[i]) for i in pool], weights, balance, min_share)
             drawn = np.random.default_rng(seed).choice(len(pool), size=states or len(pool), p=weights / weights.sum())
             rest = [pool[j] for j in drawn]
-        elif balance > 0 and rest:
+        elif (balance > 0 or min_share > 0) and rest:
             groups: dict[str, list[int]] = {}
             for i in rest:
                 groups.setdefault(top_action(lessons[i]), []).append(i)
-            quotas = balanced_quotas({a: len(g) for a, g in groups.items()}, states or len(rest), balance)
+            quotas = balanced_quotas({a: len(g) for a, g in groups.items()}, states or len(rest), balance, min_share)
             chosen = [(g[n % len(g)], n // len(g)) for a, g in groups.items() for n in range(quotas[a])]
             rest = [i for i, _ in sorted(chosen, key=lambda c: hashlib.sha256(f"{lessons[c[0]].state}/{c[1]}".encode())
                                          .hexdigest())]
@@ -229,16 +230,46 @@ def visits_of(datasets: Sequence, history_lens: Sequence[int]) -> Counter:
     return counts
 
 
-def visit_balance(actions: Sequence[str], weights, balance: float):
+def visit_balance(actions: Sequence[str], weights, balance: float, min_share: float = 0.0):
     """Per state, the factor that brings each top action's share of the visits `weights` (states in
     the order of `actions`) to that share to the power 1 - balance (`balanced_quotas`' shares, over
-    visits rather than distinct states): an action's states all get its total visits ** -balance."""
+    visits rather than distinct states), then to at least `min_share` (`floor_shares`): an action's
+    states all get its total visits ** -balance, times its floored share over its share."""
     import numpy as np
 
     totals: dict[str, float] = {}
     for a, w in zip(actions, weights):
         totals[a] = totals.get(a, 0.0) + float(w)
-    return np.array([totals[a] ** -balance for a in actions], dtype=np.float64)
+    powered = {a: t ** (1.0 - balance) for a, t in totals.items()}
+    whole = sum(powered.values())
+    shares = {a: v / whole for a, v in powered.items()}
+    floored = floor_shares(shares, min_share)
+    return np.array([totals[a] ** -balance * (floored[a] / shares[a] if min_share else 1.0) for a in actions],
+                    dtype=np.float64)
+
+
+def floor_shares(shares: dict[str, float], min_share: float) -> dict[str, float]:
+    """`shares` (summing to 1) with each non-zero one raised to at least `min_share`, the others scaled
+    down together so that they keep their proportions to one another (raising one may take another
+    below the floor: repeated until none is). Unlike --balance's power, which also moves the common
+    actions' shares toward each other (go forward's toward turn left's), a floor changes only the
+    rare ones. Refuses, in one line, a floor that the actions cannot all have."""
+    live = [a for a, v in shares.items() if v > 0]
+    if min_share <= 0 or not live:
+        return dict(shares)
+    if min_share * len(live) > 1 + 1e-9:
+        raise UsageError(f"--min-share {min_share} is more than 1 / {len(live)} (the number of the teacher's top "
+                         f"actions among the lessons): pass at most {1 / len(live):.3f}")
+    floored: set[str] = set()
+    while True:
+        free = [a for a in live if a not in floored]
+        left = 1.0 - min_share * len(floored)
+        rest = sum(shares[a] for a in free)
+        out = {a: (min_share if a in floored else left * shares[a] / rest if rest else 0.0) for a in live}
+        low = [a for a in free if out[a] < min_share]
+        if not low:
+            return {a: out.get(a, 0.0) for a in shares}
+        floored.update(low)
 
 
 def top_action(lesson: Lesson) -> str:
@@ -247,16 +278,17 @@ def top_action(lesson: Lesson) -> str:
     return ranking.candidates[ranking.best]
 
 
-def balanced_quotas(counts: dict[str, int], total: int, balance: float) -> dict[str, int]:
+def balanced_quotas(counts: dict[str, int], total: int, balance: float, min_share: float = 0.0) -> dict[str, int]:
     """How many of `total` lessons each group gets: shares in proportion to count ** (1 - balance)
-    (0: the groups' own shares; 1: equal), a group's quota possibly more than its count (its
-    lessons are then repeated); whole numbers summing to `total`, largest remainders first, a
-    group with no lesson getting none."""
+    (0: the groups' own shares; 1: equal), each then at least `min_share` (`floor_shares`), a group's
+    quota possibly more than its count (its lessons are then repeated); whole numbers summing to
+    `total`, largest remainders first, a group with no lesson getting none."""
     weights = {a: n ** (1.0 - balance) if n else 0.0 for a, n in counts.items()}
     whole = sum(weights.values())
     if not whole:
         return {a: 0 for a in counts}
-    shares = {a: total * w / whole for a, w in weights.items()}
+    floored = floor_shares({a: w / whole for a, w in weights.items()}, min_share)
+    shares = {a: total * v for a, v in floored.items()}
     quotas = {a: int(v) for a, v in shares.items()}
     for a in sorted(shares, key=lambda a: (-(shares[a] - quotas[a]), a))[:total - sum(quotas.values())]:
         quotas[a] += 1

@@ -82,6 +82,11 @@ class DistilConfig:
     texts but frequent in play (of the 4,060 distinct states of 12,000 UnlockLocal steps of the bot, 120 call
     for pick up, though the bot picks up in 9% of its steps). With --visits, the shares are of the visits
     instead, each action's states drawn in proportion to their visits. Held-out states keep the cache's shares."""
+    min_share: float = 0.0
+    """Each top action's share of the lessons at least this (after --balance; with --visits, of the draws), the
+    other actions keeping their proportions to one another, a rare action's states repeated to fill its share.
+    --balance's power also moves the common actions' shares toward each other (go forward's toward turn left's,
+    the teacher's runner-up in most go-forward states); a floor (e.g. 0.08) raises only the rare ones. 0: none."""
     visits: list[Path] = field(default_factory=list)
     """Trajectory datasets (`illm collect`) that weight the lessons: --states lessons drawn (with replacement,
     seeded by --seed) in proportion to how often each state is visited there, so the student learns the states
@@ -132,7 +137,7 @@ class DistilConfig:
         self.cache, self.out = Path(self.cache), Path(self.out)
         check_numbers(self, positive=("states", "max_tokens", "epochs", "batch_size", "learning_rate", "save_every",
                                       "max_minutes", "layers"),
-                      non_negative=("held_out", "rank", "text_weight", "seed"), unit=("balance",))
+                      non_negative=("held_out", "rank", "text_weight", "seed"), unit=("balance", "min_share"))
         self.tasks = parse_tasks(self.tasks)
         if not any(get_task(t).kind == "ranking" for t in self.tasks):
             raise UsageError(f"--tasks {','.join(self.tasks)} has no ranking task: add action (the student learns "
@@ -153,7 +158,7 @@ class DistilConfig:
         keep = ("student", "states", "held_out", "max_tokens", "epochs", "batch_size", "learning_rate", "rank",
                 "text_weight", "seed", "dtype")
         later = {k: getattr(self, k) for k, unset in (("layers", None), ("balance", 0.0),
-                                                      ("ranking_target", "distribution")) if getattr(self, k) != unset}
+                                                      ("min_share", 0.0), ("ranking_target", "distribution")) if getattr(self, k) != unset}
         if self.visits:
             later["visits"] = [str(v) for v in self.visits]
         return {"version": SETTINGS_VERSION, **{k: getattr(self, k) for k in keep}, **later}  # unset: as before them
@@ -365,7 +370,7 @@ def _new_plan(cache, config: DistilConfig):
         raise UsageError(f"the cache {cache.root} holds {len(lessons):,} states of {teacher.model}, not more than "
                          f"--held-out {config.held_out}: annotate more states, or hold out fewer")
     return LessonPlan.split(teacher, config.tasks, lessons, held_out=config.held_out, states=config.states,
-                            balance=config.balance, visits=visits, seed=config.seed)
+                            balance=config.balance, visits=visits, seed=config.seed, min_share=config.min_share)
 
 
 def _examples(lm, cache, plan, max_tokens: int):
