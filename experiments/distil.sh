@@ -16,7 +16,8 @@
 #   LR (1e-3), LESSONS (visits: drawn as often as the collected trajectories visit their states, the top actions'
 #   shares of the visits evened by BALANCE; balance: each distinct state once, the rare actions' states repeated
 #   toward equal shares by BALANCE; see `illm distil --help`), BALANCE (visits 0, balance 0.75), MIN_SHARE (0: each
-#   top action at least this share of the lessons, the others keeping their proportions), TARGET (the
+#   top action at least this share of the lessons, the others keeping their proportions), SEED (0: the adapters'
+#   initialisation and the lessons' order), TARGET (the
 #   ranking's: distribution, or argmax: the teacher's top action only), DTYPE (float32),
 #   PROBE_STATES (400), PROBES (probe files: OUT/probes), BASE_PROBES (1: probe the base model too).
 set -euo pipefail
@@ -36,6 +37,7 @@ LR=${LR:-1e-3}
 LESSONS=${LESSONS:-visits}
 BALANCE=${BALANCE:-$([ "$LESSONS" = balance ] && echo 0.75 || echo 0)}
 MIN_SHARE=${MIN_SHARE:-0}
+SEED=${SEED:-0}
 TARGET=${TARGET:-distribution}
 DTYPE=${DTYPE:-float32}
 PROBE_STATES=${PROBE_STATES:-400}
@@ -57,7 +59,7 @@ done
 weighting=(--balance "$BALANCE" --min-share "$MIN_SHARE")  # LESSONS=balance: the rare actions' states repeated
 [ "$LESSONS" = visits ] && weighting+=($(for d in "$DATA"/traj-*; do echo --visits "$d"; done))
 time "$ILLM" distil "$DATA/ann-oracle" --student smollm2-135m --out "$OUT" --states "$STATES" --held-out "$HELD_OUT" \
-    --epochs "$EPOCHS" --max-tokens "$MAX_TOKENS" --rank "$RANK" --layers "$LAYERS" "${weighting[@]}" --learning-rate "$LR" --ranking-target "$TARGET" --dtype "$DTYPE"
+    --epochs "$EPOCHS" --max-tokens "$MAX_TOKENS" --rank "$RANK" --layers "$LAYERS" "${weighting[@]}" --learning-rate "$LR" --ranking-target "$TARGET" --seed "$SEED" --dtype "$DTYPE"
 
 mkdir -p "$PROBES"
 models=("$OUT")
