@@ -244,8 +244,7 @@ def visit_balance(actions: Sequence[str], weights, balance: float, min_share: fl
     whole = sum(powered.values())
     shares = {a: v / whole for a, v in powered.items()}
     floored = floor_shares(shares, min_share)
-    return np.array([totals[a] ** -balance * (floored[a] / shares[a] if min_share else 1.0) for a in actions],
-                    dtype=np.float64)
+    return np.array([totals[a] ** -balance * floored[a] / shares[a] for a in actions], dtype=np.float64)
 
 
 def floor_shares(shares: dict[str, float], min_share: float) -> dict[str, float]:
