@@ -180,7 +180,8 @@ def visitation_png(grids: list[np.ndarray], path: Path, title: str) -> Path:
 
 def bonus_png(visits: list[np.ndarray], paid: list[np.ndarray], path: Path, title: str) -> Path:
     """Where the bonus was paid: the seeds' bonus summed per cell over their visits summed (the bonus
-    paid per visit of a cell; cells never visited left blank), linear colours from 0 (or the lowest
+    paid per visit of a cell; cells never visited in grey: magma's top colour is near white, so blank
+    cells would read as the highest bonus), linear colours from 0 (or the lowest
     value, where a bonus is negative): a scale fitted to the cells' own range would paint a nearly even
     bonus (0.0030 to 0.0032) as black against white."""
     plt = _pyplot()
@@ -195,10 +196,12 @@ def bonus_png(visits: list[np.ndarray], paid: list[np.ndarray], path: Path, titl
     h, w = count.shape if count.size else (1, 1)
     fig, ax = plt.subplots(figsize=(4.5, min(6.0, max(1.8, 3.6 * h / max(w, 1) + 0.9))), dpi=100)
     low = min(0.0, float(per_visit.min())) if per_visit.count() else 0.0
-    image = ax.imshow(per_visit, cmap="magma", interpolation="nearest", vmin=low)
+    cmap = plt.get_cmap("magma").copy()
+    cmap.set_bad("#bdbdbd")
+    image = ax.imshow(per_visit, cmap=cmap, interpolation="nearest", vmin=low)
     ax.set_xticks([])
     ax.set_yticks([])
-    ax.set_title(title, fontsize=9)
+    ax.set_title(f"{title}\n(grey: never visited)", fontsize=9)
     fig.colorbar(image, cax=make_axes_locatable(ax).append_axes("right", size="4%", pad=0.08), label="bonus per visit")
     fig.tight_layout()
     fig.savefig(path)
