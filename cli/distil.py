@@ -67,6 +67,7 @@ def _report(config, result, stop) -> None:
     m = result.machine
     rank = f"LoRA rank {config.rank}, merged" if config.rank else "every weight"
     rank += f", top {config.layers} blocks" if config.layers else ""
+    rank += f", {config.blocks} of its blocks kept" if config.blocks else ""
     typer.echo(f"distilled {result.teacher}'s {','.join(config.tasks)} into {result.out} ({result.base}, {rank}): "
                f"{result.train_states:,} training states, {result.held_out_states:,} held out"
                + (f", {result.left_out_long:,} longer than --max-tokens left out" if result.left_out_long else "")
@@ -81,9 +82,10 @@ def _report(config, result, stop) -> None:
     if s.get("states"):
         texts = (f"; the teacher's texts: {b['text_nll']:.3f} -> {s['text_nll']:.3f} nats/token"
                  if s.get("text_nll") else "")
+        base = "base, its kept blocks" if config.blocks else "base"
         typer.echo(f"held-out states ({s['states']:,}): agreement with the teacher's top action {b['agreement']:.3f} "
-                   f"(base) -> {s['agreement']:.3f} (student); KL from the teacher's distribution {b['ranking_kl']:.3f} "
-                   f"-> {s['ranking_kl']:.3f} nats{texts}")
+                   f"({base}) -> {s['agreement']:.3f} (student); KL from the teacher's distribution "
+                   f"{b['ranking_kl']:.3f} -> {s['ranking_kl']:.3f} nats{texts}")
     typer.echo(f"the student loads with --model {result.out} (fingerprint {result.student_fingerprint[:12]}, its base's "
                f"{result.base_fingerprint[:12]}); wall time {_duration(result.wall_seconds)}; figures in "
                f"{result.out}/distil/report.json")

@@ -13,6 +13,8 @@
 # Environment (defaults: the full-size run, about 30 minutes of fine-tuning on 2 AVX2 cores in float32):
 #   DATA (data/distil), BOT_STEPS (12000 per level), RANDOM_STEPS (1000 per level), STATES (1600 lessons),
 #   HELD_OUT (200), EPOCHS (1), MAX_TOKENS (256), RANK (16), LAYERS (15: adapters in the top 15 of 30 blocks),
+#   BLOCKS (empty: every block; N: the student keeps N of its base's 30 blocks, evenly spaced, LAYERS then
+#   defaulting to N),
 #   LR (1e-3), LESSONS (visits: drawn as often as the collected trajectories visit their states, the top actions'
 #   shares of the visits evened by BALANCE; balance: each distinct state once, the rare actions' states repeated
 #   toward equal shares by BALANCE; see `illm distil --help`), BALANCE (visits 0, balance 0.75), MIN_SHARE (0: each
@@ -32,7 +34,8 @@ HELD_OUT=${HELD_OUT:-200}
 EPOCHS=${EPOCHS:-1}
 MAX_TOKENS=${MAX_TOKENS:-256}
 RANK=${RANK:-16}
-LAYERS=${LAYERS:-15}
+BLOCKS=${BLOCKS:-}
+LAYERS=${LAYERS:-${BLOCKS:-15}}
 LR=${LR:-1e-3}
 LESSONS=${LESSONS:-visits}
 BALANCE=${BALANCE:-$([ "$LESSONS" = balance ] && echo 0.75 || echo 0)}
@@ -56,10 +59,11 @@ for level in UnlockLocal GoToLocal; do
 done
 "$ILLM" cache info "$DATA/ann-oracle"
 
+cut=(); [ -n "$BLOCKS" ] && cut=(--blocks "$BLOCKS")
 weighting=(--balance "$BALANCE" --min-share "$MIN_SHARE")  # LESSONS=balance: the rare actions' states repeated
 [ "$LESSONS" = visits ] && weighting+=($(for d in "$DATA"/traj-*; do echo --visits "$d"; done))
 time "$ILLM" distil "$DATA/ann-oracle" --student smollm2-135m --out "$OUT" --states "$STATES" --held-out "$HELD_OUT" \
-    --epochs "$EPOCHS" --max-tokens "$MAX_TOKENS" --rank "$RANK" --layers "$LAYERS" "${weighting[@]}" --learning-rate "$LR" --ranking-target "$TARGET" --seed "$SEED" --dtype "$DTYPE"
+    --epochs "$EPOCHS" --max-tokens "$MAX_TOKENS" --rank "$RANK" --layers "$LAYERS" "${cut[@]}" "${weighting[@]}" --learning-rate "$LR" --ranking-target "$TARGET" --seed "$SEED" --dtype "$DTYPE"
 
 mkdir -p "$PROBES"
 models=("$OUT")

@@ -51,12 +51,12 @@ def _train_tokenizer(folder, *, add_bos: bool):
     return fast
 
 
-def _tiny_model(folder, vocab: int, kind: str) -> None:
+def _tiny_model(folder, vocab: int, kind: str, layers: int = 2) -> None:
     import torch
     from transformers import AutoModelForCausalLM, Gemma3TextConfig, LlamaConfig
 
     torch.manual_seed(0)
-    common = dict(vocab_size=vocab, hidden_size=64, intermediate_size=128, num_hidden_layers=2,
+    common = dict(vocab_size=vocab, hidden_size=64, intermediate_size=128, num_hidden_layers=layers,
                   num_attention_heads=4, num_key_value_heads=2, max_position_embeddings=1024,
                   bos_token_id=1, eos_token_id=0, pad_token_id=None, tie_word_embeddings=True)
     if kind == "sliding":

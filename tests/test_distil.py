@@ -250,6 +250,60 @@ def test_layers_trains_the_top_blocks_only(oracle_cache, tiny_folder, tmp_path, 
     assert json.loads((out / "distil" / "settings.json").read_text())["layers"] == 1
 
 
+def test_blocks_keeps_evenly_spaced_blocks_and_saves_a_model_of_that_many(oracle_cache, tmp_path):
+    """--blocks N: N of the student's blocks, first and last among them; the cut model is an ordinary
+    N-block model of its class (its logits those of a fresh N-block model given the kept blocks'
+    weights; the annotator's KV-cached scoring works on it), and the saved student has N blocks."""
+    import torch
+    from safetensors.torch import load_file
+    from transformers import AutoConfig, AutoModelForCausalLM
+
+    from conftest import _tiny_model, _train_tokenizer, plain_scores
+    from illm_tools.distil.training import keep_blocks, kept_indices
+    from illm_tools.llm.loading import load_model
+    from illm_tools.llm.scoring import score_candidates
+
+    assert kept_indices(30, 10) == [0, 3, 6, 10, 13, 16, 19, 23, 26, 29] and kept_indices(4, 1) == [0]
+    assert kept_indices(4, 4) == [0, 1, 2, 3]
+    folder = tmp_path / "four-blocks"
+    _tiny_model(folder, len(_train_tokenizer(folder, add_bos=False)), "llama", layers=4)
+    lm = load_model(str(folder), dtype="float32", cache_dir=tmp_path / "cache")
+    base = load_file(folder / "model.safetensors")
+    assert keep_blocks(lm.model, 2) == [0, 3] and lm.model.config.num_hidden_layers == 2
+    assert [block.self_attn.layer_idx for block in lm.model.model.layers] == [0, 1]
+    config = AutoConfig.from_pretrained(folder)
+    config.num_hidden_layers = 2
+    fresh = AutoModelForCausalLM.from_config(config)
+    renamed = {k.replace("layers.3.", "layers.1."): v for k, v in base.items() if "layers.1." not in k
+               and "layers.2." not in k}
+    fresh.load_state_dict(renamed, strict=False)
+    fresh.tie_weights()
+    ids = torch.tensor([lm.encode("You see a red key 1 step forward. go forward")])
+    with torch.inference_mode():
+        assert torch.allclose(lm.model(input_ids=ids).logits, fresh(input_ids=ids).logits, atol=1e-5)
+    context, candidates = "The goal is: open the door. Answer: ", ["turn left", "go forward", "toggle"]
+    got = score_candidates(lm, [context], [candidates])[0]
+    want = [sum(t) for t in plain_scores(lm, context, candidates)]
+    assert got.sums == pytest.approx(want, abs=1e-4)
+
+    out = tmp_path / "two-block-student"
+    result = _distil(oracle_cache, out, str(folder), states=16, blocks=2)
+    assert not result.stopped and json.loads((out / "config.json").read_text())["num_hidden_layers"] == 2
+    assert not any("layers.2." in k for k in load_file(out / "model.safetensors"))
+    assert json.loads((out / "distil" / "settings.json").read_text())["blocks"] == 2
+    assert load_model(str(out), dtype="float32", cache_dir=tmp_path / "cache").model.config.num_hidden_layers == 2
+
+
+def test_blocks_keeps_the_kinds_of_attention_of_the_kept_blocks(tiny_lm_sliding, tmp_path):
+    """Gemma 3's per-block attention kinds (sliding or full) follow the blocks kept."""
+    from illm_tools.distil.training import keep_blocks
+    from illm_tools.llm.loading import load_model
+
+    lm = load_model(str(tiny_lm_sliding.spec.path), dtype="float32", cache_dir=tmp_path)
+    assert keep_blocks(lm.model, 1) == [0]
+    assert lm.model.config.get_text_config().layer_types == ["sliding_attention"]
+
+
 def test_balanced_quotas_share_the_lessons_between_actions():
     from illm_tools.distil.lessons import balanced_quotas
 
@@ -429,6 +483,7 @@ def test_bad_inputs_get_one_line(oracle_cache, tiny_folder, tmp_path):
     _refused([str(oracle_cache), *student, "--dtype", "float16"], out, "--dtype")
     _refused([str(oracle_cache), *student, "--layers", "99"], out, "--layers 99 is more than", "transformer blocks")
     _refused([str(oracle_cache), *student, "--layers", "0"], out, "--layers must be positive")
+    _refused([str(oracle_cache), *student, "--blocks", "99"], out, "--blocks 99 is more than", "transformer blocks")
     _refused([str(oracle_cache), *student, "--balance", "2"], out, "--balance must be between 0 and 1")
     _refused([str(oracle_cache), *student, "--min-share", "0.9"], out, "--min-share 0.9 is more than 1 /")
     _refused([str(oracle_cache), *student, "--ranking-target", "top"], out, "--ranking-target must be")

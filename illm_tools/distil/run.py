@@ -105,6 +105,11 @@ class DistilConfig:
     """AdamW's peak learning rate (linear warm-up over 5% of the steps, then linear decay)."""
     rank: int = 16
     """LoRA rank of the adapters on every linear layer (alpha = 2 x rank); 0: fine-tune every weight."""
+    blocks: int | None = None
+    """Keep N of the student's transformer blocks before fine-tuning, evenly spaced from its first block to its last
+    (the others removed; the saved student has N blocks): a step and every later annotation cost about N / all of
+    the forward pass. The student of a teacher's narrow task needs less depth than its base was given for all of
+    language, and a CPU's half hour affords more lessons through fewer blocks. Default: every block."""
     layers: int | None = None
     """Adapters (or, at rank 0, trained weights) in the top N transformer blocks only: the backward pass stops
     below them (on 2 CPU cores the top half of SmolLM2's 30 blocks makes a step 1.6x faster); default every block."""
@@ -136,7 +141,7 @@ class DistilConfig:
 
         self.cache, self.out = Path(self.cache), Path(self.out)
         check_numbers(self, positive=("states", "max_tokens", "epochs", "batch_size", "learning_rate", "save_every",
-                                      "max_minutes", "layers"),
+                                      "max_minutes", "layers", "blocks"),
                       non_negative=("held_out", "rank", "text_weight", "seed"), unit=("balance", "min_share"))
         self.tasks = parse_tasks(self.tasks)
         if not any(get_task(t).kind == "ranking" for t in self.tasks):
@@ -157,8 +162,9 @@ class DistilConfig:
         """What decides the student beside the lessons (checked when a run resumes)."""
         keep = ("student", "states", "held_out", "max_tokens", "epochs", "batch_size", "learning_rate", "rank",
                 "text_weight", "seed", "dtype")
-        later = {k: getattr(self, k) for k, unset in (("layers", None), ("balance", 0.0),
-                                                      ("min_share", 0.0), ("ranking_target", "distribution")) if getattr(self, k) != unset}
+        unsets = (("layers", None), ("blocks", None), ("balance", 0.0), ("min_share", 0.0),
+                  ("ranking_target", "distribution"))
+        later = {k: getattr(self, k) for k, unset in unsets if getattr(self, k) != unset}
         if self.visits:
             later["visits"] = [str(v) for v in self.visits]
         return {"version": SETTINGS_VERSION, **{k: getattr(self, k) for k in keep}, **later}  # unset: as before them
@@ -256,10 +262,11 @@ def distil(config: DistilConfig, *, on_progress: Progress | None = None,
 
     device = resolve_device(config.device)
     lm = load_model(config.student, dtype="float32", device=device)
-    from illm_tools.distil.training import top_blocks
+    from illm_tools.distil.training import keep_blocks, top_blocks
 
-    top_blocks(lm.model, config.layers)  # more --layers than the student has: refused before anything is written
     settings = {**config.settings(), "student_fingerprint": fingerprint_hash(lm.fingerprint)}
+    keep_blocks(lm.model, config.blocks)  # before anything is measured or trained: the base is the kept blocks
+    top_blocks(lm.model, config.layers)  # more --layers than the student has: refused before anything is written
     _check_settings(work, settings)
     result = DistilResult(str(config.out), plan.teacher, plan.teacher_fingerprint, config.student,
                           fingerprint_hash(lm.fingerprint), machine=_machine(config, device))

@@ -162,18 +162,66 @@ def top_blocks(model, layers: int | None) -> list[tuple[str, object]] | None:
     The blocks are the model's longest `ModuleList` (`model.layers` in Llama-like models,
     `transformer.h` in GPT-2), found by shape rather than by name so that any causal LM of
     transformers works; more layers than it has is refused in one line."""
-    import torch
-
     if layers is None:
         return None
-    lists = [(name, m) for name, m in model.named_modules() if isinstance(m, torch.nn.ModuleList)]
-    if not lists:
-        raise UsageError("--layers needs a model whose transformer blocks are a ModuleList; leave --layers out")
-    name, blocks = max(lists, key=lambda item: len(item[1]))
+    name, blocks = transformer_blocks(model, "--layers")
     if layers > len(blocks):
         raise UsageError(f"--layers {layers} is more than the student's {len(blocks)} transformer blocks: pass at most "
                          f"{len(blocks)}, or leave --layers out (every block)")
     return [(f"{name}.{i}", blocks[i]) for i in range(len(blocks) - layers, len(blocks))]
+
+
+def transformer_blocks(model, option: str):
+    """(qualified name, ModuleList) of `model`'s transformer blocks: its longest `ModuleList`."""
+    import torch
+
+    lists = [(name, m) for name, m in model.named_modules() if isinstance(m, torch.nn.ModuleList)]
+    if not lists:
+        raise UsageError(f"{option} needs a model whose transformer blocks are a ModuleList; leave {option} out")
+    return max(lists, key=lambda item: len(item[1]))
+
+
+def kept_indices(total: int, n: int) -> list[int]:
+    """`n` of `total` block indices, evenly spaced from the first to the last (n = 1: the first).
+
+    The last block is kept because its output is what the final norm and the language-model head were
+    trained to read; the first because it reads the embeddings. DistilBERT initialised its student the
+    same way, from every other block of its teacher."""
+    if n == 1:
+        return [0]
+    return sorted({round(i * (total - 1) / (n - 1)) for i in range(n)})
+
+
+def keep_blocks(model, n: int | None) -> list[int] | None:
+    """Remove all but `n` of `model`'s transformer blocks (`kept_indices`), in place; None keeps every block.
+
+    What indexes the blocks is renumbered so that the model is an ordinary n-block model of its class:
+    the config's `num_hidden_layers` (and `layer_types`, Gemma 3's per-block attention kinds) and each
+    block's `layer_idx`, by which the KV cache files its keys and values. Saved, it loads with
+    `from_pretrained` like any model folder. Returns the indices kept."""
+    import torch
+
+    if n is None:
+        return None
+    name, blocks = transformer_blocks(model, "--blocks")
+    total = len(blocks)
+    if n > total:
+        raise UsageError(f"--blocks {n} is more than the student's {total} transformer blocks: pass at most {total}, "
+                         "or leave --blocks out (every block)")
+    keep = kept_indices(total, n)
+    parent = model.get_submodule(name.rsplit(".", 1)[0]) if "." in name else model
+    setattr(parent, name.rsplit(".", 1)[-1], torch.nn.ModuleList([blocks[i] for i in keep]))
+    for new, block in enumerate(parent.get_submodule(name.rsplit(".", 1)[-1])):
+        for module in block.modules():
+            if isinstance(getattr(module, "layer_idx", None), int):
+                module.layer_idx = new
+    for config in {id(c): c for c in (model.config, model.config.get_text_config())}.values():
+        if getattr(config, "num_hidden_layers", None) == total:
+            config.num_hidden_layers = n
+        types = getattr(config, "layer_types", None)
+        if types is not None and len(types) == total:
+            config.layer_types = [types[i] for i in keep]
+    return keep
 
 
 def linear_modules(blocks) -> list[str]:
