@@ -276,7 +276,8 @@ def test_blocks_keeps_evenly_spaced_blocks_and_saves_a_model_of_that_many(oracle
     fresh = AutoModelForCausalLM.from_config(config)
     renamed = {k.replace("layers.3.", "layers.1."): v for k, v in base.items() if "layers.1." not in k
                and "layers.2." not in k}
-    fresh.load_state_dict(renamed, strict=False)
+    missing, unexpected = fresh.load_state_dict(renamed, strict=False)
+    assert not unexpected and set(missing) <= {"lm_head.weight"}  # tied to the embeddings
     fresh.tie_weights()
     ids = torch.tensor([lm.encode("You see a red key 1 step forward. go forward")])
     with torch.inference_mode():

@@ -189,7 +189,7 @@ def kept_indices(total: int, n: int) -> list[int]:
     same way, from every other block of its teacher."""
     if n == 1:
         return [0]
-    return sorted({round(i * (total - 1) / (n - 1)) for i in range(n)})
+    return [round(i * (total - 1) / (n - 1)) for i in range(n)]  # distinct: the step is at least 1
 
 
 def keep_blocks(model, n: int | None) -> list[int] | None:
@@ -209,9 +209,10 @@ def keep_blocks(model, n: int | None) -> list[int] | None:
         raise UsageError(f"--blocks {n} is more than the student's {total} transformer blocks: pass at most {total}, "
                          "or leave --blocks out (every block)")
     keep = kept_indices(total, n)
-    parent = model.get_submodule(name.rsplit(".", 1)[0]) if "." in name else model
-    setattr(parent, name.rsplit(".", 1)[-1], torch.nn.ModuleList([blocks[i] for i in keep]))
-    for new, block in enumerate(parent.get_submodule(name.rsplit(".", 1)[-1])):
+    parent, _, attribute = name.rpartition(".")
+    kept = torch.nn.ModuleList([blocks[i] for i in keep])
+    setattr(model.get_submodule(parent), attribute, kept)
+    for new, block in enumerate(kept):
         for module in block.modules():
             if isinstance(getattr(module, "layer_idx", None), int):
                 module.layer_idx = new
