@@ -74,7 +74,8 @@ def _report(config, result, stop) -> None:
                + f"; {result.steps:,} steps"
                + (f" in {_duration(result.train_seconds)} ({result.train_tokens_per_s:,.0f} tokens/s, {m.get('dtype')}, "
                   f"{m.get('threads')} threads)" if result.train_seconds else "")
-               + (f", resumed from step {result.resumed_from:,}" if result.resumed_from else ""))
+               + (f", resumed from step {result.resumed_from:,} (the time and rate over every session)"
+                  if result.resumed_from else ""))
     if result.log_history:
         typer.echo(f"training loss {result.loss_first:.3f} -> {result.loss_last:.3f} (mean of the first and the last "
                    "tenth of the steps)")

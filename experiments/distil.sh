@@ -11,8 +11,9 @@
 # distillation resumes from its last checkpoint and does nothing once the student is there.
 # Usage: bash experiments/distil.sh [OUT]   (default models/smollm2-135m-babyai)
 # Environment (defaults: the full-size run, about 30 minutes of fine-tuning on 2 AVX2 cores in float32):
-#   DATA (data/distil), BOT_STEPS (12000 per level), RANDOM_STEPS (1000 per level), STATES (1600 lessons),
-#   HELD_OUT (200), EPOCHS (1), MAX_TOKENS (256), RANK (16), LAYERS (15: adapters in the top 15 of 30 blocks),
+#   DATA (data/distil), BOT_STEPS (12000 per level), RANDOM_STEPS (1000 per level), STATES (1600 lessons; all:
+#   every state not held out), HELD_OUT (200), EPOCHS (1), BATCH_SIZE (8 states a step), MAX_TOKENS (256), RANK (16),
+#   LAYERS (15: adapters in the top 15 of 30 blocks),
 #   BLOCKS (empty: every block; N: the student keeps N of its base's 30 blocks, evenly spaced, LAYERS then
 #   defaulting to N),
 #   LR (1e-3), LESSONS (visits: drawn as often as the collected trajectories visit their states, the top actions'
@@ -21,7 +22,10 @@
 #   top action at least this share of the lessons, the others keeping their proportions), SEED (0: the adapters'
 #   initialisation and the lessons' order), TARGET (the
 #   ranking's: distribution, or argmax: the teacher's top action only), DTYPE (float32),
-#   PROBE_STATES (400), PROBES (probe files: OUT/probes), BASE_PROBES (1: probe the base model too).
+#   DEVICE (cpu: where the fine-tuning and the probes run; cuda on a GPU), PROBE_STATES (400), PROBES (probe files:
+#   OUT/probes), BASE_PROBES (1: probe the base model too).
+# The GPU student the docs report (an H100, 5.5 minutes of training): DEVICE=cuda STATES=all BATCH_SIZE=32
+#   TARGET=argmax LESSONS=balance BALANCE=0.5 LAYERS=30 bash experiments/distil.sh models/smollm2-135m-babyai-gpu
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-models/smollm2-135m-babyai}
@@ -32,6 +36,7 @@ RANDOM_STEPS=${RANDOM_STEPS:-1000}
 STATES=${STATES:-1600}
 HELD_OUT=${HELD_OUT:-200}
 EPOCHS=${EPOCHS:-1}
+BATCH_SIZE=${BATCH_SIZE:-8}
 MAX_TOKENS=${MAX_TOKENS:-256}
 RANK=${RANK:-16}
 BLOCKS=${BLOCKS:-}
@@ -46,6 +51,7 @@ DTYPE=${DTYPE:-float32}
 PROBE_STATES=${PROBE_STATES:-400}
 PROBES=${PROBES:-$OUT/probes}
 BASE_PROBES=${BASE_PROBES:-1}
+DEVICE=${DEVICE:-cpu}
 export HF_HUB_OFFLINE=1 TOKENIZERS_PARALLELISM=false
 
 for level in UnlockLocal GoToLocal; do
@@ -60,10 +66,11 @@ done
 "$ILLM" cache info "$DATA/ann-oracle"
 
 cut=(); [ -n "$BLOCKS" ] && cut=(--blocks "$BLOCKS")
+lessons=(--states "$STATES"); [ "$STATES" = all ] && lessons=()
 weighting=(--balance "$BALANCE" --min-share "$MIN_SHARE")  # LESSONS=balance: the rare actions' states repeated
 [ "$LESSONS" = visits ] && weighting+=($(for d in "$DATA"/traj-*; do echo --visits "$d"; done))
-time "$ILLM" distil "$DATA/ann-oracle" --student smollm2-135m --out "$OUT" --states "$STATES" --held-out "$HELD_OUT" \
-    --epochs "$EPOCHS" --max-tokens "$MAX_TOKENS" --rank "$RANK" --layers "$LAYERS" "${cut[@]}" "${weighting[@]}" --learning-rate "$LR" --ranking-target "$TARGET" --seed "$SEED" --dtype "$DTYPE"
+time "$ILLM" distil "$DATA/ann-oracle" --student smollm2-135m --out "$OUT" "${lessons[@]}" --held-out "$HELD_OUT" \
+    --epochs "$EPOCHS" --batch-size "$BATCH_SIZE" --max-tokens "$MAX_TOKENS" --rank "$RANK" --layers "$LAYERS" "${cut[@]}" "${weighting[@]}" --learning-rate "$LR" --ranking-target "$TARGET" --seed "$SEED" --dtype "$DTYPE" --device "$DEVICE"
 
 mkdir -p "$PROBES"
 models=("$OUT")
@@ -72,7 +79,7 @@ for level in UnlockLocal GoToLocal PickupLoc; do
   for model in "${models[@]}"; do
     name=$( [ "$model" = "$OUT" ] && echo student || echo "$model" )
     f="$PROBES/$level-$name.json"
-    [ -f "$f" ] || "$ILLM" probe --env "BabyAI-$level-v0" --model "$model" --dtype float32 --states "$PROBE_STATES" \
+    [ -f "$f" ] || "$ILLM" probe --env "BabyAI-$level-v0" --model "$model" --dtype float32 --device "$DEVICE" --states "$PROBE_STATES" \
         --out "$f"
     "${PYTHON:-.venv/bin/python}" -c "import json,sys; d=json.load(open(sys.argv[1])); c=d['calibrations']['sum']; \
 print(f\"{sys.argv[2]:>12s} {sys.argv[3]:<14s} agreement {c['agreement']:.3f} (always {d['baselines']['majority_action']}: \

@@ -177,6 +177,7 @@ def test_the_argmax_target_is_the_cross_entropy_of_the_teachers_top_action(tiny_
     assert "ranking_target" not in DistilConfig(cache=oracle_cache, out=tmp_path / "s", student=tiny_folder).settings()
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_an_interrupted_distillation_resumes_to_the_same_student(oracle_cache, tiny_folder, tmp_path):
     from safetensors.torch import load_file
 
@@ -199,10 +200,17 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(oracle_cache, t
     a, b = load_file(tmp_path / "a" / "model.safetensors"), load_file(tmp_path / "b" / "model.safetensors")
     assert a.keys() == b.keys() and all(bool((a[k] == b[k]).all()) for k in a)
     assert [h["loss"] for h in resumed.log_history] == [h["loss"] for h in whole.log_history]
+    # the training time and tokens are the whole training's: the first session's, up to its checkpoint, and the
+    # second's; the tokens those of the uninterrupted run
+    spent = json.loads((tmp_path / "a" / "distil" / "checkpoints" / "checkpoint-5" / "illm_checkpoint.json").read_text())
+    assert 0 < spent["spent"]["seconds"] <= first.train_seconds < resumed.train_seconds
+    assert round(resumed.train_tokens_per_s * resumed.train_seconds) == round(whole.train_tokens_per_s *
+                                                                              whole.train_seconds)
     again = distil(config)  # the student is there: nothing is trained again
     assert again.already and again.student_measure == resumed.student_measure
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_a_damaged_checkpoint_is_set_aside_and_an_older_one_resumes(oracle_cache, tiny_folder, tmp_path):
     from illm_tools.distil.run import DistilConfig, distil
 

@@ -47,7 +47,9 @@ class Trained:
     steps: int
     resumed_from: int
     seconds: float
+    """Training time of the steps done, the sessions before a resume included (up to their last checkpoint)."""
     tokens: int
+    """Tokens of those steps, likewise."""
     stopped: bool
     log_history: list = field(default_factory=list)
 
@@ -117,6 +119,7 @@ def _train(lm, examples, config, checkpoints: Path, say, should_stop) -> Trained
             super().log(logs, start_time)
 
     started = time.perf_counter()
+    before = _spent(resume)  # (seconds, tokens) of the sessions before this one, up to the resumed checkpoint
 
     class Report(TrainerCallback):
         """illm's progress and stop; checkpoint hashes after each save."""
@@ -136,7 +139,8 @@ def _train(lm, examples, config, checkpoints: Path, say, should_stop) -> Trained
                 control.should_training_stop = True
 
         def on_save(self, args, state, control, **kwargs):
-            seal(checkpoints / f"checkpoint-{state.global_step}")
+            seal(checkpoints / f"checkpoint-{state.global_step}",
+                 spent={"seconds": before[0] + time.perf_counter() - started, "tokens": before[1] + figures["tokens"]})
 
     trainer = LessonTrainer(model=model, args=args, train_dataset=data,
                             data_collator=lambda rows: {"index": torch.tensor([r["index"] for r in rows])},
@@ -145,14 +149,15 @@ def _train(lm, examples, config, checkpoints: Path, say, should_stop) -> Trained
     trainer.train(resume_from_checkpoint=str(resume) if resume else None)
     state = trainer.state
     stopped = state.global_step < state.max_steps
-    seconds = time.perf_counter() - started
+    seconds = before[0] + time.perf_counter() - started
     history = [h for h in state.log_history if "loss" in h]
     merged = None
     if not stopped:
         model.eval()
         merged = model.merge_and_unload() if config.rank else model
         merged.requires_grad_(False)
-    return Trained(merged, state.global_step, state.max_steps, _step_of(resume), seconds, figures["tokens"], stopped,
+    return Trained(merged, state.global_step, state.max_steps, _step_of(resume), seconds, before[1] + figures["tokens"],
+                   stopped,
                    history)
 
 
@@ -241,8 +246,9 @@ def _step_of(checkpoint: Path | None) -> int:
     return int(checkpoint.name.rsplit("-", 1)[1]) if checkpoint is not None else 0
 
 
-def seal(folder: Path) -> None:
-    """Record the sha256 of a finished checkpoint's files (fsynced first)."""
+def seal(folder: Path, spent: dict | None = None) -> None:
+    """Record the sha256 of a finished checkpoint's files (fsynced first), and `spent`: the training's
+    seconds and tokens up to it, over every session (what a resumed run adds its own to)."""
     import os
 
     files = {}
@@ -250,7 +256,16 @@ def seal(folder: Path) -> None:
         with open(path, "rb") as fh:
             os.fsync(fh.fileno())
         files[str(path.relative_to(folder))] = durable.sha256_file(path)
-    durable.write_text(folder / CHECKPOINT_INFO, json.dumps({"files": files}, indent=1, sort_keys=True))
+    durable.write_text(folder / CHECKPOINT_INFO, json.dumps({"files": files, **({"spent": spent} if spent else {})},
+                                                           indent=1, sort_keys=True))
+
+
+def _spent(checkpoint: Path | None) -> tuple[float, int]:
+    """(seconds, tokens) of training up to `checkpoint`, as `seal` recorded them; (0, 0) without one."""
+    if checkpoint is None:
+        return 0.0, 0
+    spent = json.loads((checkpoint / CHECKPOINT_INFO).read_text()).get("spent") or {}
+    return float(spent.get("seconds", 0.0)), int(spent.get("tokens", 0))
 
 
 def intact(folder: Path) -> bool:
