@@ -58,6 +58,7 @@ def test_shared_prefix_equals_separate_paths(tiny_lm):
         assert np.allclose(jg.embedding, g.embedding, atol=1e-4)
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_annotate_writes_each_distinct_key_once(trajectories, tmp_path, tiny_lm):
     cache = tmp_path / "ann"
     stats = annotate_dataset(config(trajectories, cache, tiny_lm)).stats

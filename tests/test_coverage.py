@@ -64,6 +64,7 @@ def test_states_are_counted_most_visited_first():
     assert visited.keys[0] == b.state_keys(records[3])
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_limit_annotates_the_most_visited_states_and_a_rerun_annotates_nothing(trajectories, tmp_path, tiny_lm):
     cache = tmp_path / "ann"
     first = annotate_dataset(config(trajectories, cache, tiny_lm, limit=6))
@@ -240,6 +241,7 @@ def test_train_with_async_live_annotation_logs_its_queue(tmp_path, tiny_lm):
     assert "--live-budget all" not in out.output  # a number: no promise of every step to take back
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_live_budget_all_with_async_says_before_it_starts_that_only_sync_promises_every_step(tmp_path):
     out = runner.invoke(app, ["train", "--env", ENV, "--method", "illm", "--backend", "oracle", "--history", "0",
                               "--live-budget", "all", "--new-setup", "--cache", str(tmp_path / "ann"),

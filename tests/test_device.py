@@ -62,6 +62,7 @@ def test_a_bad_device_name_is_refused_by_every_stage_in_one_line(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_auto_is_recorded_resolved_and_a_run_may_resume_on_another_device(tmp_path):
     from illm_tools.rl import TrainConfig, Trainer
 

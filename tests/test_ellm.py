@@ -322,6 +322,7 @@ def test_minilm_embeddings_rank_the_fulfilled_goal_first():
 
 # ---- end to end ------------------------------------------------------------------------------
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_annotate_goal_then_train_ellm(tmp_path, tiny_lm, monkeypatch):
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.collect import CollectConfig, collect

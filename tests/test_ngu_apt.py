@@ -86,6 +86,7 @@ def test_ngu_novelty_falls_within_an_episode_and_comes_back_after_its_end():
     assert [len(m) for m in small.memory] == [4, 4, 4, 4]
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_ngu_scales_by_rnd_life_long_factor_and_trains_both_models():
     torch.manual_seed(0)
     bonus = NGUBonus(NGUConfig(), CTX)
@@ -166,7 +167,7 @@ def _comparable(metrics: dict) -> dict:
     return {k: v for k, v in metrics.items() if not k.startswith("time/") and k != "charts/sps"}
 
 
-@pytest.mark.parametrize("mode", ["ngu", "apt"])
+@pytest.mark.parametrize("mode", [pytest.param("ngu", marks=pytest.mark.slow), "apt"])
 def test_a_run_is_deterministic_for_a_seed(tmp_path, mode):
     runs = []
     for name in ("a", "b"):
@@ -228,7 +229,7 @@ def test_bad_settings_are_refused_in_one_line(tmp_path):
     assert len(result.output.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("mode, option", [("ngu", "k=5"), ("apt", "k=8")])
+@pytest.mark.parametrize("mode, option", [pytest.param("ngu", "k=5", marks=pytest.mark.slow), ("apt", "k=8")])
 def test_illm_train_method_end_to_end(tmp_path, mode, option):
     runner, run = CliRunner(), tmp_path / mode
     result = runner.invoke(app, ["train", "--method", mode, "--frames", "4096", "--bonus-option", option,

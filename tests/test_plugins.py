@@ -163,6 +163,7 @@ def ok(*args):
     return result.output
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_a_plugin_of_each_kind_loads_through_its_entry_point_and_runs(plugins, tmp_path):
     assert plugins == [["flat", "told"], ["verdict"], ["echo"], ["tiny", "ruler"]]
     ok("collect", "--env", TINY, "--steps", 48, "--num-envs", 2, "--out", tmp_path / "traj")

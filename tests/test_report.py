@@ -283,6 +283,7 @@ def test_redraw_draws_an_old_report_again_from_its_results_json(tmp_path):
     assert result.exit_code != 0 and "no results.json" in result.output
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_merge_joins_the_reports_of_a_grid_run_in_parts(tmp_path):
     """`illm report PART1 PART2 --merge --out DIR`: the parts' runs are gone; the joined report has
     every part's rows and the aggregate over all their envs that one report of all the runs has;

@@ -108,6 +108,7 @@ def test_rnd_trains_through_the_trainer_and_its_state_survives_a_resume(tmp_path
     assert all(torch.equal(v, target[k]) for k, v in resumed.bonus.target.state_dict().items())
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_illm_train_method_rnd_end_to_end(tmp_path):
     runner, run = CliRunner(), tmp_path / "rnd"
     result = runner.invoke(app, ["train", "--method", "rnd", "--frames", "4096",

@@ -328,6 +328,7 @@ def test_a_non_loopback_listen_needs_a_token(tmp_path, monkeypatch):
     assert out.exit_code == 1 and "at least 16 printable characters" in out.output and "tooshort" not in out.output
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_the_token_is_required_on_every_request(tmp_path, start_server):
     url, proc = start_server("--max-queue", 2, env={"ILLM_SERVE_TOKEN": TOKEN})
     for body in (None, request([(state(1), 1)])):
@@ -379,6 +380,7 @@ def test_a_stalled_client_is_cut_off_and_holds_no_worker(start_server):
     assert stats["timeouts"] == 1 and stats["queue"] == 0
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_sigterm_finishes_the_batch_in_progress_and_writes_it(tmp_path, start_server):
     url, proc = start_server(slow=1.0)
     assert call(url + "/annotate", request([(state(i), 1) for i in range(4)]))[0] == 202
@@ -394,6 +396,7 @@ def test_sigterm_finishes_the_batch_in_progress_and_writes_it(tmp_path, start_se
     assert report.ok and report.rows == 8 == len(AnnotationCache(tmp_path / "ann"))
 
 
+@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_a_remote_trainer_backs_off_a_full_server_and_says_so_once(tmp_path, start_server, caplog):
     from illm_tools.rl.live import RemoteLive
     from illm_tools.tasks.setup import AnnotationSetup

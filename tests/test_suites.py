@@ -151,7 +151,8 @@ def test_every_suite_gives_its_policy_array_text_and_score(env_id, kind, score):
         pool.close()
 
 
-@pytest.mark.parametrize("env_id", ["MiniHack-River-Monster-v0", "MiniHack-MultiRoom-N4-Monster-v0", "CrafterReward-v1"])
+@pytest.mark.parametrize("env_id", ["MiniHack-River-Monster-v0", "MiniHack-MultiRoom-N4-Monster-v0",
+                                    pytest.param("CrafterReward-v1", marks=pytest.mark.slow)])  # Crafter: 15 s
 def test_a_seed_gives_the_same_episodes(env_id):
     def texts(pool):
         out, rng = [pool.reset().texts], np.random.default_rng(0)
