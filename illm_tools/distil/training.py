@@ -9,7 +9,8 @@ with a checkpoint, when asked (a signal) or when `max_minutes` have passed.
 
 Checkpoints: the Trainer writes `checkpoint-N` (adapters or weights, optimizer, scheduler, RNG
 states, trainer_state.json last), keeping the two newest; after each, `illm_checkpoint.json` records
-the sha256 of its files. A resume takes the newest checkpoint whose files match; newer ones that do
+the sha256 of its files and the training's seconds and tokens so far (a resumed run reports the
+whole training's time). A resume takes the newest checkpoint whose files match; newer ones that do
 not (a kill while writing) are moved to `damaged/` beside the checkpoints folder.
 """
 
