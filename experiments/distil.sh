@@ -25,7 +25,7 @@
 #   DEVICE (cpu: where the fine-tuning and the probes run; cuda on a GPU), PROBE_STATES (400), PROBES (probe files:
 #   OUT/probes), BASE_PROBES (1: probe the base model too).
 # The GPU student the docs report (an H100, 5.5 minutes of training): DEVICE=cuda STATES=all BATCH_SIZE=32
-#   TARGET=argmax LESSONS=balance BALANCE=0.5 LAYERS=30 bash experiments/distil.sh models/smollm2-135m-babyai-gpu
+#   TARGET=argmax LESSONS=balance BALANCE=0.5 LAYERS=30 bash experiments/distil.sh   (into models/smollm2-135m-babyai)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-models/smollm2-135m-babyai}

@@ -120,7 +120,11 @@ def _train(lm, examples, config, checkpoints: Path, say, should_stop) -> Trained
             super().log(logs, start_time)
 
     started = time.perf_counter()
-    before = _spent(resume)  # (seconds, tokens) of the sessions before this one, up to the resumed checkpoint
+    before_seconds, before_tokens = _spent(resume)  # the sessions before this one, up to the resumed checkpoint
+
+    def spent() -> dict:
+        """The whole training's seconds and tokens so far, every session's."""
+        return {"seconds": before_seconds + time.perf_counter() - started, "tokens": before_tokens + figures["tokens"]}
 
     class Report(TrainerCallback):
         """illm's progress and stop; checkpoint hashes after each save."""
@@ -140,8 +144,7 @@ def _train(lm, examples, config, checkpoints: Path, say, should_stop) -> Trained
                 control.should_training_stop = True
 
         def on_save(self, args, state, control, **kwargs):
-            seal(checkpoints / f"checkpoint-{state.global_step}",
-                 spent={"seconds": before[0] + time.perf_counter() - started, "tokens": before[1] + figures["tokens"]})
+            seal(checkpoints / f"checkpoint-{state.global_step}", spent=spent())
 
     trainer = LessonTrainer(model=model, args=args, train_dataset=data,
                             data_collator=lambda rows: {"index": torch.tensor([r["index"] for r in rows])},
@@ -150,16 +153,15 @@ def _train(lm, examples, config, checkpoints: Path, say, should_stop) -> Trained
     trainer.train(resume_from_checkpoint=str(resume) if resume else None)
     state = trainer.state
     stopped = state.global_step < state.max_steps
-    seconds = before[0] + time.perf_counter() - started
+    total = spent()
     history = [h for h in state.log_history if "loss" in h]
     merged = None
     if not stopped:
         model.eval()
         merged = model.merge_and_unload() if config.rank else model
         merged.requires_grad_(False)
-    return Trained(merged, state.global_step, state.max_steps, _step_of(resume), seconds, before[1] + figures["tokens"],
-                   stopped,
-                   history)
+    return Trained(merged, state.global_step, state.max_steps, _step_of(resume), total["seconds"], total["tokens"],
+                   stopped, history)
 
 
 def top_blocks(model, layers: int | None) -> list[tuple[str, object]] | None:
