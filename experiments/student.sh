@@ -2,21 +2,26 @@
 # The positive control through the language-model path (issue 29): UnlockLocal with the student annotator
 # (experiments/distil.sh builds it: models/smollm2-135m-babyai) beside the oracle, its base model, ppo and
 # the shuffled control (experiments/specs/student.yaml).
-# 1. `illm collect` 50,000 random-policy UnlockLocal steps (episode seeds from 4,000,000: none the student
-#    was taught), and `illm annotate` every distinct state into one shared cache with each annotator: the
-#    student, the oracle and the base model (float32, history 0, action and summary); the annotation rates
-#    are timed here, on the same states;
-# 2. `illm experiment` (resumable; JOBS at a time; the base model's runs last);
+# 1. `illm collect` 50,000 random-policy UnlockLocal steps (episode seeds from 4,000,000) and 12,000 of the
+#    bot's (seeds from 3,000,000; none of them episodes the student was taught), and `illm annotate` every
+#    distinct state into one shared cache with each annotator: the student, the oracle and the base model
+#    (float32, history 0, action and summary). At history 0 the two hold 4,543 and 4,159 distinct states
+#    (`illm data coverage`); on a 2-core CPU the student annotates about 1.5 states/s and the base 1.0, so
+#    this step is hours there (interrupt it at will: `illm annotate` keeps every finished chunk and skips
+#    what the cache holds) and minutes on a GPU (DEVICE=cuda);
+# 2. `illm experiment` (resumable; JOBS at a time, each run with its own live worker; the base model's
+#    runs last);
 # 3. `illm report` with the probes of distil.sh: curves, IQM [95% CI] and the quality curve.
 # Every step is resumable: collected data and annotated states are kept, finished runs are skipped.
-# Usage: bash experiments/student.sh [OUT]   (default results/student; env: JOBS (2), DATA (data/exp-student),
+# Usage: bash experiments/student.sh [OUT]   (default results/student; env: JOBS (1), DATA (data/exp-student),
 #        ILLM_MODELS (models: the folder holding smollm2-135m-babyai), REPORT (docs/results/student),
-#        BASE (1: annotate with the base model too))
+#        BASE (1: annotate with the base model too), DEVICE (cpu: where the bulk annotation runs))
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-results/student}
 ILLM=${ILLM:-.venv/bin/illm}
-JOBS=${JOBS:-2}
+JOBS=${JOBS:-1}
+DEVICE=${DEVICE:-cpu}
 DATA=${DATA:-data/exp-student}
 export ILLM_MODELS=${ILLM_MODELS:-models}
 STUDENT=$ILLM_MODELS/smollm2-135m-babyai
@@ -25,15 +30,21 @@ BASE=${BASE:-1}
 export HF_HUB_OFFLINE=1 TOKENIZERS_PARALLELISM=false
 [ -f "$STUDENT/config.json" ] || { echo "no student at $STUDENT: run bash experiments/distil.sh first"; exit 2; }
 
-traj="$DATA/traj-UnlockLocal-random"
-[ -f "$traj/.done" ] || { rm -rf "$traj"; "$ILLM" collect --env BabyAI-UnlockLocal-v0 --steps 50000 --num-envs 16 \
-    --seed 4000000 --no-raw --out "$traj" >/dev/null && touch "$traj/.done"; }
+collect() {  # policy steps seed num_envs (the bot: minigrid's expert with 25% random actions)
+  local traj="$DATA/traj-UnlockLocal-$1"
+  [ -f "$traj/.done" ] || { rm -rf "$traj"; "$ILLM" collect --env BabyAI-UnlockLocal-v0 --policy "$1" --steps "$2" \
+      --num-envs "$4" --seed "$3" --no-raw --out "$traj" >/dev/null && touch "$traj/.done"; }
+}
+collect random 50000 4000000 16
+collect bot 12000 3000000 8
 annotators=("--model smollm2-135m-babyai" "--backend oracle")
 [ "$BASE" = 1 ] && annotators+=("--model smollm2-135m")
 for flags in "${annotators[@]}"; do
-  # shellcheck disable=SC2086
-  "$ILLM" annotate "$traj" --cache "$DATA/ann" $flags --dtype float32 --history 0 \
-      --tasks action,summary | tail -n 1
+  for traj in "$DATA/traj-UnlockLocal-random" "$DATA/traj-UnlockLocal-bot"; do
+    # shellcheck disable=SC2086
+    "$ILLM" annotate "$traj" --cache "$DATA/ann" $flags --dtype float32 --history 0 --device "$DEVICE" \
+        --tasks action,summary | tail -n 1
+  done
 done
 
 "$ILLM" experiment experiments/specs/student.yaml --jobs "$JOBS" --out "$OUT"
