@@ -37,16 +37,18 @@ def register(app: typer.Typer) -> None:
         The grid is methods x envs x settings x seeds; finished runs are skipped, unfinished ones
         resumed."""
         from cli.options import config_from_options
-        from illm_tools.experiment import ExperimentConfig, plan, run_experiment, unavailable_models
+        from illm_tools.experiment import ExperimentConfig, plan, run_experiment, select, unavailable_models
 
         config = config_from_options(ExperimentConfig, options)
         loaded, cluster, results = config.load()
         jobs, launcher, dry_run = config.jobs, config.launcher, config.dry_run
-        runs = plan(loaded, results)
+        grid = plan(loaded, results)
+        runs = select(grid, config.only)
         counts = {s: sum(r.status == s for r in runs) for s in ("done", "resume", "new")}
-        typer.echo(f"{loaded.name}: {counted(len(runs), 'run')} ({counted(len(loaded.envs), 'env')} x "
-                   f"{counted(len({r.label for r in runs}), 'configuration')} x {counted(len(loaded.seeds), 'seed')}, "
-                   f"{frames_text(loaded)}): {counts['done']} "
+        picked = f"; --only picks {len(runs)} of them" if config.only else ""
+        typer.echo(f"{loaded.name}: {counted(len(grid), 'run')} ({counted(len(loaded.envs), 'env')} x "
+                   f"{counted(len({r.label for r in grid}), 'configuration')} x {counted(len(loaded.seeds), 'seed')}, "
+                   f"{frames_text(loaded)}{picked}): {counts['done']} "
                    f"finished, {counts['resume']} to resume, {counts['new']} to start -> {results}")
         missing = unavailable_models(runs)
         if missing:
@@ -63,13 +65,16 @@ def register(app: typer.Typer) -> None:
             if event != "done":
                 failed.append(run)
 
-        run_experiment(loaded, results, jobs=jobs, on_run=on_run, launcher=launcher, cluster=cluster)
+        run_experiment(loaded, results, jobs=jobs, on_run=on_run, launcher=launcher, cluster=cluster,
+                       only=config.only)
         if failed:
             typer.echo(f"{len(failed)} of {len(runs)} runs failed (above); run the same command again to retry them",
                        err=True)
             raise typer.Exit(1)
-        typer.echo(f"all {len(runs)} runs finished: `illm report {results} --out {results}/report` makes the tables "
-                   "and plots")
+        rest = len(grid) - len(runs)
+        left = f" ({counted(rest, 'run')} of the grid not picked by --only)" if rest else ""
+        typer.echo(f"all {counted(len(runs), 'run')} finished{left}: `illm report {results} --out {results}/report` makes the "
+                   "tables and plots")
 
     experiment.__signature__ = inspect.Signature(_parameters())
     app.command(epilog=EXAMPLE)(friendly(experiment))

@@ -37,10 +37,14 @@ and the grid values, e.g. `illm-num_dists=8`); the spec is copied to RESULTS/spe
 results folder made from another spec is refused (grids never mix). A run whose checkpoint has
 reached its frames is skipped, one with a checkpoint short of them is resumed (`--resume`), the
 rest start; runs go `jobs` at a time, each in a process of its own with one torch thread.
+`--only PATTERN` (repeatable) trains a part of the grid: the runs whose label (`ppo`,
+`illm-annotator=student`) or path under the results folder (`BabyAI-GoToLocal-v0/ppo/seed0`) a
+pattern matches (shell wildcards); the rest are left as they are, for a later call.
 """
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import itertools
 import shutil
 from collections.abc import Callable
@@ -111,6 +115,9 @@ class ExperimentConfig:
     """GPUs of one run's job (default 0)."""
     mem_gb: float | None = None
     """Memory of one run's job in GB (default: the partition's)."""
+    only: list[str] = field(default_factory=list)
+    """Train only the runs whose label or path a pattern matches (repeatable, shell wildcards), e.g.
+    --only ppo --only 'illm-annotator=*' or --only '*/seed0'; the others wait for a later call."""
 
     def __post_init__(self) -> None:
         from illm_tools.settings import check_folder, check_numbers
@@ -407,6 +414,24 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
     return runs
 
 
+def select(runs: list[Run], only: list[str] | tuple = ()) -> list[Run]:
+    """The runs that `--only`'s patterns pick (all of them without patterns): a pattern matches a run's
+    label or its path ENV/LABEL/seedN. A pattern that picks no run is refused, naming the labels."""
+    if not only:
+        return list(runs)
+
+    def picks(run: Run, pattern: str) -> bool:
+        path = f"{run.env_id.replace('/', '-')}/{run.label}/seed{run.seed}"
+        return fnmatch.fnmatchcase(run.label, pattern) or fnmatch.fnmatchcase(path, pattern)
+
+    unmatched = [p for p in only if not any(picks(r, p) for r in runs)]
+    if unmatched:
+        labels = ", ".join(dict.fromkeys(r.label for r in runs))
+        raise UsageError(f"--only {unmatched[0]!r} matches no run of this spec; its labels: {labels} "
+                         "(or a path ENV/LABEL/seedN)")
+    return [r for r in runs if any(picks(r, p) for p in only)]
+
+
 def _train_one(cfg) -> dict:
     """One run in a worker process (its metrics' last line)."""
     import os
@@ -500,14 +525,15 @@ def _submitit(spec: Spec, results: Path, todo: list[Run], jobs: int, launcher: s
 
 def run_experiment(spec: Spec, results: str | Path, *, jobs: int = 1,
                    on_run: Callable[[Run, str], None] | None = None, launcher: str = "local",
-                   cluster: Cluster | None = None) -> list[Run]:
-    """Plan, claim the results folder, and train every run not done, `jobs` at a time, through the
-    `launcher` (`LAUNCHERS`; `cluster` overrides the spec's resources). `on_run(run, event)` hears
-    "done" or "failed: <reason>" as each run ends. Returns the plan."""
+                   cluster: Cluster | None = None, only: list[str] | tuple = ()) -> list[Run]:
+    """Plan, claim the results folder, and train every run not done (of those `only`'s patterns pick,
+    `select`), `jobs` at a time, through the `launcher` (`LAUNCHERS`; `cluster` overrides the spec's
+    resources). `on_run(run, event)` hears "done" or "failed: <reason>" as each run ends. Returns the
+    runs picked."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
     check_launcher(launcher)
-    runs = plan(spec, results)
+    runs = select(plan(spec, results), only)
     claim_results(spec, results)
     todo = [r for r in runs if r.status != "done"]
     if not todo:

@@ -248,3 +248,20 @@ def test_the_suite_specs_validate_with_a_dry_run(tmp_path, name):
         bulk = next(r.config for r in runs if r.label == "illm-setting=bulk-small")
         assert bulk.live_budget == 0 and bulk.cache.name == "ann-bulk"
         assert {r.config.total_steps for r in runs} == {61440, 81920, 122880, 151552}
+
+
+def test_only_trains_the_runs_its_patterns_pick_and_leaves_the_rest(tmp_path):
+    """--only picks runs by label or by path (shell wildcards): only they are trained, a later call
+    without it finds them finished; a pattern that picks nothing is refused in one line."""
+    spec, results = write(tmp_path, TINY), tmp_path / "results"
+    out = runner.invoke(app, ["experiment", str(spec), "--out", str(results), "--dry-run", "--only", "*=2"])
+    assert out.exit_code == 0 and "--only picks 2 of them" in out.output, out.output
+    assert [line.split()[-1].split("/results/")[-1] for line in out.output.splitlines()[1:]] == [
+        "BabyAI-GoToLocal-v0/ppo-num_dists=2/seed0", "BabyAI-GoToLocal-v0/ppo-num_dists=2/seed1"]
+    out = runner.invoke(app, ["experiment", str(spec), "--out", str(results), "--only", "*/ppo-num_dists=1/seed1"])
+    assert out.exit_code == 0 and "all 1 run finished (3 runs of the grid not picked by --only)" in out.output, \
+        out.output
+    assert [r.status for r in plan(load_spec(spec), results)] == ["new", "done", "new", "new"]
+    refused = runner.invoke(app, ["experiment", str(spec), "--out", str(results), "--only", "rnd"])
+    assert refused.exit_code == 1 and len(refused.output.strip().splitlines()) == 1, refused.output
+    assert "--only 'rnd' matches no run of this spec; its labels: ppo-num_dists=1, ppo-num_dists=2" in refused.output
