@@ -11,11 +11,13 @@
 #    what the cache holds) and minutes on a GPU (DEVICE=cuda);
 # 2. `illm experiment` (resumable; JOBS at a time, each run with its own live worker; the base model's
 #    runs last);
-# 3. `illm report` with the probes of distil.sh: curves, IQM [95% CI] and the quality curve.
+# 3. `illm probe` the three annotators on UnlockLocal, and
+#    `illm report` with the probes: curves, IQM [95% CI] and the quality curve.
 # Every step is resumable: collected data and annotated states are kept, finished runs are skipped.
 # Usage: bash experiments/student.sh [OUT]   (default results/student; env: JOBS (1), DATA (data/exp-student),
 #        ILLM_MODELS (models: the folder holding smollm2-135m-babyai), REPORT (docs/results/student),
-#        BASE (1: annotate with the base model too), DEVICE (cpu: where the bulk annotation runs))
+#        BASE (1: the base model's bulk annotation and runs; 0: every other run first, the base's later),
+#        DEVICE (cpu: where the bulk annotation runs))
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-results/student}
@@ -47,7 +49,17 @@ for flags in "${annotators[@]}"; do
   done
 done
 
-"$ILLM" experiment experiments/specs/student.yaml --jobs "$JOBS" --out "$OUT"
-PROBES=$STUDENT/probes
+only=()
+[ "$BASE" = 1 ] || only=(--only ppo --only illm-shuffled --only "illm-annotator=student" --only "illm-annotator=oracle")
+"$ILLM" experiment experiments/specs/student.yaml --jobs "$JOBS" --out "$OUT" "${only[@]}"
+
+# the annotators' probes, named as the runs name them (the quality curve pairs a run with the probe of its model):
+# 400 states of the bot's episodes (seeds from 0, as distil.sh's), none of them states the student was taught
+mkdir -p "$DATA/probes"
+for flags in "--model smollm2-135m-babyai" "--backend oracle" "--model smollm2-135m"; do
+  f="$DATA/probes/UnlockLocal-${flags##* }.json"
+  # shellcheck disable=SC2086
+  [ -f "$f" ] || "$ILLM" probe --env BabyAI-UnlockLocal-v0 $flags --dtype float32 --states 400 --out "$f" | tail -n 1
+done
 "$ILLM" report "$OUT" --every 16384 --final-points 2 --out "$REPORT" \
-    $(for f in "$PROBES"/UnlockLocal-*.json; do [ -f "$f" ] && echo --probe "$f"; done)
+    $(for f in "$DATA"/probes/UnlockLocal-*.json; do echo --probe "$f"; done)
