@@ -373,3 +373,24 @@ def test_a_suite_report_aggregates_over_levels_and_shows_why_the_bonus_helps_or_
     again = redraw_report(tmp_path / "report")  # the aggregate and the diagnostics survive a redraw
     assert again["aggregate"] == results["aggregate"] and "## Across the levels" in \
         (tmp_path / "report" / "report.md").read_text()
+
+
+def test_an_experiments_runs_are_named_by_its_grid_labels(tmp_path):
+    """Runs of an `illm experiment` (RESULTS/ENV/LABEL/seedN beside RESULTS/spec.yaml) whose configurations
+    differ in settings take the grid's labels; plain methods keep theirs, and a grid label that would name
+    two configurations (two results folders merged) falls back to the settings."""
+    from illm_tools.report.curves import group_labels
+
+    base = {"mode": "illm", "env_id": "E", "model": "a", "backend": "transformers", "seed": 0}
+    configs = [base, {**base, "model": "b"}, {**base, "mode": "ppo"}, {**base, "env_id": "F", "model": "b"}]
+    runs = [tmp_path / "r" / "E" / "illm-annotator=a" / "seed0", tmp_path / "r" / "E" / "illm-annotator=b" / "seed0",
+            tmp_path / "r" / "E" / "ppo" / "seed0", tmp_path / "r" / "F" / "illm-annotator=b" / "seed0"]
+    assert group_labels(configs, runs) == ["illm (model a)", "illm (model b)", "ppo", "illm"]  # no spec.yaml
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "spec.yaml").write_text("name: r\n")
+    assert group_labels(configs, runs) == ["illm-annotator=a", "illm-annotator=b", "ppo", "illm"]
+    other = tmp_path / "s" / "E" / "illm-annotator=a" / "seed0"  # another experiment's, for model c
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "spec.yaml").write_text("name: s\n")
+    assert group_labels([*configs, {**base, "model": "c"}], [*runs, other]) == \
+        ["illm (model a)", "illm-annotator=b", "ppo", "illm", "illm (model c)"]

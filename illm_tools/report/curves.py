@@ -151,11 +151,33 @@ def group_settings(configs: list[dict]) -> list[dict[str, str]]:
     return out
 
 
-def group_labels(configs: list[dict]) -> list[str]:
+def group_labels(configs: list[dict], runs: list[str] | None = None) -> list[str]:
     """Each run's group label: its method, plus the settings in which its configuration differs
-    from other configurations of the same env and method ("illm (ext_coef 2, lambda_a 0.1)")."""
-    return [c.get("method", c.get("mode", "?")) + (f" ({', '.join(f'{k} {v}' for k, v in s.items())})" if s else "")
-            for c, s in zip(configs, group_settings(configs))]
+    from other configurations of the same env and method ("illm (ext_coef 2, lambda_a 0.1)").
+    Where that needs settings and the runs are an `illm experiment`'s (`runs`: their folders,
+    RESULTS/ENV/LABEL/seedN beside RESULTS/spec.yaml), the grid's own label names the group
+    ("illm-annotator=student"), as long as it names that one configuration alone."""
+    labels = [c.get("method", c.get("mode", "?")) + (f" ({', '.join(f'{k} {v}' for k, v in s.items())})" if s else "")
+              for c, s in zip(configs, group_settings(configs))]
+    if runs is None:
+        return labels
+    grid: dict[tuple, set] = {}  # (env, a label with settings) -> the grid labels of its runs
+    for label, cfg, run in zip(labels, configs, runs):
+        if "(" in label:
+            grid.setdefault((cfg["env_id"], label), set()).add(_grid_label(Path(run)))
+    names = {key: (key[0], g) for key, gs in grid.items() if len(gs) == 1 and (g := next(iter(gs))) is not None}
+    taken = list(names.values()) + [(c["env_id"], label) for label, c in zip(labels, configs) if "(" not in label]
+    return [names[key][1] if key in names and taken.count(names[key]) == 1 else label
+            for label, key in ((label, (c["env_id"], label)) for label, c in zip(labels, configs))]
+
+
+def _grid_label(run: Path) -> str | None:
+    """The label of an `illm experiment` run (RESULTS/ENV/LABEL/seedN, RESULTS/spec.yaml), else None."""
+    from illm_tools.experiment import SPEC_COPY
+
+    if run.name.startswith("seed") and (run.parent.parent.parent / SPEC_COPY).is_file():
+        return run.parent.name
+    return None
 
 
 def _reads_targets(cfg: dict) -> bool:
@@ -175,7 +197,7 @@ def summarise(run_dirs: list[Path], every: int) -> dict:
     curves = [load_curve(Path(run), every) for run in run_dirs]
     if not curves:
         raise UsageError("no run folders given: pass folders written by `illm train`")
-    labels = group_labels([c.config for c in curves])
+    labels = group_labels([c.config for c in curves], [c.run for c in curves])
     settings = dict(zip(labels, group_settings([c.config for c in curves])))
     groups: dict[tuple[str, str], list[Curve]] = {}
     for curve, label in zip(curves, labels):

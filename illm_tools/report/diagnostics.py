@@ -78,7 +78,7 @@ def row_diagnostics(row: dict, every: int) -> dict | None:
 
 def diagnostics_png(env_id: str, rows: list[dict], path: Path, colour: dict[str, tuple]) -> Path:
     """One panel per series, a line per row with diagnostics (its label's colour)."""
-    from illm_tools.report.plots import _pyplot
+    from illm_tools.report.plots import _pyplot, save_figure
 
     plt = _pyplot()
     names = list(SERIES)
@@ -97,8 +97,4 @@ def diagnostics_png(env_id: str, rows: list[dict], path: Path, colour: dict[str,
             ax.axhline(SOLVED, color="grey", lw=0.8, ls=":")
     axes[-1].legend(fontsize=7, loc="best")
     fig.suptitle(env_id, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -17,6 +17,21 @@ def _pyplot():
     return plt
 
 
+def save_figure(fig, path) -> Path:
+    """Lay the figure out, save it with every label inside the image, and close it. matplotlib's
+    notice that a layout could not fit (long labels) is not shown: the saved image's bounds are
+    fitted to its contents instead (what a user reads is illm's output)."""
+    import warnings
+
+    plt = _pyplot()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Tight layout not applied", category=UserWarning)
+        fig.tight_layout()
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+    return Path(path)
+
+
 def _nan(values) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in values], dtype=float)
 
@@ -45,7 +60,10 @@ def panels(rows: list[dict]) -> tuple[list[str], list[tuple[str, str]]]:
         settings = row.get("settings", {})
         title = ", ".join(f"{k} {settings[k]}" for k in keys if k in settings)
         rest = [f"{k} {v}" for k, v in settings.items() if k not in keys]
-        out.append((title, row["method"] + (f" ({', '.join(rest)})" if rest else "")))
+        if not keys and "label" in row:  # no panels: the row's own label (an experiment's grid label, `group_labels`)
+            out.append((title, row["label"]))
+        else:
+            out.append((title, row["method"] + (f" ({', '.join(rest)})" if rest else "")))
     return keys, out
 
 
@@ -105,10 +123,7 @@ def curves_png(env_id: str, score_name: str, rows: list[dict], path: Path, colou
                frameon=False)
     if len(titles) > 1 or titles[0]:
         fig.suptitle(env_id, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 FINAL_PANELS_PER_ROW = 3
@@ -154,10 +169,7 @@ def final_png(panels_: list[dict], path: Path, colour: dict[str, tuple] | None =
         ax.grid(axis="x", alpha=0.3)
         for side in ("top", "right", "left"):
             ax.spines[side].set_visible(False)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def summed_counts(grids: list[np.ndarray]) -> np.ndarray:
@@ -203,7 +215,4 @@ def bonus_png(visits: list[np.ndarray], paid: list[np.ndarray], path: Path, titl
     ax.set_yticks([])
     ax.set_title(f"{title}\n(grey: never visited)", fontsize=9)
     fig.colorbar(image, cax=make_axes_locatable(ax).append_axes("right", size="4%", pad=0.08), label="bonus per visit")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)

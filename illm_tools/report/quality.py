@@ -99,7 +99,7 @@ def quality(rows: list[dict], configs: dict[tuple, dict], probes: list[dict]) ->
 
 def quality_png(result: dict, score_names: dict[str, str], path: Path) -> Path:
     """One panel per env: final score against probe agreement (see the module docstring)."""
-    from illm_tools.report.plots import _pyplot
+    from illm_tools.report.plots import _pyplot, save_figure
 
     plt = _pyplot()
     envs = list(dict.fromkeys([p["env_id"] for p in result["points"]]))
@@ -117,6 +117,16 @@ def quality_png(result: dict, score_names: dict[str, str], path: Path) -> Path:
                     for p in pts]
             ax.errorbar(xs, ys, yerr=[low, high], marker="o", capsize=3, color=f"C{k}",
                         label=f"{method} (IQM, 95% CI)")
+            if len(pts) > 1:  # which configuration each point is; points within 0.03 of each other share a text
+                near: list[list[dict]] = []
+                for p in pts:
+                    same = next((g for g in near if abs(g[0]["agreement"] - p["agreement"]) < 0.03
+                                 and abs(g[0]["final"]["iqm"] - p["final"]["iqm"]) < 0.03), None)
+                    same.append(p) if same is not None else near.append([p])
+                for g in near:
+                    ax.annotate(", ".join(p["label"] for p in g), (g[0]["agreement"], g[0]["final"]["iqm"]),
+                                xytext=(-6, -4), textcoords="offset points", ha="right", va="top", fontsize=7,
+                                color=f"C{k}")
         for j, line in enumerate(l for l in result["lines"] if l["env_id"] == env):
             colour = f"C{len(methods) + j}"
             ax.axhline(line["final"]["iqm"], linestyle="--", linewidth=1, color=colour,
@@ -147,7 +157,4 @@ def quality_png(result: dict, score_names: dict[str, str], path: Path) -> Path:
         ax.set_title(env, fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6, loc="center right")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
