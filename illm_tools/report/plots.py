@@ -208,8 +208,7 @@ def bonus_png(visits: list[np.ndarray], paid: list[np.ndarray], path: Path, titl
     h, w = count.shape if count.size else (1, 1)
     fig, ax = plt.subplots(figsize=(4.5, min(6.0, max(1.8, 3.6 * h / max(w, 1) + 0.9))), dpi=100)
     low = min(0.0, float(per_visit.min())) if per_visit.count() else 0.0
-    cmap = plt.get_cmap("magma").copy()
-    cmap.set_bad("#bdbdbd")
+    cmap = plt.get_cmap("magma").with_extremes(bad="#bdbdbd")
     image = ax.imshow(per_visit, cmap=cmap, interpolation="nearest", vmin=low)
     ax.set_xticks([])
     ax.set_yticks([])
