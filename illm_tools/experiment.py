@@ -421,7 +421,7 @@ def select(runs: list[Run], only: list[str] | tuple = ()) -> list[Run]:
         return list(runs)
 
     def picks(run: Run, pattern: str) -> bool:
-        path = f"{run.env_id.replace('/', '-')}/{run.label}/seed{run.seed}"
+        path = "/".join(Path(run.config.run_dir).parts[-3:])  # ENV/LABEL/seedN, as `plan` made it
         return fnmatch.fnmatchcase(run.label, pattern) or fnmatch.fnmatchcase(path, pattern)
 
     unmatched = [p for p in only if not any(picks(r, p) for r in runs)]

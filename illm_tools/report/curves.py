@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import json
 import warnings
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -157,18 +158,21 @@ def group_labels(configs: list[dict], runs: list[str] | None = None) -> list[str
     Where that needs settings and the runs are an `illm experiment`'s (`runs`: their folders,
     RESULTS/ENV/LABEL/seedN beside RESULTS/spec.yaml), the grid's own label names the group
     ("illm-annotator=student"), as long as it names that one configuration alone."""
+    settings = group_settings(configs)
     labels = [c.get("method", c.get("mode", "?")) + (f" ({', '.join(f'{k} {v}' for k, v in s.items())})" if s else "")
-              for c, s in zip(configs, group_settings(configs))]
+              for c, s in zip(configs, settings)]
     if runs is None:
         return labels
+    keys = [(c["env_id"], label) for c, label in zip(configs, labels)]
     grid: dict[tuple, set] = {}  # (env, a label with settings) -> the grid labels of its runs
-    for label, cfg, run in zip(labels, configs, runs):
-        if "(" in label:
-            grid.setdefault((cfg["env_id"], label), set()).add(_grid_label(Path(run)))
-    names = {key: (key[0], g) for key, gs in grid.items() if len(gs) == 1 and (g := next(iter(gs))) is not None}
-    taken = list(names.values()) + [(c["env_id"], label) for label, c in zip(labels, configs) if "(" not in label]
-    return [names[key][1] if key in names and taken.count(names[key]) == 1 else label
-            for label, key in ((label, (c["env_id"], label)) for label, c in zip(labels, configs))]
+    for key, s, run in zip(keys, settings, runs):
+        if s:
+            grid.setdefault(key, set()).add(_grid_label(Path(run)))
+    named = {key: next(iter(gs)) for key, gs in grid.items() if len(gs) == 1 and None not in gs}
+    plain = {key for key, s in zip(keys, settings) if not s}
+    uses = Counter((env, g) for (env, _), g in named.items())
+    return [named[key] if key in named and uses[(key[0], named[key])] == 1 and (key[0], named[key]) not in plain
+            else key[1] for key in keys]
 
 
 def _grid_label(run: Path) -> str | None:

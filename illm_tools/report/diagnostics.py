@@ -78,6 +78,8 @@ def row_diagnostics(row: dict, every: int) -> dict | None:
 
 def diagnostics_png(env_id: str, rows: list[dict], path: Path, colour: dict[str, tuple]) -> Path:
     """One panel per series, a line per row with diagnostics (its label's colour)."""
+    from matplotlib.ticker import MaxNLocator
+
     from illm_tools.report.plots import _pyplot, save_figure
 
     plt = _pyplot()
@@ -90,6 +92,7 @@ def diagnostics_png(env_id: str, rows: list[dict], path: Path, colour: dict[str,
             ax.plot(d["frames"], values, label=row["label"], color=colour.get(row["label"]))
         ax.set_title(SERIES[name][1], fontsize=9)
         ax.set_xlabel("frames")
+        ax.xaxis.set_major_locator(MaxNLocator(4))  # four panels abreast: six-digit ticks would run together
         if name == "adv_ratio":
             ax.set_yscale("log")
             ax.axhline(1.0, color="grey", lw=0.8, ls=":")

@@ -97,6 +97,18 @@ def quality(rows: list[dict], configs: dict[tuple, dict], probes: list[dict]) ->
     return {"points": points, "lines": lines, "markers": markers, "references": references}
 
 
+def _nearby(items: list[dict], *coords, within: float = 0.03) -> list[list[dict]]:
+    """`items` (in order) cut into runs whose neighbours are closer than `within` in every coordinate,
+    so that one text names them all on the plot."""
+    groups: list[list[dict]] = []
+    for item in items:
+        if groups and all(abs(c(item) - c(groups[-1][-1])) < within for c in coords):
+            groups[-1].append(item)
+        else:
+            groups.append([item])
+    return groups
+
+
 def quality_png(result: dict, score_names: dict[str, str], path: Path) -> Path:
     """One panel per env: final score against probe agreement (see the module docstring)."""
     from illm_tools.report.plots import _pyplot, save_figure
@@ -117,13 +129,8 @@ def quality_png(result: dict, score_names: dict[str, str], path: Path) -> Path:
                     for p in pts]
             ax.errorbar(xs, ys, yerr=[low, high], marker="o", capsize=3, color=f"C{k}",
                         label=f"{method} (IQM, 95% CI)")
-            if len(pts) > 1:  # which configuration each point is; points within 0.03 of each other share a text
-                near: list[list[dict]] = []
-                for p in pts:
-                    same = next((g for g in near if abs(g[0]["agreement"] - p["agreement"]) < 0.03
-                                 and abs(g[0]["final"]["iqm"] - p["final"]["iqm"]) < 0.03), None)
-                    same.append(p) if same is not None else near.append([p])
-                for g in near:
+            if len(pts) > 1:  # which configuration each point is; points next to each other share a text
+                for g in _nearby(pts, lambda p: p["agreement"], lambda p: p["final"]["iqm"]):
                     ax.annotate(", ".join(p["label"] for p in g), (g[0]["agreement"], g[0]["final"]["iqm"]),
                                 xytext=(-6, -4), textcoords="offset points", ha="right", va="top", fontsize=7,
                                 color=f"C{k}")
@@ -133,13 +140,8 @@ def quality_png(result: dict, score_names: dict[str, str], path: Path) -> Path:
                        label=f"{line['label']}: {line['final']['iqm']:.2f}")
             if line["final"]["ci_low"] is not None:
                 ax.axhspan(line["final"]["ci_low"], line["final"]["ci_high"], color=colour, alpha=0.08)
-        groups: list[list[dict]] = []  # markers closer than 0.03 share one label
-        for marker in sorted((m for m in result["markers"] if m["env_id"] == env), key=lambda m: m["agreement"]):
-            if groups and marker["agreement"] - groups[-1][-1]["agreement"] < 0.03:
-                groups[-1].append(marker)
-            else:
-                groups.append([marker])
-        for group in groups:
+        markers = sorted((m for m in result["markers"] if m["env_id"] == env), key=lambda m: m["agreement"])
+        for group in _nearby(markers, lambda m: m["agreement"]):  # markers next to each other share one label
             for marker in group:
                 ax.axvline(marker["agreement"], linestyle=":", color="black", linewidth=1)
             text = ", ".join(f"{m['model']} {m['agreement']:.2f}" for m in group)
