@@ -131,9 +131,10 @@ def quality_png(result: dict, score_names: dict[str, str], path: Path) -> Path:
                         label=f"{method} (IQM, 95% CI)")
             if len(pts) > 1:  # which configuration each point is; points next to each other share a text
                 for g in _nearby(pts, lambda p: p["agreement"], lambda p: p["final"]["iqm"]):
+                    right = g[0]["agreement"] < 0.5  # the text on the side with room, inside the axes
                     ax.annotate(", ".join(p["label"] for p in g), (g[0]["agreement"], g[0]["final"]["iqm"]),
-                                xytext=(-6, -4), textcoords="offset points", ha="right", va="top", fontsize=7,
-                                color=f"C{k}")
+                                xytext=(6 if right else -6, -4), textcoords="offset points",
+                                ha="left" if right else "right", va="top", fontsize=7, color=f"C{k}")
         for j, line in enumerate(l for l in result["lines"] if l["env_id"] == env):
             colour = f"C{len(methods) + j}"
             ax.axhline(line["final"]["iqm"], linestyle="--", linewidth=1, color=colour,
