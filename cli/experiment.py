@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import inspect
+from contextlib import nullcontext
 
 import typer
 
-from cli.common import counted
+from cli.common import Stop, counted, stop_on_signals
 from cli.errors import friendly
 
 
@@ -62,11 +63,19 @@ def register(app: typer.Typer) -> None:
 
         def on_run(run, event: str) -> None:
             typer.echo(f"{event}: {run.env_id} {run.label} seed {run.seed}", err=event != "done")
-            if event != "done":
+            if event.startswith("failed"):
                 failed.append(run)
 
-        run_experiment(loaded, results, jobs=jobs, on_run=on_run, launcher=launcher, cluster=cluster,
-                       only=config.only)
+        # local runs stop cleanly at a first Ctrl-C; a cluster's jobs run on without this command
+        with stop_on_signals("the runs' current updates, then a checkpoint each") if launcher == "local" \
+                else nullcontext(Stop()) as stop:
+            trained = run_experiment(loaded, results, jobs=jobs, on_run=on_run, launcher=launcher, cluster=cluster,
+                                     only=config.only, should_stop=lambda: stop.requested)
+        if stop.requested:
+            left = [r for r in trained if r.status != "done"]
+            typer.echo(f"stopped: {counted(len(left), 'run')} not finished ({sum(r.status == 'stopped' for r in left)} "
+                       "with a checkpoint); run the same command again to resume them", err=True)
+            raise typer.Exit(stop.exit_code)
         if failed:
             typer.echo(f"{len(failed)} of {len(runs)} runs failed (above); run the same command again to retry them",
                        err=True)

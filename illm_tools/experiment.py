@@ -48,7 +48,7 @@ import fnmatch
 import itertools
 import shutil
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -432,14 +432,45 @@ def select(runs: list[Run], only: list[str] | tuple = ()) -> list[Run]:
     return [r for r in runs if any(picks(r, p) for p in only)]
 
 
+_STOP = None  # a local grid worker's copy of the grid's stop event (`_init_worker`)
+POLL_S = 0.5  # how often the local grid's parent checks `should_stop` while runs train
+
+
+def _init_worker(stop) -> None:
+    """A local grid worker. Ctrl-C reaches the whole process group; the worker ignores it and the
+    parent alone decides: it sets `stop`, which every run reads after each update (a checkpoint,
+    then an early return), so no update is cut in half and no worker prints a traceback."""
+    import signal
+
+    global _STOP
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _STOP = stop
+
+
 def _train_one(cfg) -> dict:
-    """One run in a worker process (its metrics' last line)."""
+    """One run in a worker process (its metrics' last line; `stopped` when the grid's stop ended it
+    early with a checkpoint)."""
     import os
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     from illm_tools.rl.run import train
 
-    return train(cfg)
+    return train(cfg, should_stop=_STOP.is_set if _STOP is not None else None)
+
+
+def _outcome(run: Run, future: Future) -> str:
+    """A finished future's (or submitit job's) run status set, and the event `on_run` hears: "done", "failed: <reason>"
+    or "stopped at N frames (checkpoint written)"."""
+    try:
+        result = future.result()
+    except Exception as e:  # noqa: BLE001 - one failed run must not stop the grid; it is reported
+        run.status = "failed"
+        return _failure(e)
+    if result.get("stopped"):
+        run.status = "stopped"
+        return f"stopped at {result.get('global_step', 0):,} frames (checkpoint written)"
+    run.status = "done"
+    return "done"
 
 
 def claim_results(spec: Spec, results: str | Path) -> Path:
@@ -513,23 +544,22 @@ def _submitit(spec: Spec, results: Path, todo: list[Run], jobs: int, launcher: s
     for wave in waves:
         submitted = executor.map_array(_train_one, [configs[i] for i in wave])
         for i, job in zip(wave, submitted):
-            run = todo[i]
-            try:
-                job.result()
-                run.status, event = "done", "done"
-            except Exception as e:  # noqa: BLE001 - one failed run must not stop the grid; it is reported
-                run.status, event = "failed", _failure(e)
+            event = _outcome(todo[i], job)
             if on_run is not None:
-                on_run(run, event)
+                on_run(todo[i], event)
 
 
 def run_experiment(spec: Spec, results: str | Path, *, jobs: int = 1,
                    on_run: Callable[[Run, str], None] | None = None, launcher: str = "local",
-                   cluster: Cluster | None = None, only: list[str] | tuple = ()) -> list[Run]:
+                   cluster: Cluster | None = None, only: list[str] | tuple = (),
+                   should_stop: Callable[[], bool] | None = None) -> list[Run]:
     """Plan, claim the results folder, and train every run not done (of those `only`'s patterns pick,
     `select`), `jobs` at a time, through the `launcher` (`LAUNCHERS`; `cluster` overrides the spec's
-    resources). `on_run(run, event)` hears "done" or "failed: <reason>" as each run ends. Returns the
-    runs picked."""
+    resources). `on_run(run, event)` hears "done", "failed: <reason>" or "stopped at ..." as each run
+    ends. Local launcher: once `should_stop()` (checked every POLL_S) says so, the runs in progress
+    finish their update and write a checkpoint (status "stopped") and the runs not yet started stay as
+    they were; an exception meanwhile (a second Ctrl-C) ends the workers at once. Returns the runs
+    picked."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
     check_launcher(launcher)
@@ -543,17 +573,28 @@ def run_experiment(spec: Spec, results: str | Path, *, jobs: int = 1,
         return runs
     import multiprocessing as mp
 
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+    context = mp.get_context("spawn")
+    stop = context.Event()
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=context, initializer=_init_worker,
+                             initargs=(stop,)) as pool:
         futures = {pool.submit(_train_one, run.config): run for run in todo}
-        for future in as_completed(futures):
-            run = futures[future]
-            try:
-                future.result()
-                run.status = "done"
-                event = "done"
-            except Exception as e:  # noqa: BLE001 - one failed run must not stop the grid; it is reported
-                run.status = "failed"
-                event = _failure(e)
-            if on_run is not None:
-                on_run(run, event)
+        pending = set(futures)
+        try:
+            while pending:
+                finished, pending = wait(pending, timeout=POLL_S, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    if future.cancelled():
+                        continue
+                    event = _outcome(futures[future], future)
+                    if on_run is not None:
+                        on_run(futures[future], event)
+                if should_stop is not None and not stop.is_set() and should_stop():
+                    stop.set()
+                    for future in pending:
+                        future.cancel()  # not started: left as it was; started ones stop after their update
+        except BaseException:
+            stop.set()
+            for child in mp.active_children():  # the pool's workers: their runs keep the last checkpoint
+                child.terminate()
+            raise
     return runs

@@ -265,3 +265,37 @@ def test_only_trains_the_runs_its_patterns_pick_and_leaves_the_rest(tmp_path):
     refused = runner.invoke(app, ["experiment", str(spec), "--out", str(results), "--only", "rnd"])
     assert refused.exit_code == 1 and len(refused.output.strip().splitlines()) == 1, refused.output
     assert "--only 'rnd' matches no run of this spec; its labels: ppo-num_dists=1, ppo-num_dists=2" in refused.output
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_local_grid_with_a_checkpoint_per_run_and_the_same_command_resumes(tmp_path):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while two runs train at
+    --jobs 2: one line says what it finishes, each run ends its update and writes a checkpoint, the
+    command exits 130 with no traceback from any worker, and the runs plan as "resume"."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    spec = write(tmp_path, TINY.replace("frames: 64", "frames: 200000").replace("  num_dists: [1, 2]",
+                                                                                "  num_dists: [1]"))
+    results = tmp_path / "results"
+    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "experiment", str(spec), "--out", str(results),
+                             "--jobs", "2"], env={**os.environ, "HF_HUB_OFFLINE": "1"}, start_new_session=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    logs = [results / "BabyAI-GoToLocal-v0" / "ppo-num_dists=1" / f"seed{s}" / "metrics.jsonl" for s in (0, 1)]
+    deadline = time.monotonic() + 120
+    while not all(p.exists() and p.read_text().count("\n") >= 2 for p in logs):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            pytest.fail(f"the grid ended or never trained: {proc.communicate()}")
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, (out, err)
+    assert "Traceback" not in out + err and "KeyboardInterrupt" not in err, err
+    assert "SIGINT: finishing the runs' current updates, then a checkpoint each" in err, err
+    assert err.count("stopped at ") == 2 and "stopped: 2 runs not finished (2 with a checkpoint)" in err, err
+    assert all((p.parent / "checkpoint.pt").exists() for p in logs)
+    assert [r.status for r in plan(load_spec(spec), results)] == ["resume", "resume"]
