@@ -459,18 +459,22 @@ def _train_one(cfg) -> dict:
 
 
 def _outcome(run: Run, future: Future) -> str:
-    """A finished future's (or submitit job's) run status set, and the event `on_run` hears: "done", "failed: <reason>"
-    or "stopped at N frames (checkpoint written)"."""
+    """A finished future's (or submitit job's) run status set, and the event `on_run` hears: "done",
+    "failed: <reason>", "stopped at N frames (checkpoint written)", or, stopped before its first
+    update (the trainer writes no checkpoint then), "stopped before its first update" (status "new")."""
     try:
         result = future.result()
     except Exception as e:  # noqa: BLE001 - one failed run must not stop the grid; it is reported
         run.status = "failed"
         return _failure(e)
-    if result.get("stopped"):
-        run.status = "stopped"
-        return f"stopped at {result.get('global_step', 0):,} frames (checkpoint written)"
-    run.status = "done"
-    return "done"
+    if not result.get("stopped"):
+        run.status = "done"
+        return "done"
+    if not result.get("global_step"):
+        run.status = "new"
+        return "stopped before its first update"
+    run.status = "stopped"
+    return f"stopped at {result['global_step']:,} frames (checkpoint written)"
 
 
 def claim_results(spec: Spec, results: str | Path) -> Path:
