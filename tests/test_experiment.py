@@ -230,14 +230,15 @@ def test_env_frames_give_a_level_its_own_frames(tmp_path):
             load_spec(path)
 
 
-@pytest.mark.parametrize("name", ["suite-tune", "suite-calibration", "suite-calibration-2"])
+@pytest.mark.parametrize("name", ["suite-tune", "suite-calibration", "suite-calibration-2", "suite-report-lava"])
 def test_the_suite_specs_validate_with_a_dry_run(tmp_path, name):
     """The positive-control suite's specs (issue 28) plan every run, each level at its own frames."""
     spec = Path(__file__).resolve().parents[1] / "experiments" / "specs" / f"{name}.yaml"
     out = runner.invoke(app, ["experiment", str(spec), "--out", str(tmp_path / "r"), "--dry-run"])
     assert out.exit_code == 0, out.output
     runs = plan(load_spec(spec), tmp_path / "r2")
-    assert len({r.env_id for r in runs}) >= 4 and all(r.status == "new" for r in runs)
+    assert len({r.env_id for r in runs}) >= (1 if name == "suite-report-lava" else 4)
+    assert all(r.status == "new" for r in runs)
     if name == "suite-tune":  # every illm setting is a row of its own, the controls at the small weights
         labels = {r.label for r in runs}
         assert {"illm-setting=paper", "illm-setting=small", "illm-setting=paper-literal", "illm-setting=small-gated",
@@ -248,6 +249,8 @@ def test_the_suite_specs_validate_with_a_dry_run(tmp_path, name):
         bulk = next(r.config for r in runs if r.label == "illm-setting=bulk-small")
         assert bulk.live_budget == 0 and bulk.cache.name == "ann-bulk"
         assert {r.config.total_steps for r in runs} == {61440, 81920, 122880, 151552}
+    if name == "suite-report-lava":  # the suite's eighth level by its rule, at its calibrated budget
+        assert {r.config.total_steps for r in runs} == {368640} and len(runs) == 25
 
 
 def test_only_trains_the_runs_its_patterns_pick_and_leaves_the_rest(tmp_path):
