@@ -230,7 +230,8 @@ def test_env_frames_give_a_level_its_own_frames(tmp_path):
             load_spec(path)
 
 
-@pytest.mark.parametrize("name", ["suite-tune", "suite-calibration", "suite-calibration-2", "suite-report-lava"])
+@pytest.mark.parametrize("name", ["suite-tune", "suite-calibration", "suite-calibration-2", "suite-report",
+                                  "suite-report-lava"])
 def test_the_suite_specs_validate_with_a_dry_run(tmp_path, name):
     """The positive-control suite's specs (issue 28) plan every run, each level at its own frames."""
     spec = Path(__file__).resolve().parents[1] / "experiments" / "specs" / f"{name}.yaml"
@@ -249,6 +250,10 @@ def test_the_suite_specs_validate_with_a_dry_run(tmp_path, name):
         bulk = next(r.config for r in runs if r.label == "illm-setting=bulk-small")
         assert bulk.live_budget == 0 and bulk.cache.name == "ann-bulk"
         assert {r.config.total_steps for r in runs} == {61440, 81920, 122880, 151552}
+    if name == "suite-report":  # the claim: both halves, 5 seeds, the report half's eighth level by suite-tune's rule
+        frames = {r.env_id: r.config.total_steps for r in runs}
+        assert len(runs) == 200 and frames["MiniGrid-LavaCrossingS9N1-v0"] == 368640
+        assert frames["MiniGrid-Unlock-v0"] == 81920 and "BabyAI-KeyCorridorS3R2-v0" not in frames
     if name == "suite-report-lava":  # the suite's eighth level by its rule, at its calibrated budget
         assert {r.config.total_steps for r in runs} == {368640} and len(runs) == 25
 
