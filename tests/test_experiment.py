@@ -312,7 +312,8 @@ def test_ctrl_c_stops_a_local_grid_with_a_checkpoint_per_run_and_the_same_comman
 def test_a_runs_outcome_says_whether_a_stop_left_a_checkpoint():
     """A run stopped after an update has a checkpoint (status "stopped"); one stopped before its first
     update has none and plans as new; a failure is one line; a finished run is done."""
-    from illm_tools.experiment import Run, _outcome
+    from illm_tools.experiment import Run
+    from illm_tools.experiment.launch import _outcome
 
     class Finished:
         def __init__(self, result=None, error=None):
