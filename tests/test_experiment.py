@@ -312,25 +312,18 @@ def test_ctrl_c_stops_a_local_grid_with_a_checkpoint_per_run_and_the_same_comman
 def test_a_runs_outcome_says_whether_a_stop_left_a_checkpoint():
     """A run stopped after an update has a checkpoint (status "stopped"); one stopped before its first
     update has none and plans as new; a failure is one line; a finished run is done."""
+    from concurrent.futures import Future
+
     from illm_tools.experiment import Run
     from illm_tools.experiment.launch import _outcome
 
-    class Finished:
-        def __init__(self, result=None, error=None):
-            self.value, self.error = result, error
-
-        def result(self):
-            if self.error is not None:
-                raise self.error
-            return self.value
-
-    def outcome(future):
-        run = Run("BabyAI-GoToLocal-v0", "ppo", 0, None)
+    def outcome(result=None, error=None):
+        future, run = Future(), Run("BabyAI-GoToLocal-v0", "ppo", 0, None)
+        future.set_exception(error) if error is not None else future.set_result(result)
         return _outcome(run, future), run.status
 
-    assert outcome(Finished({"global_step": 4096})) == ("done", "done")
-    assert outcome(Finished({"stopped": True, "global_step": 4096})) == \
-        ("stopped at 4,096 frames (checkpoint written)", "stopped")
-    assert outcome(Finished({"stopped": True, "global_step": 0})) == ("stopped before its first update", "new")
-    event, status = outcome(Finished(error=UsageError("--num-envs must be positive")))
+    assert outcome({"global_step": 4096}) == ("done", "done")
+    assert outcome({"stopped": True, "global_step": 4096}) == ("stopped at 4,096 frames (checkpoint written)", "stopped")
+    assert outcome({"stopped": True, "global_step": 0}) == ("stopped before its first update", "new")
+    event, status = outcome(error=UsageError("--num-envs must be positive"))
     assert status == "failed" and event.startswith("failed") and "--num-envs must be positive" in event
