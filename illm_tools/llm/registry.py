@@ -1,9 +1,9 @@
 """Model registry: what a `--model` name means and where its files are, offline.
 
 Owns the alias table (embedded GGUF models, the paper's models, the students `illm distil` builds),
-the resolution of any other name as a local folder or a hub id found in the Hugging Face cache, and
-`list_models()` for `illm models`. Nothing here loads weights (see `loading.py`); nothing here
-touches the network.
+the resolution of any other name as a local folder or a hub id (its snapshot found in the Hugging
+Face cache, or downloaded where the machine is online: `hub.py`), and `list_models()` for `illm
+models`. Nothing here loads weights (see `loading.py`).
 
 A student alias names a folder under the models folder (`ILLM_MODELS`, default `models` in the
 working directory) that one command builds (its weights are not shipped); until it is built, the
@@ -47,6 +47,9 @@ class ModelSpec:
     """local only: absolute path of the folder."""
     hub_names: tuple[str, ...] = ()
     """hub only: older names the same repository may be cached under (e.g. `gpt2`)."""
+    gpu_quant: str = "none"
+    """hub only: the quantisation `--quant auto` picks on a CUDA device (the paper ran its annotator in
+    4 bits: `llama3`, `llama2` load in 4-bit NF4 there); on a CPU auto is none."""
     notes: str = ""
     build: str | None = None
     """local aliases only: the command that builds the folder (a student of `illm distil`)."""
@@ -69,8 +72,10 @@ _ALIASES: tuple[ModelSpec, ...] = (
         notes="student of the BabyAI oracle: SmolLM2-135M distilled on UnlockLocal and GoToLocal (not shipped)",
         build="bash experiments/distil.sh (about 25 min on 2 cores)",
     ),
-    ModelSpec("llama3", "hub", "meta-llama/Meta-Llama-3-8B", notes="paper comparison model"),
-    ModelSpec("llama2", "hub", "meta-llama/Llama-2-7b-hf", notes="paper comparison model"),
+    ModelSpec("llama3", "hub", "meta-llama/Meta-Llama-3-8B", gpu_quant="4bit",
+              notes="paper comparison model (gated: HF_TOKEN); 4-bit NF4 on a GPU unless --quant none"),
+    ModelSpec("llama2", "hub", "meta-llama/Llama-2-7b-hf", gpu_quant="4bit",
+              notes="paper comparison model (gated: HF_TOKEN); 4-bit NF4 on a GPU unless --quant none"),
     ModelSpec("gpt2", "hub", "openai-community/gpt2", hub_names=("gpt2",),
               notes="paper comparison model (124M)"),
     ModelSpec("gpt2-large", "hub", "openai-community/gpt2-large", hub_names=("gpt2-large",),
@@ -135,28 +140,21 @@ def package_dir(package: str) -> Path | None:
 
 def hub_cache_dir() -> Path:
     """The Hugging Face hub cache folder, read at call time (HF_HUB_CACHE / HF_HOME honoured)."""
-    from huggingface_hub import constants
+    from illm_tools.llm import hub
 
-    return Path(constants.HF_HUB_CACHE)
+    return hub.cache_dir()
 
 
 def locate_hub(spec: ModelSpec) -> Path:
-    """The cached snapshot folder of a hub model; its name is the commit (the revision)."""
-    from huggingface_hub import snapshot_download
-    from huggingface_hub.errors import LocalEntryNotFoundError
+    """The cached snapshot folder of a hub model (its name is the commit: the revision), downloaded
+    first where the machine is online (`illm_tools.llm.hub`)."""
+    from illm_tools.llm import hub
 
-    error: Exception | None = None
-    for repo in (spec.model_id, *spec.hub_names):
-        try:
-            return Path(snapshot_download(repo, local_files_only=True, cache_dir=hub_cache_dir()))
-        except (LocalEntryNotFoundError, FileNotFoundError, ValueError) as exc:
-            error = exc
-    known = "" if "/" in spec.model_id else f" (known aliases: {', '.join(a.alias for a in _ALIASES)})"
-    raise ModelNotFoundError(
-        f"model {spec.model_id!r} is not in the Hugging Face cache at {hub_cache_dir()} and this "
-        f"machine is offline{known}; on a machine with network run `hf download {spec.model_id}` "
-        "and copy the cache folder here (or set HF_HUB_CACHE), or pass --model <local folder>"
-    ) from error
+    try:
+        return hub.snapshot((spec.model_id, *spec.hub_names))
+    except ModelNotFoundError as e:
+        known = "" if "/" in spec.model_id else f" (known aliases: {', '.join(a.alias for a in _ALIASES)})"
+        raise ModelNotFoundError(f"{e}{known}") from None
 
 
 def locate_gguf_package(spec: ModelSpec) -> Path:
@@ -215,11 +213,14 @@ class ModelInfo:
 
 
 def list_models() -> list[ModelInfo]:
-    """Every alias with whether it can be loaded offline here, default first."""
+    """Every alias with whether it can be loaded offline here, default first (nothing downloaded)."""
+    from illm_tools.llm import hub
+
     rows = []
     for spec in map(_placed, _ALIASES):
         try:
-            where, ok = str(locate(spec)), True
+            with hub.no_downloads("`illm models` lists what is here and downloads nothing"):
+                where, ok = str(locate(spec)), True
         except ModelNotFoundError as exc:
             where, ok = str(exc), False
         rows.append(ModelInfo(spec.alias, spec.source, spec.model_id, ok, where, spec.notes))

@@ -32,10 +32,13 @@ class LLMSpec:
     """Compute dtype: auto | bfloat16 | float32 | float16; auto: bfloat16 on CUDA, and on a CPU where a
     timed matmul says it is faster than float32, else float32 (measured once per machine). The resolved
     dtype is part of every cache key."""
-    quant: str = "none"
-    """bitsandbytes quantisation: none | 4bit | 8bit (part of every cache key)."""
-    device: str = "cpu"
-    """Where the model runs: cpu | cuda | cuda:N | auto (with several processes each takes its own GPU)."""
+    quant: str = "auto"
+    """bitsandbytes quantisation: none | 4bit (NF4) | 8bit | auto (on a CUDA device what the model's alias
+    says: 4bit for llama3 and llama2, as the paper ran its annotator; else none). The resolved value is
+    part of every cache key."""
+    device: str = "auto"
+    """Where the model runs: cpu | cuda | cuda:N | auto (a GPU where torch sees one, else the CPU; with
+    several processes each takes its own GPU)."""
     oracle_noise: float = 0.0
     """oracle: the share of states (fixed, keyed by the state) answered at random; 1 is an annotator
     that knows nothing (part of every key)."""
@@ -44,6 +47,11 @@ class LLMSpec:
     serves it)."""
     api_key_env: str | None = None
     """openai: the environment variable holding the server's API key (default OPENAI_API_KEY)."""
+    embed_endpoint: str | None = None
+    """openai: the OpenAI base URL of a pooling server of the same weights (vLLM `--runner pooling`)
+    that embeds the summaries; unset: the endpoint's own /v1/embeddings, else a local sentence model."""
+    offline: bool = dataclasses.field(default=False, compare=False)
+    """Never download a hub model: use only what is in the Hugging Face cache (as HF_HUB_OFFLINE=1)."""
 
     def __post_init__(self) -> None:
         from illm_tools.devices import check_device
@@ -54,32 +62,50 @@ class LLMSpec:
         check_backend(self.backend)
         if self.dtype not in CHOICES:
             raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.dtype!r}")
-        if self.quant not in QUANTS:
-            raise UsageError(f"--quant must be one of {', '.join(QUANTS)}, got {self.quant!r}")
+        if self.quant not in (*QUANTS, "auto"):
+            raise UsageError(f"--quant must be one of {', '.join(QUANTS)} or auto, got {self.quant!r}")
         check_device(self.device)
         if not 0.0 <= self.oracle_noise <= 1.0:
             raise UsageError(f"--oracle-noise must be between 0 and 1, got {self.oracle_noise}")
         model = resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
-                              api_key_env=self.api_key_env)
-        for name, value in (("model", model), ("oracle_noise", 0.0), ("endpoint", None), ("api_key_env", None)):
+                              api_key_env=self.api_key_env, embed_endpoint=self.embed_endpoint)
+        for name, value in (("model", model), ("oracle_noise", 0.0), ("endpoint", None), ("api_key_env", None),
+                            ("embed_endpoint", None)):
             object.__setattr__(self, name, value)
 
     def placed(self, state=None) -> LLMSpec:
         """This spec with the machine's choices made: the device (auto -> cuda or cpu; under
-        accelerate's `state`, this process's own) and the dtype (auto -> what `illm_tools.llm.dtype`
-        measures on that device; the oracle: float32)."""
+        accelerate's `state`, this process's own), the dtype (auto -> what `illm_tools.llm.dtype`
+        measures on that device; the oracle: float32) and the quantisation (auto -> the model's
+        alias on CUDA, else none: `backend_quant`)."""
         from illm_tools.devices import resolve_device
-        from illm_tools.llm.backend import backend_dtype
+        from illm_tools.llm.backend import backend_dtype, backend_quant
 
         device = resolve_device(self.device, state)
-        return dataclasses.replace(self, device=device, dtype=backend_dtype(self.backend, self.dtype, device))
+        return dataclasses.replace(self, device=device, dtype=backend_dtype(self.backend, self.dtype, device),
+                                   quant=backend_quant(self.backend, self.model, self.quant, device))
+
+    def _concrete(self) -> LLMSpec:
+        """Placed unless already placed (fingerprints and loads need the resolved values)."""
+        return self if "auto" not in (self.device, self.dtype, self.quant) else self.placed()
+
+    def _downloads(self):
+        """No hub downloads under --offline (`illm_tools.llm.hub.no_downloads`)."""
+        import contextlib
+
+        from illm_tools.llm import hub
+
+        return hub.no_downloads("--offline was given") if self.offline else contextlib.nullcontext()
 
     def fingerprint(self) -> str:
-        """The hash every cache key of this model carries (without loading weights)."""
+        """The hash every cache key of this model carries (without loading weights; a hub model
+        missing from the cache is downloaded first where the machine is online)."""
         from illm_tools.keys import fingerprint_hash
         from illm_tools.llm.backend import backend_fingerprint
 
-        return fingerprint_hash(backend_fingerprint(self.backend, self.model, dtype=self.dtype, quant=self.quant))
+        spec = self._concrete()
+        with self._downloads():
+            return fingerprint_hash(backend_fingerprint(spec.backend, spec.model, dtype=spec.dtype, quant=spec.quant))
 
     def hidden_size(self) -> int:
         """The model's hidden size (the summary embedding's width), without loading weights."""
@@ -91,8 +117,10 @@ class LLMSpec:
         """The loaded backend (`illm_tools.llm.backend.load_backend`)."""
         from illm_tools.llm.backend import load_backend
 
-        return load_backend(self.backend, self.model, dtype=self.dtype, quant=self.quant, device=self.device,
-                            cache_dir=cache_dir)
+        spec = self._concrete()
+        with self._downloads():
+            return load_backend(spec.backend, spec.model, dtype=spec.dtype, quant=spec.quant, device=spec.device,
+                                cache_dir=cache_dir)
 
     def check_use(self, env_id: str, renderer: str) -> None:
         """Refuse in one line an env (or hop states) the backend cannot read (the oracle: hop)."""

@@ -230,12 +230,16 @@ class TrainConfig:
     """openai: the server's OpenAI base URL (http://host:8000/v1); `model` is the model as it serves it."""
     api_key_env: str | None = None
     """openai: the environment variable holding the server's API key (default OPENAI_API_KEY)."""
+    embed_endpoint: str | None = None
+    """openai: the URL of a pooling server of the same weights that embeds the summaries (as in `illm
+    annotate --embed-endpoint`)."""
     model_dtype: str = "auto"
     """Compute dtype of that LLM (part of its fingerprint, as in `illm annotate --dtype`): bfloat16,
     float32, float16, or auto (bfloat16 on CUDA; on a CPU bfloat16 only where a timed matmul says
     it is faster, `illm_tools.llm.dtype`). The run records the resolved dtype in config.json."""
-    quant: str = "none"
-    """Quantisation of that LLM (part of its fingerprint, as in `illm annotate --quant`)."""
+    quant: str = "auto"
+    """Quantisation of that LLM (part of its fingerprint, as in `illm annotate --quant`): none, 4bit, 8bit,
+    or auto (on CUDA what the model's alias says: 4bit for llama3/llama2; else none)."""
     layout: str = "shared"
     """Prompt template layout, as in `illm annotate --layout`."""
     action_score: str = "sum"
@@ -259,9 +263,9 @@ class TrainConfig:
     quantisation, history length, layout, templates, renderer): live annotation starts it."""
     threads: int = 1
     """Torch threads for the policy (small nets run best on one)."""
-    device: str = "cpu"
+    device: str = "auto"
     """Where the policy, the bonus's models and the rollout live: cpu, cuda, cuda:N or auto (a GPU
-    where there is one). Actions are sampled on the CPU from the run's seeded generator; a run may
+    where there is one; for many small runs side by side on one GPU machine, cpu). Actions are sampled on the CPU from the run's seeded generator; a run may
     resume on another device."""
     llm_device: str | None = None
     """Where the live fallback's and hop mode's LLM run (cpu, cuda, cuda:N, auto); unset: `device`."""
@@ -378,16 +382,17 @@ class TrainConfig:
         """This config with the machine's choices made, as the run records them in config.json (and
         keeps on resume, on any machine): `device` and `llm_device` auto -> cpu or cuda (these two may
         change on resume), `model_dtype` auto -> the dtype `illm_tools.llm.dtype`
-        measures (when the run uses an LLM), `heads_bf16` None -> whether bf16 is faster for the heads
+        measures and `quant` auto -> the model's alias on CUDA, else none (when the run uses an LLM), `heads_bf16` None -> whether bf16 is faster for the heads
         (when the method has them)."""
         from illm_tools.devices import resolve_device
-        from illm_tools.llm.backend import backend_dtype
+        from illm_tools.llm.backend import backend_dtype, backend_quant
 
         changes: dict = {"device": resolve_device(self.device)}
         if self.needs_targets or self.obs_mode == "hop":
             changes["llm_device"] = resolve_device(self.llm_device or self.device, flag="--llm-device")
             if self.model_dtype == "auto":
                 changes["model_dtype"] = backend_dtype(self.backend, "auto", changes["llm_device"])
+            changes["quant"] = backend_quant(self.backend, self.llm_model, self.quant, changes["llm_device"])
         if self.heads_bf16 is None and self.uses_heads:
             from illm_tools.rl.networks import bf16_is_faster
 
@@ -431,7 +436,7 @@ class TrainConfig:
         a `resolved()` config its device and dtype are this machine's choices."""
         return LLMSpec(backend=self.backend, model=self.model, dtype=self.model_dtype, quant=self.quant,
                        device=self.llm_device or self.device, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
-                       api_key_env=self.api_key_env)
+                       api_key_env=self.api_key_env, embed_endpoint=self.embed_endpoint)
 
     @property
     def llm_model(self) -> str:
