@@ -32,14 +32,16 @@ class Server:
     `shifted` scores each echoed token with the logits at its own position instead of the previous
     one (its echo), `no_echo` gives no prompt log-probs."""
 
-    def __init__(self, lm, name: str = "tiny", *, single: bool = False, shifted: bool = False, no_echo: bool = False):
+    def __init__(self, lm, name: str = "tiny", *, single: bool = False, shifted: bool = False, no_echo: bool = False,
+                 root: str | None = None):
         from aiohttp import web
 
         self.lm, self.name, self.fail, self.requests = lm, name, 0, 0
         self.single, self.shifted, self.no_echo = single, shifted, no_echo
         self.backend = TransformersBackend(lm)
         app = web.Application()
-        app.router.add_get("/v1/models", lambda r: web.json_response({"data": [{"id": self.name}]}))
+        served = {"id": self.name, **({"root": root} if root else {})}  # vLLM's `root`: the weights it serves
+        app.router.add_get("/v1/models", lambda r: web.json_response({"data": [served]}))
         app.router.add_get("/version", lambda r: web.json_response({"version": "test-1"}))
         app.router.add_post("/v1/completions", self.completions)
         app.router.add_post("/v1/embeddings", self.embeddings)
@@ -102,6 +104,7 @@ class Server:
     async def embeddings(self, request):
         from aiohttp import web
 
+        self.requests += 1
         body = await request.json()
         vectors = self.backend.embed(body["input"])
         return web.json_response({"data": [{"index": i, "embedding": v.tolist()} for i, v in enumerate(vectors)]})
@@ -171,7 +174,9 @@ def test_bad_endpoints_and_models_are_refused_in_one_line(server):
         load_backend("openai", resolve_model("openai", "llama", endpoint=server.url))
     with pytest.raises(UsageError, match="no OpenAI-compatible server answers"):
         load_backend("openai", resolve_model("openai", "tiny", endpoint="http://127.0.0.1:9/v1"))
-    with pytest.raises(UsageError, match="--endpoint and --api-key-env are the openai backend's"):
+    with pytest.raises(UsageError, match="--embed-endpoint must be an http"):
+        resolve_model("openai", "tiny", endpoint=server.url, embed_endpoint="localhost:8001")
+    with pytest.raises(UsageError, match="--endpoint, --embed-endpoint and --api-key-env are the openai backend.s"):
         resolve_model("transformers", None, endpoint=server.url)
 
 
@@ -226,3 +231,21 @@ def test_a_training_run_with_live_ranking_through_a_shifted_engine_is_refused_be
                                    "--num-steps", "32", "--out", str(tmp_path / "run")])
     assert out.exit_code == 1 and "cannot rank actions" in out.output and "Traceback" not in out.output
     assert not (tmp_path / "run").exists() and not list((tmp_path / "ann").glob("shard-*"))
+
+
+def test_a_pooling_endpoint_of_the_same_weights_embeds_the_summaries(tiny_lm, tmp_path):
+    """--embed-endpoint: the texts' embeddings come from a second server of the same weights (vLLM's
+    pooling runner); one serving other weights, or none, is refused in one line before anything runs."""
+    completions = Server(tiny_lm, root="/models/tiny")
+    pooling, other = Server(tiny_lm, root="/models/tiny"), Server(tiny_lm, root="/models/another")
+    remote = load_backend("openai", resolve_model("openai", "tiny", endpoint=completions.url,
+                                                  embed_endpoint=pooling.url))
+    assert remote.fingerprint["embedder"].startswith("pooling endpoint, /models/tiny")
+    before = pooling.requests
+    vectors = remote.embed(["You see a red ball", "go forward"])
+    assert pooling.requests > before and vectors.shape == (2, tiny_lm.hidden_size)
+    with pytest.raises(UsageError, match="serves /models/another as 'tiny'.*same weights"):
+        load_backend("openai", resolve_model("openai", "tiny", endpoint=completions.url, embed_endpoint=other.url))
+    with pytest.raises(UsageError, match="pooling endpoint http://127.0.0.1:9/v1 gives no embeddings"):
+        load_backend("openai", resolve_model("openai", "tiny", endpoint=completions.url,
+                                             embed_endpoint="http://127.0.0.1:9/v1"))
