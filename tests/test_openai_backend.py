@@ -37,6 +37,7 @@ class Server:
         from aiohttp import web
 
         self.lm, self.name, self.fail, self.requests = lm, name, 0, 0
+        self.status, self.drop = 503, False  # how a failing request fails: this status, or the connection cut
         self.single, self.shifted, self.no_echo = single, shifted, no_echo
         self.backend = TransformersBackend(lm)
         app = web.Application()
@@ -86,7 +87,10 @@ class Server:
         self.requests += 1
         if self.fail:
             self.fail -= 1
-            return web.json_response({"error": "busy"}, status=503)
+            if self.drop:  # the connection dropped mid-batch: no answer at all
+                request.transport.close()
+                raise ConnectionResetError("dropped by the test engine")
+            return web.json_response({"error": "busy"}, status=self.status)
         body = await request.json()
         prompts = body["prompt"] if isinstance(body["prompt"], list) else [body["prompt"]]
         if self.single and isinstance(body["prompt"], list):
@@ -165,6 +169,35 @@ def test_failures_are_retried_then_refused_in_one_line_with_nothing_written(serv
                                                                         "babyai-text@1")
     server.fail = 0
     assert len(AnnotationCache(tmp_path / "ann")) == 0  # nothing half-written
+
+
+@pytest.mark.parametrize("how", ["500", "dropped"])
+def test_an_engine_failing_mid_batch_is_one_line_and_nothing_half_written(server, tmp_path, how):
+    """The first requests of a chunk are answered, the rest fail (a 500, or the connection cut):
+    one line, and nothing of the chunk is in the cache."""
+    spec = resolve_model("openai", "tiny", endpoint=server.url)
+    lm = OpenAIBackend(spec, retries=1, concurrency=1)
+    lm.client.backoff = 0.01
+    answered = []
+    real = lm._ranking
+
+    def ranking_then_failing(item):
+        if len(answered) == 2:
+            server.fail, server.status, server.drop = 10**6, 500, how == "dropped"
+        answered.append(item)
+        return real(item)
+
+    lm._ranking = ranking_then_failing
+    cache = AnnotationCache(tmp_path / "ann")
+    try:
+        with pytest.raises(EndpointError, match="failed 2 times") as raised:
+            Annotator(lm, cache, model=spec, history_len=0).annotate_states(_records(), "BabyAI-GoToLocal-v0",
+                                                                            "babyai-text@1")
+    finally:
+        server.fail, server.status, server.drop = 0, 503, False
+    assert len(answered) > 2 and "\n" not in str(raised.value)
+    assert ("500" in str(raised.value)) == (how == "500")
+    assert len(AnnotationCache(tmp_path / "ann")) == 0
 
 
 def test_bad_endpoints_and_models_are_refused_in_one_line(server):

@@ -130,8 +130,8 @@ class DistilConfig:
     dtype: str = "float32"
     """float32 | bfloat16: the matmuls of training (bfloat16: autocast, the weights stay float32; pays on a
     CPU with bf16 instructions or a GPU). The student is saved in float32."""
-    device: str = "cpu"
-    """Where the fine-tuning runs: cpu | cuda | cuda:N | auto."""
+    device: str = "auto"
+    """Where the fine-tuning runs: auto (a GPU where torch sees one, else the CPU) | cpu | cuda | cuda:N."""
 
     def __post_init__(self) -> None:
         from illm_tools.devices import check_device
