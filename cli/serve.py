@@ -9,8 +9,8 @@ import typer
 from cli.common import counted, stop_on_signals
 from cli.errors import friendly
 
-EXAMPLE = ("Example: illm serve --cache data/ann --model smollm2-135m --port 8765, then "
-           "illm train ... --cache data/ann --annotator http://127.0.0.1:8765. For a cluster: "
+EXAMPLE = ("Example: illm serve --cache data/ann --model smollm2-135m --history 0 --port 8765, then "
+           "illm train ... --cache data/ann --history 0 --annotator http://127.0.0.1:8765. For a cluster: "
            "export ILLM_SERVE_TOKEN=... (on the server and the trainers), illm serve --host 0.0.0.0 ...")
 
 
@@ -18,14 +18,15 @@ def _parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.serve import ServeConfig
 
-    return dataclass_parameters(ServeConfig)
+    return dataclass_parameters(ServeConfig, aliases={"history_len": ("--history",)})
 
 
 def register(app: typer.Typer) -> None:
     def serve(**options) -> None:
         """Serve live annotation to several training runs from one loaded model.
 
-        Requests are batched across runs, highest visit counts first, into the shared cache. GET /stats reports the queue
+        Requests are batched round-robin across runs into the shared cache, under the server's own setup
+        (--history, --layout, --tasks, --hop-seed, --hop-beta: the trainers' options). GET /stats reports the queue
         and throughput. Beyond loopback it needs a token (--token or ILLM_SERVE_TOKEN), which every
         request must carry."""
         import asyncio
@@ -53,16 +54,14 @@ def register(app: typer.Typer) -> None:
                            "choose another)", err=True)
         torch.set_num_threads(config.threads or os.cpu_count() or 1)
         llm = config.llm.placed()
-        server = AnnotationServer(llm.load(), store, llm=llm, batch_size=config.batch_size, chunk=config.chunk,
-                                  max_clients=config.max_clients, max_states=config.max_states,
-                                  max_queue=config.max_queue)
+        server = AnnotationServer.of_config(llm.load(), store, llm, config)
         host, port, model, cache = config.host, config.port, llm.model, config.cache
         access = "every request must carry the token" if config.token else "no token: this machine only"
 
         def ready(addresses) -> None:
             where = ", ".join(f"http://{a[0]}:{a[1]}" for a in addresses)
-            typer.echo(f"serving {model} on {where} for the cache {cache} ({access}; GET /stats for the queue); "
-                       "Ctrl-C or SIGTERM stops after the batch in progress", err=True)
+            typer.echo(f"serving {model} on {where} for the cache {cache} ({access}; {server.setup.options()}; GET /stats "
+                       "for the queue); Ctrl-C or SIGTERM stops after the batch in progress", err=True)
 
         async def main(stop_flag) -> None:
             stop = asyncio.Event()
@@ -74,8 +73,7 @@ def register(app: typer.Typer) -> None:
 
             watcher = asyncio.ensure_future(watch())
             try:
-                await run(server, host, port, stop, on_ready=ready, token=config.token,
-                          request_timeout=config.request_timeout)
+                await run(server, host, port, stop, on_ready=ready, token=config.token)
             except OSError as e:
                 raise UsageError(f"cannot listen on {host}:{port} ({e.strerror or e}): check --host (an address of this "
                                  "machine) and --port (a free one, or 0)") from None
@@ -87,8 +85,10 @@ def register(app: typer.Typer) -> None:
         s = server.stats()
         typer.echo(f"served {s['requests']:,} requests: {s['annotated_states']:,} states annotated ({s['rows']:,} rows) "
                    f"in {counted(s['batches'], 'batch', 'batches')}, {s['states_per_s']:.2f} states/s while annotating; "
-                   f"{s['queue']:,} states left queued; refused: {s['refused']:,} malformed, {s['unauthorized']:,} without "
-                   f"the token, {s['busy']:,} busy (503), {s['timeouts']:,} too slow (408)")
+                   f"{s['queue']:,} states left queued, {s['failed_states']:,} failed in the engine; refused: {s['refused']:,} "
+                   f"malformed, {s['unauthorized']:,} without the token, {s['forbidden']:,} cross-origin or another "
+                   f"host, {s['throttled']:,} over a client's cap (429), {s['busy']:,} busy (503), {s['timeouts']:,} too "
+                   "slow (408)")
 
     serve.__signature__ = inspect.Signature(_parameters())
     app.command(epilog=EXAMPLE)(friendly(serve))

@@ -8,6 +8,7 @@ batch in progress, and a trainer that survives its server killed and restarted."
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -29,7 +30,7 @@ from illm_tools.llm.spec import LLMSpec
 from illm_tools.cache import AnnotationCache, verify
 from illm_tools.keys import fingerprint_hash
 from illm_tools.llm.stub import StubBackend
-from illm_tools.serve import AnnotationServer, RequestError, ServeConfig, record_to_json
+from illm_tools.serve import AnnotationServer, RequestError, ServeConfig, ServeLimits, record_to_json
 from illm_tools.tasks.state import StateRecord
 
 runner = CliRunner()
@@ -38,7 +39,7 @@ ACTIONS = ("turn left", "turn right", "go forward")
 MODEL = "stub:16"
 LLM = LLMSpec(backend="stub", model=MODEL, dtype="float32")
 FINGERPRINT = fingerprint_hash(StubBackend(MODEL).fingerprint)
-TOKEN = "test-token-0123456789abcdef"
+TOKEN = "Jq3vX9tKp2Lw7RzN5mYc8HbD4fGs6AeU"  # 32 characters of 62: about 190 bits
 ENV_OFFLINE = {**os.environ, "HF_HUB_OFFLINE": "1"}
 ENV_OFFLINE.pop("ILLM_SERVE_TOKEN", None)
 
@@ -56,32 +57,32 @@ def request(pending, client="run-a", session="s1", **changes) -> dict:
 
 
 def test_the_scheduler_takes_the_most_visited_states_across_clients_once(tmp_path):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, chunk=3)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, history_len=0, chunk=3)
     assert server.submit(request([(state(1), 5), (state(2), 1)], client="a"))["queued"] == 2
     assert server.submit(request([(state(2), 9), (state(3), 2), (state(4), 1)], client="b"))["queue"] == 4
-    batch = server.next_batch()  # state 2: 1 + 9 visits from two runs, one entry
+    batch = server.next_batch()  # round-robin: a's most visited, b's, then a's next (state 2, b's too) is taken
     a, b = ("a", "s1"), ("b", "s1")
-    assert [(p.record, p.visits, p.clients) for p in batch] == [(state(2), 10, {a, b}), (state(1), 5, {a}),
-                                                                (state(3), 2, {b})]
+    assert [(p.record, p.clients) for p in batch] == [(state(1), {a}), (state(2), {a, b}), (state(3), {b})]
     assert server.queue_size() == 1
     assert server.submit(request([(state(7), 1)], client="b"))["queued"] == 1  # a newer list replaces b's
     assert [p.record for p in server.next_batch()] == [state(7)]
     assert server.submit(request([], client="a"))["queue"] == 0  # an empty list withdraws a client's states
-    done, rows = server.annotate(batch)
-    assert (done, rows) == (3, 6) and len(AnnotationCache(tmp_path / "ann")) == 6
+    done, rows, failed = server.annotate(batch)
+    assert (done, rows, failed) == (3, 6, []) and len(AnnotationCache(tmp_path / "ann")) == 6
 
 
 @pytest.mark.parametrize("change,status,message", [
     ({"model_fingerprint": "0" * 64}, 409, "another model setup"),
-    ({"tasks": ["action", "riddle"]}, 400, "unknown tasks riddle"),
+    ({"tasks": ["action", "riddle"]}, 409, "the request reads riddle too"),
     ({"history_len": -1}, 400, "history_len must be a whole number"),
-    ({"layout": "fancy"}, 400, "layout must be one of"),
-    ({"renderer": "hop@1:0:1.0:1"}, 400, "is not a hop renderer"),
+    ({"tasks": 5}, 400, "tasks must be a list"),
+    ({"layout": "fancy"}, 409, "--layout shared"),
+    ({"renderer": "hop@1:0:1.0:1"}, 409, "renderer hop@"),
     ({"states": [{"mission": "m"}]}, 400, "a state lacks history, observation, valid_actions"),
     ({"states": [{**record_to_json(state(1)), "visits": "many"}]}, 400, "visits must be"),
 ])
 def test_malformed_requests_are_refused_with_their_reason(tmp_path, change, status, message):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, history_len=0)
     with pytest.raises(RequestError, match=message) as e:
         server.submit(request([(state(1), 1)], **change))
     assert e.value.status == status and server.queue_size() == 0
@@ -114,7 +115,8 @@ def start_server(tmp_path):
         env = {**ENV_OFFLINE, **(env or {}), **({"SLOW_S": str(slow)} if slow else {})}
         head = [sys.executable, "-c", SLOW_SERVER] if slow else [sys.executable, "-m", "cli.main"]
         proc = subprocess.Popen([*head, "serve", "--cache", str(tmp_path / "ann"), "--backend",
-                                 "slow" if slow else "stub", "--model", MODEL, "--port", str(port), "--chunk", "8",
+                                 "slow" if slow else "stub", "--model", MODEL, "--history", "0", "--port", str(port),
+                                 "--chunk", "8",
                                  *map(str, extra)], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
         procs.append(proc)
         line = proc.stderr.readline()
@@ -142,10 +144,10 @@ def served(start_server):
 def call(url: str, body=None, raw: bytes | None = None, token: str | None = None,
          headers: dict | None = None) -> tuple[int, dict]:
     data = raw if raw is not None else (None if body is None else json.dumps(body).encode())
-    auth = {"Authorization": f"Bearer {token}"} if token else {}
+    sent = {"Content-Type": "application/json", **({"Authorization": f"Bearer {token}"} if token else {})}
     try:
         with urllib.request.urlopen(urllib.request.Request(url, data=data, method="GET" if data is None else "POST",
-                                                           headers=auth), timeout=30) as r:
+                                                           headers=sent), timeout=30) as r:
             return r.status, json.loads(r.read())
     except urllib.error.HTTPError as e:
         if headers is not None:
@@ -172,7 +174,7 @@ def test_the_server_refuses_bad_requests_survives_a_dying_client_and_reports(ser
     assert call(url + "/annotate", raw=b"[" + b" " * (17 * 2**20) + b"]")[0] == 413
     host, port = url.split("//")[1].split(":")
     with socket.create_connection((host, int(port))) as s:  # a client that dies mid-request
-        s.sendall(b"POST /annotate HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 5000\r\n\r\n"
+        s.sendall(f"POST /annotate HTTP/1.1\r\nHost: {host}:{port}\r\n".encode() + b"Content-Type: application/json\r\nContent-Length: 5000\r\n\r\n"
                   + json.dumps(request([(state(1), 3)]))[:200].encode())
     status, answer = call(url + "/annotate", request([(state(i), i) for i in range(1, 6)]))
     assert status == 202 and answer["queued"] == 5
@@ -182,7 +184,7 @@ def test_the_server_refuses_bad_requests_survives_a_dying_client_and_reports(ser
             break
         time.sleep(0.1)
     assert stats["annotated_states"] == 5 and stats["rows"] == 10 and stats["queue"] == 0 and stats["refused"] == 3
-    assert stats["resident_mb"] > 0 and stats["limits"] == {"max_clients": 64, "max_states": 1024, "max_queue": 8192}
+    assert stats["resident_mb"] > 0 and stats["limits"] == dataclasses.asdict(ServeLimits())
     assert call(url + "/annotate", request([], client="run-a"))[1]["landed"] == 5
     proc.send_signal(2)
     out, err = proc.communicate(timeout=30)
@@ -249,16 +251,16 @@ def hop_states(n: int = 3):
 def test_hop_states_travel_with_their_window_and_a_forged_one_is_refused(tmp_path):
     from illm_tools.hop.context import hop_renderer
 
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, history_len=1)
     records = hop_states()
-    hop = {"renderer": hop_renderer(0, 1.0, 2), "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
+    hop = {"renderer": hop_renderer(0, 100.0, 2), "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
     body = request([(r, 1) for r in records], **hop)
     body = json.loads(json.dumps(body))  # as it travels
     assert server.submit(body)["queued"] == 3
     batch = server.next_batch()
     assert [p.record for p in batch] == records and all(len(p.record.frames) == len(r.frames)
                                                         for p, r in zip(batch, records))
-    assert server.annotate(batch) == (3, 6)
+    assert server.annotate(batch) == (3, 6, [])
     forged = json.loads(json.dumps(request([(records[1], 1)], **hop)))
     forged["states"][0]["prev_actions"][-1] = 0  # not the action the history says was taken
     with pytest.raises(RequestError, match="does not match its content name"):
@@ -287,7 +289,7 @@ def test_a_hop_run_annotates_through_the_server(tmp_path, served):
 
 
 def test_a_trainer_cannot_replace_or_withdraw_another_trainers_list(tmp_path):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, chunk=8)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, history_len=0, chunk=8)
     server.submit(request([(state(1), 1), (state(2), 1)], client="runs/a", session="first"))
     # the same client name from another trainer (a stranger, a resumed copy of the run): a list of its own
     assert server.submit(request([(state(3), 1)], client="runs/a", session="other"))["queue"] == 3
@@ -296,8 +298,8 @@ def test_a_trainer_cannot_replace_or_withdraw_another_trainers_list(tmp_path):
 
 
 def test_limits_answer_413_and_503_with_retry_after_as_documented(tmp_path):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, max_clients=2,
-                              max_states=3, max_queue=4)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, history_len=0,
+                              limits=ServeLimits(max_clients=2, max_states=3, max_queue=4, max_client_share=1.0))
     with pytest.raises(RequestError, match=r"at most 3 states \(the server's --max-states\), this one 4") as e:
         server.submit(request([(state(i), 1) for i in range(4)]))
     assert e.value.status == 413
@@ -326,6 +328,10 @@ def test_a_non_loopback_listen_needs_a_token(tmp_path, monkeypatch):
     assert ServeConfig(host="0.0.0.0").token == TOKEN  # from the environment
     out = runner.invoke(app, ["serve", "--cache", str(tmp_path / "ann"), "--backend", "stub", "--token", "tooshort-xyz"])
     assert out.exit_code == 1 and "at least 16 printable characters" in out.output and "tooshort" not in out.output
+    out = runner.invoke(app, ["serve", "--cache", str(tmp_path / "ann"), "--backend", "stub", "--token", "a" * 40])
+    assert out.exit_code == 1 and "fewer than the 128 a server's token needs" in out.output
+    assert "secrets.token_urlsafe(32)" in out.output and "a" * 40 not in out.output
+    assert len(out.output.strip().splitlines()) == 1
 
 
 @pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
@@ -365,7 +371,7 @@ def test_a_stalled_client_is_cut_off_and_holds_no_worker(start_server):
     host, port = url.split("//")[1].split(":")
     body = json.dumps(request([(state(1), 3)])).encode()
     with socket.create_connection((host, int(port))) as stalled, socket.create_connection((host, int(port))) as idle:
-        stalled.sendall(b"POST /annotate HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+        stalled.sendall(f"POST /annotate HTTP/1.1\r\nHost: {host}:{port}\r\n".encode() + b"Content-Type: application/json\r\n"
                         + f"Content-Length: {len(body)}\r\n\r\n".encode() + body[:50])
         started = time.monotonic()
         assert call(url + "/annotate", request([(state(2), 1)], client="b"))[0] == 202  # served meanwhile

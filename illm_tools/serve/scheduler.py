@@ -1,0 +1,422 @@
+"""`AnnotationServer`: the queue, the fair scheduler and the model behind `illm serve` (the HTTP side
+is `illm_tools.serve.http`).
+
+Queue. Each trainer, named by `client` (its run) and `session` (a random id it makes), has one
+pending list, replaced by its newest request. A request is checked whole before anything is queued
+(`protocol`), and room is checked per trainer: at most `max_clients` trainers (503), `max_sessions`
+per client name and `max_client_share` of the queue per client name (429), `max_queue` states in all
+(503); 429 and 503 carry Retry-After.
+
+Scheduling. Round-robin across client names, least recently served first: each takes one state
+per turn until the batch holds `chunk`; the visit counts a client declares only order its own
+states (most visited first), so no count buys a place before another client's states. A state two
+trainers both asked for is annotated once.
+
+Faults. A batch runs in a daemon thread with a deadline (`batch_deadline`): past it, its states are
+answered as failed and no new batch starts until the engine returns, while requests are still
+answered; a stop (Ctrl-C, SIGTERM) waits for the batch in progress at most until its deadline. A
+batch that raises is retried state by state: a state that fails in the engine is answered to its
+trainers (`failed` and `failure` in their next answer) and counted, and every other state lands.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from illm_tools.annotate.wire import PROTOCOL
+from illm_tools.llm.spec import LLMSpec
+from illm_tools.serve.config import ServeConfig, ServeLimits
+from illm_tools.serve.protocol import MAX_ID_CHARS, RequestError, ServerSetup, text
+from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.state import StateRecord
+
+log = logging.getLogger(__name__)
+
+MAX_RETRY_AFTER = 60
+"""Longest Retry-After a busy server answers (seconds)."""
+MAX_HOP_CONTEXTS = 4
+"""Hop translations (projections) the annotator keeps between batches; beyond, they are rebuilt."""
+
+
+def release_free_memory() -> None:
+    """Hand the memory a batch freed back to the system: glibc keeps freed blocks in its per-thread
+    arenas, and a server that runs for days would otherwise creep up in resident size as batches of
+    other shapes leave them fragmented. A no-op where the C library is not glibc."""
+    import ctypes
+
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def resident_mb() -> float | None:
+    """This process's resident memory in MB (Linux's /proc; None elsewhere)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def one_line(e: BaseException) -> str:
+    return f"{type(e).__name__}: {(str(e).splitlines() or [''])[0][:300]}"
+
+
+@dataclass
+class Pending:
+    """One state waiting, with the trainers that asked for it and their summed visits."""
+
+    setup: AnnotationSetup
+    record: StateRecord
+    visits: int
+    clients: set[tuple[str, str]] = field(default_factory=set)
+
+
+class AnnotationServer:
+    """The queue, the scheduler and the model behind `illm serve` (module docstring)."""
+
+    def __init__(self, lm, cache, *, llm: LLMSpec, history_len: int = ServeConfig.history_len,
+                 layout: str = ServeConfig.layout, tasks: Sequence[str] = ("action", "summary"),
+                 hop_seed: int = ServeConfig.hop_seed, hop_beta: float = ServeConfig.hop_beta,
+                 batch_size: int = ServeConfig.batch_size, chunk: int = ServeConfig.chunk,
+                 limits: ServeLimits | None = None):
+        from illm_tools.annotate.engine import Annotator
+        from illm_tools.keys import fingerprint_hash
+        from illm_tools.llm.backend import as_backend
+
+        self.lm = as_backend(lm)
+        self.cache = cache
+        self.llm = llm
+        """The model as it was loaded (placed: its device and dtype resolved)."""
+        self.model = llm.model
+        self.limits = limits or ServeLimits()
+        self.setup = ServerSetup(llm, history_len=history_len, layout=layout, tasks=tuple(tasks), hop_seed=hop_seed,
+                                 hop_beta=hop_beta, limits=self.limits)
+        """The setup every row this server writes carries, and the request checks."""
+        self.batch_size, self.chunk = batch_size, chunk
+        # one annotator: the server's tasks, history and layout (the backend's ranking check runs here, at start)
+        self.annotator = Annotator(self.lm, cache, model=llm.model, tasks=self.setup.tasks, history_len=history_len,
+                                   layout=layout, batch_size=batch_size, chunk=chunk)
+        self.annotating = 0
+        """States in the batch being annotated now (0: idle)."""
+        self.fingerprint = fingerprint_hash(self.lm.fingerprint)
+        self._clients: dict[tuple[str, str], dict[tuple, Pending]] = {}  # trainer -> its own pending list
+        self._landed: dict[tuple[str, str], int] = {}
+        self._failed: dict[tuple[str, str], tuple[int, str]] = {}  # trainer -> (states failed, last reason)
+        self._seen: dict[tuple[str, str], float] = {}  # when each trainer last sent (to forget the gone)
+        self._served: dict[str, int] = {}  # client name -> the round it last got a state (round-robin)
+        self._round = 0
+        self._stuck: asyncio.Future | None = None  # a batch past its deadline, still in the engine
+        self._wake = asyncio.Event()
+        self._stop: asyncio.Event | None = None
+        self.started = time.time()
+        self.totals = {"states": 0, "rows": 0, "batches": 0, "requests": 0, "refused": 0, "busy": 0,
+                       "throttled": 0, "unauthorized": 0, "forbidden": 0, "timeouts": 0, "connections_refused": 0,
+                       "seconds": 0.0, "errors": 0, "failed_states": 0, "late_batches": 0}
+        self.last_error: str | None = None
+
+    @classmethod
+    def of_config(cls, lm, cache, llm: LLMSpec, config: ServeConfig) -> AnnotationServer:
+        """The server of a `ServeConfig` (its setup, batching and limits) with a loaded model."""
+        return cls(lm, cache, llm=llm, history_len=config.history_len, layout=config.layout, tasks=config.tasks,
+                   hop_seed=config.hop_seed, hop_beta=config.hop_beta, batch_size=config.batch_size,
+                   chunk=config.chunk, limits=config.limits)
+
+    @property
+    def stopping(self) -> bool:
+        """Whether a stop was asked: the batch in progress is finished, nothing more is queued."""
+        return self._stop is not None and self._stop.is_set()
+
+    def retry_after(self) -> int:
+        """Seconds a refused trainer should wait: about one batch's time at the throughput so far."""
+        rate = self.totals["states"] / self.totals["seconds"] if self.totals["seconds"] else 0.0
+        return min(MAX_RETRY_AFTER, max(1, math.ceil(self.chunk / rate))) if rate else 5
+
+    # --- requests ------------------------------------------------------------------------------
+    def submit(self, body) -> dict:
+        """Queue a parsed request body for its trainer (replacing that trainer's pending list)."""
+        if not isinstance(body, dict):
+            raise RequestError(400, "the request body must be a JSON object")
+        missing = [k for k in ("client", "session", "model_fingerprint", "states") if k not in body]
+        if missing:
+            raise RequestError(400, f"the request lacks {', '.join(missing)} (a trainer of protocol {PROTOCOL} "
+                                    "sends them: use the server's illm version)")
+        trainer = (text(body["client"], "client", MAX_ID_CHARS, 400), text(body["session"], "session", MAX_ID_CHARS, 400))
+        if body["model_fingerprint"] != self.fingerprint:
+            raise RequestError(409, f"this server annotates with {self.llm.options()} (fingerprint {self.fingerprint}); "
+                                    f"the request's fingerprint {str(body['model_fingerprint'])[:80]!r} is another model "
+                                    "setup: train with the server's --model, --dtype and --quant, or start a server for "
+                                    "yours")
+        setup = self.setup.of_request(body)
+        states = body["states"]
+        if not isinstance(states, list):
+            raise RequestError(400, f"states must be a list, got {type(states).__name__}")
+        if len(states) > self.limits.max_states:
+            raise RequestError(413, f"a request carries at most {self.limits.max_states:,} states (the server's "
+                                    f"--max-states), this one {len(states):,}: send the most visited first")
+        if self.stopping:
+            raise RequestError(503, "the server is stopping: send the states again when it is back",
+                               self.retry_after())
+        entries: dict[tuple, Pending] = {}
+        for item in states:
+            record, visits = self.setup.parse_state(item, setup)
+            entry = entries.setdefault((setup, record), Pending(setup, record, 0, {trainer}))
+            entry.visits += visits
+        if entries:
+            self._check_room(trainer, entries)
+        self.totals["requests"] += 1
+        self._seen[trainer] = time.monotonic()
+        if entries:
+            self._clients[trainer] = entries
+            self._wake.set()
+        else:  # withdrawn: the trainer is done
+            self._clients.pop(trainer, None)
+            self._seen.pop(trainer, None)
+        self._forget_gone()
+        answer = {"queued": len(entries), "queue": self.queue_size(), "landed": self._landed.pop(trainer, 0)}
+        failed = self._failed.pop(trainer, None)
+        if failed:
+            answer.update(failed=failed[0], failure=failed[1])
+        return answer
+
+    def _check_room(self, trainer: tuple[str, str], entries: dict) -> None:
+        """RequestError (429 or 503, with Retry-After) when queueing `entries` for `trainer` (in place
+        of its list) would go beyond a limit; the trainer's current list stays queued."""
+        limits, client = self.limits, trainer[0]
+        if trainer not in self._clients:
+            if len(self._clients) >= limits.max_clients:
+                raise RequestError(503, f"the server queues the states of {len(self._clients)} trainers, its limit "
+                                        "(--max-clients): this run backs off and sends them again", self.retry_after())
+            sessions = sum(1 for who in self._clients if who[0] == client)
+            if sessions >= limits.max_sessions:
+                raise RequestError(429, f"the client {client[:80]!r} has {sessions} sessions queued, the server's "
+                                        "--max-sessions: one run is one session", self.retry_after())
+        mine = {k for who, pending in self._clients.items() if who[0] == client and who != trainer for k in pending}
+        share = max(1, int(limits.max_client_share * limits.max_queue))
+        if len(mine | entries.keys()) > share:
+            raise RequestError(429, f"the client {client[:80]!r} would hold {len(mine | entries.keys()):,} queued states, "
+                                    f"beyond its share {share:,} of the queue (--max-client-share): send fewer",
+                               self.retry_after())
+        others = {k for who, pending in self._clients.items() if who != trainer for k in pending}
+        total = len(others | entries.keys())
+        if total > limits.max_queue:
+            raise RequestError(503, f"the queue would hold {total:,} states, beyond the server's --max-queue "
+                                    f"{limits.max_queue:,}: this run backs off and sends them again", self.retry_after())
+
+    def _forget_gone(self) -> None:
+        """Drop what is kept of trainers that went away without withdrawing (their landed and failed
+        counts, their clients' turns) once there are many: those with no pending list, longest unseen first."""
+        keep = 2 * self.limits.max_clients
+        if len(self._seen) > 2 * keep:
+            idle = sorted((t, who) for who, t in self._seen.items() if who not in self._clients)
+            for _, who in idle[: len(self._seen) - keep]:
+                self._seen.pop(who, None)
+                self._landed.pop(who, None)
+                self._failed.pop(who, None)
+        if len(self._served) > 2 * keep:
+            queued = {who[0] for who in self._clients}
+            for client in sorted(self._served, key=self._served.get)[: len(self._served) - keep]:
+                if client not in queued:
+                    del self._served[client]
+
+    def queue_size(self) -> int:
+        return len({k for entries in self._clients.values() for k in entries})
+
+    def stats(self) -> dict:
+        """The queue, totals, throughput, setup and limits (GET /stats)."""
+        t, busy, up = self.totals, self.totals["seconds"], time.time() - self.started
+        return {"protocol": PROTOCOL, "model": self.model, "model_options": self.llm.options(),
+                "model_fingerprint": self.fingerprint, "setup": self.setup.describe(), "cache": str(self.cache.root),
+                "queue": self.queue_size(), "annotating": self.annotating, "clients": len(self._clients),
+                "annotated_states": t["states"], "rows": t["rows"], "batches": t["batches"], "requests": t["requests"],
+                **{k: t[k] for k in ("refused", "busy", "throttled", "unauthorized", "forbidden", "timeouts",
+                                     "connections_refused", "errors", "failed_states", "late_batches")},
+                "last_error": self.last_error, "stopping": self.stopping, "limits": asdict(self.limits),
+                "states_per_s": t["states"] / busy if busy else 0.0,
+                "states_per_s_since_start": t["states"] / up if up else 0.0, "uptime_s": up,
+                "resident_mb": resident_mb()}
+
+    # --- the scheduler ---------------------------------------------------------------------------
+    def next_batch(self) -> list[Pending]:
+        """Take up to `chunk` pending states, round-robin across client names (least recently served
+        first), each client's own states most visited first; a state asked by several trainers is
+        one entry with all of them."""
+        queues: dict[str, dict[tuple, Pending]] = {}
+        for (client, _), entries in self._clients.items():
+            mine = queues.setdefault(client, {})
+            for key, entry in entries.items():
+                have = mine.get(key)
+                if have is None:
+                    mine[key] = Pending(entry.setup, entry.record, entry.visits, set())
+                else:
+                    have.visits += entry.visits
+        order = sorted(queues, key=lambda c: self._served.get(c, -1))  # stable: ties in arrival order
+        lists = {c: sorted(queues[c].values(), key=lambda p: -p.visits) for c in order}
+        at = dict.fromkeys(order, 0)
+        batch: dict[tuple, Pending] = {}
+        self._round += 1
+        while len(batch) < self.chunk:
+            took = False
+            for c in order:
+                mine = lists[c]
+                while at[c] < len(mine) and (mine[at[c]].setup, mine[at[c]].record) in batch:
+                    at[c] += 1
+                if at[c] < len(mine) and len(batch) < self.chunk:
+                    p = mine[at[c]]
+                    batch[(p.setup, p.record)] = p
+                    at[c] += 1
+                    self._served[c] = self._round
+                    took = True
+            if not took:
+                break
+        for trainer in list(self._clients):
+            entries = self._clients[trainer]
+            for key in batch.keys() & entries.keys():
+                batch[key].clients.add(trainer)
+                del entries[key]
+            if not entries:
+                del self._clients[trainer]
+        return list(batch.values())
+
+    def _annotate(self, items: Sequence[Pending]) -> tuple[int, int]:
+        done = rows = 0
+        by_setup: dict[AnnotationSetup, list[Pending]] = {}
+        for p in items:
+            by_setup.setdefault(p.setup, []).append(p)
+        for setup, group in by_setup.items():
+            stats = self.annotator.annotate_states([p.record for p in group], setup.env_id, setup.renderer)
+            done, rows = done + stats.annotated_states, rows + stats.rows
+        return done, rows
+
+    def annotate(self, batch: Sequence[Pending]) -> tuple[int, int, list[tuple[Pending, str]]]:
+        """Annotate a batch (blocking; runs in the batch thread, touching no queue state): what the
+        cache lacks of it, one shard per setup; a batch that raises is tried again state by state.
+        Returns (states annotated, rows written, [(failed state, one-line reason)])."""
+        self.cache.refresh()  # trainers and other servers may have written meanwhile
+        try:
+            done, rows = self._annotate(batch)
+            return done, rows, []
+        except Exception as e:  # noqa: BLE001 - one state's fault must not cost the others theirs
+            if len(batch) == 1:
+                return 0, 0, [(batch[0], one_line(e))]
+            done = rows = 0
+            failed = []
+            for p in batch:  # rows written before the fault are in the cache: its keys skip them
+                try:
+                    d, r = self._annotate([p])
+                    done, rows = done + d, rows + r
+                except Exception as e1:  # noqa: BLE001
+                    failed.append((p, one_line(e1)))
+            return done, rows, failed
+        finally:
+            hop = getattr(self.annotator, "_hop", None)  # the annotator's projections: bounded here
+            if isinstance(hop, dict) and len(hop) > MAX_HOP_CONTEXTS:
+                hop.clear()
+            release_free_memory()
+
+    def _in_thread(self, batch: Sequence[Pending]) -> asyncio.Future:
+        """`annotate(batch)` in a daemon thread (one a stop need not wait for past the deadline)."""
+        loop = asyncio.get_running_loop()
+        future = loop.create_future()
+
+        def settle(result, error) -> None:
+            if not future.done():
+                future.set_exception(error) if error is not None else future.set_result(result)
+
+        def work() -> None:
+            try:
+                result, error = self.annotate(batch), None
+            except BaseException as e:  # noqa: BLE001 - handed to the loop
+                result, error = None, e
+            try:
+                loop.call_soon_threadsafe(settle, result, error)
+            except RuntimeError:  # the loop is closed: the server stopped past the deadline
+                pass
+
+        threading.Thread(target=work, name="illm-serve-batch", daemon=True).start()
+        return future
+
+    def _answer(self, batch: Sequence[Pending], failed: Sequence[tuple[Pending, str]]) -> None:
+        """Tell each trainer of the batch what became of its states: landed, or failed with the reason."""
+        bad = {id(p) for p, _ in failed}
+        for p, reason in failed:
+            self.totals["failed_states"] += 1
+            for trainer in p.clients:
+                n, _ = self._failed.get(trainer, (0, ""))
+                self._failed[trainer] = (n + 1, reason)
+        for p in batch:  # in the cache now (annotated, or already there): landed for each asker still here
+            if id(p) not in bad:
+                for trainer in p.clients & self._seen.keys():
+                    self._landed[trainer] = self._landed.get(trainer, 0) + 1
+
+    async def _wait(self, aws, timeout: float | None = None) -> None:
+        await asyncio.wait([asyncio.ensure_future(a) for a in aws], timeout=timeout,
+                           return_when=asyncio.FIRST_COMPLETED)
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Annotate batches until `stop` is set; the batch in progress is finished first, waiting at
+        most until its deadline (requests meanwhile are refused with 503: `stopping`)."""
+        self._stop = stop
+        stopper = asyncio.ensure_future(stop.wait())
+        try:
+            while not stop.is_set():
+                if self._stuck is not None:  # the engine still holds a late batch: no other may start
+                    await self._wait([self._stuck, stopper])
+                    if self._stuck.done():
+                        self._stuck = None
+                    continue
+                batch = self.next_batch()
+                if not batch:
+                    self._wake.clear()
+                    waiter = asyncio.ensure_future(self._wake.wait())
+                    await self._wait([waiter, stopper])
+                    waiter.cancel()
+                    continue
+                await self._run_batch(batch)
+        finally:
+            stopper.cancel()
+
+    async def _run_batch(self, batch: list[Pending]) -> None:
+        start = time.perf_counter()
+        self.annotating = len(batch)
+        future = self._in_thread(batch)
+        deadline = self.limits.batch_deadline
+        try:
+            await asyncio.wait([future], timeout=deadline)
+        finally:
+            self.annotating = 0
+        if not future.done():
+            self._stuck = future
+            self.totals["late_batches"] += 1
+            reason = f"the engine took longer than the server's --batch-deadline {deadline:g} s"
+            self._answer([], [(p, reason) for p in batch])
+            self.last_error = reason
+            log.warning("a batch of %d states is past its deadline (%g s): its states are answered as failed",
+                        len(batch), deadline)
+            return
+        try:
+            done, rows, failed = future.result()
+        except Exception as e:  # noqa: BLE001 - the batch thread's own fault: the server goes on
+            self.totals["errors"] += 1
+            self.last_error = one_line(e)
+            log.warning("a batch of %d states failed (%s); the server goes on", len(batch), self.last_error)
+            self._answer([], [(p, self.last_error) for p in batch])
+            return
+        self.totals["seconds"] += time.perf_counter() - start
+        self.totals["states"] += done
+        self.totals["rows"] += rows
+        self.totals["batches"] += 1
+        if failed:
+            self.last_error = failed[-1][1]
+            log.warning("%d of a batch's %d states failed in the engine (%s); the others landed", len(failed),
+                        len(batch), self.last_error)
+        self._answer(batch, failed)
