@@ -1,0 +1,46 @@
+"""`illm serve`: one loaded LLM answering the live-annotation requests of many `illm train` runs.
+
+A trainer started with `--annotator http://HOST:PORT` posts, after each rollout, the states its
+cache lookup missed (most visited first, with their visit counts) instead of handing them to a
+worker of its own; the server annotates them through the same `Annotator` and cache API as
+`illm annotate`, under its own setup (model, history, layout, tasks, hop settings), so the answers
+land in the shared cache, where the trainer finds them on a later rollout (it never waits). One
+model in memory serves every trainer.
+
+The package, one concern a module:
+- `config`: `ServeConfig` (the options) and `ServeLimits` (every limit, each an option), the
+  listening address and token checks (a token carries at least 128 bits);
+- `protocol`: a request read and checked whole on arrival against the server's own setup
+  (`ServerSetup`: text sizes, history, valid actions, a hop frame's shape and dtype, the backend's
+  own check; a declared setup other than the server's is refused naming the difference);
+- `scheduler`: `AnnotationServer`, the queue (per-trainer lists, caps per client), round-robin
+  across clients, the batch with its deadline and a failing state isolated from the others;
+- `http`: aiohttp behind a gate of our own (connection caps, header and idle timeouts), Host,
+  Origin, Content-Type and token checks, one-line JSON refusals.
+
+Endpoints (JSON):
+- `POST /annotate` {"client", "session", "model_fingerprint", "env_id", "renderer", "history_len",
+  "layout", "tasks", "states": [{"mission", "history": [[obs, action], ...], "observation",
+  "valid_actions", "visits"[, "frames", "prev_actions" for a hop state]}]} -> 202 {"queued",
+  "queue", "landed"[, "failed", "failure"]} (`landed`: the trainer's states annotated since its
+  previous request; `failed`: those the engine could not annotate, with the last reason). An empty
+  `states` list withdraws the trainer's pending states. Refusals are {"error": one line} with 400
+  (bad JSON or fields), 401 (token), 403 (Host or Origin), 408 (too slow), 409 (another model or
+  setup), 413 (too large), 415 (not JSON), 429 (a client's cap) or 503 (the server's), the last two
+  with Retry-After (docs/commands/serve.md lists every limit).
+- `GET /stats` -> the queue, totals (states, rows, batches, refusals by kind, failed states),
+  throughput, the setup, the limits, the model, the cache and the resident memory.
+"""
+
+from __future__ import annotations
+
+from illm_tools.annotate.wire import record_to_json  # noqa: F401  (the request format: re-exported)
+from illm_tools.serve.config import (MIN_TOKEN_BITS, ServeConfig, ServeLimits, check_token_strength,  # noqa: F401
+                                     is_loopback, token_bits)
+from illm_tools.serve.http import make_app, serve  # noqa: F401
+from illm_tools.serve.protocol import RequestError, ServerSetup, read_json  # noqa: F401
+from illm_tools.serve.scheduler import (MAX_RETRY_AFTER, AnnotationServer, Pending,  # noqa: F401
+                                        release_free_memory, resident_mb)
+
+MAX_REQUEST_BYTES = ServeLimits().max_request_bytes
+"""The default largest request body (413 above; `--max-request-mb`)."""

@@ -1,0 +1,242 @@
+"""The HTTP side of `illm serve`: aiohttp's request handling behind a gate of our own.
+
+The gate (`Gate`) owns the listening socket's connections, whatever aiohttp version runs: at most
+`max_connections` open and `max_connections_per_peer` from one address (a further one is answered
+503 and closed), and a connection that is not inside a request for `request_timeout` seconds (its
+headers never finished, or idle between requests) is closed; a request's body has as long again
+(408). Then, per request: the Host header must name the server's own address when it listens on
+loopback without a token, and an Origin header must be the server's own origin (a web page in a
+browser on the node cannot post to it: 403); a POST must be `Content-Type: application/json` (415);
+the token, when there is one (401, the connection closed); the body is read within the timeout and
+checked whole (`AnnotationServer.submit`). Every refusal is one line of JSON and at most one log
+line, never a traceback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+import logging
+import time
+
+from illm_tools.annotate.wire import TOKEN_ENV
+from illm_tools.serve.protocol import RequestError, read_json
+from illm_tools.serve.scheduler import AnnotationServer
+
+log = logging.getLogger(__name__)
+
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
+
+
+class _Connection(asyncio.Protocol):
+    """One connection: aiohttp's request handler inside, counted and timed by the gate."""
+
+    def __init__(self, gate: Gate):
+        self.gate, self.inner, self.transport, self.peer = gate, None, None, ""
+        self.active = 0  # requests being handled now
+        self.since = time.monotonic()  # when it last started being idle (or opened)
+
+    def connection_made(self, transport) -> None:
+        self.transport = transport
+        peer = transport.get_extra_info("peername")
+        self.peer = str(peer[0]) if isinstance(peer, tuple) else str(peer)
+        refusal = self.gate.admit(self)
+        if refusal is not None:
+            self.gate.server.totals["connections_refused"] += 1
+            body = json.dumps({"error": refusal}).encode()
+            transport.write(b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\nRetry-After: 5\r\n"
+                            b"Connection: close\r\nContent-Length: %d\r\n\r\n%s" % (len(body), body))
+            transport.close()
+            return
+        self.inner = self.gate.factory()
+        self.inner.connection_made(transport)
+
+    def connection_lost(self, exc) -> None:
+        self.gate.release(self)
+        if self.inner is not None:
+            self.inner.connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        if self.inner is not None:
+            self.inner.data_received(data)
+
+    def eof_received(self):
+        return self.inner.eof_received() if self.inner is not None else None
+
+    def pause_writing(self) -> None:
+        if self.inner is not None:
+            self.inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        if self.inner is not None:
+            self.inner.resume_writing()
+
+
+class Gate:
+    """The connections of a server: caps in all and per peer, and the idle and header timeout."""
+
+    def __init__(self, server: AnnotationServer, factory, timeout: float):
+        self.server, self.factory, self.timeout = server, factory, timeout
+        self.limits = server.limits
+        self.open: dict[int, _Connection] = {}  # id(transport) -> connection
+        self.per_peer: dict[str, int] = {}
+
+    def admit(self, conn: _Connection) -> str | None:
+        """None when the connection may stay, else the one-line reason it is refused."""
+        if len(self.open) >= self.limits.max_connections:
+            return f"the server has {len(self.open)} connections open, its --max-connections: try again shortly"
+        if self.per_peer.get(conn.peer, 0) >= self.limits.max_connections_per_peer:
+            return (f"this address has {self.per_peer[conn.peer]} connections open, the server's "
+                    "--max-connections-per-peer: close some")
+        self.open[id(conn.transport)] = conn
+        self.per_peer[conn.peer] = self.per_peer.get(conn.peer, 0) + 1
+        return None
+
+    def release(self, conn: _Connection) -> None:
+        if self.open.pop(id(conn.transport), None) is not None:
+            left = self.per_peer.get(conn.peer, 1) - 1
+            if left > 0:
+                self.per_peer[conn.peer] = left
+            else:
+                self.per_peer.pop(conn.peer, None)
+
+    def of(self, transport) -> _Connection | None:
+        return self.open.get(id(transport))
+
+    async def sweep(self) -> None:
+        """Close, every fraction of the timeout, the connections idle (or stuck in their headers) longer."""
+        while True:
+            await asyncio.sleep(min(1.0, self.timeout / 4))
+            now = time.monotonic()
+            for conn in list(self.open.values()):
+                if not conn.active and now - conn.since > self.timeout and conn.transport is not None:
+                    conn.transport.close()
+                    self.release(conn)
+
+
+def make_app(server: AnnotationServer, *, token: str | None = None, request_timeout: float = 30.0,
+             own_hosts: tuple[str, ...] | None = None, gate: Gate | None = None):
+    """The aiohttp application of a server: POST /annotate, GET /stats. `token`: every request must
+    carry it (`Authorization: Bearer TOKEN`, compared in constant time); `own_hosts`: the Host values
+    accepted ("host:port"), None for any; `gate`: marks its connections busy while a request runs."""
+    from aiohttp import web
+
+    kinds = {503: "busy", 429: "throttled", 408: "timeouts", 401: "unauthorized", 403: "forbidden"}
+
+    def error(status: int, message: str, retry_after: int | None = None, close: bool = False) -> web.Response:
+        server.totals[kinds.get(status, "refused")] += 1
+        headers = {"Retry-After": str(retry_after)} if retry_after is not None else None
+        response = web.json_response({"error": message}, status=status, headers=headers)
+        if close:
+            response.force_close()
+        return response
+
+    expected = token.encode() if token else None
+    own_origins = None if own_hosts is None else {f"http://{h}" for h in own_hosts}
+
+    def refusal(request: web.Request) -> web.Response | None:
+        if own_hosts is not None and request.headers.get("Host", "") not in own_hosts:
+            return error(403, f"the Host header names another server than this one ({', '.join(own_hosts[:2])}): "
+                              "send requests to the server's own address", close=True)
+        origin = request.headers.get("Origin")
+        if origin is not None and (own_origins is None or origin not in own_origins):
+            return error(403, "cross-origin requests are refused: a trainer sends no Origin header", close=True)
+        if request.method == "POST" and request.content_type != "application/json":
+            return error(415, f"a request's Content-Type must be application/json, got {request.content_type[:60]!r}",
+                         close=True)
+        if expected is not None:
+            scheme, _, given = request.headers.get("Authorization", "").partition(" ")
+            given_bytes = given.strip().encode(errors="surrogateescape")  # as sent, whatever its bytes
+            if scheme.lower() != "bearer" or not hmac.compare_digest(given_bytes, expected):
+                what = "a wrong token" if given else "no token"
+                response = error(401, f"this server needs its token and the request has {what}: pass the server's "
+                                      f"token with --annotator-token, or set {TOKEN_ENV}", close=True)
+                response.headers["WWW-Authenticate"] = 'Bearer realm="illm serve"'
+                return response  # its body unread: the connection is closed
+        return None
+
+    @web.middleware
+    async def access(request: web.Request, handler):
+        conn = gate.of(request.transport) if gate is not None else None
+        if conn is not None:
+            conn.active += 1
+        try:
+            refused = refusal(request)
+            if refused is not None:
+                return refused
+            return await handler(request)
+        except web.HTTPException:
+            raise
+        except Exception as e:  # noqa: BLE001 - a bug here answers one line and logs one, never a traceback
+            log.warning("a request to %s failed: %s: %s", request.path, type(e).__name__, str(e)[:200])
+            return error(500, f"the server failed on this request ({type(e).__name__}); it goes on")
+        finally:
+            if conn is not None:
+                conn.active -= 1
+                conn.since = time.monotonic()
+
+    async def annotate(request: web.Request) -> web.Response:
+        try:
+            raw = await asyncio.wait_for(request.read(), request_timeout)
+        except web.HTTPRequestEntityTooLarge:
+            return error(413, f"the request is larger than the server's --max-request-mb "
+                              f"{server.limits.max_request_mb:g}: send fewer states", close=True)
+        except asyncio.TimeoutError:  # a slow or stalled client: cut off, so it holds nothing
+            return error(408, f"the request was not sent whole within {request_timeout:g} s", close=True)
+        except (ConnectionError, asyncio.IncompleteReadError, OSError):  # the client went away mid-request
+            return web.Response(status=400)
+        try:
+            answer = server.submit(read_json(raw))
+        except RequestError as e:
+            log.info("refused a request (%d): %s", e.status, str(e)[:300])
+            return error(e.status, str(e), e.retry_after)
+        return web.json_response(answer, status=202)
+
+    async def stats(request: web.Request) -> web.Response:
+        return web.json_response(server.stats())
+
+    app = web.Application(client_max_size=server.limits.max_request_bytes, middlewares=[access])
+    app.router.add_post("/annotate", annotate)
+    app.router.add_get("/stats", stats)
+    return app
+
+
+def own_hosts(host: str, port: int, token: str | None) -> tuple[str, ...] | None:
+    """The Host header values a server answers: on loopback without a token, its own address under
+    the names of loopback; otherwise any (the token keeps strangers out, and the names a cluster
+    reaches the node by are not known here)."""
+    from illm_tools.serve.config import is_loopback
+
+    if token is not None or not is_loopback(host):
+        return None
+    names = {host if ":" not in host else f"[{host}]", *LOOPBACK_NAMES}
+    return tuple(f"{name}:{port}" for name in sorted(names))
+
+
+async def serve(server: AnnotationServer, host: str, port: int, stop: asyncio.Event, on_ready=None, *,
+                token: str | None = None, request_timeout: float | None = None) -> None:
+    """Serve until `stop` is set, then finish the batch in progress (its shard written whole) within
+    its deadline. `token`: required on every request; `request_timeout` (default the server's
+    limit): seconds a client has for its headers, then its body, and an idle connection stays open."""
+    from aiohttp import web
+
+    timeout = request_timeout if request_timeout is not None else server.limits.request_timeout
+    loop = asyncio.get_running_loop()
+    gate = Gate(server, None, timeout)
+    listening = await loop.create_server(lambda: _Connection(gate), host, port, start_serving=False)
+    bound = listening.sockets[0].getsockname()[1]
+    app = make_app(server, token=token, request_timeout=timeout, own_hosts=own_hosts(host, bound, token), gate=gate)
+    runner = web.AppRunner(app, access_log=None, handle_signals=False, keepalive_timeout=timeout)
+    await runner.setup()
+    gate.factory = runner.server
+    await listening.start_serving()
+    sweeper = asyncio.ensure_future(gate.sweep())
+    if on_ready is not None:
+        on_ready([s.getsockname()[:2] for s in listening.sockets])
+    try:
+        await server.run(stop)
+    finally:
+        sweeper.cancel()
+        listening.close()
+        await runner.cleanup()
