@@ -7,7 +7,6 @@ as soon as it exists."""
 
 from __future__ import annotations
 
-import math
 
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
@@ -111,9 +110,7 @@ def test_a_negative_or_nan_number_is_refused_in_one_line(path, flag, kind, input
 @settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(huge=st.integers(min_value=2**63, max_value=2**80))
 def test_a_number_past_what_it_can_hold_is_refused(path, flag, kind, huge, inputs, tmp_path, monkeypatch):
-    code, output, written = _invoke(path, [flag, str(huge)], inputs, tmp_path, monkeypatch)
-    assert "Traceback" not in output and not written, output
-    assert code != 0 or not math.isfinite(huge), output
+    _refused(*_invoke(path, [flag, str(huge)], inputs, tmp_path, monkeypatch))  # the library never reached
 
 
 @pytest.mark.parametrize("path", [p for p in COMMANDS if any(o in FOLDER_OPTIONS and (p[0], o) not in FILE_OPTIONS

@@ -112,7 +112,7 @@ def test_no_stage_writes_into_a_folder_another_stage_owns(tmp_path):
     before = {p: sorted(q.name for q in p.iterdir()) for p in (traj, cache, run)}
     for folder, kind in ((traj, "trajectory dataset"), (cache, "annotation cache")):
         out = runner.invoke(app, ["train", "--method", "ppo", "--frames", "64", "--out", str(folder)])
-        assert out.exit_code == 1 and f"holds an {kind}" in out.output or f"holds a {kind}" in out.output
+        assert out.exit_code == 1 and (f"holds an {kind}" in out.output or f"holds a {kind}" in out.output), out.output
     out = runner.invoke(app, ["annotate", str(traj), "--cache", str(run)])
     assert out.exit_code == 1 and "holds a training run" in out.output
     for folder in (cache, run):
