@@ -39,8 +39,8 @@ def test_hub_id_not_cached_says_where_and_what_to_do(tmp_path, monkeypatch):
     monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path))
     with pytest.raises(ModelNotFoundError, match=f"{tmp_path}.*hf download org/missing"):
         load_model("org/missing", cache_dir=tmp_path)
-    with pytest.raises(ModelNotFoundError, match="known aliases"):
-        load_model("smollm3", cache_dir=tmp_path)
+    with pytest.raises(ModelNotFoundError, match="known alias.*did you mean smollm2-135m"):
+        load_model("smollm2", cache_dir=tmp_path)
 
 
 def test_bad_names_and_folders(tmp_path):

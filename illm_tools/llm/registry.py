@@ -107,10 +107,14 @@ def resolve(name: str) -> ModelSpec:
     if folder.is_dir():
         folder = folder.resolve()
         return ModelSpec(folder.name, "local", folder.name, path=str(folder), notes="local folder")
-    if not key or key.startswith((".", "/", "~")) or key.count("/") > 1:
+    if not key or key.startswith((".", "/", "~")) or key.count("/") != 1:
+        import difflib
+
+        close = difflib.get_close_matches(key.lower(), [s.alias for s in _ALIASES], n=1, cutoff=0.5)
+        hint = f"did you mean {close[0]}? " if close else ""
         raise ModelNotFoundError(
             f"model {name!r} is neither a known alias ({', '.join(s.alias for s in _ALIASES)}), "
-            "an existing folder, nor a hub id (org/name); run `illm models` to see what is available"
+            f"an existing folder, nor a hub id (org/name): {hint}run `illm models` to see what is available"
         )
     return ModelSpec(key.replace("/", "--"), "hub", key, notes="hub id")
 
@@ -150,11 +154,7 @@ def locate_hub(spec: ModelSpec) -> Path:
     first where the machine is online (`illm_tools.llm.hub`)."""
     from illm_tools.llm import hub
 
-    try:
-        return hub.snapshot((spec.model_id, *spec.hub_names))
-    except ModelNotFoundError as e:
-        known = "" if "/" in spec.model_id else f" (known aliases: {', '.join(a.alias for a in _ALIASES)})"
-        raise ModelNotFoundError(f"{e}{known}") from None
+    return hub.snapshot((spec.model_id, *spec.hub_names))
 
 
 def locate_gguf_package(spec: ModelSpec) -> Path:
