@@ -207,3 +207,15 @@ def fake_hub(repos: dict[str, "Path"], *, refuse: dict[str, tuple[int, str]] | N
         thread.join(5)
         loop.run_until_complete(runner.cleanup())
         loop.close()
+
+
+def collected(out, steps: int, num_envs: int = 2, env: str = "BabyAI-GoToLocal-v0", seed: int = 0):
+    """`illm collect` of `steps` random steps of `env` into `out` (the trajectories a test annotates)."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    done = CliRunner().invoke(app, ["collect", "--env", env, "--steps", str(steps), "--num-envs", str(num_envs),
+                                    "--seed", str(seed), "--out", str(out)])
+    assert done.exit_code == 0, done.output
+    return out

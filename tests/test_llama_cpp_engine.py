@@ -24,6 +24,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
+from fakes import collected
 
 pytestmark = pytest.mark.slow
 pytest.importorskip("llama_cpp", reason="opt-in: llama-cpp-python is not installed (see the module docstring)")
@@ -73,11 +74,7 @@ def engine(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def trajectories(tmp_path_factory):
-    out = tmp_path_factory.mktemp("traj") / "traj"
-    done = runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", "16", "--num-envs", "2",
-                               "--seed", "0", "--out", str(out)])
-    assert done.exit_code == 0, done.output
-    return out
+    return collected(tmp_path_factory.mktemp("traj") / "traj", 16, 2)
 
 
 def _annotate(trajectories, cache, engine, *extra):

@@ -20,6 +20,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
+from fakes import collected
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("vllm")]  # one worker starts the servers once
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,11 +63,7 @@ def engines(smollm2_cache, dtype, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def trajectories(tmp_path_factory):
-    out = tmp_path_factory.mktemp("traj") / "traj"
-    done = runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", "400", "--num-envs", "4",
-                               "--seed", "0", "--out", str(out)])
-    assert done.exit_code == 0, done.output
-    return out
+    return collected(tmp_path_factory.mktemp("traj") / "traj", 400, 4)
 
 
 def _annotate(trajectories, cache, *model, tasks="action", limit=64):
