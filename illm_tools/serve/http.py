@@ -91,6 +91,7 @@ class Gate:
                     "--max-connections-per-peer: close some")
         self.open[id(conn.transport)] = conn
         self.per_peer[conn.peer] = self.per_peer.get(conn.peer, 0) + 1
+        self.server.connections = len(self.open)
         return None
 
     def release(self, conn: _Connection) -> None:
@@ -100,6 +101,7 @@ class Gate:
                 self.per_peer[conn.peer] = left
             else:
                 self.per_peer.pop(conn.peer, None)
+            self.server.connections = len(self.open)
 
     def of(self, transport) -> _Connection | None:
         return self.open.get(id(transport))
@@ -227,7 +229,8 @@ async def serve(server: AnnotationServer, host: str, port: int, stop: asyncio.Ev
     listening = await loop.create_server(lambda: _Connection(gate), host, port, start_serving=False)
     bound = listening.sockets[0].getsockname()[1]
     app = make_app(server, token=token, request_timeout=timeout, own_hosts=own_hosts(host, bound, token), gate=gate)
-    runner = web.AppRunner(app, access_log=None, handle_signals=False, keepalive_timeout=timeout)
+    # the gate closes idle and stalled connections (`Gate.sweep`), whatever this aiohttp version does itself
+    runner = web.AppRunner(app, access_log=None, handle_signals=False, keepalive_timeout=3600)
     await runner.setup()
     gate.factory = runner.server
     await listening.start_serving()

@@ -108,6 +108,8 @@ class AnnotationServer:
                                    layout=layout, batch_size=batch_size, chunk=chunk)
         self.annotating = 0
         """States in the batch being annotated now (0: idle)."""
+        self.connections = 0
+        """Connections open now (kept by the HTTP side's gate)."""
         self.fingerprint = fingerprint_hash(self.lm.fingerprint)
         self._clients: dict[tuple[str, str], dict[tuple, Pending]] = {}  # trainer -> its own pending list
         self._landed: dict[tuple[str, str], int] = {}
@@ -237,6 +239,7 @@ class AnnotationServer:
         return {"protocol": PROTOCOL, "model": self.model, "model_options": self.llm.options(),
                 "model_fingerprint": self.fingerprint, "setup": self.setup.describe(), "cache": str(self.cache.root),
                 "queue": self.queue_size(), "annotating": self.annotating, "clients": len(self._clients),
+                "connections": self.connections,
                 "annotated_states": t["states"], "rows": t["rows"], "batches": t["batches"], "requests": t["requests"],
                 **{k: t[k] for k in ("refused", "busy", "throttled", "unauthorized", "forbidden", "timeouts",
                                      "connections_refused", "errors", "failed_states", "late_batches")},

@@ -1,0 +1,331 @@
+"""`illm serve` against its own clients (issue 47), each through HTTP against a server on 127.0.0.1
+with the stub backend (run in a thread of this process, so a test can look inside it): every field
+bounded and checked on arrival against the server's own setup; a state failing in the engine costs
+no other state; round-robin across clients with caps per client; connections capped, stalled ones
+cut off, cross-origin and other-host posts refused; a declared setup other than the server's
+refused and the cache left with one setup; malformed JSON of any shape a 400 in one line."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import logging
+import secrets
+import socket
+import threading
+import urllib.error
+import urllib.request
+from contextlib import contextmanager
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cli.main import app
+from illm_tools.cache import AnnotationCache
+from illm_tools.llm.spec import LLMSpec
+from illm_tools.llm.stub import StubBackend
+from illm_tools.serve import AnnotationServer, ServeLimits, record_to_json, serve, token_bits
+from illm_tools.tasks.state import StateRecord
+from test_serve import ACTIONS, LLM, MODEL, hop_states, request, state, wait_for
+
+HOP = {"renderer": "hop@2:seed=0:beta=100.0:window=2", "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
+
+
+@contextmanager
+def running(server: AnnotationServer, *, token: str | None = None, timeout: float | None = None):
+    """`server` listening on a free port of 127.0.0.1 in a thread of its own; stopped at the end."""
+    ready, box = threading.Event(), {}
+
+    async def main() -> None:
+        box["stop"], box["loop"] = asyncio.Event(), asyncio.get_running_loop()
+        await serve(server, "127.0.0.1", 0, box["stop"], token=token, request_timeout=timeout,
+                    on_ready=lambda addresses: (box.update(port=addresses[0][1]), ready.set()))
+
+    thread = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
+    thread.start()
+    assert ready.wait(30), "the server did not start"
+    try:
+        yield f"http://127.0.0.1:{box['port']}"
+    finally:
+        box["loop"].call_soon_threadsafe(box["stop"].set)
+        thread.join(30)
+
+
+def post(url: str, body=None, *, raw: bytes | None = None, headers: dict | None = None) -> tuple[int, dict, dict]:
+    """(status, JSON answer, headers) of a POST to /annotate."""
+    data = raw if raw is not None else json.dumps(body).encode()
+    sent = {"Content-Type": "application/json", **(headers or {})}
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url + "/annotate", data=data, headers=sent), timeout=30) as r:
+            return r.status, json.loads(r.read()), dict(r.headers)
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read()), dict(e.headers)
+
+
+def stats(url: str) -> dict:
+    with urllib.request.urlopen(url + "/stats", timeout=30) as r:
+        return json.loads(r.read())
+
+
+def make(tmp_path, lm=None, llm: LLMSpec = LLM, history_len: int = 0, **limits) -> AnnotationServer:
+    return AnnotationServer(lm or StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=llm,
+                            history_len=history_len, chunk=8, limits=ServeLimits(**limits))
+
+
+def frame_json(array: np.ndarray) -> dict:
+    return {"shape": list(array.shape), "dtype": array.dtype.str, "data": base64.b64encode(array.tobytes()).decode()}
+
+
+def oversized(kind: str) -> dict:
+    """A request with one field beyond the server's limits (or its setup)."""
+    one = record_to_json(state(1))
+    if kind == "mission":
+        one["mission"] = "m" * 8193
+    elif kind == "observation":
+        one["observation"] = "o" * 100_000
+    elif kind == "history":
+        one["history"] = [["seen", "go forward"]] * 2
+    elif kind == "actions":
+        one["valid_actions"] = [f"act {i}" for i in range(65)]
+    elif kind == "action":
+        one["valid_actions"] = ["a" * 65, "go forward"]
+    elif kind == "visits":
+        one["visits"] = 10**300
+    if kind in ("frame_shape", "frame_dtype"):
+        body = json.loads(json.dumps(request([(r, 1) for r in hop_states(1)], **HOP)))
+        big = np.zeros((1024, 1024, 3), np.uint8) if kind == "frame_shape" else np.zeros((7, 7, 3), np.float64)
+        body["states"][0]["frames"] = [frame_json(big)]
+        return body
+    if kind == "hop_on_oracle":
+        return json.loads(json.dumps(request([(r, 1) for r in hop_states(1)], **HOP)))
+    return {**request([]), "states": [one]}
+
+
+@pytest.mark.parametrize("kind,status,says", [
+    ("mission", 413, "mission has 8,193 characters"), ("observation", 413, "observation has 100,000 characters"),
+    ("history", 400, "more than the server's --history 0"), ("actions", 413, "65 valid actions"),
+    ("action", 413, "a valid action has 65 characters"), ("visits", 400, "visits must be a whole number"),
+    ("frame_shape", 400, "a hop frame of this env is [7, 7, 3] uint8"),
+    ("frame_dtype", 400, "a hop frame of this env is [7, 7, 3] uint8"),
+    ("hop_on_oracle", 400, "the oracle backend reads the text"),
+])
+def test_every_field_is_bounded_and_checked_on_arrival(tmp_path, kind, status, says):
+    hop = kind.startswith(("frame", "hop"))
+    server = make(tmp_path, history_len=1 if hop else 0, llm=LLMSpec(backend="oracle") if kind == "hop_on_oracle" else LLM)
+    with running(server) as url:
+        code, answer, _ = post(url, oversized(kind))
+        assert (code, says in answer["error"]) == (status, True), answer
+        assert len(answer["error"].splitlines()) == 1
+        assert stats(url)["queue"] == 0
+    assert not server.annotator._hop  # no projection built for a refused frame: the server's memory unchanged
+
+
+class EngineStub(StubBackend):
+    """The stub, each call waiting for `gate` (a test holds the engine while it queues requests) and
+    failing on any prompt that mentions POISON (a state the engine cannot take)."""
+
+    gate = threading.Event()
+
+    def _check(self, texts) -> None:
+        assert self.gate.wait(30)
+        if any("POISON" in t for t in texts):
+            raise RuntimeError("the engine cannot take this state")
+
+    def score(self, contexts, *args, **kwargs):
+        self._check(contexts)
+        return super().score(contexts, *args, **kwargs)
+
+    def generate(self, prompts, *args, **kwargs):
+        self._check(prompts)
+        return super().generate(prompts, *args, **kwargs)
+
+    def score_and_generate(self, contexts, candidates, prompts, *args, **kwargs):
+        self._check(list(contexts) + list(prompts))
+        return super().score_and_generate(contexts, candidates, prompts, *args, **kwargs)
+
+
+def held_engine(tmp_path) -> AnnotationServer:
+    """A server whose engine waits for `EngineStub.gate`, and records the states of each batch."""
+    EngineStub.gate = threading.Event()
+    server = make(tmp_path, lm=EngineStub(MODEL))
+    server.batches = []
+    annotate = server._annotate
+    server._annotate = lambda items: (server.batches.append({f"{p.record.mission}: {p.record.observation}" for p in items}), annotate(items))[1]
+    return server
+
+
+def test_a_state_failing_in_the_engine_costs_no_other_state(tmp_path):
+    server = held_engine(tmp_path)
+    server.chunk = 16
+    poison = StateRecord("go to the POISON ball", (), "You see POISON", ACTIONS)
+    with running(server) as url:
+        assert post(url, request([(state(0), 1)], client="first"))[0] == 202
+        wait_for(lambda: stats(url)["annotating"] == 1, 30, "the first batch in the engine")
+        assert post(url, request([(poison, 10**9)], client="bad"))[0] == 202
+        assert post(url, request([(state(i), 1) for i in range(1, 11)], client="good"))[0] == 202
+        EngineStub.gate.set()
+        wait_for(lambda: stats(url)["queue"] == 0 and stats(url)["batches"] == 2, 30, "the queue drained")
+        assert "go to the POISON ball: You see POISON" in server.batches[1] and len(server.batches[1]) == 11  # together
+        assert post(url, request([], client="good"))[1]["landed"] == 10
+        answer = post(url, request([], client="bad"))[1]
+        assert answer["failed"] == 1 and "the engine cannot take this state" in answer["failure"]
+        s = stats(url)
+        assert (s["annotated_states"], s["failed_states"]) == (11, 1)
+
+
+def test_one_client_flooding_sessions_cannot_starve_another(tmp_path):
+    server = held_engine(tmp_path)
+    with running(server) as url:
+        assert post(url, request([(state(0), 1)], client="first"))[0] == 202
+        wait_for(lambda: stats(url)["annotating"] == 1, 30, "the first batch in the engine")
+        for n in range(4):  # the flooder's sessions, most visited states
+            states = [(StateRecord(f"flood {n} {i}", (), "", ACTIONS), 10**6) for i in range(16)]
+            assert post(url, request(states, client="flood", session=f"s{n}"))[0] == 202
+        more = [(StateRecord("flood more", (), "", ACTIONS), 10**6)]
+        code, answer, headers = post(url, request(more, client="flood", session="s4"))
+        assert code == 429 and "--max-sessions" in answer["error"] and int(headers["Retry-After"]) >= 1
+        assert post(url, request([(StateRecord("the fair one", (), "", ACTIONS), 1)], client="fair"))[0] == 202
+        EngineStub.gate.set()
+        wait_for(lambda: any("the fair one: " in b for b in server.batches), 60, "the fair client's state annotated")
+    assert next(i for i, b in enumerate(server.batches) if "the fair one: " in b) <= 1  # within two batches
+
+
+def test_a_client_holds_at_most_its_share_of_the_queue(tmp_path):
+    server = make(tmp_path, max_queue=10, max_client_share=0.5)
+    with running(server) as url:
+        code, answer, headers = post(url, request([(state(i), 1) for i in range(6)], client="greedy"))
+        assert code == 429 and "beyond its share 5" in answer["error"] and "Retry-After" in headers
+
+
+def test_stalled_idle_and_excess_connections_are_cut_off(tmp_path):
+    server = make(tmp_path, max_connections_per_peer=3)
+    with running(server, timeout=1.0) as url:
+        port = int(url.rsplit(":", 1)[1])
+        with socket.create_connection(("127.0.0.1", port)) as stalled, \
+                socket.create_connection(("127.0.0.1", port)) as idle:
+            idle.settimeout(15)
+            assert idle.recv(4096) == b""  # closed by the server
+            cut = False
+            for byte in b"POST /annotate HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Trickle: " + b"a" * 200:
+                try:  # headers a byte at a time, never finished: cut off however long it keeps sending
+                    stalled.sendall(bytes([byte]))
+                except OSError:
+                    cut = True
+                    break
+                stalled.settimeout(0.1)
+                try:
+                    if stalled.recv(4096) == b"":
+                        cut = True
+                        break
+                except TimeoutError:
+                    pass
+            assert cut
+        wait_for(lambda: stats(url)["connections"] == 1, 10, "the cut connections released")  # /stats's own
+        held = [socket.create_connection(("127.0.0.1", port)) for _ in range(3)]
+        try:
+            with socket.create_connection(("127.0.0.1", port)) as extra:
+                extra.settimeout(15)
+                answer = extra.recv(4096).decode()
+                assert answer.startswith("HTTP/1.1 503") and "--max-connections-per-peer" in answer
+        finally:
+            for s in held:
+                s.close()
+        assert stats(url)["connections_refused"] == 1
+
+
+def test_cross_origin_text_plain_and_other_host_posts_are_refused(tmp_path):
+    server = make(tmp_path)
+    with running(server) as url:
+        body = request([(state(1), 1)])
+        code, answer, _ = post(url, body, headers={"Content-Type": "text/plain", "Origin": "http://evil.example"})
+        assert code == 403 and "cross-origin" in answer["error"]
+        code, answer, _ = post(url, body, headers={"Content-Type": "text/plain"})
+        assert code == 415 and "application/json" in answer["error"]
+        code, answer, _ = post(url, body, headers={"Host": "evil.example:80"})  # DNS rebinding
+        assert code == 403 and "Host" in answer["error"]
+        assert stats(url)["queue"] == 0
+        assert post(url, body)[0] == 202  # the server's own trainer
+
+
+def test_a_wrong_token_without_a_body_is_disconnected(tmp_path):
+    token = secrets.token_urlsafe(32)
+    server = make(tmp_path)
+    with running(server, token=token) as url:
+        port = int(url.rsplit(":", 1)[1])
+        with socket.create_connection(("127.0.0.1", port)) as s:
+            s.sendall(b"GET /stats HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer nope\r\n\r\n")
+            s.settimeout(15)
+            got = b""
+            while chunk := s.recv(4096):
+                got += chunk
+            assert got.startswith(b"HTTP/1.1 401")  # and the connection closed (recv returned b"")
+
+
+def test_a_request_declaring_another_setup_is_refused_and_the_cache_keeps_one_setup(tmp_path):
+    server = make(tmp_path)
+    with running(server) as url:
+        assert post(url, request([(state(1), 1)]))[0] == 202
+        wait_for(lambda: stats(url)["annotated_states"] == 1, 30, "the state annotated")
+        code, answer, _ = post(url, request([(state(2), 1)], client="other", history_len=3, layout="paper"))
+        assert code == 409 and "--history 0 (the request's 3)" in answer["error"]
+        assert "--layout shared (the request's 'paper')" in answer["error"]
+        assert len(answer["error"].splitlines()) == 1
+    out = CliRunner().invoke(app, ["cache", "info", str(tmp_path / "ann"), "--json"])
+    assert out.exit_code == 0, out.output
+    assert sorted(u["task"] for u in json.loads(out.output)["setups"]) == ["action", "summary"]  # one row per task
+    from illm_tools.annotate.setups import cache_setups
+
+    assert len(cache_setups(AnnotationCache(tmp_path / "ann"), ("action", "summary"))) == 1
+
+
+@pytest.mark.parametrize("raw,says", [
+    (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
+    (json.dumps({**request([]), "states": [{**record_to_json(state(1)), "visits": 1}]}).replace('"visits": 1', '"visits": NaN').encode(), "NaN is not JSON"),
+    (json.dumps({**request([(state(1), 1)]), "tasks": 5}).encode(), "tasks must be a list"),
+    (json.dumps({**request([(state(1), 1)]), "history_len": "zero"}).encode(), "history_len must be a whole number"),
+    (json.dumps({**request([(state(1), 1)]), "states": {"a": 1}}).encode(), "states must be a list"),
+    (json.dumps({**request([(state(1), 1)]), "client": ["x"]}).encode(), "client must be a string"),
+    (b"5", "must be a JSON object"),
+    (b"\xff\xfe{", "not JSON"),
+])
+def test_malformed_json_of_any_shape_answers_400_in_one_line(tmp_path, caplog, raw, says):
+    server = make(tmp_path)
+    with caplog.at_level(logging.INFO), running(server) as url:
+        code, answer, _ = post(url, raw=raw)
+    assert code == 400 and says in answer["error"] and len(answer["error"].splitlines()) == 1, answer
+    assert not [r for r in caplog.records if r.exc_info or "Traceback" in r.getMessage()]
+    assert sum("refused a request" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_tokens_under_128_bits_are_refused():
+    assert token_bits(secrets.token_urlsafe(32)) >= 128 and token_bits(secrets.token_hex(16)) >= 128
+    for weak in ("a" * 64, "ab" * 32, "0123456789abcdef", "abcdefghijklmnopqrs"):
+        assert token_bits(weak) < 128, weak
+
+
+def test_the_server_checks_a_frame_against_its_own_env_not_the_clients_word(tmp_path):
+    server = make(tmp_path, history_len=1)
+    body = json.loads(json.dumps(request([(r, 1) for r in hop_states(1)], **HOP)))
+    with running(server) as url:
+        assert post(url, body)[0] == 202
+        body["states"][0]["frames"][0]["data"] = body["states"][0]["frames"][0]["data"][:-4]  # bytes short of its shape
+        code, answer, _ = post(url, {**body, "client": "other"})
+        assert code == 400 and "a hop frame of this env is [7, 7, 3] uint8" in answer["error"]
+
+
+def test_the_hop_projections_the_server_keeps_are_bounded(tmp_path):
+    from illm_tools.hop.context import HopTracker
+    from illm_tools.serve.scheduler import MAX_HOP_CONTEXTS
+
+    server = make(tmp_path, history_len=1)
+    rng = np.random.default_rng(0)
+    with running(server) as url:
+        for n in range(2, 9):  # each number of valid actions asks for a projection of its own
+            (record,) = HopTracker(1, 1, [f"act {i}" for i in range(n)]).records(
+                ["get to the green goal square"], [rng.integers(0, 9, (7, 7, 3), dtype=np.uint8)])
+            assert post(url, json.loads(json.dumps(request([(record, 1)], client=f"c{n}", **HOP))))[0] == 202
+            wait_for(lambda: stats(url)["queue"] == 0 and stats(url)["annotating"] == 0, 30, "annotated")
+        assert stats(url)["annotated_states"] == 7
+    assert len(server.annotator._hop) <= MAX_HOP_CONTEXTS
