@@ -55,10 +55,15 @@ def coverage(
     backend: str = typer.Option("transformers", "--backend", help="LLM backend (as in `illm annotate`)."),
     oracle_noise: float = typer.Option(0.0, "--oracle-noise", help="oracle: its noise (as in `illm annotate`)."),
     endpoint: str = typer.Option(None, "--endpoint", help="openai: the server's URL (as in `illm annotate`)."),
+    embed_endpoint: str = typer.Option(None, "--embed-endpoint",
+                                       help="openai: the pooling server's URL (as in `illm annotate`)."),
     tasks: str = typer.Option("action,summary", "--tasks", help="Tasks a state needs to count as covered."),
     layout: str = typer.Option("shared", "--layout", help="Prompt layout (as in `illm annotate`)."),
     dtype: str = typer.Option("auto", "--dtype", help="LLM compute dtype (as in `illm annotate`; auto: this machine's choice)."),
-    quant: str = typer.Option("none", "--quant", help="LLM quantisation (as in `illm annotate`)."),
+    quant: str = typer.Option("auto", "--quant", help="LLM quantisation (as in `illm annotate`; auto: the model's "
+                              "alias on a GPU, else none)."),
+    device: str = typer.Option("auto", "--device", help="Where `illm annotate` ran the LLM (auto: a GPU where "
+                               "torch sees one): it decides what --quant auto and --dtype auto mean."),
     as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
 ) -> None:
     """What annotating a dataset would cost and reach, per history length.
@@ -76,7 +81,8 @@ def coverage(
     if cache is not None and not cache.is_dir():
         raise UsageError(f"no annotation cache at {cache}: check the path, or leave --cache out to see only the costs")
 
-    llm = LLMSpec(backend=backend, model=model, dtype=dtype, quant=quant, oracle_noise=oracle_noise, endpoint=endpoint)
+    llm = LLMSpec(backend=backend, model=model, dtype=dtype, quant=quant, device=device, oracle_noise=oracle_noise,
+                  endpoint=endpoint, embed_endpoint=embed_endpoint)
     rows = measure_coverage(path, cache=cache, histories=history, llm=llm, layout=layout, tasks=tasks)
     if as_json:
         emit_json(rows)
