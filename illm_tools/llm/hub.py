@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 
 PROGRESS_EVERY_S = 15.0
 """Seconds between two progress lines of a download."""
-_WANTED = ["*.json", "*.safetensors", "*.bin", "*.model", "*.txt", "*.jinja", "*.tiktoken", "*.py"]
+_WANTED = ["*.json", "*.safetensors", "*.bin", "*.model", "*.txt", "*.jinja", "*.tiktoken"]
 _SKIPPED = ["*/*"]  # sub-folders: original checkpoints, onnx/, other frameworks' copies
 _NO_FETCH = contextvars.ContextVar("illm_hub_no_fetch", default=None)
 """Why nothing may be downloaded in this context (`no_downloads`), or None."""
