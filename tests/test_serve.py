@@ -402,6 +402,16 @@ def test_sigterm_finishes_the_batch_in_progress_and_writes_it(tmp_path, start_se
     assert report.ok and report.rows == 8 == len(AnnotationCache(tmp_path / "ann"))
 
 
+def test_sigterm_exits_within_the_batch_deadline_when_the_engine_is_stuck(tmp_path, start_server):
+    url, proc = start_server("--batch-deadline", 2, slow=600.0)  # a batch that would take 10 minutes
+    assert call(url + "/annotate", request([(state(i), 1) for i in range(2)]))[0] == 202
+    wait_for(lambda: call(url + "/stats")[1]["annotating"] == 2, 30, "the batch started")
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)  # well before the batch would end: the deadline cut the wait
+    assert proc.returncode == 0 and "past its deadline" in err and "Traceback" not in err, err[-2000:]
+    assert "0 states annotated" in out
+
+
 @pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_a_remote_trainer_backs_off_a_full_server_and_says_so_once(tmp_path, start_server, caplog):
     from illm_tools.rl.live import RemoteLive

@@ -34,13 +34,13 @@ HOP = {"renderer": "hop@2:seed=0:beta=100.0:window=2", "history_len": 1, "env_id
 
 
 @contextmanager
-def running(server: AnnotationServer, *, token: str | None = None, timeout: float | None = None):
+def running(server: AnnotationServer, *, token: str | None = None, timeout: float | None = None, port: int = 0):
     """`server` listening on a free port of 127.0.0.1 in a thread of its own; stopped at the end."""
     ready, box = threading.Event(), {}
 
     async def main() -> None:
         box["stop"], box["loop"] = asyncio.Event(), asyncio.get_running_loop()
-        await serve(server, "127.0.0.1", 0, box["stop"], token=token, request_timeout=timeout,
+        await serve(server, "127.0.0.1", port, box["stop"], token=token, request_timeout=timeout,
                     on_ready=lambda addresses: (box.update(port=addresses[0][1]), ready.set()))
 
     thread = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
@@ -329,3 +329,25 @@ def test_the_hop_projections_the_server_keeps_are_bounded(tmp_path):
             wait_for(lambda: stats(url)["queue"] == 0 and stats(url)["annotating"] == 0, 30, "annotated")
         assert stats(url)["annotated_states"] == 7
     assert len(server.annotator._hop) <= MAX_HOP_CONTEXTS
+
+
+def test_a_trainer_rechecks_the_servers_model_after_a_reconnect(tmp_path, caplog):
+    from illm_tools.rl.live import RemoteLive
+    from illm_tools.tasks.setup import AnnotationSetup
+
+    with running(make(tmp_path)) as url:
+        port = int(url.rsplit(":", 1)[1])
+        live = RemoteLive(url, client="run", llm=LLM, setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1",
+                                                                            history_len=0), budget=8, max_backoff=0.5)
+        live.submit([state(1)], [1])
+        wait_for(lambda: live.counts["accepted"] == 1, 30, "the first list accepted")
+    with caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
+        live.submit([state(2)], [1])
+        wait_for(lambda: live.counts["unanswered"] >= 1, 30, "the server gone")
+        other = LLMSpec(backend="stub", model="stub:24", dtype="float32")
+        with running(make(tmp_path / "other", lm=StubBackend("stub:24"), llm=other), port=port) as url2:
+            wait_for(lambda: live.counts["refused"] >= 1, 30, "the changed server noticed")
+            assert stats(url2)["refused"] == 0 and stats(url2)["requests"] == 0  # nothing sent to it
+        live.close(timeout=0.5)
+    said = [r.getMessage() for r in caplog.records if "answers again but" in r.getMessage()]
+    assert len(said) == 1 and "another model setup" in said[0]

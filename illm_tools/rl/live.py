@@ -388,6 +388,13 @@ class RemoteLive:
         import json
         import urllib.error
 
+        if self._said in ("down", "other"):  # a server answers again: is it still this run's model setup?
+            changed = self._changed_server()
+            if changed:
+                self.counts["refused"] += 1
+                self._say("other", "the annotation server at %s answers again but %s: this run's states are not sent "
+                                   "to it; the run goes on with the targets the cache has", self.url, changed)
+                return self.max_backoff
         self.counts["sent"] += 1
         try:
             answer = self._call("/annotate", {**self.setup, "client": self.client, "session": self.session,
@@ -397,7 +404,7 @@ class RemoteLive:
                 why = json.loads(e.read()).get("error", "")
             except (ValueError, AttributeError, OSError):
                 why = ""
-            if e.code == 503:
+            if e.code in (429, 503):  # the server is full, or this run's client is over its share
                 self.counts["busy"] += 1
                 self._say("busy", "the annotation server at %s is full (%s); this run backs off and goes on training",
                           self.url, why)
@@ -428,6 +435,21 @@ class RemoteLive:
         with self._lock:
             self._landed += int(answer.get("landed", 0))
             self._queue = int(answer.get("queued", 0))
+        return None
+
+    def _changed_server(self) -> str | None:
+        """What differs in a server that answers again after being down (another protocol or model
+        setup: a restart with other options), or None when it is the same or cannot tell yet."""
+        try:
+            info = self._call("/stats")
+        except Exception:  # noqa: BLE001 - not answering yet: the request that follows says so
+            return None
+        from illm_tools.annotate.wire import PROTOCOL
+
+        if info.get("protocol") != PROTOCOL:
+            return f"speaks protocol {info.get('protocol')!r}, not this run's {PROTOCOL}"
+        if info.get("model_fingerprint") != self.setup["model_fingerprint"]:
+            return f"annotates with {info.get('model_options') or info.get('model')}, another model setup than this run's"
         return None
 
     @property
