@@ -95,7 +95,7 @@ def own_workers(folder: Path, args) -> dict:
 def one_server(folder: Path, args) -> dict:
     memory = PeakMemory()
     server = subprocess.Popen([sys.executable, "-m", "cli.main", "serve", "--cache", str(folder / "ann"), "--backend",
-                               args.backend, "--model", args.model, "--dtype", args.dtype, "--port", "0",
+                               args.backend, "--model", args.model, "--dtype", args.dtype, "--history", "0", "--port", "0",
                                "--threads", str(args.server_threads)],
                               env=ENV, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     memory.add(server.pid)

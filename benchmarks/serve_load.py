@@ -72,7 +72,7 @@ class Server:
         self.log = log
         env = {**os.environ, "ILLM_SERVE_TOKEN": token, "PYTHONWARNINGS": "ignore"}
         cmd = [sys.executable, "-m", "cli.main", "serve", "--cache", str(cache), "--backend", args.backend,
-               "--model", args.model, "--dtype", args.dtype, "--host", "127.0.0.1", "--port", str(port),
+               "--model", args.model, "--dtype", args.dtype, "--history", "0", "--host", "127.0.0.1", "--port", str(port),
                "--chunk", str(args.chunk), "--threads", str(args.server_threads)]
         self.started = time.monotonic()
         with open(log, "w") as f:
@@ -246,7 +246,7 @@ def main() -> None:
     llm = LLMSpec(backend=args.backend, model=args.model, dtype=args.dtype).placed()
     args.dtype = llm.dtype
     setup = AnnotationSetup(ENV_ID, renderer_of(ENV_ID), history_len=0)
-    token = secrets.token_urlsafe(24)
+    token = secrets.token_urlsafe(32)
     cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
                 if line.startswith("model name")), "unknown CPU")
     with tempfile.TemporaryDirectory() as tmp:
@@ -358,7 +358,8 @@ def report(args, run: Run, cache: Path, cpu: str) -> None:
     outage_unanswered = restart.get("unanswered_at_ready", 0) - restart.get("unanswered_before", 0)
     # unanswered before the kill or after the new server was ready: errors
     late_unanswered = counts["unanswered"] - outage_unanswered
-    errors = counts["refused"] + final.get("errors", 0) + restart.get("errors", 0)
+    failed_states = final.get("failed_states", 0) + restart.get("first_stats", {}).get("failed_states", 0)
+    errors = counts["refused"] + final.get("errors", 0) + restart.get("errors", 0) + failed_states
     check = verify(cache)
     rows = len(AnnotationCache(cache))
     minutes = (load_end - t0) / 60
@@ -377,9 +378,10 @@ def report(args, run: Run, cache: Path, cpu: str) -> None:
           f"{len(asked):,} asked for; the rest superseded by their trainers' newer lists"
           + ("" if drained else ", or still queued") + ")")
     print(f"errors: {errors + max(late_unanswered, 0)} (requests: {counts['sent']:,} sent, {counts['accepted']:,} "
-          f"accepted, {counts['busy']:,} answered 503 and backed off, {counts['refused']} refused; "
+          f"accepted, {counts['busy']:,} answered 503 or 429 and backed off, {counts['refused']} refused; "
           f"{outage_unanswered} unanswered during the outage, {max(late_unanswered, 0)} outside it; "
-          f"failed batches {final.get('errors', 0) + restart.get('first_stats', {}).get('errors', 0)})")
+          f"failed batches {final.get('errors', 0) + restart.get('first_stats', {}).get('errors', 0)}, states failed "
+          f"in the engine {failed_states})")
     for n, server in enumerate(servers):
         until = restart["at"] if n == 0 and restart else drain_end
         print("memory, " + memory_line(f"server {n + 1}", server, run.first_batch.get(server), until))

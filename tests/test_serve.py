@@ -336,7 +336,7 @@ def test_a_non_loopback_listen_needs_a_token(tmp_path, monkeypatch):
 
 @pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_the_token_is_required_on_every_request(tmp_path, start_server):
-    url, proc = start_server("--max-queue", 2, env={"ILLM_SERVE_TOKEN": TOKEN})
+    url, proc = start_server("--max-queue", 2, "--max-client-share", 1, env={"ILLM_SERVE_TOKEN": TOKEN})
     for body in (None, request([(state(1), 1)])):
         for token in (None, "wrong-token-0123456789"):
             status, answer = call(url + ("/stats" if body is None else "/annotate"), body, token=token)

@@ -202,17 +202,17 @@ class AnnotationServer:
             if sessions >= limits.max_sessions:
                 raise RequestError(429, f"the client {client[:80]!r} has {sessions} sessions queued, the server's "
                                         "--max-sessions: one run is one session", self.retry_after())
+        others = {k for who, pending in self._clients.items() if who != trainer for k in pending}
+        total = len(others | entries.keys())
+        if total > limits.max_queue:
+            raise RequestError(503, f"the queue would hold {total:,} states, beyond the server's --max-queue "
+                                    f"{limits.max_queue:,}: this run backs off and sends them again", self.retry_after())
         mine = {k for who, pending in self._clients.items() if who[0] == client and who != trainer for k in pending}
         share = max(1, int(limits.max_client_share * limits.max_queue))
         if len(mine | entries.keys()) > share:
             raise RequestError(429, f"the client {client[:80]!r} would hold {len(mine | entries.keys()):,} queued states, "
                                     f"beyond its share {share:,} of the queue (--max-client-share): send fewer",
                                self.retry_after())
-        others = {k for who, pending in self._clients.items() if who != trainer for k in pending}
-        total = len(others | entries.keys())
-        if total > limits.max_queue:
-            raise RequestError(503, f"the queue would hold {total:,} states, beyond the server's --max-queue "
-                                    f"{limits.max_queue:,}: this run backs off and sends them again", self.retry_after())
 
     def _forget_gone(self) -> None:
         """Drop what is kept of trainers that went away without withdrawing (their landed and failed
