@@ -432,6 +432,11 @@ class RemoteLive:
             return 0.0
         self.counts["accepted"] += 1
         self._say("up", "the annotation server at %s answers again; this run's states are sent to it", self.url)
+        if answer.get("failed"):  # states the server's engine could not annotate: said once per run
+            self.counts["failed"] = self.counts.get("failed", 0) + int(answer["failed"])
+            if self.counts["failed"] == int(answer["failed"]):
+                log.warning("the annotation server could not annotate %s of this run's states (%s); the run goes on "
+                            "without their targets", answer["failed"], str(answer.get("failure", ""))[:300])
         with self._lock:
             self._landed += int(answer.get("landed", 0))
             self._queue = int(answer.get("queued", 0))
