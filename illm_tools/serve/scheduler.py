@@ -2,21 +2,19 @@
 is `illm_tools.serve.http`).
 
 Queue. Each trainer, named by `client` (its run) and `session` (a random id it makes), has one
-pending list, replaced by its newest request. A request is checked whole before anything is queued
-(`protocol`), and room is checked per trainer: at most `max_clients` trainers (503), `max_sessions`
-per client name and `max_client_share` of the queue per client name (429), `max_queue` states in all
-(503); 429 and 503 carry Retry-After.
+pending list, replaced by its newest request, checked whole before anything is queued (`protocol`).
+Room: at most `max_queue` states (503) and `max_clients` trainers (503), `max_sessions` and
+`max_client_share` of the queue per client name (429); 429 and 503 carry Retry-After.
 
-Scheduling. Round-robin across client names, least recently served first: each takes one state
-per turn until the batch holds `chunk`; the visit counts a client declares only order its own
-states (most visited first), so no count buys a place before another client's states. A state two
-trainers both asked for is annotated once.
+Scheduling. Round-robin across client names, least recently served first, one state per turn
+until the batch holds `chunk`; the visits a client declares only order its own states, so no count
+buys a place before another client's. A state two trainers both asked for is annotated once.
 
 Faults. A batch runs in a daemon thread with a deadline (`batch_deadline`): past it, its states are
-answered as failed and no new batch starts until the engine returns, while requests are still
-answered; a stop (Ctrl-C, SIGTERM) waits for the batch in progress at most until its deadline. A
-batch that raises is retried state by state: a state that fails in the engine is answered to its
-trainers (`failed` and `failure` in their next answer) and counted, and every other state lands.
+answered as failed and no batch starts until the engine returns (requests are still answered); a
+stop waits for the batch in progress at most until its deadline. A batch that raises is retried
+state by state: a state failing in the engine is answered to its trainers (`failed`, `failure` in
+their next answer) and counted, and every other state lands.
 """
 
 from __future__ import annotations
@@ -24,16 +22,15 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import os
 import threading
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 from illm_tools.annotate.wire import PROTOCOL
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.serve.config import ServeConfig, ServeLimits
+from illm_tools.serve.memory import release_free_memory, resident_mb
 from illm_tools.serve.protocol import MAX_ID_CHARS, RequestError, ServerSetup, text
 from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
@@ -44,27 +41,6 @@ MAX_RETRY_AFTER = 60
 """Longest Retry-After a busy server answers (seconds)."""
 MAX_HOP_CONTEXTS = 4
 """Hop translations (projections) the annotator keeps between batches; beyond, they are rebuilt."""
-
-
-def release_free_memory() -> None:
-    """Hand the memory a batch freed back to the system: glibc keeps freed blocks in its per-thread
-    arenas, and a server that runs for days would otherwise creep up in resident size as batches of
-    other shapes leave them fragmented. A no-op where the C library is not glibc."""
-    import ctypes
-
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
-def resident_mb() -> float | None:
-    """This process's resident memory in MB (Linux's /proc; None elsewhere)."""
-    try:
-        pages = int(Path("/proc/self/statm").read_text().split()[1])
-    except (OSError, IndexError, ValueError):
-        return None
-    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
 def one_line(e: BaseException) -> str:
@@ -95,8 +71,7 @@ class AnnotationServer:
 
         self.lm = as_backend(lm)
         self.cache = cache
-        self.llm = llm
-        """The model as it was loaded (placed: its device and dtype resolved)."""
+        self.llm = llm  # the model as it was loaded (placed: its device and dtype resolved)
         self.model = llm.model
         self.limits = limits or ServeLimits()
         self.setup = ServerSetup(llm, history_len=history_len, layout=layout, tasks=tuple(tasks), hop_seed=hop_seed,
@@ -108,8 +83,7 @@ class AnnotationServer:
                                    layout=layout, batch_size=batch_size, chunk=chunk)
         self.annotating = 0
         """States in the batch being annotated now (0: idle)."""
-        self.connections = 0
-        """Connections open now (kept by the HTTP side's gate)."""
+        self.connections = 0  # open now (kept by the HTTP side's gate)
         self.fingerprint = fingerprint_hash(self.lm.fingerprint)
         self._clients: dict[tuple[str, str], dict[tuple, Pending]] = {}  # trainer -> its own pending list
         self._landed: dict[tuple[str, str], int] = {}
@@ -361,9 +335,8 @@ class AnnotationServer:
                 for trainer in p.clients & self._seen.keys():
                     self._landed[trainer] = self._landed.get(trainer, 0) + 1
 
-    async def _wait(self, aws, timeout: float | None = None) -> None:
-        await asyncio.wait([asyncio.ensure_future(a) for a in aws], timeout=timeout,
-                           return_when=asyncio.FIRST_COMPLETED)
+    async def _wait(self, aws) -> None:
+        await asyncio.wait([asyncio.ensure_future(a) for a in aws], return_when=asyncio.FIRST_COMPLETED)
 
     async def run(self, stop: asyncio.Event) -> None:
         """Annotate batches until `stop` is set; the batch in progress is finished first, waiting at
