@@ -188,8 +188,10 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
             return error(408, f"the request was not sent whole within {request_timeout:g} s", close=True)
         except (ConnectionError, asyncio.IncompleteReadError, OSError):  # the client went away mid-request
             return web.Response(status=400)
-        try:
-            answer = server.submit(read_json(raw))
+        try:  # a large body is parsed off the event loop: other requests and /stats are answered meanwhile
+            body = await asyncio.get_running_loop().run_in_executor(None, read_json, raw) if len(raw) > 2**20 \
+                else read_json(raw)
+            answer = server.submit(body)
         except RequestError as e:
             log.info("refused a request (%d): %s", e.status, str(e)[:300])
             return error(e.status, str(e), e.retry_after)
