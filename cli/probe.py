@@ -65,7 +65,7 @@ def register(app: typer.Typer) -> None:
             emit_json(figures)
             return
         b = result.baselines
-        resolved = result.config["dtype"]
+        resolved, quant = result.config["dtype"], result.config.get("quant", quant)  # as the probe resolved them
         setup = f"{backend} backend" if backend != "transformers" else resolved if quant == "none" else f"{resolved}, {quant}"
         typer.echo(f"probe {model} ({setup}) on {env}: {result.states} states ({result.distinct_states} distinct) from "
                    f"{result.episodes} episodes of minigrid's BabyAI bot with {epsilon:.0%} random actions, "

@@ -28,7 +28,7 @@ SERVED = "smol"
 runner = CliRunner()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def dtype():
     """The dtype illm picks on this CPU (bfloat16 where a timed matmul says it is faster): both sides use it."""
     from illm_tools.llm.dtype import resolve_dtype
@@ -36,9 +36,14 @@ def dtype():
     return resolve_dtype("auto")
 
 
-@pytest.fixture(scope="module")
-def engines(smollm2_cache, dtype, tmp_path_factory):
-    """The completions server and the pooling server of the embedded model's weights: their URLs."""
+@pytest.fixture(scope="session")
+def engines(smollm2_cache, tmp_path_factory):
+    """The completions server and the pooling server of the embedded model's weights: their URLs. Session
+    scope: started once in the worker that runs this module (a module's fixture is set up again when its
+    tests are interleaved with another module's). `--optimization-level 0` (no torch.compile: it builds
+    C++ kernels for minutes on 2 cores) starts them in seconds; the answers are the same computation."""
+    from illm_tools.llm.dtype import resolve_dtype
+
     from illm_tools.llm.loading import dequantised_folder
     from illm_tools.llm.registry import resolve
     from illm_tools.llm.vllm_server import VLLMServer, engine_python
@@ -50,8 +55,8 @@ def engines(smollm2_cache, dtype, tmp_path_factory):
         pytest.skip(f"no engine environment at {python}: run `make engine`")
     weights, _ = dequantised_folder(resolve("smollm2-135m"), Path(smollm2_cache))
     logs = tmp_path_factory.mktemp("engine")
-    servers = [VLLMServer(weights, served_name=SERVED, python=python, runner=r, dtype=dtype, log=logs / f"{r}.log",
-                          kv_cache_gib=1.0) for r in ("generate", "pooling")]
+    servers = [VLLMServer(weights, served_name=SERVED, python=python, runner=r, dtype=resolve_dtype("auto"),
+                          log=logs / f"{r}.log", kv_cache_gib=1.0, optimization=0) for r in ("generate", "pooling")]
     try:
         for server in servers:  # both compile at once
             server.start()

