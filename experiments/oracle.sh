@@ -31,4 +31,4 @@ for level in UnlockLocal GoToLocal; do
 done
 
 "$ILLM" experiment experiments/specs/oracle.yaml --jobs "$JOBS" --out "$OUT"
-"$ILLM" report "$OUT" --every 16384 --final-points 2 --out "$REPORT" $(for f in "$PROBES"/*.json; do echo --probe "$f"; done)
+"$ILLM" report "$OUT" --every 16384 --final-points 2 --out "$REPORT" --overwrite $(for f in "$PROBES"/*.json; do echo --probe "$f"; done)

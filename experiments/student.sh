@@ -64,5 +64,5 @@ for flags in "--model smollm2-135m-babyai" "--backend oracle" "--model smollm2-1
   # shellcheck disable=SC2086
   [ -f "$f" ] || "$ILLM" probe --env BabyAI-UnlockLocal-v0 $flags --dtype float32 --states 400 --out "$f" | tail -n 1
 done
-"$ILLM" report "$OUT" --every 16384 --final-points 2 --out "$REPORT" \
+"$ILLM" report "$OUT" --every 16384 --final-points 2 --out "$REPORT" --overwrite \
     $(for f in "$DATA"/probes/UnlockLocal-*.json; do echo --probe "$f"; done)

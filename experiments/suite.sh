@@ -31,4 +31,4 @@ for env in $("$PY" -c "import sys, yaml; print(' '.join(yaml.safe_load(open(sys.
 done
 
 "$ILLM" experiment "$SPEC" --jobs "$JOBS" --out "$OUT"
-"$ILLM" report "$OUT" --every 16384 --final-points 2 --out "$REPORT"
+"$ILLM" report "$OUT" --every 16384 --final-points 2 --out "$REPORT" --overwrite

@@ -63,6 +63,9 @@ class ReportConfig:
     a grid run in parts, one report per part, read as one: every part's rows, heatmaps and diagnostics, and the
     aggregate over all their envs (`illm report docs/results/part1 docs/results/part2 --merge --out DIR`). The
     parts must share --every, --final-points and --bootstrap, and no env may be in two of them."""
+    overwrite: bool = False
+    """Write into an --out folder that already holds files (a report drawn again there): without it, a folder that is
+    not empty is refused, so that no file the report did not write is replaced."""
 
     def __post_init__(self) -> None:
         from illm_tools.settings import check_numbers
@@ -82,10 +85,12 @@ class ReportConfig:
                                  "`illm report PART1 PART2 --merge --out DIR`")
             if self.out.exists() and not self.out.is_dir():
                 raise UsageError(f"--out {self.out} is a file: pass a folder for the report")
+            self._refuse_full_out()
             return
         check_numbers(self, positive=("every", "final_points", "bootstrap"))
         if self.out is not None and self.out.exists() and not self.out.is_dir():
             raise UsageError(f"--out {self.out} is a file: pass a folder for the report")
+        self._refuse_full_out()
         if self.probe and self.out is None:
             raise UsageError("--probe adds the quality curve to a report folder: pass --out DIR too")
         not_files = [str(p) for p in self.probe if not p.is_file()]
@@ -95,6 +100,16 @@ class ReportConfig:
         if missing or not self.runs:
             raise UsageError(f"no run folder at {', '.join(missing[:3]) or '(none given)'}: pass folders written by "
                              "`illm train`")
+
+    def _refuse_full_out(self) -> None:
+        """An --out folder that holds anything is written into only with --overwrite (one line otherwise)."""
+        if self.out is None or self.overwrite or not self.out.is_dir():
+            return
+        held = sorted(p.name for p in self.out.iterdir())
+        if held:
+            shown = ", ".join(held[:3]) + (f" and {len(held) - 3} more" if len(held) > 3 else "")
+            raise UsageError(f"--out {self.out} already holds {shown}: pass a new folder, or --overwrite to write the "
+                             "report over what is there")
 
     def run_folders(self) -> list[Path]:
         """The runs: each folder given, or, for a folder that is not a run (an `illm experiment`
