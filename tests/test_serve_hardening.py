@@ -351,3 +351,23 @@ def test_a_trainer_rechecks_the_servers_model_after_a_reconnect(tmp_path, caplog
         live.close(timeout=0.5)
     said = [r.getMessage() for r in caplog.records if "answers again but" in r.getMessage()]
     assert len(said) == 1 and "another model setup" in said[0]
+
+
+def test_a_trainer_says_once_which_of_its_states_the_engine_could_not_annotate(tmp_path, caplog):
+    from illm_tools.rl.live import RemoteLive
+    from illm_tools.tasks.setup import AnnotationSetup
+
+    server = held_engine(tmp_path)
+    EngineStub.gate.set()
+    poison = StateRecord("go to the POISON ball", (), "You see POISON", ACTIONS)
+    with running(server) as url, caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
+        live = RemoteLive(url, client="run", llm=LLM, setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1",
+                                                                            history_len=0), budget=8)
+        live.submit([poison, state(1)], [1, 1])
+        wait_for(lambda: stats(url)["failed_states"] == 1 and stats(url)["queue"] == 0, 30, "the poison failed")
+        for n in range(2, 4):  # the next rollouts' requests carry the answer, once
+            live.submit([state(n)], [1])
+            wait_for(lambda: live.counts["accepted"] == n, 30, "accepted")
+        live.close(timeout=0.5)
+    said = [r.getMessage() for r in caplog.records if "could not annotate" in r.getMessage()]
+    assert len(said) == 1 and "the engine cannot take this state" in said[0] and live.counts["failed"] == 1
