@@ -107,6 +107,45 @@ def adopted(ctx: typer.Context, cfg):
     return dataclasses.replace(cfg, **setup.fields())
 
 
+def cache_holds(path: Path) -> str:
+    """What the folder at `path` holds, for a line about a cache that gave no targets ("no folder",
+    "no annotations", "1,200 entries: action 600, summary 600")."""
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.folders import owner
+
+    if not path.exists():
+        return "no folder"
+    if owner(path) != "annotation cache":
+        return "no annotation cache"
+    cache = AnnotationCache(path)
+    tasks = cache.tasks()
+    return f"{len(cache):,} entries: " + ", ".join(f"{t} {n:,}" for t, n in sorted(tasks.items())) if tasks \
+        else "no annotations"
+
+
+def warn_empty_cache(cfg) -> None:
+    """One line before a run whose --cache holds nothing (a mistyped path, a new folder): its targets
+    come only from live annotation. (A cache holding annotations of another setup is refused by
+    `illm_tools.rl.targets.check_setup`; an empty one with --live-budget 0 by `make_provider`.)"""
+    if not cfg.needs_targets or cfg.cache is None or cfg.resume or cfg.live_budget == 0:
+        return
+    held = cache_holds(cfg.cache)
+    if held in ("no folder", "no annotations"):
+        budget = "every missed state" if cfg.live_limit is None else f"{cfg.live_limit} states a rollout"
+        typer.echo(f"warning: --cache {cfg.cache} holds {held}: the run's targets come only from live annotation "
+                   f"({budget}); check the path if you meant a cache `illm annotate` wrote", err=True)
+
+
+def no_target_line(cfg, coverage: list[float]) -> str | None:
+    """The closing line of a run in which no step had an LLM target (a cache of another level, a
+    mistyped --cache without live answers): it names the cache and what it holds."""
+    if not cfg.needs_targets or not coverage or max(coverage) > 0:
+        return None
+    return (f"warning: no step had an LLM target, so the bonus paid nothing: --cache {cfg.cache} holds "
+            f"{cache_holds(cfg.cache)}, none of them a state this run visited on {cfg.env_id}; annotate states of "
+            f"this level (`illm collect --env {cfg.env_id}`, then `illm annotate`) or check --cache")
+
+
 def _train_parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.intrinsic.registry import method_help  # light: names only, no torch
@@ -166,6 +205,8 @@ def register(app: typer.Typer) -> None:
         out, method, env = cfg.run_dir, cfg.method, cfg.env_id
         from illm_tools.envs import suite_of
 
+        warn_empty_cache(cfg)
+
         score_name = suite_of(env).score_name  # an unknown env is refused before anything else is said
         resumed_at = None
         if cfg.resume and (out / "checkpoint.pt").exists():
@@ -203,10 +244,14 @@ def register(app: typer.Typer) -> None:
                        "to do; pass a larger --frames with --resume to train on")
             return
         targets = f"; steps with an LLM target {sum(coverage) / len(coverage):.0%} on average" if coverage else ""
+        live_total[0] += result.get("live_at_close", 0)  # the worker's last chunk, written while the run shut down
         live = f"; {live_total[0]:,.0f} states annotated live" if cfg.needs_targets and cfg.live_budget else ""
+        none = no_target_line(cfg, coverage)
         if result.get("stopped"):
             typer.echo(f"stopped at {result['global_step']:,} frames{targets}; resume with "
                        f"`illm train --out {out} --resume`")
+            if none:
+                typer.echo(none, err=True)
             raise typer.Exit(stop.exit_code)
         score = last.get("charts/score")
         score = f"last {score_name} {_rate(score)}" if score is not None and score == score else \
@@ -214,6 +259,8 @@ def register(app: typer.Typer) -> None:
         since = f", resumed at {resumed_at:,}" if resumed_at is not None else ""
         typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames{since} "
                    f"({last.get('charts/sps', 0):,.0f} steps/s); {score}{targets}{live} -> {out}")
+        if none:
+            typer.echo(none, err=True)
 
     train.__signature__ = inspect.Signature(_train_parameters())
     app.command(epilog=EXAMPLE)(friendly(train))

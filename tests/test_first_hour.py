@@ -33,3 +33,85 @@ def test_report_refuses_an_out_folder_holding_files_unless_overwrite(tmp_path):
     again = invoke("report", tmp_path / "run", "--every", "100", "--out", out, "--overwrite")
     assert again.exit_code == 0, again.output
     assert (out / "report.md").read_text() != "my own notes" and (out / "results.json").is_file()
+
+
+def fake_training(monkeypatch, coverage: float, live: float = 0.0, at_close: int = 0):
+    """`illm train`'s CLI around a stand-in run: one update with `coverage` of steps given a target,
+    `live` states landed during it and `at_close` written by the worker while the run shut down."""
+    import illm_tools.rl.run as run_module
+
+    def train(cfg, on_metrics=None, should_stop=None):
+        on_metrics({"global_step": cfg.batch_size, "charts/target_coverage": coverage,
+                    "charts/live_annotations": live, "charts/score": 0.0})
+        return {"global_step": cfg.batch_size, "live_at_close": at_close}
+
+    monkeypatch.setattr(run_module, "train", train)
+
+
+def train_args(tmp_path, cache):
+    return ["train", "--method", "illm", "--cache", cache, "--frames", 64, "--num-envs", 2, "--num-steps", 32,
+            "--out", tmp_path / "run"]
+
+
+def test_train_names_a_cache_that_holds_nothing_and_a_run_with_no_target(tmp_path, monkeypatch):
+    fake_training(monkeypatch, coverage=0.0)
+    typo = invoke(*train_args(tmp_path, tmp_path / "an"))
+    assert typo.exit_code == 0, typo.output
+    warned = [line for line in typo.output.splitlines() if line.startswith("warning: --cache")]
+    assert len(warned) == 1 and f"--cache {tmp_path / 'an'} holds no folder" in warned[0], typo.output
+    closing = [line for line in typo.output.splitlines() if line.startswith("warning: no step had an LLM target")]
+    assert len(closing) == 1 and str(tmp_path / "an") in closing[0], typo.output
+
+    fake_training(monkeypatch, coverage=0.25)  # a run with targets: neither line
+    fine = invoke(*train_args(tmp_path, tmp_path / "an2"), "--live-budget", "8")
+    assert fine.exit_code == 0, fine.output
+    assert "no step had an LLM target" not in fine.output, fine.output
+
+
+def test_a_foreign_cache_that_gave_no_target_is_named_with_what_it_holds(tmp_path, monkeypatch):
+    from cli.train import cache_holds
+
+    assert cache_holds(tmp_path / "none") == "no folder"
+    (tmp_path / "other").mkdir()
+    assert cache_holds(tmp_path / "other") == "no annotation cache"
+
+
+def test_the_live_count_includes_what_the_worker_writes_while_shutting_down(tmp_path, monkeypatch):
+    from illm_tools.rl.live import AsyncLive
+    from illm_tools.rl.targets import CachedTargets
+
+    class Stopping:
+        """The worker process: it writes its last chunk of 8 states while the run waits for it to end."""
+
+        def __init__(self, done):
+            self.done, self.exitcode, self.alive = done, None, True
+
+        def is_alive(self):
+            return self.alive
+
+        def join(self, timeout=None):
+            if self.alive:
+                self.done.value += 8
+                self.alive, self.exitcode = False, 0
+
+        def terminate(self):
+            pass
+
+        def close(self):
+            pass
+
+    class Worker(AsyncLive):
+        def _start(self):
+            self.started_at = 0.0
+            self._inbox, self._errors, self._stop = self._ctx.Queue(), self._ctx.Queue(), self._ctx.Event()
+            self.process = Stopping(self._done)
+
+    live = Worker(spec=None, budget=4)
+    live._done.value = 3  # landed during the run's last rollout, after its count
+    targets = CachedTargets(None, None, calibration="sum", num_actions=3, embedding_dim=0, live=live)
+    targets.close()
+    assert targets.landed_at_close == 3 + 8
+
+    fake_training(monkeypatch, coverage=0.5, live=2.0, at_close=8)  # the CLI adds them to the run's count
+    out = invoke(*train_args(tmp_path, tmp_path / "ann"))
+    assert out.exit_code == 0 and "10 states annotated live" in out.output, out.output

@@ -120,7 +120,9 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
         made = not cfg.run_dir.exists()
         try:
             with _only_trainer(cfg.run_dir), build_run(cfg, on_metrics) as trainer:
-                return trainer.train(should_stop)
+                result = trainer.train(should_stop)
+            # what the live annotator wrote while the run shut down (its worker's last chunk), counted once closed
+            return {**result, "live_at_close": int(getattr(trainer.provider, "landed_at_close", 0))}
         except IllmError:  # refused before the run wrote anything: leave no folder holding only the lock
             if made and cfg.run_dir.is_dir() and {p.name for p in cfg.run_dir.iterdir()} <= {RUN_LOCK}:
                 (cfg.run_dir / RUN_LOCK).unlink(missing_ok=True)

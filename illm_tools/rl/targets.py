@@ -67,6 +67,8 @@ class CachedTargets:
         self._keys: dict[StateRecord, tuple[str, ...]] = {}
         self._visits: Counter[StateRecord] = Counter()
         self._last: dict[str, float] = {"cache_hit_rate": 0.0, "target_coverage": 0.0, "live_annotations": 0.0}
+        self.landed_at_close = 0
+        """States the live annotator put in the cache after the last rollout counted them (set by close)."""
 
     def keys(self, records: Sequence[StateRecord]) -> dict[str, list[str]]:
         """Each task's keys of the records, memoised per distinct record."""
@@ -162,9 +164,16 @@ class CachedTargets:
                    live=live, shuffle_seed=shuffle_seed)
 
     def close(self) -> None:
-        """Stop the live annotator (the async worker process), if any."""
-        if self.live is not None:
-            self.live.close()
+        """Stop the live annotator (the async worker process), if any; `landed_at_close` counts the
+        states it put in the cache after the last rollout's count, its shutdown's chunk included."""
+        if self.live is None:
+            return
+        # AsyncLive's shared counter of annotated states: held here because its close() drops the attribute,
+        # and the worker's last chunk is written (and counted) while close() waits for it
+        done = getattr(self.live, "_done", None)
+        before = self.live.landed()
+        self.live.close()
+        self.landed_at_close = before + (done.value - self.live._reported if done is not None else self.live.landed())
 
 
 class GoalTargets(CachedTargets):
