@@ -115,3 +115,17 @@ def test_the_live_count_includes_what_the_worker_writes_while_shutting_down(tmp_
     fake_training(monkeypatch, coverage=0.5, live=2.0, at_close=8)  # the CLI adds them to the run's count
     out = invoke(*train_args(tmp_path, tmp_path / "ann"))
     assert out.exit_code == 0 and "10 states annotated live" in out.output, out.output
+
+
+def test_annotate_given_a_cache_as_its_dataset_says_what_to_pass(tmp_path):
+    import json
+
+    cache = tmp_path / "ann"
+    cache.mkdir()
+    (cache / "manifest.json").write_text(json.dumps({"format": "illm.annotation-cache", "shards": []}))
+    out = invoke("annotate", cache, "--backend", "oracle")
+    assert out.exit_code == 1, out.output
+    assert len(out.output.strip().splitlines()) == 1 and f"{cache} is an annotation cache, not a trajectory dataset" \
+        in out.output and "illm collect --out" in out.output, out.output
+    assert f"collect --out {cache}" not in out.output  # never advice that writes into the cache's folder
+    assert sorted(p.name for p in cache.iterdir()) == ["manifest.json"]

@@ -68,6 +68,13 @@ class AnnotateConfig:
                       non_negative=("limit", "history", "hop_seed"))
         if not self.data.is_dir():
             raise UsageError(f"no trajectory dataset at {self.data}: pass a folder `illm collect` wrote")
+        from illm_tools.folders import owner
+
+        held = owner(self.data)
+        if held not in (None, "trajectory dataset"):  # a cache or a run given where the dataset belongs
+            raise UsageError(f"{self.data} is {'an' if held[0] in 'aeiou' else 'a'} {held}, not a trajectory dataset: "
+                             f"pass the folder `illm collect --out` wrote as DATA (`illm annotate DATA --cache "
+                             f"{self.cache}`)")
         check_folder(self.cache, "--cache")
         self.tasks = parse_tasks(self.tasks)
         if self.layout not in LAYOUTS:
