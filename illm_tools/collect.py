@@ -68,6 +68,10 @@ class CollectConfig:
         check_folder(self.out, "--out")
         if self.write not in ("new", "append", "overwrite"):
             raise UsageError(f"unknown write mode {self.write!r}: new, append or overwrite")
+        if self.policy not in POLICIES and not (Path(self.policy) / "config.json").is_file():
+            held = f"{self.policy} is a folder without a run's config.json" if Path(self.policy).is_dir() else \
+                f"{self.policy!r} names no policy and no folder"
+            raise UsageError(f"--policy {held}: pass one of {', '.join(POLICIES)}, or a run folder `illm train` wrote")
 
 
 class Policy(Protocol):

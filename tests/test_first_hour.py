@@ -129,3 +129,14 @@ def test_annotate_given_a_cache_as_its_dataset_says_what_to_pass(tmp_path):
         in out.output and "illm collect --out" in out.output, out.output
     assert f"collect --out {cache}" not in out.output  # never advice that writes into the cache's folder
     assert sorted(p.name for p in cache.iterdir()) == ["manifest.json"]
+
+
+def test_collect_with_an_unknown_policy_lists_every_valid_one(tmp_path):
+    out = invoke("collect", "--env", "BabyAI-GoToLocal-v0", "--policy", "expert", "--steps", 8, "--out", tmp_path / "d")
+    assert out.exit_code == 1, out.output
+    line = out.output.strip()
+    assert len(line.splitlines()) == 1 and "random" in line and "bot" in line and "a run folder" in line, line
+    assert not (tmp_path / "d").exists()
+    (tmp_path / "notarun").mkdir()
+    folder = invoke("collect", "--env", "BabyAI-GoToLocal-v0", "--policy", tmp_path / "notarun", "--out", tmp_path / "d")
+    assert folder.exit_code == 1 and "without a run's config.json" in folder.output and "random" in folder.output
