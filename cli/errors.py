@@ -8,11 +8,14 @@ import os
 import sys
 from collections.abc import Callable
 
+from typer import _click as click  # Typer's own copy of click: the one whose errors its commands raise
+
 from illm_tools.errors import IllmError
 
 # error type -> (exit code, prefix). The message itself says what to do next.
 EXIT_CODES: dict[type[BaseException], tuple[int, str]] = {
     IllmError: (1, "error"),
+    click.exceptions.ClickException: (1, "error"),  # an option click could not parse (`--frames 1e5`), a missing one
     FileNotFoundError: (1, "error: file not found"),
     PermissionError: (1, "error: permission denied"),
     KeyboardInterrupt: (130, "interrupted"),
@@ -32,6 +35,15 @@ def report(exc: BaseException) -> int:
                 raise exc
             return code
     raise exc
+
+
+def usage_line(exc: BaseException) -> BaseException:
+    """click's usage error as one line: its message, then the command's --help (Typer draws it as a box)."""
+    ctx = getattr(exc, "ctx", None)
+    if isinstance(exc, click.exceptions.UsageError) and ctx is not None:
+        message = str(exc.format_message()).strip().splitlines()[0] if str(exc.format_message()).strip() else ""
+        exc = IllmError(f"{message} (`{ctx.command_path} --help` lists the options)")
+    return exc
 
 
 def friendly(fn: Callable) -> Callable:

@@ -8,11 +8,36 @@ import os
 import sys
 
 import typer
+import typer.core
 
 from illm_tools import __version__
 
+class _OneLineErrors(typer.core.TyperGroup):
+    """The app's group: an option click cannot parse (`--frames 1e5`, `--history three`), a missing
+    one or an unknown command reaches the user as the one line every other error gets (`cli.errors`),
+    not Typer's box. A group or command called without arguments still shows its help."""
+
+    def main(self, *args, standalone_mode: bool = True, **kwargs):
+        from typer import _click as click
+
+        from cli.errors import report, usage_line
+
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            result = super().main(*args, standalone_mode=False, **kwargs)
+        except click.exceptions.NoArgsIsHelpError:
+            return super().main(*args, standalone_mode=True, **kwargs)  # the help, as Typer shows it
+        except click.exceptions.ClickException as exc:
+            raise SystemExit(report(usage_line(exc))) from None
+        except click.exceptions.Abort:
+            raise SystemExit(report(KeyboardInterrupt())) from None
+        raise SystemExit(result if isinstance(result, int) else 0)
+
+
 app = typer.Typer(
     name="illm",
+    cls=_OneLineErrors,
     help="Offline LLM annotation and distillation for exploration in RL (iLLM).\n\n"
     "Stages: collect -> annotate -> train -> eval. Each reads what the stage before it wrote.",
     no_args_is_help=True,

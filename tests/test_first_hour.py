@@ -140,3 +140,31 @@ def test_collect_with_an_unknown_policy_lists_every_valid_one(tmp_path):
     (tmp_path / "notarun").mkdir()
     folder = invoke("collect", "--env", "BabyAI-GoToLocal-v0", "--policy", tmp_path / "notarun", "--out", tmp_path / "d")
     assert folder.exit_code == 1 and "without a run's config.json" in folder.output and "random" in folder.output
+
+
+def test_an_option_click_cannot_parse_is_one_line(tmp_path):
+    for args in (["train", "--frames", "1e5"], ["train", "--history", "three"], ["collect"], ["trian"],
+                 ["cache", "info"]):
+        out = invoke(*args, "--out", tmp_path / "r") if args[0] == "train" else invoke(*args)
+        lines = out.output.strip().splitlines()
+        assert out.exit_code == 1 and len(lines) == 1 and lines[0].startswith("error: "), (args, out.output)
+        assert "--help` lists the options" in lines[0] and "╭" not in out.output, out.output
+    assert "--frames" in invoke("train", "--frames", "1e5", "--out", tmp_path / "r").output
+    assert not (tmp_path / "r").exists()
+    bare = invoke("cache")  # a group without its command: its help, as before
+    assert bare.exit_code == 2 and "Usage: illm cache" in bare.output and "error:" not in bare.output
+
+
+def test_cache_export_refuses_a_name_of_another_format(tmp_path):
+    from illm_tools.cache import AnnotationCache
+    from test_cache_store import make_rows
+
+    cache = tmp_path / "ann"
+    AnnotationCache(cache).write(make_rows(0, 8))
+    arrow = invoke("cache", "export", cache, "--out", tmp_path / "x.arrow")
+    assert arrow.exit_code == 1, arrow.output
+    assert len(arrow.output.strip().splitlines()) == 1 and "named .arrow" in arrow.output and ".parquet" in arrow.output
+    assert not (tmp_path / "x.arrow").exists()
+    parquet = invoke("cache", "export", cache, "--out", tmp_path / "x.parquet")
+    assert parquet.exit_code == 0, parquet.output
+    assert (tmp_path / "x.parquet").read_bytes()[:4] == b"PAR1"
