@@ -109,7 +109,7 @@ def merge(
 @friendly
 def export(
     path: Path = typer.Argument(..., help="Annotation cache folder (verified first; left untouched)."),
-    out: Path = typer.Option(..., "--out", help="File to write."),
+    out: Path = typer.Option(..., "--out", help="File to write, named as its format (.parquet)."),
     fmt: str = typer.Option("parquet", "--format", help="parquet (one file; `datasets.Dataset.from_parquet` reads it)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
 ) -> None:

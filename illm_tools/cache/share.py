@@ -31,6 +31,8 @@ from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import CacheError, OutputExistsError, SchemaError, UsageError
 
 FORMATS = ("parquet",)
+SUFFIXES = {"parquet": (".parquet", ".pq")}
+"""The file names each format's files may carry: `--out` with another suffix is refused."""
 IMPORT_BATCH = 50_000
 """Rows per write when importing (one shard each, at most)."""
 
@@ -53,6 +55,10 @@ def export(root: str | os.PathLike, out: str | os.PathLike, *, fmt: str = "parqu
     root, out = Path(root), Path(out)
     if fmt not in FORMATS:
         raise UsageError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    suffixes = SUFFIXES[fmt]
+    if out.suffix and out.suffix.lower() not in suffixes:  # a file named .arrow must not hold Parquet
+        raise UsageError(f"--out {out} is named {out.suffix}, and --format {fmt} writes {fmt.capitalize()}: name the "
+                         f"file {' or '.join(suffixes)}")
     if out.exists() and not overwrite:
         raise OutputExistsError(f"{out} exists: pass --overwrite to replace it, or another --out")
     report = verify(root)
