@@ -1,4 +1,5 @@
-"""`illm cache info|verify|merge|repair`: inspect, check, combine and repair annotation caches."""
+"""`illm cache info|show|verify|merge|repair|export|import`: inspect, check, combine, repair and share
+annotation caches."""
 
 from __future__ import annotations
 
@@ -60,6 +61,40 @@ def info(
         for u in stats["setups"]:
             typer.echo(f"    | {u['task']} | {u['model_options']} | {u['history_len']} | {'/'.join(u['layouts']) or '?'} | "
                        f"v{u['template_version']} | {u['renderer']} | {u['entries']:,} |")
+
+
+@app.command("show", epilog="Example: illm cache show data/ann --limit 3")
+@friendly
+def show(
+    path: Path = typer.Argument(..., help="Annotation cache folder (only read)."),
+    limit: int = typer.Option(3, "--limit", help="States to show, the first in the cache's shard order."),
+    as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
+) -> None:
+    """The LLM's answers for a few states: each task's prompt, the ranking with log-probs, the chosen action, the summary.
+
+    Read-only: the cache is not written, locked or repaired."""
+    from illm_tools.cache.show import show as run
+
+    states = run(path, limit)
+    if as_json:
+        emit_json(states)
+        return
+    if not states:
+        typer.echo(f"{path} holds no annotations")
+    for i, state in enumerate(states, 1):
+        typer.echo(f"state {i} ({state['model']}, history {state['history_len']}, {state['renderer']})")
+        typer.echo(f"  goal: {state['goal']}\n  observation: {state['observation']}\n  history: {state['history'] or '-'}")
+        for answer in state["answers"]:
+            typer.echo(f"  {answer['task']} prompt:")
+            typer.echo("\n".join("    | " + line for line in answer["prompt"].splitlines()))
+            if "ranking" in answer:
+                typer.echo(f"  {answer['task']} ranking (log-prob summed over the action's tokens, best first):")
+                for r in answer["ranking"]:
+                    mark = "  <- chosen" if r["action"] == answer["chosen"] else ""
+                    typer.echo(f"    {r['logprob_sum']:9.3f}  {r['action']} ({counted(r['tokens'], 'token')}){mark}")
+            if "text" in answer:
+                typer.echo(f"  {answer['task']}: {answer['text']}")
+        typer.echo("")
 
 
 @app.command("verify", epilog="Example: illm cache verify data/ann")

@@ -168,3 +168,29 @@ def test_cache_export_refuses_a_name_of_another_format(tmp_path):
     parquet = invoke("cache", "export", cache, "--out", tmp_path / "x.parquet")
     assert parquet.exit_code == 0, parquet.output
     assert (tmp_path / "x.parquet").read_bytes()[:4] == b"PAR1"
+
+
+def test_cache_show_prints_a_few_states_answers_and_writes_nothing(tmp_path):
+    import json
+
+    from illm_tools.cache import AnnotationCache
+    from test_cache_store import make_rows
+
+    rows = make_rows(0, 8)
+    for i, row in enumerate(rows):  # rows 2k (action) and 2k+1 (summary) answer one state
+        row["observation"] = f"obs {i // 2}"
+    cache = tmp_path / "ann"
+    AnnotationCache(cache).write(rows)
+    before = sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in cache.rglob("*"))
+    out = invoke("cache", "show", cache, "--limit", 2)
+    assert out.exit_code == 0, out.output
+    assert out.output.count("state ") == 2 and "obs 2" not in out.output  # --limit states, the first ones
+    assert "action prompt:" in out.output and "| prompt 0" in out.output and "| prompt 1" in out.output
+    assert "-0.750  turn left (2 tokens)  <- chosen" in out.output and "-1.500  go forward (1 token)" in out.output
+    assert out.output.index("-0.750  turn left") < out.output.index("-1.500  go forward")  # best first
+    assert "summary: summary 1" in out.output and "summary: summary 3" in out.output
+    assert sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in cache.rglob("*")) == before
+    (state,) = json.loads(invoke("cache", "show", cache, "--limit", 1, "--json").output)
+    assert [a["task"] for a in state["answers"]] == ["action", "summary"] and state["answers"][0]["chosen"] == "turn left"
+    missing = invoke("cache", "show", tmp_path / "none")
+    assert missing.exit_code == 1 and "no annotation cache at" in missing.output and not (tmp_path / "none").exists()
