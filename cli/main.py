@@ -30,7 +30,7 @@ class _OneLineErrors(typer.core.TyperGroup):
             return super().main(*args, standalone_mode=True, **kwargs)  # the help, as Typer shows it
         except click.exceptions.ClickException as exc:
             raise SystemExit(report(usage_line(exc))) from None
-        except click.exceptions.Abort:
+        except typer.Abort:
             raise SystemExit(report(KeyboardInterrupt())) from None
         raise SystemExit(result if isinstance(result, int) else 0)
 

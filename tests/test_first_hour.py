@@ -151,6 +151,8 @@ def test_an_option_click_cannot_parse_is_one_line(tmp_path):
         assert "--help` lists the options" in lines[0] and "╭" not in out.output, out.output
     assert "--frames" in invoke("train", "--frames", "1e5", "--out", tmp_path / "r").output
     assert not (tmp_path / "r").exists()
+    own = invoke("eval", tmp_path / "no-run")  # a command's own error passes through the group untouched
+    assert own.exit_code == 1 and type(own.exception) is SystemExit and own.output.startswith("error: no "), own
     bare = invoke("cache")  # a group without its command: its help, as before
     assert bare.exit_code == 2 and "Usage: illm cache" in bare.output and "error:" not in bare.output
 
@@ -194,3 +196,28 @@ def test_cache_show_prints_a_few_states_answers_and_writes_nothing(tmp_path):
     assert [a["task"] for a in state["answers"]] == ["action", "summary"] and state["answers"][0]["chosen"] == "turn left"
     missing = invoke("cache", "show", tmp_path / "none")
     assert missing.exit_code == 1 and "no annotation cache at" in missing.output and not (tmp_path / "none").exists()
+
+
+def test_eval_gives_the_success_rate_with_its_wilson_interval_and_the_episode_count(tmp_path, monkeypatch):
+    import json
+
+    import illm_tools.rl.run as run_module
+    from illm_tools.report.stats import wilson_interval
+
+    low, high = wilson_interval(5, 10)  # the textbook value of 5 successes in 10 trials
+    assert round(low, 4) == 0.2366 and round(high, 4) == 0.7634
+    assert wilson_interval(0, 50) == (0.0, wilson_interval(0, 50)[1]) and round(wilson_interval(0, 50)[1], 3) == 0.071
+
+    def evaluate(run, episodes, seed, greedy):
+        return {"run": str(run), "env_id": "BabyAI-GoToLocal-v0", "method": "illm", "episodes": episodes,
+                "score": 0.64, "score_name": "success rate", "success_rate": 0.64, "mean_return": 0.5,
+                "mean_length": 20.0, "frames": 8192}
+
+    monkeypatch.setattr(run_module, "evaluate", evaluate)
+    fake_run(tmp_path / "run", 0, [(100, 1.0, 1)])
+    out = invoke("eval", tmp_path / "run", "--episodes", 50)
+    assert out.exit_code == 0, out.output
+    assert "| 8,192 | 50 | 0.640 (success rate) | 0.640 [0.501, 0.759] |" in out.output, out.output
+    assert "95% Wilson score interval" in out.output
+    (row,) = json.loads(invoke("eval", tmp_path / "run", "--episodes", 50, "--json").output)
+    assert [round(x, 3) for x in row["success_interval"]] == [0.501, 0.759] and row["episodes"] == 50
