@@ -277,17 +277,27 @@ def register(app: typer.Typer) -> None:
         as_json = options.pop("as_json")
         config = config_from_options(EvalConfig, options)
         runs, episodes, seed, greedy = config.runs, config.episodes, config.seed, config.greedy
+        from illm_tools.report.stats import wilson_interval
+
         results = [run(r, episodes=episodes, seed=seed, greedy=greedy) for r in runs]
+        for r in results:  # the success rate's 95% Wilson interval over the run's episodes
+            rate, n = r["success_rate"], r["episodes"]
+            r["success_interval"] = None if rate != rate else list(wilson_interval(round(rate * n), n))
         if as_json:
             emit_json(results)
             return
-        typer.echo("| run | method | env | trained frames | score | success rate | mean return | mean length |")
-        typer.echo("|---|---|---|---|---|---|---|---|")
+        typer.echo("| run | method | env | trained frames | episodes | score | success rate [95% CI] | mean return | "
+                   "mean length |")
+        typer.echo("|---|---|---|---|---|---|---|---|---|")
         for r in results:
-            success = "-" if r["success_rate"] != r["success_rate"] else f"{r['success_rate']:.3f}"
-            typer.echo(f"| {r['run']} | {r['method']} | {r['env_id']} | {r['frames']:,} | {r['score']:.3f} "
-                       f"({r['score_name']}) | {success} | {r['mean_return']:.3f} | {r['mean_length']:.1f} |")
-        typer.echo(f"\n{episodes} episodes per run (--seed {seed}: env seeds from 2^40 + {seed}, apart from training's; "
+            success = "-" if r["success_interval"] is None else \
+                f"{r['success_rate']:.3f} [{r['success_interval'][0]:.3f}, {r['success_interval'][1]:.3f}]"
+            typer.echo(f"| {r['run']} | {r['method']} | {r['env_id']} | {r['frames']:,} | {r['episodes']} | "
+                       f"{r['score']:.3f} ({r['score_name']}) | {success} | {r['mean_return']:.3f} | "
+                       f"{r['mean_length']:.1f} |")
+        typer.echo("\nsuccess rate: of the episodes run, with its 95% Wilson score interval (episodes as independent "
+                   "trials; a run's seed is one draw of training, which the interval does not cover)")
+        typer.echo(f"{episodes} episodes per run (--seed {seed}: env seeds from 2^40 + {seed}, apart from training's; "
                    "the same episodes for every run), actions "
                    + ("greedy (the most likely)" if greedy else "sampled from the policy"))
 

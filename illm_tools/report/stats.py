@@ -97,3 +97,18 @@ def curve_band(table, reps: int = 2000, seed: int = 0) -> tuple[list, list, list
                                                      confidence_interval_size=CONFIDENCE)
     low, high = interval["x"]
     return mean.tolist(), low.tolist(), high.tolist()
+
+
+def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """The Wilson score interval of a success rate, `successes` of `n` independent episodes: unlike
+    the normal approximation it stays inside [0, 1] and is not empty at 0 or n successes (0 of 50:
+    [0, 0.071])."""
+    from statistics import NormalDist
+
+    if n <= 0:
+        return float("nan"), float("nan")
+    z = NormalDist().inv_cdf(0.5 + confidence / 2)
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
