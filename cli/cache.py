@@ -70,8 +70,9 @@ def show(
     limit: int = typer.Option(3, "--limit", help="States to show, the first in the cache's shard order."),
     as_json: bool = typer.Option(False, "--json", help="Print machine-readable JSON."),
 ) -> None:
-    """The LLM's answers for a few states: each task's prompt, the ranking with log-probs, the chosen action, the summary.
+    """The LLM's answers for a few states: prompts, rankings, summaries.
 
+    Each task's prompt, the ranking with log-probs and the chosen action, the summary text.
     Read-only: the cache is not written, locked or repaired."""
     from illm_tools.cache.show import show as run
 
