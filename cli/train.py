@@ -136,14 +136,20 @@ def warn_empty_cache(cfg) -> None:
                    f"({budget}); check the path if you meant a cache `illm annotate` wrote", err=True)
 
 
-def no_target_line(cfg, coverage: list[float]) -> str | None:
+def no_target_line(cfg, coverage: list[float], live: float = 0.0) -> str | None:
     """The closing line of a run in which no step had an LLM target (a cache of another level, a
-    mistyped --cache without live answers): it names the cache and what it holds."""
+    mistyped --cache, live answers that came too late): it names the cache and what it holds."""
     if not cfg.needs_targets or not coverage or max(coverage) > 0:
         return None
-    return (f"warning: no step had an LLM target, so the bonus paid nothing: --cache {cfg.cache} holds "
-            f"{cache_holds(cfg.cache)}, none of them a state this run visited on {cfg.env_id}; annotate states of "
-            f"this level (`illm collect --env {cfg.env_id}`, then `illm annotate`) or check --cache")
+    held = cache_holds(cfg.cache)
+    line = f"warning: no step had an LLM target, so the bonus paid nothing: --cache {cfg.cache} holds {held}"
+    if live:
+        return (f"{line}; the {live:,.0f} states annotated live landed after the rollouts that asked for them (a longer "
+                "run uses them, --live-mode sync waits for them, `illm annotate` gives them ahead)")
+    if held.startswith("no "):
+        return f"{line}; check the path, or annotate into it first (`illm annotate DATA --cache {cfg.cache}`)"
+    return (f"{line}, none of them a state this run visited on {cfg.env_id}; annotate states of this level "
+            f"(`illm collect --env {cfg.env_id}`, then `illm annotate`) or check --cache")
 
 
 def _train_parameters() -> list[inspect.Parameter]:
@@ -246,7 +252,7 @@ def register(app: typer.Typer) -> None:
         targets = f"; steps with an LLM target {sum(coverage) / len(coverage):.0%} on average" if coverage else ""
         live_total[0] += result.get("live_at_close", 0)  # the worker's last chunk, written while the run shut down
         live = f"; {live_total[0]:,.0f} states annotated live" if cfg.needs_targets and cfg.live_budget else ""
-        none = no_target_line(cfg, coverage)
+        none = no_target_line(cfg, coverage, live_total[0])
         if result.get("stopped"):
             typer.echo(f"stopped at {result['global_step']:,} frames{targets}; resume with "
                        f"`illm train --out {out} --resume`")

@@ -221,3 +221,11 @@ def test_eval_gives_the_success_rate_with_its_wilson_interval_and_the_episode_co
     assert "95% Wilson score interval" in out.output
     (row,) = json.loads(invoke("eval", tmp_path / "run", "--episodes", 50, "--json").output)
     assert [round(x, 3) for x in row["success_interval"]] == [0.501, 0.759] and row["episodes"] == 50
+
+
+def test_a_run_whose_live_answers_came_too_late_says_so(tmp_path, monkeypatch):
+    fake_training(monkeypatch, coverage=0.0, live=0.0, at_close=8)
+    out = invoke(*train_args(tmp_path, tmp_path / "ann"))
+    closing = [line for line in out.output.splitlines() if line.startswith("warning: no step had an LLM target")]
+    assert len(closing) == 1 and "the 8 states annotated live landed after the rollouts" in closing[0], out.output
+    assert "none of them a state this run visited" not in out.output
