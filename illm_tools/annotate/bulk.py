@@ -72,9 +72,9 @@ class AnnotateConfig:
 
         held = owner(self.data)
         if held not in (None, "trajectory dataset"):  # a cache or a run given where the dataset belongs
+            into = f" (`illm annotate DATA --cache {self.data}` adds to this cache)" if held == "annotation cache" else ""
             raise UsageError(f"{self.data} is {'an' if held[0] in 'aeiou' else 'a'} {held}, not a trajectory dataset: "
-                             f"pass the folder `illm collect --out` wrote as DATA (`illm annotate DATA --cache "
-                             f"{self.cache}`)")
+                             f"pass the folder `illm collect --out` wrote as DATA{into}")
         check_folder(self.cache, "--cache")
         self.tasks = parse_tasks(self.tasks)
         if self.layout not in LAYOUTS:
