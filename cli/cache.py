@@ -84,7 +84,10 @@ def show(
         typer.echo(f"{path} holds no annotations")
     for i, state in enumerate(states, 1):
         typer.echo(f"state {i} ({state['model']}, history {state['history_len']}, {state['renderer']})")
-        typer.echo(f"  goal: {state['goal']}\n  observation: {state['observation']}\n  history: {state['history'] or '-'}")
+        typer.echo(f"  goal: {state['goal']}\n  observation: {state['observation']}")
+        history = state["history"].strip().splitlines()
+        typer.echo("  history: " + ("-" if not history else history[0] if len(history) == 1 else
+                                    "\n" + "\n".join("    | " + line for line in history)))
         for answer in state["answers"]:
             typer.echo(f"  {answer['task']} prompt:")
             typer.echo("\n".join("    | " + line for line in answer["prompt"].splitlines()))
