@@ -192,10 +192,8 @@ class AsyncLive:
         return 0
 
     def landed(self) -> int:
-        """States the worker annotated since the last call."""
-        if not hasattr(self, "_done"):  # closed
-            return 0
-        done = self._done.value
+        """States the worker annotated since the last call (after `close`, those of its last chunk too)."""
+        done = self._done.value if hasattr(self, "_done") else self._final_done
         landed, self._reported = done - self._reported, done
         return landed
 
@@ -222,6 +220,7 @@ class AsyncLive:
         # Release the shared objects' semaphores now: left to interpreter shutdown, their finalizers may
         # run after the resource tracker's check, which then warns about "leaked semaphore objects".
         self._last_stats = self.stats()
+        self._final_done = self._done.value  # the worker's last chunk, written while it stopped, is counted
         for name in ("_inbox", "_errors", "_stop", "_queued", "_done", "_ready"):
             delattr(self, name)
         import gc

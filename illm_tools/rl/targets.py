@@ -168,12 +168,9 @@ class CachedTargets:
         states it put in the cache after the last rollout's count, its shutdown's chunk included."""
         if self.live is None:
             return
-        # AsyncLive's shared counter of annotated states: held here because its close() drops the attribute,
-        # and the worker's last chunk is written (and counted) while close() waits for it
-        done = getattr(self.live, "_done", None)
         before = self.live.landed()
-        self.live.close()
-        self.landed_at_close = before + (done.value - self.live._reported if done is not None else self.live.landed())
+        self.live.close()  # the async worker's last chunk is written (and counted) while this waits for it
+        self.landed_at_close = before + self.live.landed()
 
 
 class GoalTargets(CachedTargets):
