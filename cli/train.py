@@ -126,8 +126,9 @@ def cache_holds(path: Path) -> str:
 def warn_empty_cache(cfg) -> None:
     """One line before a run whose --cache holds nothing (a mistyped path, a new folder): its targets
     come only from live annotation. (A cache holding annotations of another setup is refused by
-    `illm_tools.rl.targets.check_setup`; an empty one with --live-budget 0 by `make_provider`.)"""
-    if not cfg.needs_targets or cfg.cache is None or cfg.resume or cfg.live_budget == 0:
+    `illm_tools.rl.targets.check_setup`; an empty one with --live-budget 0 by `make_provider`.) Not with
+    --annotator: a fresh cache that the server fills is how a run with a server starts."""
+    if not cfg.needs_targets or cfg.cache is None or cfg.resume or cfg.live_budget == 0 or cfg.annotator:
         return
     held = cache_holds(cfg.cache)
     if held in ("no folder", "no annotations"):

@@ -52,12 +52,12 @@ def test_a_run_records_each_start_and_the_report_says_when_runs_predate_the_code
 
     older = [{**entries[0], "commit": "0" * 40}, entries[1]]  # the run was started by an older commit
     (run / "provenance.json").write_text(json.dumps(older))
-    illm("report", run, "--every", 64, "--out", report)
+    illm("report", run, "--every", 64, "--out", report, "--overwrite")
     text = (report / "report.md").read_text()
     assert "Runs predate the current code" in text and "000000000000 (1 run)" in text
 
     (run / "provenance.json").unlink()  # a run trained before provenance was recorded
-    illm("report", run, "--every", 64, "--out", report)
+    illm("report", run, "--every", 64, "--out", report, "--overwrite")
     assert "1 run recorded no provenance" in (report / "report.md").read_text()
 
 
