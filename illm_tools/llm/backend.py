@@ -166,20 +166,16 @@ def describe_model(model: str, fingerprint: str) -> dict | None:
     from illm_tools.keys import fingerprint_hash
     from illm_tools.llm.hub import no_downloads
 
-    with no_downloads():
-        return _described(model, fingerprint, fingerprint_hash)
-
-
-def _described(model: str, fingerprint: str, fingerprint_hash) -> dict | None:
-    for name in BACKENDS:
-        cls = backend_class(name)
-        for dtype in ("bfloat16", "float32", "float16"):
-            for quant in ("none", "4bit", "8bit"):
-                try:
-                    if fingerprint_hash(cls.model_fingerprint(model, dtype=dtype, quant=quant)) == fingerprint:
-                        return {"backend": name, "model": model, "dtype": dtype, "quant": quant}
-                except Exception:  # noqa: BLE001 - not a model this backend serves (or not here)
-                    break
+    with no_downloads():  # a row's model is described from what is here, never fetched
+        for name in BACKENDS:
+            cls = backend_class(name)
+            for dtype in ("bfloat16", "float32", "float16"):
+                for quant in ("none", "4bit", "8bit"):
+                    try:
+                        if fingerprint_hash(cls.model_fingerprint(model, dtype=dtype, quant=quant)) == fingerprint:
+                            return {"backend": name, "model": model, "dtype": dtype, "quant": quant}
+                    except Exception:  # noqa: BLE001 - not a model this backend serves (or not here)
+                        break
     return None
 
 

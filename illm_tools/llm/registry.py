@@ -1,4 +1,4 @@
-"""Model registry: what a `--model` name means and where its files are, offline.
+"""Model registry: what a `--model` name means and where its files are.
 
 Owns the alias table (embedded GGUF models, the paper's models, the students `illm distil` builds),
 the resolution of any other name as a local folder or a hub id (its snapshot found in the Hugging
@@ -140,13 +140,6 @@ def package_dir(package: str) -> Path | None:
     if found is None or not found.submodule_search_locations:
         return None
     return Path(list(found.submodule_search_locations)[0])
-
-
-def hub_cache_dir() -> Path:
-    """The Hugging Face hub cache folder, read at call time (HF_HUB_CACHE / HF_HOME honoured)."""
-    from illm_tools.llm import hub
-
-    return hub.cache_dir()
 
 
 def locate_hub(spec: ModelSpec) -> Path:
