@@ -65,7 +65,7 @@ def main() -> None:
 
     from illm_tools.llm.dtype import resolve_dtype
     from illm_tools.llm.generation import embed_texts
-    from illm_tools.llm.loading import cache_root, dequantised_folder, load_model
+    from illm_tools.llm.loading import cache_root, dequantised_folder
     from illm_tools.llm.registry import resolve
     from illm_tools.llm.spec import LLMSpec
     from illm_tools.llm.vllm_server import VLLMServer, engine_python
@@ -111,8 +111,7 @@ def main() -> None:
     summaries = [k for k in local_both if k[0] == "summary" and k in remote_both]
     words = sum(local_both[k]["text"] == remote_both[k]["text"] for k in summaries)
     pooled = np.asarray([remote_both[k]["embedding"] for k in summaries], np.float32)
-    lm = load_model("smollm2-135m", dtype=dtype)
-    same_text = embed_texts(lm, [remote_both[k]["text"] for k in summaries])
+    same_text = embed_texts(local.lm, [remote_both[k]["text"] for k in summaries])  # the weights loaded above
     paper = np.asarray([local_both[k]["embedding"] for k in summaries], np.float32)
 
     def cosine(a, b):
