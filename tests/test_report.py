@@ -1,4 +1,7 @@
-"""`illm report`: curve points are episode-weighted windows, aligned by frame across seeds."""
+"""`illm report`: curve points are episode-weighted windows, aligned by frame across seeds.
+
+Over 400 lines: the report's tests share this file's fake runs (`fake_run`) and rliable's IQM by hand
+(`iqm_by_hand`); split, the second file would import them from the first."""
 
 from __future__ import annotations
 
@@ -18,9 +21,10 @@ def fake_run(path, seed, rows, mode="illm", env_id="BabyAI-GoToLocal-v0"):
     with open(path / "metrics.csv", "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS)
         writer.writeheader()
-        for step, success, episodes in rows:
+        for step, success, episodes, *length in rows:  # (global step, success rate, episodes[, mean length])
             writer.writerow({"global_step": step, "success_rate": success, "episodes": episodes,
-                             "target_coverage": 0.5, "cache_hit_rate": 0.25})
+                             "target_coverage": 0.5, "cache_hit_rate": 0.25,
+                             "episodic_length": length[0] if length and episodes else ""})
 
 
 def test_points_are_weighted_windows_aligned_by_frame(tmp_path):
@@ -162,6 +166,56 @@ def test_report_folder_tables_figures_and_grouping(tmp_path):
     expected = [np.mean([(0 * 2 + f / 2 * 2) / 4, (f * 1 + f * 3) / 4]) for f in finals["illm"]]
     assert [s["score"] for s in illm["final"]["per_seed"]] == pytest.approx(expected)
     assert illm["final"]["points"] == [100, 200]
+
+
+def test_episode_length_per_run_is_windowed_like_the_score_and_set_beside_the_time_limit(tmp_path):
+    """results.json's episode length: each seed's final length is the episode-weighted mean over the same
+    last points as its score, with IQM [95% CI] over seeds, the first and last window's mean over seeds and
+    the env's time limit; report.md shows it; a report written before lengths were logged redraws without."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from illm_tools.report.lengths import time_limit
+
+    # (step, success, episodes, mean length): windows (0, 100] and (100, 200]
+    lengths = {0: [(50, 0.0, 1, 64), (100, 0.0, 3, 32), (150, 1.0, 1, 10), (200, 0.5, 3, 30)],
+               1: [(50, 0.0, 2, 64), (100, 0.0, 0), (150, 0.0, 1, 64), (200, 0.0, 1, 64)],
+               2: [(50, 0.0, 1, 64), (100, 0.5, 2, 40), (150, 0.0, 0), (200, 1.0, 2, 8)]}
+    runs = []
+    for seed, rows in lengths.items():
+        runs.append(tmp_path / f"s{seed}")
+        fake_run(runs[-1], seed, rows)
+    out = tmp_path / "rep"
+    result = CliRunner().invoke(app, ["report", *map(str, runs), "--every", "100", "--out", str(out),
+                                      "--bootstrap", "200"])
+    assert result.exit_code == 0, result.output
+    (row,) = json.loads((out / "results.json").read_text())["rows"]
+    first = [(64 + 32 * 3) / 4, 64.0, (64 + 40 * 2) / 3]
+    last = [(10 + 30 * 3) / 4, 64.0, 8.0]  # seed 2's (100, 200] window: one update with no episode
+    length = row["episode_length"]
+    assert [s["length"] for s in length["per_seed"]] == pytest.approx(last)
+    assert length["iqm"] == pytest.approx(iqm_by_hand(last)) and length["n"] == 3
+    assert (length["ci_low"], length["ci_high"]) == pytest.approx((min(last), max(last)))
+    assert length["curve"] == pytest.approx([np.mean(first), np.mean(last)])
+    assert (length["first"], length["last"]) == pytest.approx((np.mean(first), np.mean(last)))
+    assert length["time_limit"] == time_limit("BabyAI-GoToLocal-v0") == 64  # BabyAI sets it at reset
+    assert time_limit("NoSuchEnv-v0") is None
+    md = (out / "report.md").read_text()
+    assert f"| illm | {np.mean(last):.1f} [8.0, 64.0] | {np.mean(last):.1f} ± {np.std(last):.1f} | " \
+           f"{np.mean(first):.1f} → {np.mean(last):.1f} | 64 |" in md
+    two = tmp_path / "rep2"  # --final-points 2: both windows, each seed's the mean of its two points
+    CliRunner().invoke(app, ["report", *map(str, runs), "--every", "100", "--out", str(two), "--final-points", "2",
+                             "--bootstrap", "200"])
+    (row,) = json.loads((two / "results.json").read_text())["rows"]
+    assert [s["length"] for s in row["episode_length"]["per_seed"]] == \
+        pytest.approx([(a + b) / 2 for a, b in zip(first, last)])
+
+    results = json.loads((out / "results.json").read_text())  # an older report: no episode_length
+    for r in results["rows"]:
+        del r["episode_length"]
+    (out / "results.json").write_text(json.dumps(results))
+    assert CliRunner().invoke(app, ["report", str(out), "--redraw"]).exit_code == 0
+    assert "episode length IQM" not in (out / "report.md").read_text()
 
 
 def test_the_quality_curve_places_each_configuration_at_its_annotators_probe_agreement(tmp_path):

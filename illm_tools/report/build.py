@@ -31,6 +31,7 @@ from illm_tools.report import plots, stats
 from illm_tools.report.aggregate import aggregate
 from illm_tools.report.curves import load_curve, summarise
 from illm_tools.report.diagnostics import diagnostics_png, row_diagnostics
+from illm_tools.report.lengths import episode_length
 
 DEFAULT_BOOTSTRAP = 2000
 BOOTSTRAP_SEED = 0
@@ -168,6 +169,8 @@ def _row(env_id: str, label: str, group: dict, every: int, final_points: int, re
             "seeds": group["seeds"], "runs": group["runs"], "short_runs": group["short_runs"],
             "trained_frames": trained, "frames": group["frames"], "mean": mean, "std": group["std"],
             "band_low": low, "band_high": high, "final": final, "visitation": None,
+            "episode_length": episode_length(curves, group["frames"], final_points, reps, seed,
+                                             curves[0].config if curves else {"env_id": env_id}),
             "coverage": group["coverage"] if group["reads_targets"] else None,
             "provenance": {run: provenance.read(Path(run)) for run in [*group["runs"], *group["short_runs"]]}}
 

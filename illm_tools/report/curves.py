@@ -48,6 +48,9 @@ class Curve:
     """Mean share of rollout steps found in the cache before the live fallback."""
     last_step: int
     """Frames the run was trained for (its last logged update)."""
+    lengths: list[float]
+    """Per curve point, the episode-weighted mean length (steps) of the episodes that ended in its window
+    (NaN where none did, or the run logged no episodic_length)."""
 
 
 def read_metrics_csv(path: Path) -> list[dict]:
@@ -69,7 +72,7 @@ def read_metrics_csv(path: Path) -> list[dict]:
                 if None in row or any(v is None for v in row.values()):
                     raise ValueError("wrong number of fields")
                 int(row["global_step"]), float(row["episodes"] or 0), float(row["success_rate"] or 0)
-                for name in ("target_coverage", "cache_hit_rate"):
+                for name in ("target_coverage", "cache_hit_rate", "episodic_length"):
                     float(row.get(name) or 0)
             except (ValueError, KeyError) as e:
                 raise DamagedFileError(f"{path} line {reader.line_num} is damaged ({e}): the run's metrics.jsonl "
@@ -102,7 +105,8 @@ def load_curve(run_dir: Path, every: int) -> Curve:
     steps = np.array([int(r["global_step"]) for r in rows])
     eps = np.array([float(r["episodes"] or 0) for r in rows])
     succ = np.array([_score(r) for r in rows])
-    frames, points = [], []
+    length = np.array([float(r.get("episodic_length") or "nan") for r in rows])
+    frames, points, lengths = [], [], []
     last_step = int(steps.max(initial=0))
     ends = list(range(every, last_step + 1, every))
     if last_step % every and last_step > every // 2:  # a last, shorter window up to the run's end
@@ -112,12 +116,15 @@ def load_curve(run_dir: Path, every: int) -> Curve:
         n = eps[window].sum()
         frames.append(end)
         points.append(float((succ[window] * eps[window]).sum() / n) if n else float("nan"))
+        timed = window & (eps > 0) & ~np.isnan(length)
+        m = eps[timed].sum()
+        lengths.append(float((length[timed] * eps[timed]).sum() / m) if m else float("nan"))
     def mean_of(column: str) -> float:
         values = [float(r[column]) for r in rows if r.get(column)]
         return float(np.mean(values)) if values else 0.0
 
     return Curve(str(run_dir), cfg, cfg["env_id"], int(cfg["seed"]), frames, points,
-                 mean_of("target_coverage"), mean_of("cache_hit_rate"), last_step)
+                 mean_of("target_coverage"), mean_of("cache_hit_rate"), last_step, lengths)
 
 
 def _setting(value) -> str:

@@ -12,18 +12,23 @@ def num(x) -> str:
     return f"{x:.3f}" if abs(x) < 100 else f"{x:.1f}"
 
 
-def iqm_cell(final: dict) -> str:
+def steps(x) -> str:
+    """An episode length: 1 decimal."""
+    return "-" if x is None else f"{x:.1f}"
+
+
+def iqm_cell(final: dict, fmt=num) -> str:
     if final["iqm"] is None:
         return "-"
     if final["ci_low"] is None:
-        return f"{num(final['iqm'])} (1 seed: no interval)"
-    return f"{num(final['iqm'])} [{num(final['ci_low'])}, {num(final['ci_high'])}]"
+        return f"{fmt(final['iqm'])} (1 seed: no interval)"
+    return f"{fmt(final['iqm'])} [{fmt(final['ci_low'])}, {fmt(final['ci_high'])}]"
 
 
-def mean_cell(final: dict) -> str:
+def mean_cell(final: dict, fmt=num) -> str:
     if final["mean"] is None:
         return "-"
-    return num(final["mean"]) if final["n"] < 2 else f"{num(final['mean'])} ± {num(final['std'])}"
+    return fmt(final["mean"]) if final["n"] < 2 else f"{fmt(final['mean'])} ± {fmt(final['std'])}"
 
 
 def _esc(text: str) -> str:
@@ -59,6 +64,7 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
                   [[r["label"], iqm_cell(r["final"]), mean_cell(r["final"]), str(r["final"]["n"]),
                     _frames(r["final"]["frames"])]
                    + ["-" if r.get("coverage") is None else f"{r['coverage']:.0%}"] * covered for r in rows])
+    out += length_section(rows, k)
     split = [_split(r["label"]) for r in rows]
     from illm_tools.report.plots import setting_order
 
@@ -87,6 +93,27 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
         out += ["", "Where the bonus was paid (the bonus paid per visit of each cell, seeds summed):", ""]
         out += [f"- {_esc(r['label'])}: ![bonus, {_esc(r['label'])}]({r['bonus_map']['png']})" for r in paid]
     return out + diagnostics_section(rows, diagnostics_png) + [""]
+
+
+def length_section(rows: list[dict], final_points: int) -> list[str]:
+    """Each configuration's episode length (`illm_tools.report.lengths`): the seeds' final length as IQM
+    [95% CI] and mean ± std, the first and last window's mean over seeds, and the env's time limit."""
+    shown = [r for r in rows if (r.get("episode_length") or {}).get("n")]
+    if not shown:
+        return []
+
+    limits = {r["episode_length"].get("time_limit") for r in shown}
+    limit = (f"the time limit is {limits.pop():,} steps" if len(limits) == 1 and None not in limits
+             else "the time limit is in the last column")
+    out = ["", f"Episode length (steps; an episode at the time limit was cut there, not ended by the agent; "
+           f"{limit}): each seed's mean length of the episodes that ended in its last {final_points} curve "
+           f"point{'s' * (final_points > 1)} (episode-weighted), IQM [95% CI] and mean ± std over seeds; and the "
+           "mean over seeds of the first and last window:", ""]
+    out += _table(["method", "episode length IQM [95% CI]", "mean ± std", "first window → last", "time limit"],
+                  [[r["label"], iqm_cell(e := r["episode_length"], steps), mean_cell(e, steps),
+                    f"{steps(e['first'])} → {steps(e['last'])}",
+                    "-" if e.get("time_limit") is None else f"{e['time_limit']:,}"] for r in shown])
+    return out
 
 
 def _span(values) -> str:
