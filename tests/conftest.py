@@ -98,10 +98,29 @@ def tiny_lm_sliding(tmp_path_factory):
     return _build(tmp_path_factory, "tiny-gemma3", add_bos=True, kind="sliding")
 
 
+def _dequantise_smollm2(root) -> None:
+    from illm_tools.llm.loading import load_model
+
+    load_model("smollm2-135m", dtype="float32", cache_dir=root)  # de-quantised, each file's hash memoised
+
+
 @pytest.fixture(scope="session")
 def smollm2_cache(tmp_path_factory):
-    """Cache folder for the real embedded model (de-quantised once per session, ~15 s)."""
-    return tmp_path_factory.mktemp("illm-cache")
+    """An illm cache folder (`cache_dir=`, ILLM_CACHE_DIR) holding the real embedded model, SmolLM2-135M,
+    de-quantised once per test run (about 20 s) by the first worker that asks; every worker reads the
+    same folder. Its `models/` and `hashes/` are read-only: a test that would change them fails (copy
+    the entry first, as tests/test_faults.py does); the folder itself stays writable for other files."""
+    from fakes import run_wide
+
+    return run_wide(tmp_path_factory, "smollm2-cache", _dequantise_smollm2, read_only=("models", "hashes"))
+
+
+@pytest.fixture
+def smollm2_cache_env(smollm2_cache, monkeypatch):
+    """ILLM_CACHE_DIR set to `smollm2_cache`, for tests that load the embedded model by name through
+    a command or a backend rather than with `cache_dir=`."""
+    monkeypatch.setenv("ILLM_CACHE_DIR", str(smollm2_cache))
+    return smollm2_cache
 
 
 def plain_scores(lm, context: str, candidates: list[str]) -> list[list[float]]:

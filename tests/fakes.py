@@ -1,14 +1,18 @@
 """Fakes shared by the trainer's tests: `FakePool` (the EnvPool interface over a toy task),
 `FakeProvider` (deterministic LLM targets from a hash of each record), `RefusingProvider` (for
 methods that must never ask), `make_trainer` (a small Trainer over them) and `plugins_installed`
-(entry points as an installed package would declare them)."""
+(entry points as an installed package would declare them); `run_wide` (a folder built once per test
+run, read by every xdist worker)."""
 
 from __future__ import annotations
 
 import importlib.metadata
+import os
+import stat
 import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -92,9 +96,10 @@ class RefusingProvider:
 
 
 def make_trainer(tmp_path, mode="illm", updates=2, pool=None, **kw):
-    cfg = TrainConfig(run_dir=tmp_path / "run", method=mode, num_envs=4, num_steps=32,
-                      total_steps=4 * 32 * updates, embedding_dim=8, head_hidden=32, tensorboard=False,
-                      update_epochs=2, num_minibatches=2, **kw)
+    # settings by their option names (lambda_a=..., backend=...); the stub's 8-wide embeddings size the heads
+    cfg = TrainConfig.from_dict(dict(run_dir=tmp_path / "run", method=mode, num_envs=4, num_steps=32,
+                                     total_steps=4 * 32 * updates, backend="stub", model="stub:8", head_hidden=32,
+                                     tensorboard=False, update_epochs=2, num_minibatches=2, **kw))
     pool = pool or FakePool(cfg.num_envs)
     provider = FakeProvider(len(pool.action_names), cfg.embedding_dim) if mode != "ppo" else RefusingProvider()
     return Trainer(cfg, pool, provider), provider
@@ -219,3 +224,32 @@ def collected(out, steps: int, num_envs: int = 2, env: str = "BabyAI-GoToLocal-v
                                     "--seed", str(seed), "--out", str(out)])
     assert done.exit_code == 0, done.output
     return out
+
+
+def run_wide(tmp_path_factory, name: str, build, *, read_only: tuple[str, ...] = (".",)) -> Path:
+    """A folder built once per test run, whichever xdist worker asks first (the others wait on a file
+    lock, then read it): `build(folder)` fills it; then the paths `read_only` names under it (the
+    folder itself by default) are made read-only, so a test that writes there fails instead of
+    changing what the other tests read. Under xdist the workers' base temp folders are siblings, and
+    the folder lies beside them; without xdist, in the run's own base temp folder."""
+    from filelock import FileLock
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent
+    folder, done = base / name, base / f"{name}.done"
+    with FileLock(str(base / f"{name}.lock")):
+        if not done.exists():
+            folder.mkdir(exist_ok=True)
+            build(folder)
+            for part in read_only:
+                _read_only(folder / part)
+            done.touch()
+    return folder
+
+
+def _read_only(root: Path) -> None:
+    """Write permission off every file and folder under `root` (pytest's clean-up restores it)."""
+    writable = stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH
+    for path in sorted(root.rglob("*"), reverse=True) + [root]:
+        path.chmod(path.stat().st_mode & ~writable)

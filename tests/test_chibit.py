@@ -25,11 +25,10 @@ def test_network_options_are_checked_before_anything_loads(tmp_path):
 
 
 @pytest.mark.slow
-def test_chibit_torso_starts_from_the_llm_blocks_and_is_fine_tuned(tmp_path, smollm2_cache, monkeypatch):
+def test_chibit_torso_starts_from_the_llm_blocks_and_is_fine_tuned(tmp_path, smollm2_cache_env):
     from illm_tools.llm.loading import load_model
     from illm_tools.rl.checkpoint import load_checkpoint
 
-    monkeypatch.setenv("ILLM_CACHE_DIR", str(smollm2_cache))
     lm = load_model("smollm2-135m", dtype="float32")
     first = lm.model.model.layers[0].mlp.down_proj.weight
     run = tmp_path / "run"

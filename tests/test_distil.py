@@ -526,7 +526,8 @@ def test_collect_with_the_bot_logs_the_experts_episodes(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_embedded_model_distils_into_a_student_probe_and_annotate_load(oracle_cache, tmp_path):
+def test_the_embedded_model_distils_into_a_student_probe_and_annotate_load(oracle_cache, tmp_path,
+                                                                           smollm2_cache_env):
     """SmolLM2-135M (the GGUF de-quantised, tied embeddings) through the whole command: a few steps,
     the merged student saved, then `illm probe` and `illm annotate` read it with `--model PATH`."""
     out = tmp_path / "smollm2-student"

@@ -120,12 +120,12 @@ def test_a_damaged_cache_shard_or_manifest_is_refused_never_read_as_other_data(t
 def test_a_damaged_model_cache_entry_is_refused_saying_to_delete_it(smollm2_cache, tmp_path):
     from illm_tools.llm.loading import load_model
 
-    load_model("smollm2-135m", dtype="float32", cache_dir=smollm2_cache)  # de-quantised once per session
+    load_model("smollm2-135m", dtype="float32", cache_dir=smollm2_cache)  # de-quantised once per test run
     (entry,) = (smollm2_cache / "models").iterdir()
     rng = random.Random(0)
     for name, damage in (("model.safetensors", flip), ("config.json", truncate), ("illm_source.json", truncate)):
         root = tmp_path / name
-        shutil.copytree(entry, root / "models" / entry.name)
+        shutil.copytree(entry, root / "models" / entry.name, copy_function=shutil.copyfile)  # writable
         damage(root / "models" / entry.name / name, rng)
         with pytest.raises(DamagedFileError, match=f"{entry.name} is damaged.*rm -r"):
             load_model("smollm2-135m", dtype="float32", cache_dir=root)

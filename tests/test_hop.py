@@ -106,7 +106,7 @@ def test_different_observations_translate_apart_and_the_same_one_the_same():
 
 
 @pytest.mark.slow  # loads SmolLM2-135M's embedding matrix (de-quantised once: about 20 s)
-def test_smollm2s_translation_keeps_the_observation_at_beta_100_and_loses_it_at_1(tmp_path):
+def test_smollm2s_translation_keeps_the_observation_at_beta_100_and_loses_it_at_1(tmp_path, smollm2_cache_env):
     """SmolLM2-135M's real embeddings (49,152 tokens) on MultiRoom-N6: measured with
     experiments/hop_translation.py, 1 - cos between different observations has a median of 1.0 at
     beta 100 and 4e-6 at beta 1 (rounding is about 1e-7). Threshold: 0.05, far from both."""
