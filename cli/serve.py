@@ -45,7 +45,7 @@ def register(app: typer.Typer) -> None:
         store = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
         chosen = [f.name for f in dataclasses.fields(LLMSpec) if f.name != "device"]  # what names the model
         if all(options[k] == LLMSpec.__dataclass_fields__[k].default for k in chosen):  # none given: the cache's
-            from illm_tools.annotate.setups import adopt_model
+            from illm_tools.tasks.setup import adopt_model
 
             held = adopt_model(store)  # no model options: the cache's model setup
             if held is not None:

@@ -87,11 +87,11 @@ def train_config(ctx: typer.Context, options: dict):
 
 
 def adopted(ctx: typer.Context, cfg):
-    """`cfg` with its cache's setup adopted (`illm_tools.annotate.setups`) when the run reads targets
+    """`cfg` with its cache's setup adopted (`illm_tools.tasks.setup.adopt`) when the run reads targets
     from a cache and none of the model options was given; says which in one line."""
     import dataclasses
 
-    from illm_tools.annotate.setups import ADOPTED, adopt
+    from illm_tools.tasks.setup import ADOPTED, adopt
 
     if not cfg.needs_targets or cfg.cache is None or _given(ctx) & set(ADOPTED) or \
             not (cfg.cache / "manifest.json").is_file():
@@ -126,7 +126,7 @@ def cache_holds(path: Path) -> str:
 def warn_empty_cache(cfg) -> None:
     """One line before a run whose --cache holds nothing (a mistyped path, a new folder): its targets
     come only from live annotation. (A cache holding annotations of another setup is refused by
-    `illm_tools.rl.targets.check_setup`; an empty one with --live-budget 0 by `make_provider`.) Not with
+    `illm_tools.tasks.setup.check_setup`; an empty one with --live-budget 0 by `make_provider`.) Not with
     --annotator: a fresh cache that the server fills is how a run with a server starts."""
     if not cfg.needs_targets or cfg.cache is None or cfg.resume or cfg.live_budget == 0 or cfg.annotator:
         return

@@ -263,7 +263,6 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
     import dataclasses
 
     from illm_tools.envs import renderer_of
-    from illm_tools.keys import fingerprint_hash
     from illm_tools.tasks.setup import AnnotationSetup
 
     data = expert_states(cfg.env_id, cfg.states, history=cfg.history, seed=cfg.seed, epsilon=cfg.epsilon,
@@ -274,7 +273,7 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
     cfg.llm.check_use(setup.env_id, setup.renderer)
     llm = cfg.llm.placed()
     lm = llm.load()
-    builder = setup.builder(llm.model, fingerprint_hash(lm.fingerprint))
+    builder = setup.builder_of(llm)
     sums, counts, neutral_sums = score_records(lm, builder, data.records, batch_size=cfg.batch_size,
                                                on_progress=on_progress)
     expert = data.expert

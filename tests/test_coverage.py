@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 
 from conftest import collect_babyai
 from cli.main import app
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.setup import AnnotationSetup, check_setup
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 from illm_tools.annotate.coverage import VisitedStates, heldout_curve, measure_coverage
@@ -28,7 +28,7 @@ from illm_tools.collect import CollectConfig, collect
 from illm_tools.data.trajectories import open_table
 from illm_tools.errors import CacheError
 from illm_tools.rl.live import AsyncLive, SyncLive, WorkerSpec
-from illm_tools.rl.targets import CachedTargets, check_setup
+from illm_tools.rl.targets import CachedTargets
 from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.state import TABLE_COLUMNS, StateRecord, records_from_table
 

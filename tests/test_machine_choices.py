@@ -89,7 +89,7 @@ def test_a_run_adopts_its_caches_setup_and_its_live_rows_land_in_it(traj, tmp_pa
 
 
 def test_a_server_adopts_its_caches_model_setup(traj, tmp_path, monkeypatch):
-    from illm_tools.annotate.setups import adopt_model
+    from illm_tools.tasks.setup import adopt_model
 
     monkeypatch.setenv("ILLM_DTYPE_PROBE", "bfloat16")
     assert adopt_model(AnnotationCache(tmp_path / "empty")) is None

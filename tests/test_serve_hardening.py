@@ -275,7 +275,7 @@ def test_a_request_declaring_another_setup_is_refused_and_the_cache_keeps_one_se
     out = CliRunner().invoke(app, ["cache", "info", str(tmp_path / "ann"), "--json"])
     assert out.exit_code == 0, out.output
     assert sorted(u["task"] for u in json.loads(out.output)["setups"]) == ["action", "summary"]  # one row per task
-    from illm_tools.annotate.setups import cache_setups
+    from illm_tools.tasks.setup import cache_setups
 
     assert len(cache_setups(AnnotationCache(tmp_path / "ann"), ("action", "summary"))) == 1
 

@@ -138,7 +138,6 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
         raise UsageError(f"no annotation cache at {cache}: check the path, or leave --cache out to see only the costs")
     ann = AnnotationCache(cache) if cache is not None else None
     llm = (llm or LLMSpec()).placed()
-    fp = llm.fingerprint()
     renderers = table.column("renderer").to_pylist()
     episodes = table.column("episode_id").to_pylist()
     out = []
@@ -149,7 +148,7 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
         def builder_for(env_id: str, renderer: str, k: int = k) -> PromptBuilder:
             if (env_id, renderer) not in builders:
                 setup = AnnotationSetup(env_id, renderer, tasks, history_len=k, layout=layout)
-                builders[env_id, renderer] = setup.builder(llm.model, fp)
+                builders[env_id, renderer] = setup.builder_of(llm)
             return builders[env_id, renderer]
 
         visited = VisitedStates.count(records, env_ids, renderers, builder_for, tasks)

@@ -26,6 +26,7 @@ from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.tasks.prompts import DEFAULT_TASKS, Prompt, PromptBuilder, format_history, neutral_prompt
 from illm_tools.tasks.registry import get_task, parse_tasks
+from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
@@ -114,9 +115,8 @@ class Annotator:
             check = getattr(type(self.lm), "check_use", None)  # a backend refuses what it cannot read (the oracle: hop)
             if check is not None:
                 check(env_id, renderer)
-            self._builders[key] = PromptBuilder(env_id=env_id, renderer=renderer, model=self.model,
-                                                model_fingerprint=self.model_fingerprint,
-                                                history_len=self.history_len, layout=self.layout)
+            setup = AnnotationSetup(env_id, renderer, self.tasks, self.history_len, self.layout)
+            self._builders[key] = setup.builder(self.model, self.model_fingerprint)
         return self._builders[key]
 
     def visited(self, records: Sequence[StateRecord], env_ids: Sequence[str],

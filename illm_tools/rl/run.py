@@ -50,7 +50,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "see `illm annotate`), or use --method ppo")
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.intrinsic.registry import get_method
-    from illm_tools.rl.targets import check_setup
+    from illm_tools.tasks.setup import check_setup
     from illm_tools.tasks.registry import get_task
 
     method = get_method(cfg.method)
@@ -59,7 +59,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     llm.check_use(setup.env_id, setup.renderer)
     if any(get_task(t).kind == "ranking" for t in setup.tasks):
         llm.check_ranking()  # before the run starts: an engine that cannot rank (openai backend)
-    builder = setup.builder(llm.model, llm.fingerprint())
+    builder = setup.builder_of(llm)
     if len(cache) == 0 and cfg.live_budget == 0:
         raise CacheError(f"the cache {cfg.cache} is empty and --live-budget is 0: nothing would give targets; "
                          "run `illm annotate` first or allow a live budget")

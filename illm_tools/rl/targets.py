@@ -6,8 +6,8 @@ state annotated in bulk is a cache hit here. The distinct states the cache lacks
 over the run so far first, go to the live annotator (`illm_tools.rl.live`): `sync` annotates the
 first `live_budget` of them now and this rollout uses them; `async` hands them to a worker
 process and a later rollout finds its answers in the shared cache. States still missing get no
-target (and so no bonus) and are counted. `check_setup` refuses a cache that holds annotations
-but none for this run's setup.
+target (and so no bonus) and are counted. (A cache that holds annotations but none for this run's
+setup is refused before, by `illm_tools.tasks.setup.check_setup`.)
 
 `CachedTargets` serves iLLM (the rows of the run's language tasks: action and summary by default,
 any of `illm_tools.tasks.registry`'s); `GoalTargets` serves ELLM (the
@@ -322,53 +322,3 @@ class ShuffledKeys:
         """Entries in the pools."""
         return sum(len(w) for w in self._where.values())
 
-
-_FLAGS = {"history_len": "--history", "layout": "--layout", "renderer": "renderer", "template_version": "template version",
-          "decoding": "decoding"}
-
-
-def _describe(setup: dict, fields: list[str], model: str | None) -> str:
-    """The differing settings of a setup as the flags that select them."""
-    from illm_tools.llm.backend import model_options
-
-    return ", ".join((model or model_options(setup["model"], setup["model_fingerprint"]))
-                     if f == "model_fingerprint" else f"{_FLAGS[f]} {setup[f]}" for f in fields)
-
-
-def check_setup(cache: AnnotationCache, builder: PromptBuilder, *, llm,
-                tasks: Sequence[str] = ("action", "summary")) -> None:
-    """Refuse a cache that holds annotations but none for this run's setup, in one line naming the
-    settings that differ and what the cache holds ("the cache holds --history 0 annotations; this
-    run asks for --history 3"); `llm`: the run's placed `LLMSpec`. Nothing is refused when every
-    task has entries of this setup."""
-    from illm_tools.errors import CacheError
-    from illm_tools.tasks.prompts import layouts_of
-
-    held = cache.setups()
-    for task in tasks:
-        want = builder.setup(task)
-        rows = [r for r in held if r["task"] == task]
-        for r in rows:
-            r["layouts"] = layouts_of(task, r["prompt"])
-
-        def differs(r: dict) -> list[str]:
-            out = [f for f in ("model_fingerprint", "history_len", "template_version", "renderer", "decoding")
-                   if r[f] != want[f]]
-            if want["layout"] not in r["layouts"]:  # each layout has its template versions: the layout says it
-                return [f for f in out if f != "template_version"] + ["layout"]
-            return out
-
-        if any(not differs(r) for r in rows):
-            continue
-        if not rows:
-            raise CacheError(f"the cache {cache.root} holds no {task} annotations, which this run needs: run "
-                             f"`illm annotate DATA --cache {cache.root} --tasks {','.join(tasks)}`, or pass "
-                             "--new-setup to let live annotation start them")
-        closest = max(rows, key=lambda r: (-len(differs(r)), r["entries"]))
-        fields = differs(closest)
-        theirs = dict(closest, layout=closest["layouts"][0] if closest["layouts"] else "unknown")
-        raise CacheError(
-            f"the cache {cache.root} holds no {task} annotations for this run's setup: it holds "
-            f"{_describe(theirs, fields, None)} annotations ({closest['entries']:,} entries); this run asks for "
-            f"{_describe(want, fields, llm.options())}. Train with the "
-            "cache's settings, or pass --new-setup to start this setup in the cache")

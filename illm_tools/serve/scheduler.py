@@ -66,7 +66,6 @@ class AnnotationServer:
                  batch_size: int = ServeConfig.batch_size, chunk: int = ServeConfig.chunk,
                  limits: ServeLimits | None = None):
         from illm_tools.annotate.engine import Annotator
-        from illm_tools.keys import fingerprint_hash
         from illm_tools.llm.backend import as_backend
 
         self.lm = as_backend(lm)
@@ -84,7 +83,7 @@ class AnnotationServer:
         self.annotating = 0
         """States in the batch being annotated now (0: idle)."""
         self.connections = 0  # open now (kept by the HTTP side's gate)
-        self.fingerprint = fingerprint_hash(self.lm.fingerprint)
+        self.fingerprint = self.annotator.model_fingerprint  # what the rows it writes carry
         self._clients: dict[tuple[str, str], dict[tuple, Pending]] = {}  # trainer -> its own pending list
         self._landed: dict[tuple[str, str], int] = {}
         self._failed: dict[tuple[str, str], tuple[int, str]] = {}  # trainer -> (states failed, last reason)

@@ -1,9 +1,33 @@
-"""What, besides the state and the model, decides an annotation's keys, as one value: the env and
-its text renderer (or the hop translation's settings), the language tasks, the history length and
-the template layout (each task's template version follows from the layout). `illm annotate`, a
-training run's targets and live fallback, and `illm serve` build their prompt builders from one
-(`AnnotationSetup.builder`), and a trainer sends it to a server as its `wire()` form, which the
-server reads back with `from_wire` (one line naming what is wrong).
+"""An annotation setup, in one place: what, besides the state and the model, decides an
+annotation's keys (`AnnotationSetup`), how the setups a cache holds are read back as the options
+that select them (`cache_setups`, `HeldSetup`), adopted by a run or a server that names none
+(`adopt`, `adopt_model`) and checked against a run's own (`check_setup`).
+
+`AnnotationSetup` is the env and its text renderer (or the hop translation's settings), the
+language tasks, the history length and the template layout (each task's template version follows
+from the layout). Its `builder` is the one place a `PromptBuilder` (the prompts and keys of one
+env's states) is made: `illm annotate` and the live annotator (the `Annotator`'s builders), a
+training run's targets, `illm serve`, `illm probe` and `illm data coverage` all build theirs
+through it, for a model named by its spec and fingerprint hash (`builder_of(llm)`: an `LLMSpec`'s
+`fingerprint()`, no weights loaded; a loaded backend's is hashed by the `Annotator` that holds it,
+and a server compares requests with that one). A trainer sends the setup to a server as its
+`wire()` form, which the server reads back with `from_wire` (one line naming what is wrong).
+
+A cache's setups are what every key of a run shares besides the state: the model as its backend
+serves it (backend, model, dtype, quantisation, read back from the rows' fingerprints:
+`describe_model`), the history length, the prompt layout (read back from a stored prompt,
+`layouts_of`, at this code's template versions) and the renderer (`AnnotationCache.setups` lists
+the distinct ones). A setup counts for a run when the cache holds entries of it for every task the
+run reads and its renderer is the run's (the env's text renderer; in hop mode a hop renderer, whose
+projection seed and beta come with it).
+
+`illm train --cache DIR` with none of the model options (--backend, --model, --dtype, --quant,
+--oracle-noise, --history, --layout, --hop-seed, --hop-beta) adopts the one setup the cache holds
+for its tasks, and says so in one line; a cache holding several is refused, naming each with its
+options; an empty one leaves the defaults. Live annotation then writes rows the cache's other users
+read, whatever this machine's `--dtype auto` would have chosen. `illm serve --cache` does the same
+for the model. A cache that holds annotations but none of a run's setup is refused by
+`check_setup`, naming what differs.
 
 The hop renderer's name lives here too: the renderer field of hop keys is the translation's
 settings (`hop_renderer`), read back by `parse_hop_renderer`.
@@ -11,12 +35,13 @@ settings (`hop_renderer`), read back by `parse_hop_renderer`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
-from illm_tools.errors import UsageError
-from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS, PromptBuilder
-from illm_tools.tasks.registry import parse_tasks
-
+from illm_tools.errors import CacheError, UsageError
+from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS, PromptBuilder, layouts_of
+from illm_tools.tasks.registry import get_task, parse_tasks
 HOP_VERSION = 2
 """Version of the hop record format and translation; part of every hop cache key (bump on change).
 2: Crafter's pictures are grey-scaled before the translation (`Suite.hop_frame`)."""
@@ -76,9 +101,15 @@ class AnnotationSetup:
         return self.renderer.startswith("hop@")
 
     def builder(self, model: str, model_fingerprint: str) -> PromptBuilder:
-        """The prompt builder of this setup for a model (its spec and fingerprint hash)."""
+        """The prompt builder of this setup for a model (its spec and fingerprint hash): the one
+        place a `PromptBuilder` is made (module docstring)."""
         return PromptBuilder(env_id=self.env_id, renderer=self.renderer, model=model,
                              model_fingerprint=model_fingerprint, history_len=self.history_len, layout=self.layout)
+
+    def builder_of(self, llm) -> PromptBuilder:
+        """The prompt builder of this setup for an `LLMSpec` (placed): its model and `fingerprint()`,
+        without loading weights."""
+        return self.builder(llm.model, llm.fingerprint())
 
     def wire(self) -> dict:
         """The JSON fields of a live-annotation request (`WIRE_FIELDS`)."""
@@ -93,3 +124,159 @@ class AnnotationSetup:
         if missing:
             raise UsageError(f"the request lacks {', '.join(missing)}")
         return cls(**{k: body[k] for k in WIRE_FIELDS})
+
+
+# ---- the setups a cache holds ------------------------------------------------------------------
+
+ADOPTED = ("backend", "model", "model_dtype", "quant", "oracle_noise", "history_len", "layout", "hop_seed", "hop_beta")
+"""The TrainConfig fields a run takes from its cache's setup (the CLI adopts when none was given)."""
+
+
+@dataclass(frozen=True)
+class HeldSetup:
+    """One setup a cache holds, as the options that select it."""
+
+    backend: str
+    model: str
+    dtype: str
+    quant: str
+    history_len: int
+    layout: str
+    renderer: str
+    entries: int
+    """Entries of the setup's least annotated task."""
+
+    def options(self) -> str:
+        """The flags that select it ("--backend oracle --history 0 --layout shared")."""
+        from illm_tools.llm.backend import selecting_options
+
+        model = selecting_options(self.backend, self.model, self.dtype, self.quant)
+        hop = ""
+        settings = parse_hop_renderer(self.renderer)
+        if settings is not None:
+            hop = f" --mode hop --hop-seed {settings['seed']} --hop-beta {settings['beta']:g}"
+        return f"{model} --history {self.history_len} --layout {self.layout}{hop}"
+
+    def fields(self) -> dict:
+        """The TrainConfig fields of the setup (`ADOPTED`)."""
+        out = {"backend": self.backend, "model": self.model, "model_dtype": self.dtype, "quant": self.quant,
+               "oracle_noise": 0.0, "history_len": self.history_len, "layout": self.layout}
+        settings = parse_hop_renderer(self.renderer)
+        if settings is not None:
+            out.update(hop_seed=settings["seed"], hop_beta=settings["beta"])
+        return out
+
+
+def _open(cache):
+    """`cache` as an `AnnotationCache` (given one, or its folder); None for a folder that holds no cache yet."""
+    from illm_tools.cache.store import AnnotationCache
+
+    if isinstance(cache, AnnotationCache):
+        return cache
+    return AnnotationCache(cache) if (Path(cache) / "manifest.json").is_file() else None
+
+
+def cache_setups(cache, tasks: Sequence[str], renderer: str | None = None) -> list[HeldSetup]:
+    """The setups `cache` (an `AnnotationCache` or its folder) holds for every one of `tasks` (see
+    the module docstring), most entries first; `renderer`: the run's text renderer, or a hop
+    renderer's "hop@" prefix for any hop setup (None: any)."""
+    from illm_tools.llm.backend import describe_model
+
+    cache = _open(cache)
+    per_task: dict[tuple, dict[str, int]] = {}
+    for row in cache.setups() if cache is not None else []:
+        task = row["task"]
+        if task not in tasks:
+            continue
+        if renderer is not None and not (row["renderer"] == renderer or
+                                         (renderer == "hop@" and row["renderer"].startswith("hop@"))):
+            continue
+        model = describe_model(row["model"], row["model_fingerprint"])
+        if model is None:
+            continue
+        spec = get_task(task)
+        for layout in layouts_of(task, row["prompt"]):
+            if spec.templates[layout][1] != row["template_version"]:
+                continue  # an older template of the layout: this code renders another prompt
+            key = (model["backend"], model["model"], model["dtype"], model["quant"], int(row["history_len"]), layout,
+                   row["renderer"])
+            per_task.setdefault(key, {})[task] = per_task.get(key, {}).get(task, 0) + int(row["entries"])
+    return sorted((HeldSetup(*key, entries=min(counts.values())) for key, counts in per_task.items()
+                   if set(counts) == set(tasks)), key=lambda s: -s.entries)
+
+
+def adopt(cache, tasks: Sequence[str], renderer: str | None) -> HeldSetup | None:
+    """The one setup `cache` (an `AnnotationCache`, or its folder) holds for `tasks`, or None when
+    it holds none (or the folder holds no cache yet); several are refused in one line naming each."""
+    setups = cache_setups(cache, tasks, renderer)
+    if len(setups) > 1:
+        listed = "; ".join(f"{s.options()} ({s.entries:,} entries)" for s in setups)
+        root = getattr(cache, "root", cache)
+        raise UsageError(f"the cache {root} holds {len(setups)} setups for the tasks {','.join(tasks)}: {listed}. "
+                         "Pass the options of the one to train with")
+    return setups[0] if setups else None
+
+
+def adopt_model(cache) -> dict | None:
+    """The one model setup (backend, model, dtype, quant) of the cache's rows, for `illm serve
+    --cache` without model options; None for an empty cache; several are refused naming each."""
+    from illm_tools.llm.backend import describe_model, selecting_options
+
+    found: dict[tuple, tuple[dict, int]] = {}
+    for row in cache.setups():
+        model = describe_model(row["model"], row["model_fingerprint"])
+        if model is not None:
+            key = tuple(model.values())
+            found[key] = (model, found.get(key, (model, 0))[1] + int(row["entries"]))
+    if len(found) > 1:
+        listed = "; ".join(f"{selecting_options(**m)} ({n:,} entries)" for m, n in found.values())
+        raise UsageError(f"the cache {cache.root} holds annotations of {len(found)} model setups: {listed}. Pass the "
+                         "options of the one to serve")
+    return next(iter(found.values()))[0] if found else None
+
+
+_FLAGS = {"history_len": "--history", "layout": "--layout", "renderer": "renderer", "template_version": "template version",
+          "decoding": "decoding"}
+
+
+def _describe(setup: dict, fields: list[str], model: str | None) -> str:
+    """The differing settings of a setup as the flags that select them."""
+    from illm_tools.llm.backend import model_options
+
+    return ", ".join((model or model_options(setup["model"], setup["model_fingerprint"]))
+                     if f == "model_fingerprint" else f"{_FLAGS[f]} {setup[f]}" for f in fields)
+
+
+def check_setup(cache, builder: PromptBuilder, *, llm, tasks: Sequence[str] = ("action", "summary")) -> None:
+    """Refuse a cache (an `AnnotationCache`) that holds annotations but none for this run's setup
+    (`builder`'s), in one line naming the settings that differ and what the cache holds ("the cache
+    holds --history 0 annotations; this run asks for --history 3"); `llm`: the run's placed
+    `LLMSpec`. Nothing is refused when every task has entries of this setup."""
+    held = cache.setups()
+    for task in tasks:
+        want = builder.setup(task)
+        rows = [r for r in held if r["task"] == task]
+        for r in rows:
+            r["layouts"] = layouts_of(task, r["prompt"])
+
+        def differs(r: dict) -> list[str]:
+            out = [f for f in ("model_fingerprint", "history_len", "template_version", "renderer", "decoding")
+                   if r[f] != want[f]]
+            if want["layout"] not in r["layouts"]:  # each layout has its template versions: the layout says it
+                return [f for f in out if f != "template_version"] + ["layout"]
+            return out
+
+        if any(not differs(r) for r in rows):
+            continue
+        if not rows:
+            raise CacheError(f"the cache {cache.root} holds no {task} annotations, which this run needs: run "
+                             f"`illm annotate DATA --cache {cache.root} --tasks {','.join(tasks)}`, or pass "
+                             "--new-setup to let live annotation start them")
+        closest = max(rows, key=lambda r: (-len(differs(r)), r["entries"]))
+        fields = differs(closest)
+        theirs = dict(closest, layout=closest["layouts"][0] if closest["layouts"] else "unknown")
+        raise CacheError(
+            f"the cache {cache.root} holds no {task} annotations for this run's setup: it holds "
+            f"{_describe(theirs, fields, None)} annotations ({closest['entries']:,} entries); this run asks for "
+            f"{_describe(want, fields, llm.options())}. Train with the "
+            "cache's settings, or pass --new-setup to start this setup in the cache")
