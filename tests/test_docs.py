@@ -2,7 +2,9 @@
 anchor, a page left out of the nav or a nav entry without its page fails the build (mkdocs.yml's
 `validation` makes each a warning and `--strict` every warning an error); every command and every
 option of every command appears on the site, in the options table docs/hooks.py generates from the
-command itself; and a build that should fail does."""
+command itself; and a build that should fail does. The whole site is built once per test run (every
+xdist worker reads that one build); the builds that must fail build a minimal tree of three pages with
+the real mkdocs.yml's settings and hooks."""
 
 from __future__ import annotations
 
@@ -27,12 +29,17 @@ def build(root: Path, out: Path) -> subprocess.CompletedProcess:
                            "-d", str(out)], cwd=root, env=env, capture_output=True, text=True, timeout=300)
 
 
-@pytest.fixture(scope="module")
-def site(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("site")
+def _build_the_site(out: Path) -> None:
     result = build(ROOT, out)
     assert result.returncode == 0, result.stdout + result.stderr
-    return out
+
+
+@pytest.fixture(scope="session")
+def site(tmp_path_factory) -> Path:
+    """The whole site, built strictly once per test run (read-only)."""
+    from fakes import run_wide
+
+    return run_wide(tmp_path_factory, "docs-site", _build_the_site)
 
 
 def text_of(page: Path) -> str:
@@ -92,15 +99,33 @@ def test_the_options_tables_say_what_help_says(site):
     assert "--frames , --total-steps int 200000" in page
 
 
-def broken_copy(tmp_path: Path) -> Path:
-    """A copy of the site's sources to break on purpose."""
-    root = tmp_path / "repo"
-    shutil.copytree(ROOT / "docs", root / "docs")
-    shutil.copy(ROOT / "mkdocs.yml", root / "mkdocs.yml")
+def minimal_tree(tmp_path: Path) -> Path:
+    """A site of three pages to break on purpose: the real mkdocs.yml but its nav, the real hooks, and
+    one page holding every command's options marker (so the hooks have nothing to warn about)."""
+    import yaml
+
+    root, docs = tmp_path / "repo", tmp_path / "repo" / "docs"
+    docs.mkdir(parents=True)
+    config = yaml.safe_load((ROOT / "mkdocs.yml").read_text())
+    config["nav"] = [{"Home": "index.md"}, {"Commands": "commands.md"}, {"Measured": "measured.md"},
+                     {"Troubleshooting": "troubleshooting.md"}]
+    (root / "mkdocs.yml").write_text(yaml.safe_dump(config, sort_keys=False))
+    shutil.copy(ROOT / "docs" / "hooks.py", docs / "hooks.py")
+    (docs / "index.md").write_text("# illm\n\nSee [the commands](commands.md) and [what was measured](measured.md).\n")
+    (docs / "measured.md").write_text("# Measured\n\nSee [troubleshooting](troubleshooting.md#options).\n")
+    (docs / "troubleshooting.md").write_text("# Troubleshooting\n\n## Options\n\nOne line each.\n")
+    markers = [f"## illm {' '.join(path)}\n\n<!-- options: {' '.join(path)} -->\n" for path in leaf_commands()]
+    (docs / "commands.md").write_text("# Commands\n\n" + "\n".join(markers))
     return root
 
 
-@pytest.mark.slow  # a strict build per damage, 2-3 s each
+def test_the_minimal_tree_builds_strict(tmp_path):
+    """The control of the broken builds below: untouched, it builds."""
+    result = build(minimal_tree(tmp_path), tmp_path / "site")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "Options of illm eval" in text_of(tmp_path / "site" / "commands" / "index.html")
+
+
 @pytest.mark.parametrize("damage, said", [
     ("link", "no-such-page.md"),
     ("orphan", "orphan.md"),
@@ -109,7 +134,7 @@ def broken_copy(tmp_path: Path) -> Path:
     ("table", "no page shows the options of `illm eval`"),
 ], ids=["broken-link", "page-not-in-nav", "unknown-command-marker", "missing-anchor", "command-without-table"])
 def test_a_broken_site_fails_the_strict_build(tmp_path, damage, said):
-    root = broken_copy(tmp_path)
+    root = minimal_tree(tmp_path)
     docs = root / "docs"
     if damage == "link":
         (docs / "measured.md").write_text((docs / "measured.md").read_text() + "\nSee [this](no-such-page.md).\n")
@@ -121,7 +146,7 @@ def test_a_broken_site_fails_the_strict_build(tmp_path, damage, said):
         (docs / "measured.md").write_text((docs / "measured.md").read_text()
                                           + "\nSee [it](troubleshooting.md#no-such-heading).\n")
     else:
-        page = docs / "commands" / "eval.md"
+        page = docs / "commands.md"
         page.write_text(page.read_text().replace("<!-- options: eval -->", ""))
     result = build(root, tmp_path / "site")
     assert result.returncode != 0 and said in result.stdout + result.stderr, result.stdout + result.stderr
