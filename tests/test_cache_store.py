@@ -123,6 +123,25 @@ def test_another_writers_shards_appear_after_refresh(tmp_path):
     assert len(reader) == 0 and reader.refresh() == 1 and len(reader) == 4
 
 
+def test_a_tail_reads_each_listed_shard_once_and_starts_over_on_a_rewritten_manifest(tmp_path):
+    from illm_tools.cache.tail import ShardTail
+
+    AnnotationCache(tmp_path).write(make_rows(0, 3))
+    AnnotationCache(tmp_path).write(make_rows(3, 5))
+    tail = ShardTail(tmp_path, ["key"])
+    restarted, shards = tail.read()
+    assert not restarted and [[r["key"] for r in rows] for rows in shards] == [keys_of(make_rows(0, 3)),
+                                                                              keys_of(make_rows(3, 5))]
+    assert tail.read() == (False, [])  # nothing new: nothing read again
+    AnnotationCache(tmp_path).write(make_rows(5, 6))  # another writer: seen without any refresh
+    assert tail.read() == (False, [[{"key": k} for k in keys_of(make_rows(5, 6))]])
+    manifest = layout.read_manifest(tmp_path)
+    manifest["shards"] = manifest["shards"][1:]  # rewritten (as a copy merged in place): the start differs
+    layout.write_manifest(tmp_path, manifest)
+    restarted, shards = tail.read()
+    assert restarted and [len(rows) for rows in shards] == [2, 1] and len(tail.shards) == 2
+
+
 CRASHING_WRITER = """
 import os, sys
 sys.path.insert(0, sys.argv[3])

@@ -1,7 +1,8 @@
 """Annotation cache: content-addressed LLM annotations in append-only Arrow shards + a manifest.
 
 ``keys`` builds cache keys from named inputs, ``store.AnnotationCache`` reads and writes one cache
-directory (``layout`` is its on-disk format, ``index`` its in-memory key index), ``verify`` checks
+directory (``layout`` is its on-disk format, ``index`` its in-memory key index), ``tail.ShardTail``
+reads every row once as the manifest grows (for a reader with an index of its own), ``verify`` checks
 and merges whole caches. Nothing here imports the LLM, tasks or RL code.
 """
 

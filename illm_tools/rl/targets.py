@@ -25,8 +25,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from illm_tools.cache import layout
 from illm_tools.cache.store import AnnotationCache
+from illm_tools.cache.tail import ShardTail
 from illm_tools.intrinsic.base import Targets
 from illm_tools.tasks.calibration import ACTION_TARGETS, action_target
 from illm_tools.tasks.prompts import Prompt, PromptBuilder
@@ -248,7 +248,8 @@ class ShuffledKeys:
     - the entries of one state's tasks share their rank, so when the pools hold the same states (as
       `illm annotate` and the live fallback write them) a state takes every target from the same
       other state.
-    The pool is read from the cache's shards as the manifest lists them, each shard once."""
+    The pool is read from the cache's shards as the manifest lists them, each shard once
+    (`illm_tools.cache.tail.ShardTail`)."""
 
     COLUMNS = ["key", "task", "prompt", "candidates", "goal", "history", "observation"]
 
@@ -256,10 +257,10 @@ class ShuffledKeys:
         self.cache, self.builder, self.seed = cache, builder, int(seed)
         self.tasks = tuple(tasks)
         self._salt = hashlib.sha256(f"illm-shuffled:{self.seed}".encode()).digest()[:16]
+        self._tail = ShardTail(cache.root, self.COLUMNS)  # each listed shard's rows, once
         self._reset()
 
     def _reset(self) -> None:
-        self._shards: list[str] = []  # shards read, in manifest order
         self._where: dict[str, dict[str, tuple]] = {t: {} for t in self.tasks}  # key -> (group, rank)
         self._groups: dict[tuple, list[tuple[int, str]]] = {}  # (task, group) -> sorted (rank, key)
         self._unsorted: set[tuple] = set()
@@ -272,14 +273,10 @@ class ShuffledKeys:
     def sync(self) -> int:
         """Add the entries of the shards the manifest gained since the last call; returns how many
         (a rewritten manifest, e.g. a copy merged in place, is read again from the start)."""
-        listed = [entry["name"] for entry in layout.read_manifest(self.cache.root)["shards"]]
-        if listed[:len(self._shards)] != self._shards:
+        restarted, shards = self._tail.read()
+        if restarted:
             self._reset()
-        added = 0
-        for name in listed[len(self._shards):]:
-            added += self._add(layout.read_shard(self.cache.root / name).select(self.COLUMNS).to_pylist())
-            self._shards.append(name)
-        return added
+        return sum(self._add(rows) for rows in shards)
 
     def _add(self, rows: list[dict]) -> int:
         added = 0
