@@ -18,7 +18,6 @@ that cannot run here (chibit without its model files, say) is skipped, with the 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import tempfile
 import time
@@ -37,6 +36,7 @@ from illm_tools.intrinsic.registry import METHODS, get_method  # noqa: E402
 from illm_tools.rl.config import TrainConfig  # noqa: E402
 from illm_tools.rl.live import SyncLive  # noqa: E402
 from illm_tools.rl.ppo import Trainer  # noqa: E402
+from illm_tools.rl.providers import provider_class  # noqa: E402
 from illm_tools.rl.run import make_pool  # noqa: E402
 from illm_tools.rl.run import torch_threads  # noqa: E402
 
@@ -66,9 +66,11 @@ def provider_for(method, cfg: TrainConfig, cache_dir: Path, num_actions: int, fi
                                    history_len=cfg.history_len, chunk=10_000)
     builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
     live = SyncLive(annotator, cfg.annotation_setup, 10**9) if fill else None
-    # the provider the method's bonus names (CachedTargets, ELLM's GoalTargets), as a run builds it
-    return method.provider_class.for_run(dataclasses.replace(cfg, embedding_dim=DIM), cache, builder,
-                                         num_actions=num_actions, live=live, shuffle_seed=method.target_shuffle)
+    # the provider registered for the targets the method's bonus reads (CachedTargets, ELLM's GoalTargets), as a run
+    # builds it
+    return provider_class(method.bonus_class).for_run(cfg, cache, builder,  # cfg.embedding_dim: SmolLM2's, DIM
+                                                      num_actions=num_actions, live=live,
+                                                      shuffle_seed=method.target_shuffle)
 
 
 def run(cfg: TrainConfig, cache_dir: Path, fill: bool = False) -> tuple[float, dict]:
@@ -109,7 +111,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         def config(mode: str, name: str) -> TrainConfig:
             return TrainConfig(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
-                               num_envs=args.num_envs, num_steps=args.num_steps, embedding_dim=DIM,
+                               num_envs=args.num_envs, num_steps=args.num_steps,
                                cache=Path(tmp) / f"ann-{mode}", live_budget=0, tensorboard=False,
                                checkpoint_every=0, threads=args.threads)
 

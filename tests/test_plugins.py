@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 from dataclasses import dataclass
+from typing import Protocol
 
 import pytest
 import torch
@@ -20,9 +21,10 @@ from torch import nn
 from illm_tools.envs.observations import Observation
 from illm_tools.envs.suite import ObsSpec
 from illm_tools.errors import UsageError
-from illm_tools.intrinsic import BonusRewards, IntrinsicBonus
-from illm_tools.intrinsic.registry import Method
+from illm_tools.intrinsic import BonusRewards, IntrinsicBonus, TargetProvider, Targets
+from illm_tools.intrinsic.registry import METHODS, Method
 from illm_tools.rl.networks import GridMissionNet
+from illm_tools.rl.providers import TARGET_PROVIDERS, kind_name, provider_class
 from illm_tools.rl.targets import CachedTargets
 from illm_tools.registry import Registry
 from illm_tools.tasks.registry import LanguageTask
@@ -53,8 +55,13 @@ class FlatBonus(IntrinsicBonus):
         return BonusRewards(torch.full(batch["actions"].shape, self.pay), {"flat_paid": self.pay})
 
 
+class MarkedKind(TargetProvider, Protocol):
+    """The kind of targets the told bonus reads: the cache's rows, through a provider of its own."""
+
+
 class MarkedTargets(CachedTargets):
-    """A plug-in method's own target provider: the cache's rows, counting the rollouts it answered."""
+    """A plug-in method's own target provider (of `MarkedKind`, registered through the plug-in's
+    `illm.target_providers` entry point): the cache's rows, counting the rollouts it answered."""
 
     calls = 0
 
@@ -68,7 +75,7 @@ class ToldBonus(IntrinsicBonus):
 
     needs_targets = True
     target_tasks = ("action",)
-    target_provider = f"{__name__}:MarkedTargets"
+    target_kind = MarkedKind
 
     def __init__(self, config, ctx):
         self.provider = None
@@ -151,10 +158,16 @@ def plugins(tmp_path, monkeypatch):
         "illm.tasks": [("verdict", f"{__name__}:PLUGIN_TASK")],
         "illm.backends": [("echo", f"{__name__}:EchoBackend")],
         "illm.suites": [("tiny", f"{__name__}:PLUGIN_SUITE"), ("ruler", f"{__name__}:PLUGIN_RULER")],
+        "illm.target_providers": [(kind_name(MarkedKind), f"{__name__}:MarkedTargets")],
     }
 
     with plugins_installed(monkeypatch, points) as added:
-        yield added
+        providers = TARGET_PROVIDERS.read_plugins(again=True)
+        try:
+            yield added
+        finally:
+            for name in providers:
+                del TARGET_PROVIDERS[name]
 
 
 def ok(*args):
@@ -180,7 +193,8 @@ def test_a_plugin_of_each_kind_loads_through_its_entry_point_and_runs(plugins, t
         assert float(next(csv.DictReader(fh))["adv_int_abs"]) > 0  # the plug-in's bonus reached the advantages
     with open(tmp_path / "illm" / "metrics.csv", newline="") as fh:
         assert all(float(r["target_coverage"]) == 1.0 for r in csv.DictReader(fh))
-    # a method that names its own target provider: the run reads the cache through it, no trainer edit
+    # a method that reads a kind of targets of its own: the run reads the cache through the provider its
+    # package registered for that kind, no trainer edit
     ok("train", "--env", TINY, "--method", "told", "--backend", "echo", "--cache", tmp_path / "ann", "--history", 0,
        "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--out", tmp_path / "told")
     with open(tmp_path / "told" / "metrics.csv", newline="") as fh:
@@ -216,6 +230,75 @@ def test_one_registry_shape_lazy_checked_and_one_message():
         reg.register("one", 2)
     reg["one"] = 2  # code may replace an entry on purpose
     assert reg["one"] == 2
+
+
+class TinyKind(TargetProvider, Protocol):
+    """A kind of targets of a plug-in's own: every state's, with no LLM asked."""
+
+
+class TinyTargets:
+    """The tiny provider of `TinyKind`: every state has a target, the uniform distribution over the actions."""
+
+    built: list[TinyTargets] = []
+
+    def __init__(self, num_actions: int):
+        self.num_actions = num_actions
+        self.calls = 0
+        TinyTargets.built.append(self)
+
+    @classmethod
+    def for_run(cls, cfg, cache, builder, *, num_actions, live=None, shuffle_seed=None):
+        return cls(num_actions)
+
+    def targets(self, records):
+        self.calls += 1
+        b = len(records)
+        return Targets(np.full((b, self.num_actions), 1.0 / self.num_actions, np.float32), np.zeros((b, 0), np.float32),
+                       np.ones(b, bool))
+
+    def stats(self):
+        return {"cache_hit_rate": 1.0, "target_coverage": 1.0, "live_annotations": 0.0}
+
+    def close(self):
+        pass
+
+
+class TinyToldBonus(IntrinsicBonus):
+    """Pays 1 where its provider has a target, after checking the run handed it the tiny provider."""
+
+    needs_targets = True
+    target_tasks = ("action",)
+    target_kind = TinyKind
+
+    def __init__(self, config, ctx):
+        self.provider = None
+
+    def use_provider(self, provider):
+        self.provider = provider
+
+    def compute_rewards(self, batch):
+        assert isinstance(self.provider, TinyTargets)  # the provider registered for the kind it declares
+        return BonusRewards(batch["target_mask"].float(), {})
+
+
+def test_a_bonus_declares_its_kind_of_targets_and_the_run_hands_it_the_provider_registered_for_it(tmp_path):
+    with pytest.raises(UsageError, match="no target provider serves .*TinyKind"):
+        provider_class(TinyToldBonus)  # nothing registered for the kind yet: one line naming it
+    METHODS.register("tiny-told", Method("tiny-told", "paid where the tiny provider answers", TinyToldBonus))
+    TARGET_PROVIDERS.register(kind_name(TinyKind), TinyTargets)
+    TinyTargets.built.clear()
+    try:
+        assert provider_class(TinyToldBonus) is TinyTargets
+        ok("train", "--env", "BabyAI-GoToLocal-v0", "--method", "tiny-told", "--backend", "stub", "--cache",
+           tmp_path / "ann", "--live-budget", 1, "--live-mode", "sync", "--num-envs", 2, "--num-steps", 16,
+           "--frames", 64, "--out", tmp_path / "run")
+    finally:
+        del METHODS["tiny-told"]
+        del TARGET_PROVIDERS[kind_name(TinyKind)]
+    with open(tmp_path / "run" / "metrics.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(TinyTargets.built) == 1 and TinyTargets.built[0].calls == len(rows) == 2  # built once, asked per rollout
+    assert float(rows[-1]["target_coverage"]) == 1.0 and float(rows[-1]["adv_int_abs"]) > 0
 
 
 class FirstActionPolicy:

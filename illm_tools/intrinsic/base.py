@@ -2,7 +2,8 @@
 
 Owns `IntrinsicBonus` (the plug-in contract), `BonusContext` (what a bonus knows about the run
 when it is built), `NoBonus` (plain PPO), `Targets` and the `TargetProvider` protocol (cache lookup
-with live fallback, implemented in `illm_tools.rl.targets`). Bonuses work on tensors only; they
+with live fallback, implemented in `illm_tools.rl.targets`; a bonus declares the kind it reads,
+`target_kind`, and `illm_tools.rl.providers` maps the kind to its provider). Bonuses work on tensors only; they
 never step environments. Methods (a name such as `rnd` -> a bonus class and its config) are
 registered in `registry.py`. `StateRecord` and `HistoryTracker` (the per-step text state and the
 per-env rolling history that builds it) live in `illm_tools.tasks.state`, shared with the annotate
@@ -166,11 +167,12 @@ class IntrinsicBonus(ABC):
     """With `needs_targets` and without `policy_heads`: the language tasks (illm_tools.tasks.registry)
     whose cache rows the run's provider reads and the live fallback annotates (a method with the
     heads reads the run's `tasks`)."""
-    target_provider: ClassVar[str] = "illm_tools.rl.targets:CachedTargets"
-    """With `needs_targets`: the run's target provider, "module:Class" (loaded when a run starts, so
-    this layer imports no trainer code): a `TargetProvider` with a classmethod `for_run(cfg, cache,
-    builder, *, num_actions, live, shuffle_seed)`. Default: the cache's rows of the run's language
-    tasks (`CachedTargets`); ELLM's: its goals (`GoalTargets`); a plug-in may name its own."""
+    target_kind: ClassVar[type] = TargetProvider
+    """With `needs_targets`: the kind of targets the bonus reads, a `TargetProvider` protocol (this
+    one: the targets of the run's language tasks; ELLM's `GoalProvider`: each state's suggested goals
+    too). The bonus names no provider: whoever assembles the run builds the one registered for this
+    kind (`illm_tools.rl.providers.TARGET_PROVIDERS`) and the trainer hands it to the bonus
+    (`use_provider`); a plug-in declares a kind of its own and registers its provider there."""
     pays_reward: bool = True
     """Whether the rewards reach the advantages; False trains the bonus's models and pays nothing
     (e.g. `illm-noreward`, paper Table 3). Set by the registry entry, read by the trainer."""

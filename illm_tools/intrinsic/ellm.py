@@ -3,8 +3,9 @@ Reinforcement Learning with Large Language Models", ICML 2023; code github.com/y
 the agent for transitions that achieve a goal the LLM suggested for the state it acted from.
 
 Method `ellm` (registry.py); settings `ELLMConfig` (`illm train --method ellm --bonus-option
-KEY=VALUE`). Declares `needs_targets` with `target_tasks = ("goal",)`: the run's provider is a
-`illm_tools.rl.targets.GoalTargets`, which reads each state's goals from the annotation cache
+KEY=VALUE`). Declares `needs_targets` with `target_tasks = ("goal",)` and `target_kind =
+GoalProvider`: the run's provider is the one registered for that kind
+(`illm_tools.rl.providers`), `illm_tools.rl.targets.GoalTargets`, which reads each state's goals from the annotation cache
 (`illm annotate --tasks goal`: the paper's Appendix D.2 goal prompt, generated greedily and parsed
 into a list, `illm_tools.tasks.goals.parse_goals`) with the same keys and live fallback as iLLM's
 targets. Reads `images`, `actions`, `next_images`, `ends` and `target_mask` (see base.py), and the
@@ -45,7 +46,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -53,6 +54,15 @@ import torch
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus, TargetProvider
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer
+
+
+@runtime_checkable
+class GoalProvider(TargetProvider, Protocol):
+    """The targets ELLM reads (its `target_kind`): a `TargetProvider` whose `goals`, after each
+    `targets` call, hold each record's suggested goals (a tuple, possibly empty), None where the
+    state has no goal row; its `targets` carry only the mask."""
+
+    goals: list[tuple[str, ...] | None]
 
 
 @dataclass
@@ -81,7 +91,7 @@ class ELLMBonus(IntrinsicBonus):
     config_class = ELLMConfig
     needs_targets = True
     target_tasks: ClassVar[tuple[str, ...]] = ("goal",)
-    target_provider: ClassVar[str] = "illm_tools.rl.targets:GoalTargets"
+    target_kind: ClassVar[type] = GoalProvider
 
     def __init__(self, config: ELLMConfig, ctx: BonusContext, embedder=None):
         from illm_tools.envs.captions import captioner

@@ -121,11 +121,6 @@ class Method:
         """The language tasks whose cache rows the run reads (with `needs_targets`)."""
         return tuple(self.bonus_class.target_tasks)
 
-    @cached_property
-    def provider_class(self) -> type:
-        """The run's target provider class (the bonus's `target_provider`, loaded)."""
-        return load_reference(self.bonus_class.target_provider)
-
     @property
     def pays(self) -> bool:
         """Whether an intrinsic reward reaches the advantages (a bonus that pays, paid)."""

@@ -37,9 +37,9 @@ def make_pool(cfg: TrainConfig):
 
 
 def make_provider(cfg: TrainConfig, num_actions: int):
-    """The target provider of a run whose bonus needs LLM targets, or None: the class its bonus names
-    (`target_provider`: `CachedTargets`, the rows of iLLM's language tasks; ELLM's `GoalTargets`, its
-    suggested goals), reading the cache under the run's `LLMSpec` and `AnnotationSetup`, with the live
+    """The target provider of a run whose bonus needs LLM targets, or None: the class registered for
+    the kind of targets its bonus reads (`target_kind`, `illm_tools.rl.providers`: `CachedTargets`,
+    the rows of iLLM's language tasks; ELLM's `GoalTargets`, its suggested goals), reading the cache under the run's `LLMSpec` and `AnnotationSetup`, with the live
     annotator (`make_live`). Returns (provider, cfg) where cfg carries the model's embedding dimension
     (iLLM's heads predict it)."""
     if not cfg.needs_targets:
@@ -50,6 +50,7 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "see `illm annotate`), or use --method ppo")
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.intrinsic.registry import get_method
+    from illm_tools.rl.providers import provider_class
     from illm_tools.tasks.setup import check_setup
     from illm_tools.tasks.registry import get_task
 
@@ -67,9 +68,9 @@ def make_provider(cfg: TrainConfig, num_actions: int):
         check_setup(cache, builder, llm=llm, tasks=setup.tasks)
     if method.policy_heads:  # the heads predict the model's embeddings
         cfg = dataclasses.replace(cfg, embedding_dim=llm.hidden_size())
-    provider = method.provider_class.for_run(cfg, cache, builder, num_actions=num_actions,
-                                             live=make_live(cfg, llm, setup, cache),
-                                             shuffle_seed=method.target_shuffle)  # illm-shuffled: another state's
+    provider = provider_class(method.bonus_class).for_run(cfg, cache, builder, num_actions=num_actions,
+                                                          live=make_live(cfg, llm, setup, cache),
+                                                          shuffle_seed=method.target_shuffle)  # illm-shuffled
     return provider, cfg
 
 
