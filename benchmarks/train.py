@@ -36,6 +36,7 @@ from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.live import SyncLive
 from illm_tools.rl.ppo import Trainer
 from illm_tools.rl.run import make_pool
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.rl.run import make_provider, torch_threads
 from illm_tools.rl.targets import CachedTargets
 
@@ -46,7 +47,8 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
     pool = make_pool(cfg)
     provider = None
     if live_async:
-        provider, cfg = make_provider(cfg, len(pool.action_names))
+        cfg = cfg.resolved()
+        provider = make_provider(cfg, len(pool.action_names))
     elif cfg.uses_heads:
         cache = AnnotationCache(cache_dir)
         annotator = Annotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", history_len=cfg.history_len,
@@ -94,11 +96,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         def config(mode: str, name: str, live_budget: int) -> TrainConfig:
             return TrainConfig(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
-                               num_envs=args.num_envs, num_steps=args.num_steps, embedding_dim=DIM,
+                               num_envs=args.num_envs, num_steps=args.num_steps,  # SmolLM2's width: DIM
                                live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads)
 
         if args.mode == "hop":
-            hop = {"obs_mode": "hop", "history_len": args.history, "model_dtype": args.dtype}
+            hop = {"obs_mode": "hop", "history_len": args.history, "llm": LLMSpec(dtype=args.dtype)}
             sps_ppo, last_ppo = run(config("ppo", "ppo", 0), None)
             sps_ppo_hop, last_ppo_hop = run(dataclasses.replace(config("ppo", "ppo-hop", 0), **hop), None)
             run(dataclasses.replace(config("illm", "fill", 10**9), **hop), Path(tmp) / "ann")  # fills the cache

@@ -8,7 +8,9 @@ parameters are given to it as one. A field may carry a short alias kept from the
 command line (`--frames` for `total_steps`); dict fields are repeatable `--x-option KEY=VALUE`
 options; bool fields are `--x/--no-x` flags; `arguments` are positional (a list field: several).
 A field whose type is itself a dataclass (a stage's `llm: LLMSpec`) is flattened: its fields are
-options of their own (`--model`, `--dtype`), gathered back into it by `config_from_options`.
+options of their own (`--model`, `--dtype`), gathered back into it by `config_from_options`; `names`
+gives such a field's parameter another name than its own (`{"llm.dtype": "model_dtype"}`), and
+`exclude` leaves out a nested field by its dotted name (`"llm.device"`).
 """
 
 from __future__ import annotations
@@ -54,39 +56,44 @@ def _optional(hint: Any) -> tuple[Any, bool]:
 def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]] | None = None,
                          dict_flags: dict[str, str] | None = None, exclude: set[str] = frozenset(),
                          defaults: dict[str, Any] | None = None, required: set[str] = frozenset(),
-                         extra_help: dict[str, str] | None = None,
-                         arguments: set[str] = frozenset()) -> list[inspect.Parameter]:
+                         extra_help: dict[str, str] | None = None, arguments: set[str] = frozenset(),
+                         names: dict[str, str] | None = None, _prefix: str = "") -> list[inspect.Parameter]:
     """One keyword parameter per field of `cls` (minus `exclude`) with a `typer.Option` default.
 
     aliases: field -> an extra flag kept from the documented CLI (a tuple: the only flags); dict_flags: dict field -> its
     repeatable KEY=VALUE flag; defaults: CLI defaults that differ from the field's (e.g. None for
     "take it from a preset"); required: fields the command needs; extra_help: appended to help;
-    arguments: positional fields (required)."""
+    arguments: positional fields (required); names: a nested field's parameter name by its dotted
+    name (the other arguments name it by its parameter name)."""
     aliases, dict_flags, defaults, extra_help = aliases or {}, dict_flags or {}, defaults or {}, extra_help or {}
+    renamed = names or {}
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     params = []
     for f in dataclasses.fields(cls):
-        if f.name in exclude:
+        dotted = _prefix + f.name
+        if f.name in exclude or dotted in exclude:
             continue
+        name = renamed.get(dotted, f.name)
         hint, nullable = _optional(hints[f.name])
         if dataclasses.is_dataclass(hint):  # a nested config: its fields are options of their own
             params += dataclass_parameters(hint, aliases=aliases, dict_flags=dict_flags, exclude=exclude,
-                                           defaults=defaults, required=required, extra_help=extra_help)
+                                           defaults=defaults, required=required, extra_help=extra_help,
+                                           names=renamed, _prefix=dotted + ".")
             continue
-        help_text = " ".join(filter(None, [docs.get(f.name, ""), extra_help.get(f.name, "")]))
-        if f.name in arguments:
-            params.append(inspect.Parameter(f.name, inspect.Parameter.POSITIONAL_OR_KEYWORD,
+        help_text = " ".join(filter(None, [docs.get(f.name, ""), extra_help.get(name, "")]))
+        if name in arguments:
+            params.append(inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD,
                                             annotation=list[Path] if typing.get_origin(hint) in (list, tuple) else hint,
                                             default=typer.Argument(..., help=help_text)))
             continue
-        if f.name in dict_flags:
-            decls, annotation, default = [dict_flags[f.name]], list[str], None
+        if name in dict_flags:
+            decls, annotation, default = [dict_flags[name]], list[str], None
             help_text += " Repeatable KEY=VALUE."
         else:
-            alias = aliases.get(f.name)
+            alias = aliases.get(name)
             # the documented one first; a tuple of flags replaces the field's own (its name means another thing)
-            names = list(alias) if isinstance(alias, tuple) else ([alias] if alias else []) + [flag(f.name)]
+            names = list(alias) if isinstance(alias, tuple) else ([alias] if alias else []) + [flag(name)]
             if hint is bool:
                 decls = [f"{names[0]}/--no-{names[0][2:]}"] + names[1:]
             else:
@@ -101,13 +108,13 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
             annotation = hint if not nullable else typing.Optional[hint]  # noqa: UP007 - Typer reads Optional
             if hint is bool and nullable:
                 annotation = typing.Optional[bool]  # noqa: UP007
-            default = ... if f.name in required else defaults.get(
-                f.name, f.default if f.default is not dataclasses.MISSING else None)
+            default = ... if name in required else defaults.get(
+                name, f.default if f.default is not dataclasses.MISSING else None)
             if isinstance(default, Path):
                 default = str(default)
             elif isinstance(default, tuple):
                 default = ",".join(default)
-        params.append(inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
+        params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
                                         default=typer.Option(default, *decls, help=help_text,
                                                              show_default=default is not None)))
     return params

@@ -10,15 +10,14 @@ import typer
 
 from cli.common import emit_json, progress, stop_on_signals
 from cli.errors import friendly
+from illm_tools.rl.names import FLAGS
 
-# flags kept from the documented command line beside each field's own (`--frames` = `--total-steps`)
-ALIASES = {"env_id": "--env", "run_dir": "--out", "obs_mode": ("--mode",),
-           "total_steps": "--frames", "history_len": "--history", "model_dtype": "--dtype"}
+# flags kept from the documented command line beside each field's own (`--frames` = `--total-steps`); `--mode` alone
 DICT_FLAGS = {"bonus_options": "--bonus-option", "network_options": "--network-option", "env_options": "--env-option",
               "task_weights": "--task-weight"}
-WEIGHTS = ("lambda_a", "beta_hc", "ext_coef", "int_coef", "reward_streams", "action_target", "bonus_schedule",
-           "int_ext_cap")  # illm_tools.rl.config.PRESET_FIELDS: what a --bonus-preset names
-NOT_OPTIONS = {"embedding_dim"}  # set from the model's hidden size when the run starts
+ALIASES = {**{k: v for k, v in FLAGS.items() if k not in DICT_FLAGS}, "obs_mode": ("--mode",)}
+NAMES = {"llm.dtype": "model_dtype"}  # the LLM's dtype keeps its flat name (illm_tools.rl.names), --dtype its flag
+NOT_OPTIONS = {"llm.device", "llm.offline"}  # the LLM's device is --llm-device; a run never downloads
 EXAMPLE = ("Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm --frames 200000 --seed 0 "
            "--out runs/gotolocal-illm")
 
@@ -34,77 +33,18 @@ def _given(ctx: typer.Context) -> set[str]:
     return {name for name in ctx.params if getattr(ctx.get_parameter_source(name), "name", "") == "COMMANDLINE"}
 
 
-def _flag(name: str) -> str:
-    alias = ALIASES.get(name, DICT_FLAGS.get(name, "--" + name.replace("_", "-")))
-    return alias[0] if isinstance(alias, tuple) else alias
-
-
-def resumed_config(ctx: typer.Context, out: Path, fields: dict):
-    """The TrainConfig of `illm train --out RUN --resume`: the run's own settings from its
-    config.json, with the options given now applied where a resumed run may change them
-    (RESUMABLE_CHANGES: --frames, --live-budget, threads, ...). Any other option that differs
-    from the run's setting is refused in one line naming it; the run folder may have moved."""
-    from illm_tools.errors import UsageError
-    from illm_tools.rl.checkpoint import RESUMABLE_CHANGES, read_config
-    from illm_tools.rl.config import TrainConfig
-
-    stored = read_config(out)
-    given = _given(ctx) - {"resume", "run_dir"}
-    if "bonus_preset" in given:  # a preset stands for its settings
-        given |= {w for w in WEIGHTS if w not in given}
-    changes = {name: fields[name] for name in given if name in fields}
-    refused = sorted(f"{_flag(k)} (the run has {stored.get(k)!r})"
-                     for k, v in changes.items() if stored.get(k) != v and k not in RESUMABLE_CHANGES)
-    if refused:
-        allowed = sorted(_flag(k) for k in RESUMABLE_CHANGES if k in fields and k != "resume")
-        raise UsageError(f"--resume continues {out} with its own settings, and {', '.join(refused)} would change what "
-                         f"it learns: leave {'them' if len(refused) > 1 else 'it'} out, or train into a new --out "
-                         f"(a resumed run may change {', '.join(allowed)})")
-    return TrainConfig.from_dict({**stored, **changes, "run_dir": str(out), "resume": True})
-
-
 def train_config(ctx: typer.Context, options: dict):
-    """The run's TrainConfig from the generated options (presets expanded, KEY=VALUE parsed)."""
+    """The run's TrainConfig from the generated options (KEY=VALUE parsed), built by `run_config`:
+    presets expanded, a resumed run's own settings merged, the cache's setup adopted (said in one line)."""
     from illm_tools.intrinsic.registry import get_method
-    from illm_tools.rl.config import TrainConfig, bonus_weights
+    from illm_tools.rl.build import run_config
     from illm_tools.settings import parse_pairs
-    from illm_tools.tasks.registry import parse_tasks
 
-    options = dict(options)
-    preset = options.pop("bonus_preset")
-    spec = get_method(options["method"])
-    weights = bonus_weights(preset or spec.preset, **{w: options.pop(w) for w in WEIGHTS})
-    fields = {**options, **weights, "run_dir": Path(options["run_dir"]),
-              "cache": Path(options["cache"]) if options.get("cache") else None}
+    settings = dict(options)
     for name, option in DICT_FLAGS.items():
-        fields[name] = parse_pairs(options.get(name), option)
-    fields["bonus_options"] = spec.typed_options(fields["bonus_options"])
-    fields["tasks"] = list(parse_tasks(options["tasks"]))  # as config.json keeps them
-    if options["resume"]:
-        return resumed_config(ctx, fields["run_dir"], fields)
-    cfg = TrainConfig(**fields)
-    return adopted(ctx, cfg)
-
-
-def adopted(ctx: typer.Context, cfg):
-    """`cfg` with its cache's setup adopted (`illm_tools.tasks.setup.adopt`) when the run reads targets
-    from a cache and none of the model options was given; says which in one line."""
-    import dataclasses
-
-    from illm_tools.tasks.setup import ADOPTED, adopt
-
-    if not cfg.needs_targets or cfg.cache is None or _given(ctx) & set(ADOPTED) or \
-            not (cfg.cache / "manifest.json").is_file():
-        return cfg
-    from illm_tools.cache.store import AnnotationCache
-
-    renderer = "hop@" if cfg.obs_mode == "hop" else cfg.renderer
-    setup = adopt(AnnotationCache(cfg.cache), cfg.target_tasks, renderer)
-    if setup is None:
-        return cfg
-    typer.echo(f"adopting the cache's setup: {setup.options()} ({setup.entries:,} entries; give any of these "
-               "options to choose another)", err=True)
-    return dataclasses.replace(cfg, **setup.fields())
+        settings[name] = parse_pairs(options.get(name), option)
+    settings["bonus_options"] = get_method(options["method"]).typed_options(settings["bonus_options"])
+    return run_config(settings, _given(ctx), say=lambda line: typer.echo(line, err=True))
 
 
 def cache_holds(path: Path) -> str:
@@ -156,12 +96,13 @@ def no_target_line(cfg, coverage: list[float], live: float = 0.0) -> str | None:
 def _train_parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.intrinsic.registry import method_help  # light: names only, no torch
-    from illm_tools.rl.config import BONUS_PRESETS, TrainConfig, preset_text
-    from illm_tools.rl.live import AnnotatorAccess
+    from illm_tools.rl.config import TrainConfig
+    from illm_tools.rl.live_remote import AnnotatorAccess
+    from illm_tools.rl.presets import BONUS_PRESETS, PRESET_FIELDS as WEIGHTS, preset_text
 
     params = dataclass_parameters(
         TrainConfig, aliases=ALIASES, dict_flags=DICT_FLAGS, exclude=NOT_OPTIONS, required={"run_dir"},
-        defaults={w: None for w in WEIGHTS},
+        names=NAMES, defaults={w: None for w in WEIGHTS},
         extra_help={"method": "One of: " + method_help() + ".",
                     **{w: "Default: from --bonus-preset." for w in WEIGHTS},
                     "bonus_options": "See illm_tools.intrinsic.registry (e.g. rnd: update_proportion=0.5).",
@@ -215,11 +156,6 @@ def register(app: typer.Typer) -> None:
         warn_empty_cache(cfg)
 
         score_name = suite_of(env).score_name  # an unknown env is refused before anything else is said
-        resumed_at = None
-        if cfg.resume and (out / "checkpoint.pt").exists():
-            from illm_tools.rl.checkpoint import load_checkpoint
-
-            resumed_at = int(load_checkpoint(out)["global_step"])
         if cfg.num_updates * cfg.batch_size != cfg.total_steps:
             typer.echo(f"--frames {cfg.total_steps:,} is not a whole number of rollouts ({cfg.num_envs} envs × "
                        f"{cfg.num_steps} steps = {cfg.batch_size:,} frames each): the run trains "
@@ -263,7 +199,7 @@ def register(app: typer.Typer) -> None:
         score = last.get("charts/score")
         score = f"last {score_name} {_rate(score)}" if score is not None and score == score else \
             f"no episode ended in the last update ({score_name} unknown)"
-        since = f", resumed at {resumed_at:,}" if resumed_at is not None else ""
+        since = f", resumed at {result['resumed_at']:,}" if result.get("resumed_at") is not None else ""
         typer.echo(f"trained {method} on {env} to {last.get('global_step', 0):,} frames{since} "
                    f"({last.get('charts/sps', 0):,.0f} steps/s); {score}{targets}{live} -> {out}")
         if none:

@@ -127,8 +127,8 @@ def test_bonus_options_are_typed_and_checked():
         TrainConfig(method="illm", bonus_options={"lambda_a": 0.1})
     with pytest.raises(UsageError, match="ppo has no bonus option"):
         TrainConfig(method="ppo", bonus_options={"scale": 1})
-    illm = get_method("illm").make_config(TrainConfig(lambda_a=0.3).to_dict(), {})
-    assert illm.lambda_a == 0.3 and illm.beta_hc == 0.5
+    illm = get_method("illm").make_config(TrainConfig.from_dict({"lambda_a": 0.3}).to_dict(), {})
+    assert illm.lambda_a == 0.3 and illm.beta_hc == 0.05  # the small preset's, TrainConfig's default
 
 
 # --- the trainer side -------------------------------------------------------------------------

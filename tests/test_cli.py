@@ -163,20 +163,19 @@ def test_frames_rounded_to_whole_rollouts_is_said(tmp_path, monkeypatch):
 
 
 def test_every_train_setting_is_an_option_named_as_its_field_with_its_default(tmp_path, monkeypatch):
-    import dataclasses
-
     import typer.main
 
     import illm_tools.rl.run as run_module
-    from cli.train import NOT_OPTIONS
+    from illm_tools.rl.build import run_config
     from illm_tools.rl.config import TrainConfig
+    from illm_tools.rl.names import flat_names
 
     command = typer.main.get_command(app).commands["train"]
     opts = {o for p in command.params for o in p.opts}
-    fields = [f for f in dataclasses.fields(TrainConfig) if f.name not in NOT_OPTIONS]
+    fields = flat_names(TrainConfig)  # every setting by its flat name (the LLM's and iLLM's too)
     dict_fields = {"bonus_options", "network_options", "env_options", "task_weights"}
     renamed = {"mode": "--method", "obs_mode": "--mode"}  # the method's field is "mode"; --mode is obs|hop
-    assert all(renamed.get(f.name, "--" + f.name.replace("_", "-")) in opts for f in fields if f.name not in dict_fields)
+    assert all(renamed.get(f, "--" + f.replace("_", "-")) in opts for f in fields if f not in dict_fields)
     wrong = runner.invoke(app, ["train", "--out", str(tmp_path / "w"), "--mode", "illm"])
     assert wrong.exit_code == 1 and "the method is --method" in wrong.output
     assert {"--frames", "--out", "--method", "--env", "--history", "--dtype", "--bonus-option"} <= opts
@@ -186,8 +185,8 @@ def test_every_train_setting_is_an_option_named_as_its_field_with_its_default(tm
                               "--clip-coef", "0.1", "--env-option", "num_dists=4", "--target-kl", "0.02"])
     assert out.exit_code == 0, out.output
     (cfg,) = seen
-    default = TrainConfig(run_dir=tmp_path / "r", method="ppo")
-    changed = {f.name for f in dataclasses.fields(TrainConfig) if getattr(cfg, f.name) != getattr(default, f.name)}
+    default = run_config({"run_dir": tmp_path / "r", "method": "ppo"})  # the Python API's path: the same builder
+    changed = {k for k, v in cfg.flat().items() if v != default.flat()[k]}
     assert changed == {"anneal_lr", "clip_coef", "env_options", "target_kl"}  # every other default is the field's
     assert cfg.env_options == {"num_dists": 4} and cfg.total_steps == 200_000
 

@@ -79,11 +79,12 @@ def test_auto_is_recorded_resolved_and_a_run_may_resume_on_another_device(tmp_pa
 
 
 def _short_run(tmp_path, name, method, device):
+    from illm_tools.llm.spec import LLMSpec
     from illm_tools.rl import TrainConfig, Trainer
 
     cfg = TrainConfig(run_dir=tmp_path / name, method=method, num_envs=4, num_steps=32, total_steps=256,
-                      embedding_dim=8, head_hidden=32, tensorboard=False, device=device, update_epochs=2,
-                      num_minibatches=2, heads_bf16=False)
+                      llm=LLMSpec("stub", "stub:8"), head_hidden=32, tensorboard=False, device=device,
+                      update_epochs=2, num_minibatches=2, heads_bf16=False)
     pool = FakePool(cfg.num_envs)
     trainer = Trainer(cfg, pool, FakeProvider(len(pool.action_names), cfg.embedding_dim))
     return trainer, trainer.train()

@@ -197,7 +197,7 @@ def test_train_cli_passes_preset_coefficients_and_action_target(tmp_path, monkey
                                       "--bonus-preset", "rnd", "--int-coef", "0.5", "--action-target", "argmax"])
     assert result.exit_code == 0, result.output
     cfg = seen[0]
-    assert (cfg.ext_coef, cfg.int_coef, cfg.lambda_a, cfg.beta_hc) == (2.0, 0.5, 0.8, 0.5)
+    assert (cfg.ext_coef, cfg.int_coef, cfg.illm.lambda_a, cfg.illm.beta_hc) == (2.0, 0.5, 0.8, 0.5)
     assert cfg.action_target == "argmax" and cfg.action_space == "auto"
     bad = CliRunner().invoke(app, ["train", "--method", "ppo", "--out", str(tmp_path / "r"), "--action-target", "x"])
     assert bad.exit_code == 1 and "--action-target" in bad.output

@@ -155,7 +155,7 @@ def test_device_and_quantisation_default_to_the_machine_and_the_alias():
     assert spec.device == "auto" and spec.quant == "auto"
     placed = spec.placed()
     assert placed.device == "cpu" and placed.quant == "none"  # this machine has no CUDA device
-    assert TrainConfig().device == "auto" and TrainConfig().quant == "auto"
+    assert TrainConfig().device == "auto" and TrainConfig().llm.quant == "auto"
     assert backend_quant("transformers", "llama3", "auto", "cuda") == "4bit"
     assert backend_quant("transformers", "meta-llama/Llama-2-7b-hf", "auto", "cuda:1") == "4bit"
     assert backend_quant("transformers", "llama3", "auto", "cpu") == "none"

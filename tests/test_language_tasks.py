@@ -74,12 +74,12 @@ def test_the_bonus_pays_and_distils_each_task_on_its_own_block():
 
 def test_task_settings_are_checked():
     with pytest.raises(UsageError, match="weight is --beta-hc, not --task-weight"):
-        TrainConfig(tasks=("summary",), task_weights={"summary": 1.0})
+        TrainConfig.from_dict({"tasks": ("summary",), "task_weights": {"summary": 1.0}})
     with pytest.raises(UsageError, match="goal is not one of this run's --tasks"):
-        TrainConfig(tasks=("summary", "plan"), task_weights={"goal": 0.3})
+        TrainConfig.from_dict({"tasks": ("summary", "plan"), "task_weights": {"goal": 0.3}})
     with pytest.raises(UsageError, match="--method rnd has none"):
-        TrainConfig(method="rnd", tasks=("plan",))
-    assert TrainConfig(tasks="goal+plan").text_tasks == ("goal", "plan")
+        TrainConfig.from_dict({"method": "rnd", "tasks": ("plan",)})
+    assert TrainConfig.from_dict({"tasks": "goal+plan"}).text_tasks == ("goal", "plan")
 
 
 @pytest.mark.slow  # 6 s: the fast tier's time is spent

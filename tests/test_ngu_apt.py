@@ -353,14 +353,14 @@ def test_illm_shuffled_is_illm_on_shuffled_targets_end_to_end(tmp_path, monkeypa
     plain = CachedTargets(cache, annotator.builder(ENV, RENDERER), calibration="sum", num_actions=6,
                           embedding_dim=DIM, live=SyncLive(annotator, AnnotationSetup(ENV, RENDERER), budget=10**6))
     common = dict(num_envs=4, num_steps=32, total_steps=128, tensorboard=False, update_epochs=1, num_minibatches=2,
-                  embedding_dim=DIM, head_hidden=32, cache=tmp_path / "ann", model=f"synthetic:{DIM}", backend="stub",
+                  head_hidden=32, cache=tmp_path / "ann", model=f"synthetic:{DIM}", backend="stub",
                   live_budget=0)
-    Trainer(TrainConfig(run_dir=tmp_path / "fill", method="illm", **common), FakePool(4), plain).train()
+    Trainer(TrainConfig.from_dict({"run_dir": tmp_path / "fill", "method": "illm", **common}), FakePool(4), plain).train()
 
-    cfg = TrainConfig(run_dir=tmp_path / "shuffled", method="illm-shuffled", **common)
-    provider, cfg = make_provider(cfg, len(ACTIONS))
+    cfg = TrainConfig.from_dict({"run_dir": tmp_path / "shuffled", "method": "illm-shuffled", **common})
+    provider = make_provider(cfg, len(ACTIONS))
     assert provider.shuffle is not None and provider.shuffle.seed == 0
-    assert make_provider(TrainConfig(method="illm", **common), len(ACTIONS))[0].shuffle is None
+    assert make_provider(TrainConfig.from_dict({"method": "illm", **common}), len(ACTIONS)).shuffle is None
     trainer = Trainer(cfg, FakePool(4), provider)
     assert isinstance(trainer.bonus, ILLMBonus) and trainer.net.has_heads
     looked_up, real_targets = [], provider.targets

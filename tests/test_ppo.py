@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from illm_tools.errors import OutputExistsError, UsageError
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.rl import TrainConfig, Trainer, gae, load_checkpoint, load_policy, make_pool
 
 from fakes import ACTIONS, FakePool, FakeProvider, RefusingProvider, make_trainer  # noqa: F401
@@ -159,7 +160,7 @@ def test_illm_mode_needs_a_provider(tmp_path):
 
 def test_real_babyai_pool_short_run_and_load_policy(tmp_path):
     cfg = TrainConfig(env_id="BabyAI-GoToRedBallGrey-v0", run_dir=tmp_path / "run", num_envs=4, num_steps=32,
-                      total_steps=128, embedding_dim=8, head_hidden=32, tensorboard=False)
+                      total_steps=128, llm=LLMSpec("stub", "stub:8"), head_hidden=32, tensorboard=False)
     pool = make_pool(cfg)
     provider = FakeProvider(len(pool.action_names), cfg.embedding_dim)
     metrics = Trainer(cfg, pool, provider).train()

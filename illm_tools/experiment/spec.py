@@ -2,7 +2,6 @@
 grid planned into runs: each run's TrainConfig, folder and status, before anything trains."""
 from __future__ import annotations
 
-import dataclasses
 import fnmatch
 import itertools
 import shutil
@@ -255,15 +254,17 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
 
 
 def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> None:
-    """Set a TrainConfig field (or env_options.KEY, or bonus_preset) in `fields`, refusing unknown names."""
+    """Set a run setting (by its flat name, `illm_tools.rl.names`: as `illm train`'s options name it; or
+    env_options.KEY, or bonus_preset) in `fields`, refusing unknown names."""
     from illm_tools.rl.config import TrainConfig
+    from illm_tools.rl.names import flat_names
 
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    known = set(flat_names(TrainConfig))
     if name.startswith("env_options."):
         fields.setdefault("env_options", {})[name.split(".", 1)[1]] = value
         return
-    if name == "bonus_preset":  # a preset stands for its settings (`bonus_weights`, below), as in `illm train`
-        from illm_tools.rl.config import bonus_weights
+    if name == "bonus_preset":  # a preset stands for its settings (`run_config` expands it), as in `illm train`
+        from illm_tools.rl.presets import bonus_weights
 
         try:
             bonus_weights(value)
@@ -279,8 +280,8 @@ def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> Non
 
         close = difflib.get_close_matches(name, sorted(known), n=1)
         hint = f" (did you mean {close[0]}?)" if close else ""
-        raise UsageError(f"{spec.line(*where)}: unknown setting {name!r}{hint}; settings are TrainConfig fields "
-                         "(`illm train --help`) or env_options.KEY")
+        raise UsageError(f"{spec.line(*where)}: unknown setting {name!r}{hint}; settings are `illm train`'s "
+                         "options by name (`illm train --help`) or env_options.KEY")
     fields[name] = value
 
 
@@ -314,7 +315,6 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
     from illm_tools.envs import suite_of
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.checkpoint import CHECKPOINT_NAME, load_checkpoint
-    from illm_tools.rl.config import PRESET_FIELDS, TrainConfig, bonus_weights
 
     results = Path(results)
     for i, method in enumerate(spec.methods):
@@ -351,24 +351,31 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
                         _apply(base, key, setting, spec, (*where[name], name))
             else:
                 _apply(base, name, value, spec, (*where[name], name))
-        weights = bonus_weights(base.pop("bonus_preset", None) or get_method(method).preset,
-                                **{w: base.pop(w, None) for w in PRESET_FIELDS})
         for seed in spec.seeds:
             run_dir = results / env_id.replace("/", "-") / label / f"seed{seed}"
-            try:
-                cfg = TrainConfig(**{**base, **weights, "env_id": env_id, "method": method, "seed": seed,
-                                     "total_steps": spec.env_frames.get(env_id, spec.frames), "run_dir": run_dir,
-                                     "threads": 1})
-            except (IllmError, TypeError) as e:
-                raise UsageError(f"{spec.line('settings')}: the run {env_id} {label} seed {seed} is refused: "
-                                 f"{e}") from None
+            settings = {**base, "env_id": env_id, "method": method, "seed": seed,
+                        "total_steps": spec.env_frames.get(env_id, spec.frames), "run_dir": run_dir, "threads": 1}
+            cfg = _run_config(settings, spec, f"{env_id} {label} seed {seed}")
             status = "new"
             if (run_dir / CHECKPOINT_NAME).exists():
                 done = int(load_checkpoint(run_dir)["global_step"])
                 status = "done" if done >= cfg.num_updates * cfg.batch_size else "resume"
-                cfg = dataclasses.replace(cfg, resume=status == "resume")
+                if status == "resume":  # its own settings from its folder, as `illm train --resume` reads them
+                    cfg = _run_config({**settings, "resume": True}, spec, f"{env_id} {label} seed {seed}")
             runs.append(Run(env_id, label, seed, cfg, status))
     return runs
+
+
+def _run_config(settings: dict, spec: Spec, run: str):
+    """A grid run's TrainConfig, built as `illm train` builds one (`illm_tools.rl.build.run_config`:
+    preset expanded, the cache's setup adopted, a resumed run's settings merged); refused in one line
+    naming the run."""
+    from illm_tools.rl.build import run_config
+
+    try:
+        return run_config(settings)
+    except (IllmError, TypeError) as e:
+        raise UsageError(f"{spec.line('settings')}: the run {run} is refused: {e}") from None
 
 
 def select(runs: list[Run], only: list[str] | tuple = ()) -> list[Run]:
@@ -414,9 +421,8 @@ def unavailable_models(runs: list[Run]) -> dict[str, int]:
     out: dict[str, int] = {}
     for run in runs:
         cfg = run.config
-        if run.status != "done" and (cfg.needs_targets or cfg.obs_mode == "hop") and cfg.backend == "transformers" \
-                and cfg.llm_model in missing:
-            out[cfg.llm_model] = out.get(cfg.llm_model, 0) + 1
+        if run.status != "done" and cfg.uses_llm and cfg.llm.backend == "transformers" and cfg.llm.model in missing:
+            out[cfg.llm.model] = out.get(cfg.llm.model, 0) + 1
     return out
 
 

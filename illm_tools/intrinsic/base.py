@@ -156,8 +156,8 @@ class IntrinsicBonus(ABC):
 
     config_class: ClassVar[type | None] = None
     """Dataclass of the bonus's settings (fields with defaults and docstrings); None: no settings.
-    Its ClassVar `RUN_SETTINGS` names fields whose value is the run's TrainConfig field of the same
-    name (so they stay top-level options, e.g. iLLM's lambda_a) rather than a bonus option."""
+    Its ClassVar `RUN_FIELD` names the TrainConfig field that holds it (its fields are then options
+    of `illm train` of their own, e.g. iLLM's lambda_a in `TrainConfig.illm`) rather than bonus options."""
     needs_targets: ClassVar[bool] = False
     """The run must supply LLM targets (a `TargetProvider`); the batches then carry target_*."""
     policy_heads: ClassVar[bool] = False

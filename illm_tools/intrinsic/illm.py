@@ -2,7 +2,7 @@
 
 Methods `illm` and `illm-noreward` (registry.py). Declares `needs_targets` (the run supplies LLM
 targets) and `policy_heads` (the policy network carries f^a / f^hc, trained through `aux_loss`).
-Settings: `ILLMConfig`, whose fields are the run's own (TrainConfig) settings of the same names.
+Settings: `ILLMConfig` (illm_config.py), a training run's `TrainConfig.illm`.
 
 Reads (rewards: [T, N, ...]; loss: [B, ...]; see base.py):
   action_logits  f^a's logits over the valid actions      [.., A]
@@ -27,9 +27,13 @@ Choices (documented here once):
 - r^hc = clip(1 - cos(f^hc, target), 0, 1).
 - All are zero where there is no target (a step has one when the cache answers every task of the
   run; those without are counted), each is divided by the running std of its own discounted
-  return (normalize.py), and the bonus paid is lambda * r^a + beta * r^hc (+ w_goal * r^goal +
-  w_plan * r^plan with those tasks). The trainer feeds it to a separate intrinsic value head (RND's
-  two streams); with unit advantage weights this is PPO on r* = r + lambda r^a + beta r^hc.
+  return (normalize.py), and the bonus paid is b = lambda * r^a + beta * r^hc (+ w_goal * r^goal +
+  w_plan * r^plan with those tasks). By default (`reward_streams` 2) the trainer feeds b to a second
+  critic, the intrinsic value head, with its own non-episodic return (RND's two streams), and sums
+  the two advantages weighted by ext_coef and int_coef. That is not PPO on r* = r + lambda r^a +
+  beta r^hc, even with unit weights: a second critic, and an intrinsic return that runs on across
+  episode ends, differ from one critic of the summed reward. `--reward-streams 1` is that one-stream
+  form (the paper's Algorithm 1).
 - The rewards of a rollout are paid for the state the agent acts from (paper Alg. 1, line 11):
   reward t belongs to state s_t, computed after the rollout from the updated heads in one batch.
 
@@ -43,8 +47,8 @@ Compared with CleanRL's RND (`cleanrl/ppo_rnd_envpool.py`), the reference most u
 - CleanRL filters over the wrong axis: it iterates over `curiosity_rewards.T` ([N, T]), so its
   "return" accumulates across envs at each time step (cleanrl issue #360); we, like the original
   openai/random-network-distillation code, accumulate over time per env. Its std differs from ours.
-- Weights: RND uses ext_coef 2, int_coef 1 (and gamma 0.999); we default to 1, 1, i.e. PPO on
-  r* = r + lambda r^a + beta r^hc as the paper writes it (`illm train --bonus-preset rnd` for 2, 1).
+- Weights: RND uses ext_coef 2, int_coef 1 (and gamma 0.999); we default to 1, 1, the paper's
+  unit weights on r and the bonus, in two streams (`illm train --bonus-preset rnd` for 2, 1).
 - RND pays every step; here steps without an LLM target pay 0 and are left out of the variance,
   so at low coverage the std is that of the covered steps' returns. r^a and r^hc are normalised
   separately, then weighted by lambda and beta; RND has one bonus. We add 1e-8 to the std.
@@ -59,53 +63,14 @@ Compared with CleanRL's RND (`cleanrl/ppo_rnd_envpool.py`), the reference most u
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
 
-from illm_tools.errors import UsageError
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus
+from illm_tools.intrinsic.illm_config import ILLMConfig  # noqa: F401  (re-exported: the bonus's config)
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer
-from illm_tools.tasks.registry import DEFAULT_WEIGHT, get_task, parse_tasks, text_tasks
-
-
-@dataclass
-class ILLMConfig:
-    """iLLM's settings. Each is the training run's setting of the same name (`TrainConfig`,
-    `illm train --lambda-a` etc.), so they are not bonus options."""
-
-    RUN_SETTINGS: ClassVar[tuple[str, ...]] = ("lambda_a", "beta_hc", "summary_loss", "action_similarity", "tasks",
-                                               "task_weights")
-
-    lambda_a: float = 0.8
-    """Weight lambda of the action-generation bonus r^a (paper: 0.8)."""
-    beta_hc: float = 0.5
-    """Weight beta of the history-compression bonus r^hc (paper: 0.5)."""
-    summary_loss: str = "cosine"
-    """Distillation loss of the text heads (f^hc and the goal/plan heads): cosine (1 - cos) or mse."""
-    action_similarity: str = "tv"
-    """Similarity behind r^a = 1 - sim: tv (1 - total variation) or bhattacharyya."""
-    tasks: tuple[str, ...] = ("action", "summary")
-    """The language tasks distilled and paid for (`illm_tools.tasks.registry`)."""
-    task_weights: dict = field(default_factory=dict)
-    """Bonus weights of the tasks without a setting of their own (goal, plan; default 0.5)."""
-
-    def __post_init__(self) -> None:
-        if self.summary_loss not in ("cosine", "mse"):
-            raise UsageError(f"summary_loss must be cosine or mse, got {self.summary_loss!r}")
-        if self.action_similarity not in ("tv", "bhattacharyya"):
-            raise UsageError(f"action_similarity must be tv or bhattacharyya, got {self.action_similarity!r}")
-        self.tasks = parse_tasks(self.tasks)
-
-    def weights(self) -> dict[str, float]:
-        """Each task's bonus weight: lambda_a, beta_hc, or `task_weights` (default 0.5)."""
-        out = {}
-        for task in self.tasks:
-            setting = get_task(task).weight_setting
-            out[task] = float(getattr(self, setting)) if setting else float(self.task_weights.get(task, DEFAULT_WEIGHT))
-        return out
+from illm_tools.tasks.registry import text_tasks
 
 
 def action_disagreement(logits: torch.Tensor, target: torch.Tensor, kind: str = "tv") -> torch.Tensor:
@@ -153,15 +118,16 @@ class ILLMBonus(IntrinsicBonus):
     needs_targets = True
     policy_heads = True
 
-    def __init__(self, num_envs: int, *, lambda_a: float = 0.8, beta_hc: float = 0.5,
-                 gamma: float = 0.99, pays_reward: bool = True, summary_loss: str = "cosine",
-                 action_similarity: str = "tv", tasks=("action", "summary"), task_weights: dict | None = None):
-        config = ILLMConfig(lambda_a=lambda_a, beta_hc=beta_hc, summary_loss=summary_loss,
-                            action_similarity=action_similarity, tasks=tasks, task_weights=dict(task_weights or {}))
-        self.lambda_a, self.beta_hc = lambda_a, beta_hc
+    def __init__(self, num_envs: int, *, gamma: float = 0.99, pays_reward: bool = True,
+                 config: ILLMConfig | None = None, **settings):
+        """`config`, or one made of `settings` (ILLMConfig's fields: lambda_a, beta_hc, tasks, ...),
+        whose defaults are ILLMConfig's."""
+        config = config if config is not None else ILLMConfig(**settings)
+        self.config = config
+        self.lambda_a, self.beta_hc = config.lambda_a, config.beta_hc
         self.pays_reward = pays_reward
-        self.summary_loss = summary_loss
-        self.action_similarity = action_similarity
+        self.summary_loss = config.summary_loss
+        self.action_similarity = config.action_similarity
         self.tasks = config.tasks
         self.text = text_tasks(self.tasks)
         self.weights = config.weights()
@@ -177,9 +143,7 @@ class ILLMBonus(IntrinsicBonus):
 
     @classmethod
     def from_config(cls, config: ILLMConfig, ctx: BonusContext) -> "ILLMBonus":
-        return cls(ctx.num_envs, lambda_a=config.lambda_a, beta_hc=config.beta_hc, gamma=ctx.int_gamma,
-                   summary_loss=config.summary_loss, action_similarity=config.action_similarity,
-                   tasks=config.tasks, task_weights=config.task_weights)
+        return cls(ctx.num_envs, gamma=ctx.int_gamma, config=config)
 
     def _text_blocks(self, pred: torch.Tensor, emb: torch.Tensor) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
         """Each text task's (prediction, target) block of the side-by-side [.., K * D] tensors."""

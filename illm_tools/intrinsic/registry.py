@@ -21,10 +21,10 @@ its reward is paid. `ppo` has no bonus. Built in:
   illm-shuffled  iLLM, each state's targets another cached state's (a fixed permutation): the
                  control that tells the LLM's knowledge from curiosity
 
-A bonus's config is built from two sources: the fields its `config_class` lists in `RUN_SETTINGS`
-take the run's TrainConfig setting of the same name (iLLM's lambda_a, beta_hc, ... stay top-level
-options, as checkpoints and reports know them); every other field takes `TrainConfig.bonus_options`
-(`illm train --bonus-option KEY=VALUE`) or its default. An option a config does not have is refused.
+A bonus's config is the run's own when its `config_class` names a TrainConfig field in `RUN_FIELD`
+(iLLM's `ILLMConfig` is `TrainConfig.illm`: lambda_a, beta_hc, ... are top-level options of `illm
+train`); otherwise its fields take `TrainConfig.bonus_options` (`illm train --bonus-option KEY=VALUE`)
+or their defaults. An option a config does not have is refused.
 """
 
 from __future__ import annotations
@@ -132,8 +132,9 @@ class Method:
         cls = self.config_class
         if cls is None:
             return []
-        shared = set(getattr(cls, "RUN_SETTINGS", ()))
-        return [f.name for f in dataclasses.fields(cls) if f.name not in shared]
+        if getattr(cls, "RUN_FIELD", None):  # the run's own settings, options of `illm train`
+            return []
+        return [f.name for f in dataclasses.fields(cls)]
 
     def parse_options(self, pairs: Iterable[str]) -> dict[str, Any]:
         """`KEY=VALUE` strings (as `--bonus-option` gives them) -> typed bonus options."""
@@ -152,14 +153,18 @@ class Method:
         return {k: _typed(k, hints.get(k), v) for k, v in options.items()}
 
     def make_config(self, run: Mapping[str, Any], options: Mapping[str, Any]) -> Any:
-        """The bonus's config: `RUN_SETTINGS` fields from `run` (a TrainConfig's `to_dict()`),
-        the others from `options` or their defaults. Refuses unknown or ill-typed options."""
+        """The bonus's config: the run's own (`run[RUN_FIELD]`, a TrainConfig's field: the object,
+        or its dict form), else one from `options` and the defaults. Refuses unknown or ill-typed
+        options."""
         options = self.typed_options(options)
         cls = self.config_class
         if cls is None:
             return None
-        values = {k: run[k] for k in getattr(cls, "RUN_SETTINGS", ()) if k in run}
-        return cls(**values, **options)
+        field = getattr(cls, "RUN_FIELD", None)
+        if field:
+            own = run.get(field)
+            return own if isinstance(own, cls) else cls(**(own or {}))
+        return cls(**options)
 
     def build(self, run: Mapping[str, Any], options: Mapping[str, Any], ctx: BonusContext) -> IntrinsicBonus:
         """A new bonus for a run: its config from the run's settings, its sizes from `ctx`."""

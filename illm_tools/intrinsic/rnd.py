@@ -22,8 +22,9 @@ docs.cleanrl.dev/rl-algorithms/ppo-rnd), the reference most users know:
   gradient norm clipped to 0.5;
 - the trainer's non-episodic intrinsic value head (int_episodic False) takes the reward, and the
   advantages are summed with RND's weights ext_coef 2, int_coef 1: `illm train --method rnd` uses
-  `--bonus-preset rnd` unless told otherwise (library users: `TrainConfig(method="rnd",
-  **bonus_weights("rnd"))`). The extrinsic gamma stays the run's (0.99; RND's Atari runs: 0.999).
+  `--bonus-preset rnd` unless told otherwise (library users: `illm_tools.rl.build.run_config(
+  {"method": "rnd", ...})` expands the method's preset as the command line does). The extrinsic
+  gamma stays the run's (0.99; RND's Atari runs: 0.999).
 
 Where this differs from CleanRL, on purpose:
 - the networks. CleanRL's are Atari convnets (8x8 stride-4 kernels on 84x84 frames) that a 7x7

@@ -28,7 +28,7 @@ import torch
 
 from illm_tools import durable
 from illm_tools.errors import DamagedFileError, UsageError
-from illm_tools.rl.config import upgrade_config
+from illm_tools.rl.names import flat_settings, upgrade_config
 
 log = logging.getLogger(__name__)
 
@@ -214,9 +214,10 @@ RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "device", "llm_device", 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:
     """Refuse to resume a checkpoint under other settings or another action list."""
-    saved, now = upgrade_config(state["config"]), cfg.to_dict()
+    # compared under the flat names (`illm_tools.rl.names`): a checkpoint of any version, the LLM's device left to llm_device
+    saved, now = flat_settings(state["config"]), flat_settings(cfg.to_dict())
     # a setting added after the checkpoint was written counts at its default value
-    defaults = type(cfg)().to_dict() if any(k not in saved for k in now) else {}
+    defaults = flat_settings(type(cfg)().to_dict()) if any(k not in saved for k in now) else {}
     changed = sorted(k for k in now if saved.get(k, defaults.get(k)) != now[k] and k not in RESUMABLE_CHANGES)
     if changed:
         raise UsageError(f"cannot resume with changed settings {changed}; "

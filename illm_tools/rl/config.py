@@ -2,37 +2,33 @@
 
 The CLI builds this dataclass from options (field docstrings become `--help`); the library
 validates it in `__post_init__` and derives the rest as properties, never by patching fields.
+It is composed: the LLM is one `LLMSpec` (`llm`), iLLM's settings one `ILLMConfig` (`illm`), each
+declared and validated once where it lives; `illm_tools.rl.names` maps the flat names of options,
+specs and older config.json files onto them. `illm_tools.rl.build.run_config` builds a run's config
+from what was given (presets, a resumed run, the cache's setup); the presets live in
+`illm_tools.rl.presets`, `EvalConfig` in `illm_tools.rl.eval_config` (all re-exported here).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import asdict, dataclass, field
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from illm_tools.errors import UsageError
+from illm_tools.intrinsic.illm_config import ILLMConfig
 from illm_tools.intrinsic.registry import METHODS, get_method
 from illm_tools.llm.spec import LLMSpec
+from illm_tools.rl.derived import DerivedSettings
+from illm_tools.rl.eval_config import EvalConfig  # noqa: F401  (re-exported: where callers found it)
+from illm_tools.rl.names import GROUPS, NESTED, RENAMED, flat_settings, group_dict, upgrade_config  # noqa: F401
+from illm_tools.rl.presets import BONUS_PRESETS, DEFAULT_PRESET, PRESET_FIELDS, bonus_weights, preset_text  # noqa: F401
 from illm_tools.tasks.calibration import ACTION_TARGETS, CALIBRATIONS
-from illm_tools.tasks.setup import AnnotationSetup
 
 MODES = METHODS  # the bonus registry, name -> method (a live mapping: methods registered later count)
 LIVE_MODES = ("sync", "async")
 OBS_MODES = ("obs", "hop")
-BONUS_PRESETS = {  # `illm train --bonus-preset`: how the bonus enters the advantages, in one name
-    "paper": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0},  # Appendix B
-    "rnd": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 2.0, "int_coef": 1.0},    # CleanRL RND's advantage weights
-    "ngu": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 0.3},    # NGU's r = r_e + 0.3 r_i
-    # the paper's weights / 10, two streams: the illm methods' default, chosen on the suite's tune half (IQM 0.972 over
-    # 4 levels x 3 seeds against paper's 0.645 and paper-literal's 0.057; docs/experiments/suite.md)
-    "small": {"lambda_a": 0.08, "beta_hc": 0.05, "ext_coef": 1.0, "int_coef": 1.0},
-    # Algorithm 1 as printed: r* = r + r^a + r^hc in one stream (one critic), f^a's target the argmax action
-    "paper-literal": {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0, "reward_streams": 1,
-                      "action_target": "argmax"},
-}
-PRESET_FIELDS = ("lambda_a", "beta_hc", "ext_coef", "int_coef", "reward_streams", "action_target", "bonus_schedule",
-                 "int_ext_cap")
-"""The settings a preset names (a preset leaves out those it keeps at TrainConfig's default)."""
 
 
 def parse_budget(value: int | str) -> int | str:
@@ -60,37 +56,8 @@ def parse_seeds(value) -> tuple[int, ...]:
     return seeds
 
 
-def bonus_weights(preset: str, **given) -> dict:
-    """Every PRESET_FIELDS setting of a BONUS_PRESETS entry (TrainConfig's default where the preset
-    names none); `given` values not None win."""
-    if preset not in BONUS_PRESETS:
-        raise UsageError(f"--bonus-preset must be one of {', '.join(BONUS_PRESETS)}, got {preset!r}")
-    defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig) if f.name in PRESET_FIELDS}
-    chosen = {**defaults, **BONUS_PRESETS[preset]}
-    return {k: v if given.get(k) is None else (float(given[k]) if isinstance(v, float) else given[k])
-            for k, v in chosen.items()}
-
-
-def preset_text(preset: str) -> str:
-    """A preset as --help shows it: "lambda_a 0.8, beta_hc 0.5, ...", the settings it names."""
-    return ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}" for k, v in BONUS_PRESETS[preset].items())
-
-
-RENAMED = {"mode": "method"}
-"""Settings renamed since runs were first written (old name -> new): config.json files and
-checkpoints of older runs are read under the new names."""
-
-
-def upgrade_config(data: dict) -> dict:
-    """A run's settings as written by any version, under this version's names (`RENAMED`)."""
-    out = dict(data)
-    for old, new in RENAMED.items():
-        if old in out and new not in out:
-            out[new] = out.pop(old)
-    return out
-
 @dataclass
-class TrainConfig:
+class TrainConfig(DerivedSettings):
     """One training run: environment, PPO, iLLM bonus, and bookkeeping."""
 
     # --- run -------------------------------------------------------------------------------
@@ -167,20 +134,9 @@ class TrainConfig:
     HELM's 100; at 1 every observation translates to nearly the same embedding."""
     history_len: int = 3
     """(observation, action) pairs before the current observation handed to the LLM (paper: 3)."""
-    embedding_dim: int = 576
-    """Dimension of the LLM summary embedding f^hc predicts (576 for SmolLM2-135M)."""
-    lambda_a: float = BONUS_PRESETS["paper"]["lambda_a"]
-    """Weight lambda of the action-generation bonus r^a (paper: 0.8)."""
-    beta_hc: float = BONUS_PRESETS["paper"]["beta_hc"]
-    """Weight beta of the history-compression bonus r^hc (paper: 0.5)."""
-    tasks: tuple[str, ...] = ("action", "summary")
-    """The language tasks the heads distil and the bonus pays for, any combination of action,
-    summary, goal and plan (paper Table 2; `illm_tools.tasks.registry`): each has its own head on
-    the policy's features and its own bonus, weighted by lambda_a (action), beta_hc (summary) or
-    `task_weights`. Methods with iLLM's heads only."""
-    task_weights: dict = field(default_factory=dict)
-    """Bonus weights of the tasks without a setting of their own by name (`--task-weight plan=0.3`);
-    unset ones weigh 0.5, as beta_hc (their heads are trained like f^hc, paper D.2)."""
+    illm: ILLMConfig = field(default_factory=ILLMConfig)
+    """iLLM's own settings (`illm_tools.intrinsic.illm_config.ILLMConfig`; options --lambda-a, --beta-hc,
+    --tasks, --task-weight, --summary-loss, --action-similarity). Defaults: the `small` preset."""
     distill_coef: float = 1.0
     """Weight of the head distillation losses in the total loss."""
     distill_epochs: int = 1
@@ -190,18 +146,14 @@ class TrainConfig:
     """Run the heads' matmuls in bfloat16 on CPU (float32 parameters and losses); None: when a
     timed matmul says bf16 is faster on this CPU (it is on some, not on others; `illm_tools.llm.dtype`).
     The run records the answer in config.json and keeps it on resume, on any machine."""
-    summary_loss: str = "cosine"
-    """Distillation loss of f^hc: cosine (1 - cos) or mse."""
-    action_similarity: str = "tv"
-    """Similarity behind r^a = 1 - sim: tv (1 - total variation) or bhattacharyya."""
     int_gamma: float = 0.99
     """Discount of the intrinsic return and of its normaliser (RND uses 0.99)."""
     int_episodic: bool = False
     """Cut the intrinsic return at episode ends; False is RND's non-episodic stream."""
-    ext_coef: float = BONUS_PRESETS["paper"]["ext_coef"]
+    ext_coef: float = BONUS_PRESETS[DEFAULT_PRESET]["ext_coef"]
     """Weight of the extrinsic advantage in the summed advantage."""
-    int_coef: float = BONUS_PRESETS["paper"]["int_coef"]
-    """Weight of the intrinsic advantage; 1 with ext_coef 1 matches r* = r + lambda r^a + beta r^hc."""
+    int_coef: float = BONUS_PRESETS[DEFAULT_PRESET]["int_coef"]
+    """Weight of the intrinsic advantage (summed with the extrinsic one; two streams, see `reward_streams`)."""
     reward_streams: int = 2
     """2: the bonus has its own value head and GAE (RND's two streams; `int_gamma`, `int_episodic`);
     1: the paper's Algorithm 1, r* = ext_coef r + int_coef b in one episodic stream with one critic."""
@@ -216,30 +168,11 @@ class TrainConfig:
     # --- LLM targets -----------------------------------------------------------------------
     cache: Path | None = None
     """Annotation cache the targets are read from (and live annotations written back to)."""
-    model: str | None = None
-    """LLM whose annotations are the targets (its fingerprint is part of every cache key); None: the
-    backend's own (smollm2-135m for transformers, oracle for oracle)."""
-    backend: str = "transformers"
-    """LLM backend serving `model` (`illm_tools.llm.backend`): transformers, oracle (a rule-based
-    annotator that knows BabyAI/MiniGrid: the positive control), or stub (deterministic answers from
-    the prompt, no weights: for tests and benchmarks)."""
-    oracle_noise: float = 0.0
-    """oracle: the share of states (fixed, keyed by the state) whose answers are random (1: an
-    annotator that knows nothing); part of the oracle's fingerprint."""
-    endpoint: str | None = None
-    """openai: the server's OpenAI base URL (http://host:8000/v1); `model` is the model as it serves it."""
-    api_key_env: str | None = None
-    """openai: the environment variable holding the server's API key (default OPENAI_API_KEY)."""
-    embed_endpoint: str | None = None
-    """openai: the URL of a pooling server of the same weights that embeds the summaries (as in `illm
-    annotate --embed-endpoint`)."""
-    model_dtype: str = "auto"
-    """Compute dtype of that LLM (part of its fingerprint, as in `illm annotate --dtype`): bfloat16,
-    float32, float16, or auto (bfloat16 on CUDA; on a CPU bfloat16 only where a timed matmul says
-    it is faster, `illm_tools.llm.dtype`). The run records the resolved dtype in config.json."""
-    quant: str = "auto"
-    """Quantisation of that LLM (part of its fingerprint, as in `illm annotate --quant`): none, 4bit, 8bit,
-    or auto (on CUDA what the model's alias says: 4bit for llama3/llama2; else none)."""
+    llm: LLMSpec = field(default_factory=LLMSpec)
+    """The LLM whose annotations are the targets (its fingerprint is part of every cache key), the live
+    annotator's and hop's (options --backend, --model, --dtype, --quant, --oracle-noise, --endpoint, ...,
+    as in `illm annotate`); its device is `llm_device`. `resolved()` records its dtype and
+    quantisation as chosen on this machine."""
     layout: str = "shared"
     """Prompt template layout, as in `illm annotate --layout`."""
     action_score: str = "sum"
@@ -299,13 +232,16 @@ class TrainConfig:
 
         self.run_dir = Path(self.run_dir)
         self.cache = Path(self.cache) if self.cache is not None else None
+        if not isinstance(self.illm, ILLMConfig):  # its dict form (config.json): validated by ILLMConfig
+            self.illm = ILLMConfig(**group_dict("illm", self.illm))
+        llm = self.llm if isinstance(self.llm, LLMSpec) else LLMSpec(**group_dict("llm", self.llm))
         check_numbers(self, positive=("total_steps", "num_envs", "num_steps", "num_minibatches", "update_epochs",
-                                      "mission_max_len", "head_hidden", "embedding_dim", "learning_rate", "clip_coef",
+                                      "mission_max_len", "head_hidden", "learning_rate", "clip_coef",
                                       "max_grad_norm", "target_kl", "hop_beta", "checkpoint_minutes", "threads"),
-                      non_negative=("seed", "num_dists", "hop_seed", "history_len", "lambda_a", "beta_hc", "ext_coef",
-                                    "int_coef", "int_ext_cap", "distill_coef", "distill_epochs", "ent_coef", "vf_coef", "llm_threads",
-                                    "checkpoint_every"),
-                      unit=("gamma", "gae_lambda", "int_gamma", "oracle_noise"),
+                      non_negative=("seed", "num_dists", "hop_seed", "history_len", "ext_coef", "int_coef",
+                                    "int_ext_cap", "distill_coef", "distill_epochs", "ent_coef", "vf_coef",
+                                    "llm_threads", "checkpoint_every"),
+                      unit=("gamma", "gae_lambda", "int_gamma"),
                       flags={"total_steps": "--frames", "history_len": "--history", "run_dir": "--out"})
         check_folder(self.run_dir, "--out")
         check_folder(self.cache, "--cache")
@@ -314,6 +250,9 @@ class TrainConfig:
         check_device(self.device)
         if self.llm_device is not None:
             check_device(self.llm_device, "--llm-device")
+        # the LLM runs on `llm_device` (default: the run's device): its spec says so, as a stage's does
+        self.llm = llm if llm.device == (self.llm_device or self.device) else \
+            dataclasses.replace(llm, device=self.llm_device or self.device)
         if self.action_score not in CALIBRATIONS:
             raise UsageError(f"--action-score must be {', '.join(CALIBRATIONS)}, got {self.action_score!r}")
         if self.action_target not in ACTION_TARGETS:
@@ -339,203 +278,83 @@ class TrainConfig:
                              f"{self.annotator!r}")
         self.live_budget = parse_budget(self.live_budget)
         self.env_seeds = parse_seeds(self.env_seeds)
-        from illm_tools.tasks.registry import get_task, parse_tasks
-
-        self.tasks = parse_tasks(self.tasks, "--tasks")
-        for name, weight in self.task_weights.items():
-            if name not in self.tasks:
-                raise UsageError(f"--task-weight {name}=...: {name} is not one of this run's --tasks "
-                                 f"({','.join(self.tasks)})")
-            if get_task(name).weight_setting is not None:
-                raise UsageError(f"the {name} task's weight is --{get_task(name).weight_setting.replace('_', '-')}, "
-                                 "not --task-weight")
-            if not isinstance(weight, (int, float)) or weight < 0:
-                raise UsageError(f"--task-weight {name}={weight!r}: a weight is a number >= 0")
-        if self.tasks != ("action", "summary") and not get_method(self.method).policy_heads:
-            reads = ", ".join(get_method(self.method).target_tasks) if get_method(self.method).needs_targets else ""
+        method = get_method(self.method)  # refuses an unknown method
+        if self.illm.tasks != ILLMConfig().tasks and not method.policy_heads:
+            reads = ", ".join(method.target_tasks) if method.needs_targets else ""
             raise UsageError(f"--tasks chooses the language tasks of iLLM's heads; --method {self.method} has none "
                              f"(it reads {reads or 'no language task'})")
-        get_method(self.method).make_config(self.to_dict(), self.bonus_options)  # refuses unknown methods, options
-        get_method(self.method).network_options(self.network_options)
+        method.make_config({"illm": self.illm}, self.bonus_options)  # refuses unknown or ill-typed bonus options
+        method.network_options(self.network_options)
         if self.batch_size % self.num_minibatches:
             raise UsageError(f"num_envs * num_steps = {self.batch_size} is not divisible by "
                              f"num_minibatches = {self.num_minibatches}")
-        if self.summary_loss not in ("cosine", "mse"):
-            raise UsageError(f"summary_loss must be cosine or mse, got {self.summary_loss!r}")
-        if self.action_similarity not in ("tv", "bhattacharyya"):
-            raise UsageError("action_similarity must be tv or bhattacharyya, "
-                             f"got {self.action_similarity!r}")
-        if self.needs_targets or self.obs_mode == "hop":  # refuses a bad backend, model, dtype, noise, endpoint, quant
-            self.llm  # noqa: B018 - built to be checked
-        else:  # a run without an LLM still refuses a backend or dtype that is no such thing
-            from illm_tools.llm.backend import check_backend
-            from illm_tools.llm.dtype import CHOICES
-
-            if self.model_dtype not in CHOICES:
-                raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.model_dtype!r}")
-            check_backend(self.backend)
         if self.obs_mode not in OBS_MODES:
             raise UsageError(f"--mode is the observation mode, {' or '.join(OBS_MODES)}; got {self.obs_mode!r} "
                              "(the method is --method)")
 
     def resolved(self) -> "TrainConfig":
-        """This config with the machine's choices made, as the run records them in config.json (and
-        keeps on resume, on any machine): `device` and `llm_device` auto -> cpu or cuda (these two may
-        change on resume), `model_dtype` auto -> the dtype `illm_tools.llm.dtype`
-        measures and `quant` auto -> the model's alias on CUDA, else none (when the run uses an LLM), `heads_bf16` None -> whether bf16 is faster for the heads
-        (when the method has them)."""
+        """This config with the machine's and the env's choices made, as the run records them in
+        config.json (and keeps on resume, on any machine); a run resolves its config once, when it
+        starts (`illm_tools.rl.run.train`). `device` and `llm_device` auto -> cpu or cuda (these two
+        may change on resume); when the run uses an LLM, its dtype auto -> the dtype
+        `illm_tools.llm.dtype` measures and its quantisation auto -> the model's alias on CUDA, else
+        none; `heads_bf16` None -> whether bf16 is faster for the heads (when the method has them);
+        `action_space` auto -> a resumed run's recorded space, else the suite's default for the env
+        (`resolve_action_space`). Resolving a resolved config changes nothing."""
         from illm_tools.devices import resolve_device
         from illm_tools.llm.backend import backend_dtype, backend_quant
 
-        changes: dict = {"device": resolve_device(self.device)}
-        if self.needs_targets or self.obs_mode == "hop":
-            changes["llm_device"] = resolve_device(self.llm_device or self.device, flag="--llm-device")
-            if self.model_dtype == "auto":
-                changes["model_dtype"] = backend_dtype(self.backend, "auto", changes["llm_device"])
-            changes["quant"] = backend_quant(self.backend, self.llm_model, self.quant, changes["llm_device"])
+        changes: dict = {"device": resolve_device(self.device), "action_space": self.resolved_action_space()}
+        if self.uses_llm:
+            device = resolve_device(self.llm_device or self.device, flag="--llm-device")
+            llm = self.llm
+            dtype = backend_dtype(llm.backend, "auto", device) if llm.dtype == "auto" else llm.dtype
+            changes["llm_device"] = device
+            changes["llm"] = dataclasses.replace(llm, device=device, dtype=dtype,
+                                                 quant=backend_quant(llm.backend, llm.model, llm.quant, device))
         if self.heads_bf16 is None and self.uses_heads:
             from illm_tools.rl.networks import bf16_is_faster
 
             changes["heads_bf16"] = bf16_is_faster()
+        if all(getattr(self, k) == v for k, v in changes.items()):
+            return self
         return dataclasses.replace(self, **changes)
 
-    # --- derived values ----------------------------------------------------------------------
-    @property
-    def batch_size(self) -> int:
-        """Transitions per rollout."""
-        return self.num_envs * self.num_steps
-
-    @property
-    def minibatch_size(self) -> int:
-        """Transitions per minibatch."""
-        return self.batch_size // self.num_minibatches
-
-    @property
-    def num_updates(self) -> int:
-        """Rollout + update iterations in the run (at least one)."""
-        return max(1, self.total_steps // self.batch_size)
-
-    @property
-    def uses_heads(self) -> bool:
-        """Whether the network carries f^a / f^hc and the loss distils the LLM (the bonus says)."""
-        return get_method(self.method).policy_heads
-
-    @property
-    def needs_targets(self) -> bool:
-        """Whether the run reads LLM targets (an annotation cache; the bonus says)."""
-        return get_method(self.method).needs_targets
-
-    @property
-    def pays_bonus(self) -> bool:
-        """Whether the intrinsic rewards reach the advantages."""
-        return get_method(self.method).pays
-
-    @property
-    def llm(self) -> LLMSpec:
-        """The run's LLM (its targets' model, the live annotator's, hop's embeddings) as one value; on
-        a `resolved()` config its device and dtype are this machine's choices."""
-        return LLMSpec(backend=self.backend, model=self.model, dtype=self.model_dtype, quant=self.quant,
-                       device=self.llm_device or self.device, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
-                       api_key_env=self.api_key_env, embed_endpoint=self.embed_endpoint)
-
-    @property
-    def llm_model(self) -> str:
-        """The model spec the backend serves: `model` or the backend's default, with the oracle's noise."""
-        return self.llm.model
-
-    @property
-    def annotation_setup(self) -> AnnotationSetup:
-        """The key inputs of the run's targets besides the state and the model: env, renderer (text,
-        or hop's translation), the tasks it reads, history and layout."""
-        return AnnotationSetup(self.env_id, self.renderer, self.target_tasks, self.history_len, self.layout)
-
-    @property
-    def live_limit(self) -> int | None:
-        """The live budget as a number of states per rollout; None: all of them."""
-        return None if self.live_budget == "all" else int(self.live_budget)
-
-    @property
-    def renderer(self) -> str:
-        """The renderer field of the run's cache keys: the suite's text renderer, or in hop mode the
-        translation's settings (`illm_tools.tasks.setup.hop_renderer`)."""
-        if self.obs_mode == "hop":
-            from illm_tools.tasks.setup import hop_renderer
-
-            return hop_renderer(self.hop_seed, self.hop_beta, self.history_len + 1)
-        from illm_tools.envs import renderer_of
-
-        return renderer_of(self.env_id)
-
-    @property
-    def live_threads(self) -> int:
-        """Torch threads of the live LLM (see `llm_threads`)."""
-        import os
-
-        cores = os.cpu_count() or 1
-        if self.llm_threads:
-            return self.llm_threads
-        return cores if self.live_mode == "sync" else max(1, cores - self.threads)
-
-    @property
-    def target_tasks(self) -> tuple[str, ...]:
-        """The language tasks whose cache rows the run reads: the heads' `tasks`, or those the
-        method's bonus reads (ELLM: goal)."""
-        return self.tasks if get_method(self.method).policy_heads else get_method(self.method).target_tasks
-
-    @property
-    def text_tasks(self) -> tuple[str, ...]:
-        """The text tasks among `tasks` (each a head of `embedding_dim` outputs)."""
-        from illm_tools.tasks.registry import text_tasks
-
-        return text_tasks(self.tasks) if get_method(self.method).policy_heads else ()
-
     def to_dict(self) -> dict:
-        """JSON-ready form (paths as strings)."""
-        out = asdict(self)
-        out["tasks"] = list(self.tasks)
-        out["env_seeds"] = list(self.env_seeds)
-        out["run_dir"] = str(self.run_dir)
-        out["cache"] = str(self.cache) if self.cache is not None else None
+        """JSON-ready form (paths as strings; `llm` and `illm` as dicts of their settings, the LLM's
+        device left to `llm_device`)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out.update(llm=group_dict("llm", self.llm), illm=self.illm.to_dict(), env_seeds=list(self.env_seeds),
+                   run_dir=str(self.run_dir), cache=str(self.cache) if self.cache is not None else None,
+                   network_options=dict(self.network_options), bonus_options=dict(self.bonus_options),
+                   env_options=dict(self.env_options))
         return out
 
-    @classmethod
-    def comparable(cls, data: dict) -> dict:
-        """A run's config.json as runs are compared (`illm report`): every setting at its value, or
-        its default where an older run lacks it, without the settings the run's method and mode
-        ignore: the hop translation's in obs mode, the LLM's dtype and quantisation under a backend
-        that has none (the oracle), every LLM and target setting for a method that reads no targets
-        and is not in hop mode, and iLLM's bonus weights for a method without its heads. A config
-        this version cannot read is returned as it is."""
-        data = upgrade_config(data)
-        try:
-            cfg = cls.from_dict({**{k: v for k, v in data.items() if k in cls.__dataclass_fields__}, "resume": False})
-        except Exception:  # noqa: BLE001 - another version's run: compared as written
-            return dict(data)
-        out = {**data, **cfg.to_dict()}
-        drop = set()
-        if cfg.obs_mode == "obs":
-            drop |= {"hop_seed", "hop_beta"}
-        if not cfg.needs_targets and cfg.obs_mode != "hop":
-            drop |= {"model", "backend", "model_dtype", "quant", "oracle_noise", "history_len", "layout",
-                     "action_score", "action_target", "tasks", "task_weights", "live_budget", "live_mode", "annotator",
-                     "embedding_dim"}
-        else:
-            from illm_tools.llm.backend import backend_class
-
-            if not getattr(backend_class(cfg.backend), "computes", True):
-                drop |= {"model_dtype", "quant"}
-        if not cfg.uses_heads:
-            drop |= {"lambda_a", "beta_hc", "distill_coef", "distill_epochs", "summary_loss", "action_similarity",
-                     "head_hidden"}
-        if out.get("model") is None and "model" not in drop:  # the backend's default, named as a given one is
-            from illm_tools.llm.backend import resolve_model
-
-            out["model"] = resolve_model(cfg.backend, None)
-        return {k: v for k, v in out.items() if k not in drop}
+    def flat(self) -> dict:
+        """The settings under their flat names, as options and specs name them (`illm_tools.rl.names`)."""
+        return flat_settings(self.to_dict())
 
     @classmethod
-    def from_dict(cls, data: dict) -> "TrainConfig":
-        """Inverse of `to_dict` (an older run's names upgraded, `upgrade_config`); unknown keys are refused."""
+    def defaults(cls, names: Iterable[str]) -> dict:
+        """The default of each setting in `names` (flat names), read from the field declarations."""
+        def default(owner: type, name: str):
+            f = owner.__dataclass_fields__[name]
+            return f.default_factory() if f.default is dataclasses.MISSING else f.default
+
+        return {n: default(LLMSpec if NESTED[n][0] == "llm" else ILLMConfig, NESTED[n][1]) if n in NESTED
+                else default(cls, n) for n in names}
+
+    @classmethod
+    def comparable(cls, data: Mapping) -> dict:
+        """A run's config.json as runs are compared (`illm_tools.rl.compare.comparable`)."""
+        from illm_tools.rl.compare import comparable
+
+        return comparable(data)
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> "TrainConfig":
+        """Inverse of `to_dict`; also reads an older run's config.json and settings under their flat
+        names (`upgrade_config`); unknown keys are refused."""
         data = upgrade_config(data)
         known = set(cls.__dataclass_fields__)
         unknown = set(data) - known
@@ -544,25 +363,3 @@ class TrainConfig:
         return cls(**data)
 
 
-@dataclass
-class EvalConfig:
-    """An `illm eval`: which trained runs, on how many fresh episodes, acting how."""
-
-    runs: tuple[Path, ...]
-    """Run folders written by `illm train` (several give a table)."""
-    episodes: int = 100
-    """Episodes to play per run."""
-    seed: int = 0
-    """Evaluation seed (episodes are disjoint from training seeds)."""
-    greedy: bool = False
-    """Take the most likely action instead of sampling."""
-
-    def __post_init__(self) -> None:
-        from illm_tools.settings import check_numbers
-
-        self.runs = tuple(Path(r) for r in self.runs)
-        check_numbers(self, positive=("episodes",), non_negative=("seed",))
-        missing = [str(r) for r in self.runs if not (r / "config.json").is_file()]
-        if missing or not self.runs:
-            raise UsageError(f"no training run at {', '.join(missing[:3]) or '(none given)'}: pass folders written "
-                             "by `illm train`")

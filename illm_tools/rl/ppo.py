@@ -16,7 +16,6 @@ The trainer never prints: metrics go to run_dir/metrics.jsonl, TensorBoard, and 
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 
@@ -43,16 +42,15 @@ class Trainer:
     """One training run. `train()` runs to `cfg.total_steps`; the steps are public for tests."""
 
     def __init__(self, cfg: TrainConfig, pool, provider: TargetProvider | None = None,
-                 on_metrics: Callable[[dict], None] | None = None):
+                 on_metrics: Callable[[dict], None] | None = None, checkpoint: dict | None = None):
         self.method = method = get_method(cfg.method)
         if method.needs_targets and provider is None:
             raise UsageError(f"mode {cfg.method} needs LLM targets (an annotation cache); "
                              "pass one or train with mode ppo")
         if pool.num_envs != cfg.num_envs:
             raise UsageError(f"the pool has {pool.num_envs} envs, the config asks for {cfg.num_envs}")
-        if cfg.action_space == "auto" and getattr(pool, "action_space_name", None):
-            cfg = dataclasses.replace(cfg, action_space=pool.action_space_name)  # the run records the resolved name
-        cfg = cfg.resolved()  # and its measured dtypes, its devices
+        if not cfg.is_resolved:  # a config made by hand (`run.train` resolves the run's once, as it records it)
+            cfg = cfg.resolved()
         self.cfg, self.pool, self.on_metrics = cfg, pool, on_metrics
         self.device = torch.device(cfg.device)
         self.suite = suite_of(cfg.env_id)
@@ -87,20 +85,20 @@ class Trainer:
                            observation=self.suite.observation(cfg.env_id))
         with torch.random.fork_rng(devices=[]):  # the bonus's own models: their own seeded stream
             torch.manual_seed(ctx.seed)
-            self.bonus = method.build(cfg.to_dict(), cfg.bonus_options, ctx).to(self.device)
+            self.bonus = method.build(vars(cfg), cfg.bonus_options, ctx).to(self.device)
         if self.provider is not None:  # a bonus may read more of its provider than the stored targets (ELLM's goals)
             self.bonus.use_provider(self.provider)
         self.schedule = BonusSchedule(cfg.bonus_schedule, cfg.num_updates)  # the intrinsic advantage's weight
         self.global_step, self.update_idx = 0, 0
-        self._open_run_dir()
+        self._open_run_dir(checkpoint)
 
     # --- run directory ----------------------------------------------------------------------
-    def _open_run_dir(self) -> None:
+    def _open_run_dir(self, checkpoint: dict | None = None) -> None:
         cfg, run_dir = self.cfg, self.cfg.run_dir
         refuse_foreign(run_dir, "training run", "--out")
         run_dir.mkdir(parents=True, exist_ok=True)
-        if cfg.resume:
-            self._restore(load_checkpoint(run_dir))
+        if cfg.resume:  # the checkpoint the run already read (`run.build_run`), or read here
+            self._restore(checkpoint if checkpoint is not None else load_checkpoint(run_dir))
         elif (run_dir / CHECKPOINT_NAME).exists():
             raise OutputExistsError(f"{run_dir} already holds a run; pass --resume to continue it "
                                     "or choose another run dir")

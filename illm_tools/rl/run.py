@@ -3,7 +3,6 @@ live model when a budget is given), and the trainer; plus evaluation of a finish
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -18,21 +17,23 @@ EVAL_SEED_OFFSET = 2**40
 """Evaluation episodes use seeds from here on: training seeds (seed + steps) never get this far."""
 
 
-def make_pool(cfg: TrainConfig):
-    """The env pool a run trains on. Text is rendered only when LLM targets need it. A resumed
-    run starts its episodes past every seed the run can have used so far (the pool's episode k of
-    env i has seed `seed + i + k * num_envs`, so `seed + global_step + num_envs` is unused)."""
+def make_pool(cfg: TrainConfig, start_step: int | None = None):
+    """The env pool a run trains on. Text is rendered only when LLM targets need it. A run resumed
+    at `start_step` frames (None: its checkpoint's) starts its episodes past every seed it can have
+    used so far (the pool's episode k of env i has seed `seed + i + k * num_envs`, so
+    `seed + start_step + num_envs` is unused); an `auto` action space is the run's own
+    (`resolved_action_space`)."""
     from illm_tools.envs.pool import EnvPool
-    from illm_tools.rl.checkpoint import load_checkpoint
 
-    seed, space = cfg.seed, cfg.action_space
+    seed = cfg.seed
     if cfg.resume:
-        state = load_checkpoint(cfg.run_dir)
-        seed += int(state["global_step"]) + cfg.num_envs
-        if space == "auto":  # the run's own action space, as its config recorded it
-            space = state["config"].get("action_space", space)
+        if start_step is None:
+            from illm_tools.rl.checkpoint import load_checkpoint
+
+            start_step = int(load_checkpoint(cfg.run_dir)["global_step"])
+        seed += start_step + cfg.num_envs
     return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets and cfg.obs_mode == "obs",
-                   action_space=space, episode_seeds=cfg.env_seeds,
+                   action_space=cfg.resolved_action_space(), episode_seeds=cfg.env_seeds,
                    num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
 
 
@@ -40,11 +41,10 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     """The target provider of a run whose bonus needs LLM targets, or None: the class registered for
     the kind of targets its bonus reads (`target_kind`, `illm_tools.rl.providers`: `CachedTargets`,
     the rows of iLLM's language tasks; ELLM's `GoalTargets`, its suggested goals), reading the cache under the run's `LLMSpec` and `AnnotationSetup`, with the live
-    annotator (`make_live`). Returns (provider, cfg) where cfg carries the model's embedding dimension
-    (iLLM's heads predict it)."""
+    annotator (`make_live`). `cfg` is the run's resolved config (`TrainConfig.resolved`: the LLM's
+    device and dtype are this machine's)."""
     if not cfg.needs_targets:
-        return None, cfg
-    cfg = cfg.resolved()
+        return None
     if cfg.cache is None:
         raise UsageError(f"--method {cfg.method} reads LLM targets: pass --cache DIR (an annotation cache, "
                          "see `illm annotate`), or use --method ppo")
@@ -66,12 +66,10 @@ def make_provider(cfg: TrainConfig, num_actions: int):
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
         check_setup(cache, builder, llm=llm, tasks=setup.tasks)
-    if method.policy_heads:  # the heads predict the model's embeddings
-        cfg = dataclasses.replace(cfg, embedding_dim=llm.hidden_size())
     provider = provider_class(method.bonus_class).for_run(cfg, cache, builder, num_actions=num_actions,
                                                           live=make_live(cfg, llm, setup, cache),
                                                           shuffle_seed=method.target_shuffle)  # illm-shuffled
-    return provider, cfg
+    return provider
 
 
 def make_live(cfg: TrainConfig, llm, setup, cache):
@@ -79,7 +77,8 @@ def make_live(cfg: TrainConfig, llm, setup, cache):
     or None with no live budget; sync writes through `cache`, the object the targets are read from."""
     if cfg.live_budget == 0:
         return None
-    from illm_tools.rl.live import AsyncLive, RemoteLive, SyncLive, WorkerSpec
+    from illm_tools.rl.live import AsyncLive, SyncLive, WorkerSpec
+    from illm_tools.rl.live_remote import RemoteLive
 
     if cfg.annotator is not None:
         return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
@@ -113,17 +112,24 @@ def _only_trainer(run_dir: Path):
 def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
           should_stop: Callable[[], bool] | None = None) -> dict:
     """Build and run a training run to cfg.total_steps; returns the last update's metrics
-    (`Trainer.train`: `should_stop` ends it early with a checkpoint)."""
+    (`Trainer.train`: `should_stop` ends it early with a checkpoint), with `resumed_at` (the frames of
+    the checkpoint a resumed run started from) and `live_at_close`. The run resolves its config
+    here, once, and reads its checkpoint once, under the run folder's lock."""
     with torch_threads(cfg.threads):
         # devices resolved (a GPU this machine lacks: one line before anything lands on disk) and auto
         # dtypes measured with the run's own thread count, as config.json records them
         cfg = cfg.resolved()
         made = not cfg.run_dir.exists()
         try:
-            with _only_trainer(cfg.run_dir), build_run(cfg, on_metrics) as trainer:
-                result = trainer.train(should_stop)
+            with _only_trainer(cfg.run_dir):
+                from illm_tools.rl.checkpoint import load_checkpoint
+
+                checkpoint = load_checkpoint(cfg.run_dir) if cfg.resume else None
+                with build_run(cfg, on_metrics, checkpoint) as trainer:
+                    result = trainer.train(should_stop)
             # what the live annotator wrote while the run shut down (its worker's last chunk), counted once closed
-            return {**result, "live_at_close": int(getattr(trainer.provider, "landed_at_close", 0))}
+            return {**result, "live_at_close": int(getattr(trainer.provider, "landed_at_close", 0)),
+                    "resumed_at": int(checkpoint["global_step"]) if checkpoint is not None else None}
         except IllmError:  # refused before the run wrote anything: leave no folder holding only the lock
             if made and cfg.run_dir.is_dir() and {p.name for p in cfg.run_dir.iterdir()} <= {RUN_LOCK}:
                 (cfg.run_dir / RUN_LOCK).unlink(missing_ok=True)
@@ -132,18 +138,23 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
 
 
 @contextmanager
-def build_run(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None) -> Iterator:
-    """The whole run assembled from its config, in one place: the env pool (`make_pool`), the method's
-    target provider with its live annotator (`make_provider`), then the trainer, which builds the
-    network, the bonus and the state sources and restores the checkpoint on --resume. Yields the
-    `Trainer`; closes the pool and the provider (its live worker) on the way out, also when a later
-    piece is refused."""
+def build_run(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
+              checkpoint: dict | None = None) -> Iterator:
+    """The whole run assembled from its config (resolved here unless it is: `TrainConfig.resolved`),
+    in one place: the env pool (`make_pool`), the method's target provider with its live annotator
+    (`make_provider`), then the trainer, which builds the network, the bonus and the state sources
+    and restores `checkpoint` on --resume (read here when not given). Yields the `Trainer`; closes
+    the pool and the provider (its live worker) on the way out, also when a later piece is refused."""
+    from illm_tools.rl.checkpoint import load_checkpoint
     from illm_tools.rl.ppo import Trainer
 
-    pool, provider = make_pool(cfg), None
+    cfg = cfg if cfg.is_resolved else cfg.resolved()
+    if cfg.resume and checkpoint is None:
+        checkpoint = load_checkpoint(cfg.run_dir)
+    pool, provider = make_pool(cfg, int(checkpoint["global_step"]) if checkpoint is not None else 0), None
     try:
-        provider, cfg = make_provider(cfg, len(pool.action_names))
-        yield Trainer(cfg, pool, provider, on_metrics=on_metrics)
+        provider = make_provider(cfg, len(pool.action_names))
+        yield Trainer(cfg, pool, provider, on_metrics=on_metrics, checkpoint=checkpoint)
     finally:
         pool.close()
         if provider is not None:

@@ -1,0 +1,94 @@
+"""A run's `TrainConfig` from what was given: the one place that expands a bonus preset, merges a
+resumed run's own settings and adopts the cache's annotation setup. `illm train` (its options)
+and `illm experiment` (a spec's grid) both build their runs here, so that the same settings train
+the same thing whichever way they came.
+
+Settings are given under their flat names (`illm_tools.rl.names`: the options' names, as specs and
+older config.json files name them: model, model_dtype, lambda_a, ...), with `bonus_preset` for a
+preset, already typed (dict settings parsed, paths as paths or strings).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Collection, Mapping
+from pathlib import Path
+from typing import Any
+
+from illm_tools.errors import UsageError
+from illm_tools.rl.config import TrainConfig
+from illm_tools.rl.names import flag_of, flat_settings
+from illm_tools.rl.presets import PRESET_FIELDS, bonus_weights
+
+AUTO_CHOICES = ("model_dtype", "quant", "action_space")
+"""Settings a run resolves when it starts (`TrainConfig.resolved`) that a resumed run keeps: their
+`auto`, given again on resume, is the choice the run made, not a change."""
+
+
+def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None, *,
+               say: Callable[[str], None] | None = None) -> TrainConfig:
+    """The run's TrainConfig from `settings` (flat names; unset ones take their defaults):
+
+    - `bonus_preset` (or, without one, the method's own preset, `Method.preset`) gives every
+      PRESET_FIELDS setting not given (a None value counts as not given);
+    - with `resume`, the run folder's config.json gives every setting, and of `given` (the names
+      the user set: default all of `settings`) those a resumed run may change (RESUMABLE_CHANGES)
+      apply; any other given setting that differs from the run's is refused in one line naming it;
+    - else, when the run reads LLM targets from a cache that holds annotations and none of the
+      options that select a setup (`ADOPTED`) was given, it takes the cache's setup, saying so
+      through `say` (`adopt_setup`).
+    """
+    from illm_tools.intrinsic.registry import get_method
+
+    settings = dict(settings)
+    given = set(settings) if given is None else set(given)
+    preset = settings.pop("bonus_preset", None)
+    if preset is not None:
+        given |= set(PRESET_FIELDS)  # a preset stands for its settings
+    method = get_method(settings.get("method", TrainConfig.defaults(["method"])["method"]))
+    weights = bonus_weights(preset or method.preset, **{w: settings.pop(w, None) for w in PRESET_FIELDS})
+    settings.update(weights)
+    if settings.get("resume"):
+        return resumed(Path(settings["run_dir"]), settings, given - {"resume", "run_dir"})
+    return adopt_setup(TrainConfig.from_dict(settings), given, say)
+
+
+def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) -> TrainConfig:
+    """The TrainConfig of a resumed run: its own settings from its config.json, with the `given`
+    ones of `settings` applied where a resumed run may change them (RESUMABLE_CHANGES: --frames,
+    --live-budget, threads, ...; the folder may have moved). Any other given setting that differs
+    from the run's is refused in one line naming its option."""
+    from illm_tools.rl.checkpoint import RESUMABLE_CHANGES, read_config
+
+    stored = flat_settings(read_config(run_dir))
+    changes = {k: settings[k] for k in given if k in settings
+               and not (k in AUTO_CHOICES and settings[k] in ("auto", None))}
+    merged = flat_settings({**stored, **changes})
+    refused = sorted(f"{flag_of(k)} (the run has {stored.get(k)!r})" for k, v in merged.items()
+                     if stored.get(k) != v and k not in RESUMABLE_CHANGES)
+    if refused:
+        allowed = sorted(flag_of(k) for k in RESUMABLE_CHANGES if k != "resume")
+        raise UsageError(f"--resume continues {run_dir} with its own settings, and {', '.join(refused)} would "
+                         f"change what it learns: leave {'them' if len(refused) > 1 else 'it'} out, or train into a "
+                         f"new --out (a resumed run may change {', '.join(allowed)})")
+    return TrainConfig.from_dict({**merged, "run_dir": str(run_dir), "resume": True})
+
+
+def adopt_setup(cfg: TrainConfig, given: Collection[str], say: Callable[[str], None] | None = None) -> TrainConfig:
+    """`cfg` with its cache's annotation setup adopted (`illm_tools.tasks.setup.adopt`) when the run
+    reads targets from a cache holding annotations and none of the setup's options was `given`;
+    `say` hears which, in one line."""
+    from illm_tools.tasks.setup import ADOPTED, adopt
+
+    if not cfg.needs_targets or cfg.cache is None or set(given) & set(ADOPTED) or \
+            not (cfg.cache / "manifest.json").is_file():
+        return cfg
+    from illm_tools.cache.store import AnnotationCache
+
+    renderer = "hop@" if cfg.obs_mode == "hop" else cfg.renderer
+    setup = adopt(AnnotationCache(cfg.cache), cfg.target_tasks, renderer)
+    if setup is None:
+        return cfg
+    if say is not None:
+        say(f"adopting the cache's setup: {setup.options()} ({setup.entries:,} entries; give any of these options to "
+            "choose another)")
+    return TrainConfig.from_dict({**cfg.flat(), **setup.fields()})
