@@ -1,25 +1,40 @@
-"""Fakes shared by the trainer's tests: `FakePool` (the EnvPool interface over a toy task),
+"""The helpers the tests share (one module: no test module imports another). The trainer's fakes: `FakePool` (the EnvPool interface over a toy task),
 `FakeProvider` (deterministic LLM targets from a hash of each record), `RefusingProvider` (for
 methods that must never ask), `make_trainer` (a small Trainer over them) and `plugins_installed`
 (entry points as an installed package would declare them); `run_wide` (a folder built once per test
-run, read by every xdist worker)."""
+run, read by every xdist worker); annotation cache rows (`make_rows`, `keys_of`, `run_writers`),
+trajectory rows, file damage (`flip`, `truncate`), fake run folders for `illm report` (`fake_run`); a
+backend and a suite defined outside illm (`TinyBackend`, `TinySuite`); `illm serve` requests of the
+stub's setup (`serve_state`, `serve_request`, `hop_states`) and `wait_for`.
+
+Over 400 lines: these are the suite's shared helpers, kept in one module on purpose (issue 48); each
+block names the test files that use it."""
 
 from __future__ import annotations
 
+import csv
 import importlib.metadata
+import json
 import os
+import random
 import stat
+import time
 import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
 
+import gymnasium as gym
 import numpy as np
 
-from illm_tools.envs.suite import EpisodeStats
+from illm_tools.envs.suite import EpisodeStats, ObsSpec, Suite
 from illm_tools.intrinsic import Targets
+from illm_tools.keys import fingerprint_hash
+from illm_tools.llm.spec import LLMSpec
+from illm_tools.llm.stub import StubBackend
 from illm_tools.rl import TrainConfig, Trainer
+from illm_tools.tasks.state import StateRecord
 
 ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
 
@@ -253,3 +268,216 @@ def _read_only(root: Path) -> None:
     writable = stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH
     for path in sorted(root.rglob("*"), reverse=True) + [root]:
         path.chmod(path.stat().st_mode & ~writable)
+
+
+# --- annotation cache rows (tests/test_cache_store.py, test_cache_share.py, test_first_hour.py) -----------
+def make_rows(start: int, stop: int, tag: str = "t") -> list[dict]:
+    """Valid rows: even i are action rows, odd i summary rows (embedding dim 4)."""
+    from illm_tools.cache import make_key
+
+    rows = []
+    for i in range(start, stop):
+        action = i % 2 == 0
+        rows.append({
+            "key": make_key(tag=tag, i=i), "task": "action" if action else "summary",
+            "template_version": 1, "renderer": "babyai-text@1", "model": "smollm2-135m",
+            "model_fingerprint": "f" * 64, "decoding": '{"temperature":0}', "history_len": 3,
+            "goal": "go to the red ball", "history": "turn left", "observation": f"obs {i}",
+            "prompt": f"prompt {i}",
+            "candidates": ["turn left", "go forward"] if action else None,
+            "cand_token_logprobs": [[-0.5, -0.25], [-1.5]] if action else None,
+            "cand_logprob_sum": [-0.75, -1.5] if action else None,
+            "cand_token_count": [2, 1] if action else None,
+            "neutral_logprob_sum": [-1.0, -2.0] if action else None,
+            "chosen_index": 0 if action else None,
+            "text": None if action else f"summary {i}",
+            "embedding": None if action else [float(i), 0.5, -0.25, 1.0],
+            "embedding_dim": None if action else 4,
+            "created_unix": 1700000000.5,
+        })
+    return rows
+
+
+def keys_of(rows: list[dict]) -> list[str]:
+    return [r["key"] for r in rows]
+
+
+def run_writers(target, root, count: int, timeout: float = 90) -> list[int]:
+    """Start `count` spawned processes `target(root, worker, barrier)` together; their exit codes."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    barrier = ctx.Barrier(count)
+    procs = [ctx.Process(target=target, args=(str(root), w, barrier)) for w in range(count)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout)
+    return [p.exitcode for p in procs]
+
+
+# --- trajectory rows, damage, fake runs (test_trajectories.py, test_faults.py, test_resume.py, test_report.py) --
+def trajectory_rows(n: int, episode: int = 0) -> dict:
+    """`n` valid rows of one episode of a trajectory dataset, as columns."""
+    return {
+        "episode_id": [episode] * n,
+        "step": list(range(n)),
+        "env_id": ["BabyAI-GoToLocal-v0"] * n,
+        "mission": ["go to the red ball"] * n,
+        "obs_text": [f"You see a wall {i + 1} steps forward" for i in range(n)],
+        "renderer": ["babyai-text@1"] * n,
+        "obs_raw": [bytes(147)] * n,
+        "obs_shape": [[7, 7, 3]] * n,
+        "obs_dtype": ["uint8"] * n,
+        "action": [2] * n,
+        "action_text": ["go forward"] * n,
+        "valid_actions": [["turn left", "turn right", "go forward"]] * n,
+        "reward": [0.0] * (n - 1) + [0.5],
+        "terminated": [False] * (n - 1) + [True],
+        "truncated": [False] * n,
+        "seed": [7] * n,
+        "policy": ["random"] * n,
+    }
+
+
+def truncate(path, rng: random.Random) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[:rng.randrange(len(data))])
+
+
+def flip(path, rng: random.Random) -> None:
+    data = bytearray(path.read_bytes())
+    at = rng.randrange(len(data))
+    data[at] ^= 1 << rng.randrange(8)
+    path.write_bytes(bytes(data))
+
+
+def fake_run(path, seed, rows, mode="illm", env_id="BabyAI-GoToLocal-v0"):
+    """A run folder `illm report` reads: config.json and metrics.csv of `rows` (global step, success
+    rate, episodes[, mean length])."""
+    from illm_tools.rl.checkpoint import CSV_COLUMNS
+
+    path.mkdir()
+    (path / "config.json").write_text(json.dumps({"mode": mode, "env_id": env_id, "seed": seed}))
+    with open(path / "metrics.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for step, success, episodes, *length in rows:  # (global step, success rate, episodes[, mean length])
+            writer.writerow({"global_step": step, "success_rate": success, "episodes": episodes,
+                             "target_coverage": 0.5, "cache_hit_rate": 0.25,
+                             "episodic_length": length[0] if length and episodes else ""})
+
+
+# --- a backend and a suite defined outside illm (test_backends.py, test_suites.py, test_plugins.py) --------
+class TinyBackend(StubBackend):
+    """A third backend, defined here: the stub under another name, with its own fingerprint."""
+
+    name = "tiny"
+
+    @classmethod
+    def model_fingerprint(cls, model, *, dtype="bfloat16", quant="none"):
+        return {"model_id": f"{cls.name}:{model}", "source": cls.name, "sha256": None, "revision": "1",
+                "dtype": dtype, "quant": quant}
+
+
+TINY = "Tiny-Corridor-v0"
+
+
+class Corridor(gym.Env):
+    """Five cells; 'go right' from the fourth reaches the goal (reward 1). The grid shows the agent
+    as a key (MiniGrid code 5) in row 3 of a 7x7x3 view."""
+
+    def __init__(self, length: int = 5, render_text: bool = True):
+        self.length, self.render_text = int(length), render_text
+        self.action_names = ("go left", "go right")
+        self.action_space = gym.spaces.Discrete(2)
+        self.observation_space = gym.spaces.Box(0, 10, (7, 7, 3), np.uint8)
+
+    def _obs(self):
+        grid = np.ones((7, 7, 3), np.uint8)
+        grid[self.pos, 3, 0] = 5
+        return grid
+
+    def _info(self, info):
+        info.update(text=f"You are {self.length - 1 - self.pos} steps from the goal" if self.render_text else "",
+                    mission="reach the end of the corridor", valid_actions=list(self.action_names))
+        return info
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.pos = int(self.np_random.integers(0, self.length - 1))
+        return self._obs(), self._info({})
+
+    def step(self, action):
+        self.pos = max(0, self.pos + (1 if int(action) == 1 else -1))
+        done = self.pos >= self.length - 1
+        info = {"success": True} if done else {}
+        return self._obs(), float(done), done, False, self._info(info)
+
+
+class TinySuite(Suite):
+    name = "tiny"
+    renderer = "tiny-text@1"
+    description = "a corridor"
+
+    def env_ids(self):
+        return [TINY]
+
+    def options(self, env_id):
+        return ("length",)
+
+    def make(self, env_id, *, action_space, render_text=True, **options):
+        return Corridor(render_text=render_text, **options)
+
+    def obs_spec(self, env_id):
+        return ObsSpec(shape=(7, 7, 3), dtype="uint8", kind="grid", description="a corridor as MiniGrid codes")
+
+
+# --- `illm serve`'s requests (test_serve.py, test_serve_hardening.py) ----------------------------------------
+SHORT_ACTIONS = ("turn left", "turn right", "go forward")
+STUB_MODEL = "stub:16"
+STUB_LLM = LLMSpec(backend="stub", model=STUB_MODEL, dtype="float32")
+STUB_FINGERPRINT = fingerprint_hash(StubBackend(STUB_MODEL).fingerprint)
+
+
+def serve_state(i: int) -> StateRecord:
+    """A BabyAI-like state of the short action list, told apart by `i`."""
+    return StateRecord("go to the red ball", (), f"You see a red ball {i} steps forward", SHORT_ACTIONS)
+
+
+def serve_request(pending, client="run-a", session="s1", **changes) -> dict:
+    """A `POST /annotate` body of the stub's setup for `pending` [(state, visits)]; `changes` override."""
+    from illm_tools.serve import record_to_json
+
+    body = {"client": client, "session": session, "model_fingerprint": STUB_FINGERPRINT, "env_id": "BabyAI-GoToLocal-v0", "renderer": "babyai-text@1",
+            "history_len": 0, "layout": "shared", "tasks": ["action", "summary"],
+            "states": [{**record_to_json(s), "visits": n} for s, n in pending]}
+    body.update(changes)
+    return body
+
+
+def wait_for(check, seconds: float = 60.0, what: str = ""):
+    """Poll `check()` every 0.1 s until it returns something true (returned), at most `seconds`."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        found = check()
+        if found:
+            return found
+        time.sleep(0.1)
+    raise AssertionError(f"not within {seconds:g} s: {what}")
+
+
+def hop_states(n: int = 3):
+    """Hop records of one env's first steps, as a hop trainer builds them (window 2)."""
+    import numpy as np
+
+    from illm_tools.hop.context import HopTracker
+
+    tracker = HopTracker(1, 1, SHORT_ACTIONS)
+    rng = np.random.default_rng(0)
+    out = []
+    for _ in range(n):
+        (record,) = tracker.records(["get to the green goal square"], [rng.integers(0, 9, (7, 7, 3), dtype=np.uint8)])
+        out.append(record)
+        tracker.push([2], [False])
+    return out

@@ -19,6 +19,7 @@ from illm_tools.errors import UsageError
 from illm_tools.llm.backend import BACKENDS, Backend, backend_fingerprint, backend_hidden_size, load_backend
 from illm_tools.llm.stub import StubBackend
 from illm_tools.tasks.state import StateRecord
+from fakes import TinyBackend
 
 runner = CliRunner()
 ACTIONS = ("turn left", "turn right", "go forward")
@@ -48,16 +49,6 @@ def test_the_stub_answers_deterministically_from_the_prompt():
     assert g1.text == g2.text and np.array_equal(g1.embedding, g2.embedding) and g1.embedding.shape == (32,)
     assert a.input_embeddings().shape[1] == 32 and a.last_hidden([a.input_embeddings()[:3]]).shape == (1, 32)
 
-
-class TinyBackend(StubBackend):
-    """A third backend, defined here: the stub under another name, with its own fingerprint."""
-
-    name = "tiny"
-
-    @classmethod
-    def model_fingerprint(cls, model, *, dtype="bfloat16", quant="none"):
-        return {"model_id": f"{cls.name}:{model}", "source": cls.name, "sha256": None, "revision": "1",
-                "dtype": dtype, "quant": quant}
 
 
 def test_a_backend_registered_from_a_test_file_annotates_and_trains(tmp_path):

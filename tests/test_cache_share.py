@@ -12,7 +12,7 @@ from cli.main import app
 from illm_tools.cache import AnnotationCache, verify
 from illm_tools.cache.share import export, import_parquet
 from illm_tools.errors import CacheError, OutputExistsError, SchemaError
-from test_cache_store import keys_of, make_rows, run_writers
+from fakes import keys_of, make_rows, run_writers
 
 runner = CliRunner()
 

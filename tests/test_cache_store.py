@@ -14,41 +14,15 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from illm_tools.cache import AnnotationCache, make_key, merge, verify
+from illm_tools.cache import AnnotationCache, merge, verify
 from illm_tools.cache import layout
 from illm_tools.cache.index import KeyIndex
 from illm_tools.errors import CacheError, SchemaError
+from fakes import keys_of, make_rows, run_writers
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def make_rows(start: int, stop: int, tag: str = "t") -> list[dict]:
-    """Valid rows: even i are action rows, odd i summary rows (embedding dim 4)."""
-    rows = []
-    for i in range(start, stop):
-        action = i % 2 == 0
-        rows.append({
-            "key": make_key(tag=tag, i=i), "task": "action" if action else "summary",
-            "template_version": 1, "renderer": "babyai-text@1", "model": "smollm2-135m",
-            "model_fingerprint": "f" * 64, "decoding": '{"temperature":0}', "history_len": 3,
-            "goal": "go to the red ball", "history": "turn left", "observation": f"obs {i}",
-            "prompt": f"prompt {i}",
-            "candidates": ["turn left", "go forward"] if action else None,
-            "cand_token_logprobs": [[-0.5, -0.25], [-1.5]] if action else None,
-            "cand_logprob_sum": [-0.75, -1.5] if action else None,
-            "cand_token_count": [2, 1] if action else None,
-            "neutral_logprob_sum": [-1.0, -2.0] if action else None,
-            "chosen_index": 0 if action else None,
-            "text": None if action else f"summary {i}",
-            "embedding": None if action else [float(i), 0.5, -0.25, 1.0],
-            "embedding_dim": None if action else 4,
-            "created_unix": 1700000000.5,
-        })
-    return rows
-
-
-def keys_of(rows: list[dict]) -> list[str]:
-    return [r["key"] for r in rows]
 
 
 def test_round_trip_lookup_and_columns(tmp_path):
@@ -145,7 +119,7 @@ def test_a_tail_reads_each_listed_shard_once_and_starts_over_on_a_rewritten_mani
 CRASHING_WRITER = """
 import os, sys
 sys.path.insert(0, sys.argv[3])
-from test_cache_store import make_rows
+from fakes import make_rows
 from illm_tools.cache import AnnotationCache
 def crash(self, stage):
     if stage == sys.argv[2]:
@@ -194,17 +168,6 @@ def _writer(root: str, worker: int, start: mp.Barrier) -> None:
     for s in range(20):
         cache.write(make_rows(0, 5, tag=f"w{worker}-s{s}"))
 
-
-def run_writers(target, root, count: int, timeout: float = 90) -> list[int]:
-    """Start `count` spawned processes `target(root, worker, barrier)` together; their exit codes."""
-    ctx = mp.get_context("spawn")
-    barrier = ctx.Barrier(count)
-    procs = [ctx.Process(target=target, args=(str(root), w, barrier)) for w in range(count)]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join(timeout)
-    return [p.exitcode for p in procs]
 
 
 def test_two_processes_writing_concurrently_lose_nothing(tmp_path):

@@ -16,22 +16,12 @@ from cli.main import app
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.data.trajectories import TrajectoryWriter, open_table
 from illm_tools.errors import CacheError, DamagedFileError, IllmError
-from test_trajectories import rows
+from fakes import flip, trajectory_rows as rows, truncate
 
 runner = CliRunner()
 OFFSETS = 6  # random offsets tried per file and damage kind (seeded)
 
 
-def truncate(path, rng: random.Random) -> None:
-    data = path.read_bytes()
-    path.write_bytes(data[:rng.randrange(len(data))])
-
-
-def flip(path, rng: random.Random) -> None:
-    data = bytearray(path.read_bytes())
-    at = rng.randrange(len(data))
-    data[at] ^= 1 << rng.randrange(8)
-    path.write_bytes(bytes(data))
 
 
 def damaged_copies(src, tmp_path, name: str):
@@ -132,7 +122,7 @@ def test_a_damaged_model_cache_entry_is_refused_saying_to_delete_it(smollm2_cach
 
 
 def test_a_damaged_metrics_csv_is_refused_by_report_naming_the_line(tmp_path):
-    from test_report import fake_run
+    from fakes import fake_run
 
     run = tmp_path / "run"
     fake_run(run, 0, [(50 * i, 0.5, 1) for i in range(1, 9)])

@@ -7,7 +7,7 @@ from __future__ import annotations
 from typer.testing import CliRunner
 
 from cli.main import app
-from test_report import fake_run
+from fakes import fake_run
 
 
 def invoke(*args: str):
@@ -159,7 +159,7 @@ def test_an_option_click_cannot_parse_is_one_line(tmp_path):
 
 def test_cache_export_refuses_a_name_of_another_format(tmp_path):
     from illm_tools.cache import AnnotationCache
-    from test_cache_store import make_rows
+    from fakes import make_rows
 
     cache = tmp_path / "ann"
     AnnotationCache(cache).write(make_rows(0, 8))
@@ -176,7 +176,7 @@ def test_cache_show_prints_a_few_states_answers_and_writes_nothing(tmp_path):
     import json
 
     from illm_tools.cache import AnnotationCache
-    from test_cache_store import make_rows
+    from fakes import make_rows
 
     rows = make_rows(0, 8)
     for i, row in enumerate(rows):  # rows 2k (action) and 2k+1 (summary) answer one state

@@ -28,9 +28,7 @@ from illm_tools.rl.providers import TARGET_PROVIDERS, kind_name, provider_class
 from illm_tools.rl.targets import CachedTargets
 from illm_tools.registry import Registry
 from illm_tools.tasks.registry import LanguageTask
-from fakes import plugins_installed
-from test_backends import TinyBackend
-from test_suites import TINY, TinySuite
+from fakes import TINY, TinyBackend, TinySuite, plugins_installed
 
 runner = CliRunner()
 

@@ -1,30 +1,18 @@
 """`illm report`: curve points are episode-weighted windows, aligned by frame across seeds.
 
-Over 400 lines: the report's tests share this file's fake runs (`fake_run`) and rliable's IQM by hand
-(`iqm_by_hand`); split, the second file would import them from the first."""
+Over 400 lines: the report's tests share rliable's IQM by hand (`iqm_by_hand`); split, the second
+file would import it from the first (the fake runs, `fake_run`, are tests/fakes.py's)."""
 
 from __future__ import annotations
 
-import csv
 import json
 
 import numpy as np
 import pytest
 
 from illm_tools.report.curves import summarise
-from illm_tools.rl.checkpoint import CSV_COLUMNS
+from fakes import fake_run
 
-
-def fake_run(path, seed, rows, mode="illm", env_id="BabyAI-GoToLocal-v0"):
-    path.mkdir()
-    (path / "config.json").write_text(json.dumps({"mode": mode, "env_id": env_id, "seed": seed}))
-    with open(path / "metrics.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS)
-        writer.writeheader()
-        for step, success, episodes, *length in rows:  # (global step, success rate, episodes[, mean length])
-            writer.writerow({"global_step": step, "success_rate": success, "episodes": episodes,
-                             "target_coverage": 0.5, "cache_hit_rate": 0.25,
-                             "episodic_length": length[0] if length and episodes else ""})
 
 
 def test_points_are_weighted_windows_aligned_by_frame(tmp_path):

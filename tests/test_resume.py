@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from cli.main import app
 from illm_tools.errors import DamagedFileError
 from illm_tools.rl.checkpoint import load_checkpoint, save_checkpoint
-from test_faults import flip, truncate
+from fakes import flip, truncate
 
 runner = CliRunner()
 SMALL = ["--method", "ppo", "--num-envs", "2", "--num-steps", "32"]  # 64 frames per update

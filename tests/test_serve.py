@@ -26,34 +26,17 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
-from illm_tools.llm.spec import LLMSpec
 from illm_tools.cache import AnnotationCache, verify
-from illm_tools.keys import fingerprint_hash
 from illm_tools.llm.stub import StubBackend
 from illm_tools.serve import AnnotationServer, RequestError, ServeConfig, ServeLimits, record_to_json
-from illm_tools.tasks.state import StateRecord
+from fakes import STUB_LLM as LLM, STUB_MODEL as MODEL
+from fakes import hop_states, serve_request as request, serve_state as state, wait_for
 
 runner = CliRunner()
 ENV = "BabyAI-GoToLocal-v0"
-ACTIONS = ("turn left", "turn right", "go forward")
-MODEL = "stub:16"
-LLM = LLMSpec(backend="stub", model=MODEL, dtype="float32")
-FINGERPRINT = fingerprint_hash(StubBackend(MODEL).fingerprint)
 TOKEN = "Jq3vX9tKp2Lw7RzN5mYc8HbD4fGs6AeU"  # 32 characters of 62: about 190 bits
 ENV_OFFLINE = {**os.environ, "HF_HUB_OFFLINE": "1"}
 ENV_OFFLINE.pop("ILLM_SERVE_TOKEN", None)
-
-
-def state(i: int) -> StateRecord:
-    return StateRecord("go to the red ball", (), f"You see a red ball {i} steps forward", ACTIONS)
-
-
-def request(pending, client="run-a", session="s1", **changes) -> dict:
-    body = {"client": client, "session": session, "model_fingerprint": FINGERPRINT, "env_id": ENV, "renderer": "babyai-text@1",
-            "history_len": 0, "layout": "shared", "tasks": ["action", "summary"],
-            "states": [{**record_to_json(s), "visits": n} for s, n in pending]}
-    body.update(changes)
-    return body
 
 
 def test_the_scheduler_takes_the_most_visited_states_across_clients_once(tmp_path):
@@ -155,17 +138,6 @@ def call(url: str, body=None, raw: bytes | None = None, token: str | None = None
         return e.code, json.loads(e.read())
 
 
-def wait_for(check, seconds: float = 60.0, what: str = ""):
-    """Poll `check()` every 0.1 s until it returns something true (returned), at most `seconds`."""
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        found = check()
-        if found:
-            return found
-        time.sleep(0.1)
-    raise AssertionError(f"not within {seconds:g} s: {what}")
-
-
 def test_the_server_refuses_bad_requests_survives_a_dying_client_and_reports(served):
     url, proc = served
     assert call(url + "/annotate", raw=b"{not json")[0] == 400
@@ -230,22 +202,6 @@ def test_a_trainer_of_another_model_setup_is_refused_by_the_server_in_one_line(t
                               "--num-steps", "16", "--frames", "32", "--annotator", url, "--out", str(tmp_path / "r")])
     assert out.exit_code == 1 and "annotates with --backend stub --model stub:16 --dtype float32 --quant none, another model setup than this run's --backend stub --model stub:24" in out.output
     assert len(out.output.strip().splitlines()) == 1
-
-
-def hop_states(n: int = 3):
-    """Hop records of one env's first steps, as a hop trainer builds them (window 2)."""
-    import numpy as np
-
-    from illm_tools.hop.context import HopTracker
-
-    tracker = HopTracker(1, 1, ACTIONS)
-    rng = np.random.default_rng(0)
-    out = []
-    for _ in range(n):
-        (record,) = tracker.records(["get to the green goal square"], [rng.integers(0, 9, (7, 7, 3), dtype=np.uint8)])
-        out.append(record)
-        tracker.push([2], [False])
-    return out
 
 
 def test_hop_states_travel_with_their_window_and_a_forged_one_is_refused(tmp_path):
@@ -412,7 +368,7 @@ def test_sigterm_exits_within_the_batch_deadline_when_the_engine_is_stuck(tmp_pa
 
 @pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_a_remote_trainer_backs_off_a_full_server_and_says_so_once(tmp_path, start_server, caplog):
-    from illm_tools.rl.live import RemoteLive
+    from illm_tools.rl.live_remote import RemoteLive
     from illm_tools.tasks.setup import AnnotationSetup
 
     url, _ = start_server("--max-queue", 2, env={"ILLM_SERVE_TOKEN": TOKEN})

@@ -28,7 +28,8 @@ from illm_tools.llm.spec import LLMSpec
 from illm_tools.llm.stub import StubBackend
 from illm_tools.serve import AnnotationServer, ServeLimits, record_to_json, serve, token_bits
 from illm_tools.tasks.state import StateRecord
-from test_serve import ACTIONS, LLM, MODEL, hop_states, request, state, wait_for
+from fakes import SHORT_ACTIONS as ACTIONS, STUB_LLM as LLM, STUB_MODEL as MODEL, hop_states, wait_for
+from fakes import serve_request as request, serve_state as state
 
 HOP = {"renderer": "hop@2:seed=0:beta=100.0:window=2", "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
 
@@ -332,7 +333,7 @@ def test_the_hop_projections_the_server_keeps_are_bounded(tmp_path):
 
 
 def test_a_trainer_rechecks_the_servers_model_after_a_reconnect(tmp_path, caplog):
-    from illm_tools.rl.live import RemoteLive
+    from illm_tools.rl.live_remote import RemoteLive
     from illm_tools.tasks.setup import AnnotationSetup
 
     with running(make(tmp_path)) as url:
@@ -354,7 +355,7 @@ def test_a_trainer_rechecks_the_servers_model_after_a_reconnect(tmp_path, caplog
 
 
 def test_a_trainer_says_once_which_of_its_states_the_engine_could_not_annotate(tmp_path, caplog):
-    from illm_tools.rl.live import RemoteLive
+    from illm_tools.rl.live_remote import RemoteLive
     from illm_tools.tasks.setup import AnnotationSetup
 
     server = held_engine(tmp_path)

@@ -4,7 +4,6 @@ suite's contract (ids, observation spec, text, options, score)."""
 
 from __future__ import annotations
 
-import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -12,62 +11,12 @@ from illm_tools.collect import CollectConfig, collect
 from illm_tools.data.trajectories import open_table
 from illm_tools.envs import SUITES, known_env_ids, make_env, register_suite, renderer_of, suite_of
 from illm_tools.envs.pool import EnvPool
-from illm_tools.envs.suite import ObsSpec, Suite
 from illm_tools.errors import UnknownEnvError, UsageError
 from illm_tools.rl import TrainConfig, Trainer, make_pool
 from illm_tools.rl.checkpoint import load_checkpoint
-
-TINY = "Tiny-Corridor-v0"
-
-
-class Corridor(gym.Env):
-    """Five cells; 'go right' from the fourth reaches the goal (reward 1). The grid shows the agent
-    as a key (MiniGrid code 5) in row 3 of a 7x7x3 view."""
-
-    def __init__(self, length: int = 5, render_text: bool = True):
-        self.length, self.render_text = int(length), render_text
-        self.action_names = ("go left", "go right")
-        self.action_space = gym.spaces.Discrete(2)
-        self.observation_space = gym.spaces.Box(0, 10, (7, 7, 3), np.uint8)
-
-    def _obs(self):
-        grid = np.ones((7, 7, 3), np.uint8)
-        grid[self.pos, 3, 0] = 5
-        return grid
-
-    def _info(self, info):
-        info.update(text=f"You are {self.length - 1 - self.pos} steps from the goal" if self.render_text else "",
-                    mission="reach the end of the corridor", valid_actions=list(self.action_names))
-        return info
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.pos = int(self.np_random.integers(0, self.length - 1))
-        return self._obs(), self._info({})
-
-    def step(self, action):
-        self.pos = max(0, self.pos + (1 if int(action) == 1 else -1))
-        done = self.pos >= self.length - 1
-        info = {"success": True} if done else {}
-        return self._obs(), float(done), done, False, self._info(info)
+from fakes import TINY, TinySuite
 
 
-class TinySuite(Suite):
-    name = "tiny"
-    renderer = "tiny-text@1"
-    description = "a corridor"
-
-    def env_ids(self):
-        return [TINY]
-
-    def options(self, env_id):
-        return ("length",)
-
-    def make(self, env_id, *, action_space, render_text=True, **options):
-        return Corridor(render_text=render_text, **options)
-
-    def obs_spec(self, env_id):
-        return ObsSpec(shape=(7, 7, 3), dtype="uint8", kind="grid", description="a corridor as MiniGrid codes")
 
 
 @pytest.fixture

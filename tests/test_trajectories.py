@@ -11,28 +11,8 @@ import pytest
 import schemas
 from illm_tools.data.trajectories import TrajectoryWriter, info, open_table
 from illm_tools.errors import OutputExistsError, SchemaError, UsageError
+from fakes import trajectory_rows as rows
 
-
-def rows(n: int, episode: int = 0) -> dict:
-    return {
-        "episode_id": [episode] * n,
-        "step": list(range(n)),
-        "env_id": ["BabyAI-GoToLocal-v0"] * n,
-        "mission": ["go to the red ball"] * n,
-        "obs_text": [f"You see a wall {i + 1} steps forward" for i in range(n)],
-        "renderer": ["babyai-text@1"] * n,
-        "obs_raw": [bytes(147)] * n,
-        "obs_shape": [[7, 7, 3]] * n,
-        "obs_dtype": ["uint8"] * n,
-        "action": [2] * n,
-        "action_text": ["go forward"] * n,
-        "valid_actions": [["turn left", "turn right", "go forward"]] * n,
-        "reward": [0.0] * (n - 1) + [0.5],
-        "terminated": [False] * (n - 1) + [True],
-        "truncated": [False] * n,
-        "seed": [7] * n,
-        "policy": ["random"] * n,
-    }
 
 
 def write(path, n=10, mode="new", shard_rows=4, episode=0):
