@@ -128,7 +128,7 @@ class Trainer:
 
     def __init__(self, i: int, records: list, url: str, token: str, args, llm, setup, cache_root: Path):
         from illm_tools.cache.store import AnnotationCache
-        from illm_tools.rl.live import RemoteLive
+        from illm_tools.rl.live_remote import RemoteLive
 
         self.records, self.args, self.setup = records, args, setup
         self.cache = AnnotationCache(cache_root)  # its own reader, as a trainer process has
