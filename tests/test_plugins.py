@@ -74,6 +74,8 @@ class ToldBonus(IntrinsicBonus):
     needs_targets = True
     target_tasks = ("action",)
     target_kind = MarkedKind
+    told = MarkedTargets
+    """The provider class the run must hand it: the one registered for its kind."""
 
     def __init__(self, config, ctx):
         self.provider = None
@@ -82,8 +84,8 @@ class ToldBonus(IntrinsicBonus):
         self.provider = provider
 
     def compute_rewards(self, batch):
-        assert isinstance(self.provider, MarkedTargets)  # the run's provider is the one the bonus named
-        return BonusRewards(batch["target_mask"].float(), {"told_calls": float(MarkedTargets.calls)})
+        assert isinstance(self.provider, self.told)  # the run's provider is the one registered for its kind
+        return BonusRewards(batch["target_mask"].float(), {"told_calls": float(self.told.calls)})
 
 
 class EchoBackend(TinyBackend):
@@ -238,10 +240,10 @@ class TinyTargets:
     """The tiny provider of `TinyKind`: every state has a target, the uniform distribution over the actions."""
 
     built: list[TinyTargets] = []
+    calls = 0
 
     def __init__(self, num_actions: int):
         self.num_actions = num_actions
-        self.calls = 0
         TinyTargets.built.append(self)
 
     @classmethod
@@ -249,7 +251,7 @@ class TinyTargets:
         return cls(num_actions)
 
     def targets(self, records):
-        self.calls += 1
+        TinyTargets.calls += 1
         b = len(records)
         return Targets(np.full((b, self.num_actions), 1.0 / self.num_actions, np.float32), np.zeros((b, 0), np.float32),
                        np.ones(b, bool))
@@ -261,22 +263,11 @@ class TinyTargets:
         pass
 
 
-class TinyToldBonus(IntrinsicBonus):
-    """Pays 1 where its provider has a target, after checking the run handed it the tiny provider."""
+class TinyToldBonus(ToldBonus):
+    """The told bonus reading `TinyKind`: the run must hand it the tiny provider."""
 
-    needs_targets = True
-    target_tasks = ("action",)
     target_kind = TinyKind
-
-    def __init__(self, config, ctx):
-        self.provider = None
-
-    def use_provider(self, provider):
-        self.provider = provider
-
-    def compute_rewards(self, batch):
-        assert isinstance(self.provider, TinyTargets)  # the provider registered for the kind it declares
-        return BonusRewards(batch["target_mask"].float(), {})
+    told = TinyTargets
 
 
 def test_a_bonus_declares_its_kind_of_targets_and_the_run_hands_it_the_provider_registered_for_it(tmp_path):
@@ -285,6 +276,7 @@ def test_a_bonus_declares_its_kind_of_targets_and_the_run_hands_it_the_provider_
     METHODS.register("tiny-told", Method("tiny-told", "paid where the tiny provider answers", TinyToldBonus))
     TARGET_PROVIDERS.register(kind_name(TinyKind), TinyTargets)
     TinyTargets.built.clear()
+    TinyTargets.calls = 0
     try:
         assert provider_class(TinyToldBonus) is TinyTargets
         ok("train", "--env", "BabyAI-GoToLocal-v0", "--method", "tiny-told", "--backend", "stub", "--cache",
@@ -295,7 +287,7 @@ def test_a_bonus_declares_its_kind_of_targets_and_the_run_hands_it_the_provider_
         del TARGET_PROVIDERS[kind_name(TinyKind)]
     with open(tmp_path / "run" / "metrics.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert len(TinyTargets.built) == 1 and TinyTargets.built[0].calls == len(rows) == 2  # built once, asked per rollout
+    assert len(TinyTargets.built) == 1 and TinyTargets.calls == len(rows) == 2  # built once, asked once per rollout
     assert float(rows[-1]["target_coverage"]) == 1.0 and float(rows[-1]["adv_int_abs"]) > 0
 
 
