@@ -1,5 +1,6 @@
 """Language tasks: template versions are pinned, history follows paper B.1, keys are stable and
-sensitive, records from a table equal records from live tracking, calibrations behave."""
+sensitive, records from a table equal records from live tracking, calibrations behave; the setup
+module makes the writer's and the reader's keys alike and reads, adopts and checks a cache's setups."""
 
 from __future__ import annotations
 
@@ -144,3 +145,27 @@ def test_calibrations():
                        np.exp([-2, -2, -3]) / np.exp([-2, -2, -3]).sum())
     assert action_distribution(sums, counts, neutral, "pmi").argmax() == 1
     assert np.allclose(action_distribution(sums, counts, neutral, "sum").sum(), 1.0)
+
+
+def test_one_setup_module_makes_the_keys_reads_a_caches_setups_adopts_and_checks(tmp_path):
+    from illm_tools.annotate.engine import Annotator
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.errors import CacheError
+    from illm_tools.llm.spec import LLMSpec
+    from illm_tools.tasks.setup import AnnotationSetup, HeldSetup, adopt, cache_setups, check_setup
+
+    llm = LLMSpec(backend="stub", dtype="float32", quant="none", device="cpu")
+    setup = AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", ("action", "summary"), history_len=1)
+    cache = AnnotationCache(tmp_path / "ann")
+    annotator = Annotator.of_setup(llm.load(), cache, llm, setup)
+    assert annotator.builder(setup.env_id, setup.renderer) == setup.builder_of(llm)  # the writer's keys: the reader's
+    assert adopt(tmp_path / "ann", setup.tasks, setup.renderer) is None  # no cache in the folder yet
+    annotator.annotate_states([record(), record("You see a wall 1 step forward")], setup.env_id, setup.renderer)
+    held = cache_setups(tmp_path / "ann", setup.tasks, setup.renderer)  # a cache's folder, or the cache
+    assert held == [HeldSetup("stub", llm.model, "float32", "none", 1, "shared", "babyai-text@1", entries=2)]
+    assert held[0].options().endswith("--history 1 --layout shared") and held[0].fields()["model_dtype"] == "float32"
+    assert adopt(cache, setup.tasks, setup.renderer) == held[0] and cache_setups(cache, setup.tasks, "other@1") == []
+    check_setup(cache, setup.builder_of(llm), llm=llm, tasks=setup.tasks)  # its own setup: nothing refused
+    other = AnnotationSetup(setup.env_id, setup.renderer, setup.tasks, history_len=0)
+    with pytest.raises(CacheError, match="holds --history 1 annotations .*this run asks for --history 0"):
+        check_setup(cache, other.builder_of(llm), llm=llm, tasks=setup.tasks)
