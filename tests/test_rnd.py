@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from illm_tools.intrinsic import BonusContext, RNDBonus, RNDConfig
-from illm_tools.rl import TrainConfig, Trainer, load_checkpoint
-from illm_tools.rl.config import bonus_weights
+from illm_tools.rl import Trainer, load_checkpoint
+from illm_tools.rl.build import run_config
 from fakes import FakePool
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -78,8 +78,8 @@ def test_observations_are_normalised_from_the_first_rollout_then_merged_after_re
 
 
 def rnd_trainer(tmp_path, updates, **kw):
-    cfg = TrainConfig(run_dir=tmp_path / "run", method="rnd", num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
-                      tensorboard=False, update_epochs=2, num_minibatches=2, **bonus_weights("rnd"), **kw)
+    cfg = run_config(dict(run_dir=tmp_path / "run", method="rnd", num_envs=4, num_steps=32,  # rnd's preset, as the CLI
+                          total_steps=4 * 32 * updates, tensorboard=False, update_epochs=2, num_minibatches=2, **kw))
     return Trainer(cfg, FakePool(cfg.num_envs))
 
 

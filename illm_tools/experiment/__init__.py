@@ -10,11 +10,11 @@ A spec (YAML; experiments/specs/ holds the paper's tables at CPU budgets):
     seeds: [0, 1, 2]              # or a count: 3 (`--seeds` overrides)
     envs: [BabyAI-GoToLocal-v0]
     methods: [ppo, rnd, illm]
-    grid:                         # every combination of these values (TrainConfig fields, or
-      num_dists: [4, 8, 16]       # env_options.KEY for an env option)
+    grid:                         # every combination of these values (`illm train`'s settings by
+      num_dists: [4, 8, 16]       # name, or env_options.KEY for an env option)
     method_grid:                  # per method, more values crossed with `grid` (e.g. the oracle's
       illm: {oracle_noise: [0, 0.5, 1]}   # quality for illm alone)
-    settings:                     # for every run (TrainConfig fields)
+    settings:                     # for every run (`illm train`'s settings by name)
       num_envs: 16
     method_settings:              # per method, over `settings`
       illm: {cache: data/ann, history_len: 0, live_budget: 16}
@@ -30,9 +30,11 @@ A grid value may be a mapping: a bundle of settings applied together, named by i
 label's value), e.g. `annotator: [{name: oracle, backend: oracle}, {name: gpt2, model: gpt2}]`.
 
 Everything is checked before anything runs: the top-level keys, the method names, the env ids, the
-setting names (each a field of `illm_tools.rl.config.TrainConfig`, or `env_options.<name>`, which
-its suite checks) and their values (every run's TrainConfig is built); a bad one is refused in one
-line naming the spec's line. A run's folder is RESULTS/<env>/<label>/seed<n> (the label: the method
+setting names (each a setting of `illm train` under its flat name, `illm_tools.rl.names`: model,
+model_dtype, lambda_a, ...; or `env_options.<name>`, which its suite checks) and their values (every
+run's TrainConfig is built, by `illm_tools.rl.build.run_config` as `illm train` builds one: the
+preset expanded, the cache's setup adopted where no model option is set, a resumed run's own
+settings merged); a bad one is refused in one line naming the spec's line. A run's folder is RESULTS/<env>/<label>/seed<n> (the label: the method
 and the grid values, e.g. `illm-num_dists=8`); the spec is copied to RESULTS/spec.yaml, and a
 results folder made from another spec is refused (grids never mix). A run whose checkpoint has
 reached its frames is skipped, one with a checkpoint short of them is resumed (`--resume`), the

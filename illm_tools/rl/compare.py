@@ -14,13 +14,18 @@ def comparable(data: Mapping) -> dict:
     run's method and mode ignore: the hop translation's in obs mode, the LLM's dtype and
     quantisation under a backend that has none (the oracle), every LLM and target setting for a
     method that reads no targets and is not in hop mode, and iLLM's settings for a method
-    without its heads. A config this version cannot read is returned as it is."""
+    without its heads. The model is named as the backend's default names it (an LLMSpec's model), the
+    oracle's noise apart (`oracle_noise`). A config this version cannot read is returned as it is."""
     from illm_tools.rl.config import TrainConfig
 
     try:
         cfg = TrainConfig.from_dict({k: v for k, v in upgrade_config(data).items()
                                      if k in TrainConfig.__dataclass_fields__} | {"resume": False})
         out = {**flat_settings(data), **cfg.flat()}
+        if cfg.llm.backend == "oracle":  # its noise as a setting of its own, as reports have always named it
+            from illm_tools.llm.oracle import NAME, parse_spec
+
+            out.update(model=NAME, oracle_noise=parse_spec(cfg.llm.model))
     except Exception:  # noqa: BLE001 - another version's run: compared as written
         return dict(data)
     drop = set()
