@@ -72,7 +72,7 @@ def coverage(
     most visited states cover (what annotating them with `illm annotate --limit k` reaches on this
     data), and a held-out estimate of what they reach on a run's new episodes (the top k of half
     the episodes against the other half's steps)."""
-    from illm_tools.annotate.coverage import TOP_K, measure_coverage
+    from illm_tools.annotate.coverage import TOP_K, ahead_warning, measure_coverage
     from illm_tools.errors import UsageError
     from illm_tools.llm.spec import LLMSpec
 
@@ -100,3 +100,6 @@ def coverage(
     typer.echo("top k: the share of these steps the k most visited states cover; in brackets, the share of "
                "every second episode's steps covered by the top k of the others: about what a training run, "
                "which plays new episodes, would find in a cache annotated from this data.")
+    warning = ahead_warning(rows)
+    if warning:
+        typer.echo(warning, err=True)

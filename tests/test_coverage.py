@@ -20,7 +20,7 @@ from cli.main import app
 from illm_tools.tasks.setup import AnnotationSetup, check_setup
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
-from illm_tools.annotate.coverage import VisitedStates, heldout_curve, measure_coverage
+from illm_tools.annotate.coverage import VisitedStates, ahead_warning, heldout_curve, measure_coverage
 from illm_tools.annotate.engine import Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.cache.verify import verify
@@ -122,6 +122,32 @@ def test_data_coverage_reports_costs_and_what_the_cache_answers(trajectories, tm
     table = runner.invoke(app, ["data", "coverage", str(trajectories), "--history", "0", "--history", "1",
                                 "--model", tiny_lm.spec.path, "--dtype", "float32"]).output
     assert "| 0 |" in table and "| 1 |" in table and "top 1,000" in table and "new episodes" in table
+
+
+def test_coverage_says_in_one_line_when_annotating_ahead_will_not_help():
+    def row(history, found, episodes=40):
+        return {"history": history, "steps": 2000, "episodes": episodes, "heldout_top_k_step_share": {"all": found}}
+
+    assert ahead_warning([row(0, 0.77), row(3, 0.12)]) is None  # every history finds a real share
+    lower = ahead_warning([row(0, 0.77), row(3, 0.004)])
+    assert lower.startswith("warning: annotating ahead will not help at history 3") and "0.4% at history 3" in lower
+    assert "--history 0 (77% found)" in lower and "--live-budget" in lower and "\n" not in lower
+    none = ahead_warning([row(0, 0.01), row(3, 0.0)])
+    assert "history 0, 3" in none and "collect more steps" in none and "lower --history" in none
+    assert ahead_warning([row(0, 0.0, episodes=1)]) is None  # nothing to hold out: no estimate, no warning
+
+
+def test_data_coverage_warns_on_a_collection_a_run_will_not_meet(trajectories, tiny_lm):
+    rows = measure_coverage(trajectories, histories=[3], llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"))
+    assert rows[0]["episodes"] > 1 and rows[0]["heldout_top_k_step_share"]["all"] < 0.1  # history 3: all new
+    out = runner.invoke(app, ["data", "coverage", str(trajectories), "--history", "3", "--model", tiny_lm.spec.path,
+                              "--dtype", "float32"])
+    assert out.exit_code == 0, out.output
+    warned = [line for line in out.output.splitlines() if line.startswith("warning: annotating ahead")]
+    assert len(warned) == 1 and "--live-budget" in warned[0], out.output
+    quiet = runner.invoke(app, ["data", "coverage", str(trajectories), "--history", "3", "--model", tiny_lm.spec.path,
+                                "--dtype", "float32", "--json"])
+    assert "warning" not in quiet.output and json.loads(quiet.output)[0]["history"] == 3
 
 
 def _builder(lm, history: int = 0) -> PromptBuilder:

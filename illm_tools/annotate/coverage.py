@@ -15,6 +15,7 @@ states cover. A training run plays other episodes, and on levels with many objec
 rarely repeat a collection's (BabyAI-GoToLocal-v0, history 0: all 18,088 distinct states of a
 50,000-step random collection cover 39% of a second collection's steps). `heldout_curve` estimates
 what a new run would get: the top k of half the dataset's episodes against the other half's steps.
+`ahead_warning` turns that estimate into one line when annotating ahead cannot pay.
 """
 
 from __future__ import annotations
@@ -33,6 +34,12 @@ from illm_tools.tasks.state import StateRecord
 
 TOP_K = (100, 1_000, 10_000)
 """The points of the "steps covered by the k most visited states" curve that are reported."""
+
+AHEAD_FLOOR = 0.10
+"""Below this held-out share (a new episode's steps found among *all* of a collection's states), annotating
+the collection ahead gives a run targets on too few steps to be worth its LLM time: `ahead_warning` says so.
+A judgement, not a measurement: at 2% of the steps (GoToLocal, 2,000 steps, history 0) a short run's
+bonus is paid almost nowhere."""
 
 
 @dataclass
@@ -159,5 +166,28 @@ def measure_coverage(data, *, cache=None, histories: Sequence[int] = (0, 1, 3), 
             "cached_states": int(covered.sum()), "cached_step_share": visited.step_share(covered),
             "top_k_step_share": {str(k_): v for k_, v in visited.top_k_curve().items()},
             "heldout_top_k_step_share": heldout_curve(records, env_ids, renderers, episodes),
+            "episodes": len(set(episodes)),
         })
     return out
+
+
+def ahead_warning(rows: Sequence[dict], floor: float = AHEAD_FLOOR) -> str | None:
+    """One line when `measure_coverage` finds that annotating this collection ahead will not help a
+    run at some history (its held-out "all" share under `floor`), with what to do instead: the lowest
+    history that does reach the floor, else a larger collection or the live fallback. None when
+    every history reaches it, or when the data has too few episodes to hold half of them out."""
+    if not rows or rows[0].get("episodes", 0) < 2:
+        return None
+    share = {r["history"]: r["heldout_top_k_step_share"]["all"] for r in rows}
+    low = sorted(k for k, v in share.items() if v < floor)
+    if not low:
+        return None
+    found = ", ".join(f"{share[k]:.1%} at history {k}" for k in low)
+    line = (f"warning: annotating ahead will not help at history {', '.join(map(str, low))}: a run's new episodes "
+            f"find only {found} of their steps among all {rows[0]['steps']:,} steps' states here")
+    good = sorted(k for k, v in share.items() if v >= floor)
+    if good:
+        return (f"{line}; annotate and train with --history {good[0]} ({share[good[0]]:.0%} found), "
+                "or let the live fallback annotate the run's own states (`illm train --live-budget N`)")
+    return (f"{line}; try a lower --history, collect more steps (a larger collection repeats more of a run's "
+            "states), or let the live fallback annotate the run's own states (`illm train --live-budget N`)")
