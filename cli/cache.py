@@ -34,15 +34,15 @@ def info(
     if not (path / "manifest.json").is_file():
         raise UsageError(f"no annotation cache at {path}: run `illm annotate DATA --cache {path}` first")
     from illm_tools.llm.backend import model_options
-    from illm_tools.tasks.prompts import layouts_of
+    from illm_tools.tasks.setup import setup_rows
 
     cache = AnnotationCache(path)
     stats = cache.info()
     stats["setups"] = [
         {**{k: u[k] for k in ("task", "model", "model_fingerprint", "history_len", "template_version", "renderer",
                               "decoding", "entries")},
-         "model_options": model_options(u["model"], u["model_fingerprint"]), "layouts": layouts_of(u["task"], u["prompt"])}
-        for u in sorted(cache.setups(), key=lambda u: (u["task"], -u["entries"]))]
+         "model_options": model_options(u["model"], u["model_fingerprint"]), "layouts": u["layouts"]}
+        for u in sorted(setup_rows(cache), key=lambda u: (u["task"], -u["entries"]))]
     if as_json:
         emit_json(stats)
         return

@@ -17,7 +17,8 @@ A cache's setups are what every key of a run shares besides the state: the model
 serves it (backend, model, dtype, quantisation, read back from the rows' fingerprints:
 `describe_model`), the history length, the prompt layout (read back from a stored prompt,
 `layouts_of`, at this code's template versions) and the renderer (`AnnotationCache.setups` lists
-the distinct ones). A setup counts for a run when the cache holds entries of it for every task the
+the distinct ones; `setup_rows` each with the layouts its prompt fits, as `illm cache info` shows
+them). A setup counts for a run when the cache holds entries of it for every task the
 run reads and its renderer is the run's (the env's text renderer; in hop mode a hop renderer, whose
 projection seed and beta come with it).
 
@@ -167,6 +168,13 @@ class HeldSetup:
         return out
 
 
+def setup_rows(cache) -> list[dict]:
+    """The setups an `AnnotationCache` holds as it lists them (`AnnotationCache.setups`: per task, the
+    columns every key of a setup shares, its entries and one of its prompts), each with the template
+    layouts its prompt fits (`layouts`: read back from the prompt, `layouts_of`), in the cache's order."""
+    return [{**row, "layouts": layouts_of(row["task"], row["prompt"])} for row in cache.setups()]
+
+
 def _open(cache):
     """`cache` as an `AnnotationCache` (given one, or its folder); None for a folder that holds no cache yet."""
     from illm_tools.cache.store import AnnotationCache
@@ -184,7 +192,7 @@ def cache_setups(cache, tasks: Sequence[str], renderer: str | None = None) -> li
 
     cache = _open(cache)
     per_task: dict[tuple, dict[str, int]] = {}
-    for row in cache.setups() if cache is not None else []:
+    for row in setup_rows(cache) if cache is not None else []:
         task = row["task"]
         if task not in tasks:
             continue
@@ -195,7 +203,7 @@ def cache_setups(cache, tasks: Sequence[str], renderer: str | None = None) -> li
         if model is None:
             continue
         spec = get_task(task)
-        for layout in layouts_of(task, row["prompt"]):
+        for layout in row["layouts"]:
             if spec.templates[layout][1] != row["template_version"]:
                 continue  # an older template of the layout: this code renders another prompt
             key = (model["backend"], model["model"], model["dtype"], model["quant"], int(row["history_len"]), layout,
@@ -252,12 +260,10 @@ def check_setup(cache, builder: PromptBuilder, *, llm, tasks: Sequence[str] = ("
     (`builder`'s), in one line naming the settings that differ and what the cache holds ("the cache
     holds --history 0 annotations; this run asks for --history 3"); `llm`: the run's placed
     `LLMSpec`. Nothing is refused when every task has entries of this setup."""
-    held = cache.setups()
+    held = setup_rows(cache)
     for task in tasks:
         want = builder.setup(task)
         rows = [r for r in held if r["task"] == task]
-        for r in rows:
-            r["layouts"] = layouts_of(task, r["prompt"])
 
         def differs(r: dict) -> list[str]:
             out = [f for f in ("model_fingerprint", "history_len", "template_version", "renderer", "decoding")
