@@ -52,3 +52,16 @@ def test_no_import_cycles():
         if module not in index:
             visit(module)
     assert cycles == [], cycles
+
+
+def test_the_target_provider_seam_is_an_import_the_contract_sees():
+    """A bonus declares the kind of targets it reads (intrinsic/); rl/providers.py imports the kinds and
+    the providers and maps one to the other: an arrow down, checked by lint-imports, where a bonus
+    once named its provider as a "module:Class" string up the layers, which no contract can see."""
+    import grimp
+
+    graph = grimp.build_graph("illm_tools", include_external_packages=False)
+    seam = graph.find_modules_directly_imported_by("illm_tools.rl.providers")
+    assert {"illm_tools.intrinsic.base", "illm_tools.intrinsic.ellm", "illm_tools.rl.targets"} <= seam
+    named = [p.name for p in (ROOT / "illm_tools" / "intrinsic").glob("*.py") if "illm_tools.rl.targets:" in p.read_text()]
+    assert named == []
