@@ -187,8 +187,12 @@ def register(app: typer.Typer) -> None:
                        "to do; pass a larger --frames with --resume to train on")
             return
         targets = f"; steps with an LLM target {sum(coverage) / len(coverage):.0%} on average" if coverage else ""
-        live_total[0] += result.get("live_at_close", 0)  # the worker's last chunk, written while the run shut down
-        live = f"; {live_total[0]:,.0f} states annotated live" if cfg.needs_targets and cfg.live_budget else ""
+        if len(coverage) > 1:  # the live fallback's answers raise the share as the run goes on
+            targets += f" ({coverage[0]:.0%} in the first rollout, {coverage[-1]:.0%} in the last)"
+        during, at_close = live_total[0], result.get("live_at_close", 0)  # at close: the worker's last chunk
+        live_total[0] += at_close
+        live = f"; {live_total[0]:,.0f} states annotated live ({during:,.0f} during the rollouts, {at_close:,} while " \
+            "the run shut down, kept in the cache)" if cfg.needs_targets and cfg.live_budget else ""
         none = no_target_line(cfg, coverage, live_total[0])
         if result.get("stopped"):
             typer.echo(f"stopped at {result['global_step']:,} frames{targets}; resume with "
@@ -243,9 +247,28 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"{episodes} episodes per run (--seed {seed}: env seeds from 2^40 + {seed}, apart from training's; "
                    "the same episodes for every run), actions "
                    + ("greedy (the most likely)" if greedy else "sampled from the policy"))
+        single = one_run_methods(results)
+        if single:
+            typer.echo(single)
 
     evaluate.__signature__ = inspect.Signature(_eval_parameters())
     app.command("eval", epilog="Example: illm eval runs/gotolocal-illm --episodes 100")(friendly(evaluate))
+
+
+def one_run_methods(results: list[dict]) -> str | None:
+    """The closing line of an eval that sets methods side by side with one run of some: what its
+    intervals can say (how each trained policy does) and cannot (which method trains better)."""
+    from collections import Counter
+
+    runs = Counter(r["method"] for r in results)
+    if len(runs) < 2 or min(runs.values()) > 1:
+        return None
+    rated = [r["success_interval"] for r in results if r["success_interval"]]
+    overlap = len(rated) > 1 and max(lo for lo, _ in rated) <= min(hi for _, hi in rated)
+    return (f"runs per method: {', '.join(f'{m} {n}' for m, n in runs.items())}. Each interval is one trained "
+            "policy's on these episodes" + (", and here they overlap" if overlap else "")
+            + ": one seed cannot say which method trains better (another seed may reverse it); compare methods "
+            "over several seeds each (`illm experiment`, then `illm report`: IQM with 95% intervals over seeds)")
 
 
 def _eval_parameters() -> list[inspect.Parameter]:

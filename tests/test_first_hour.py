@@ -115,6 +115,25 @@ def test_the_live_count_includes_what_the_worker_writes_while_shutting_down(tmp_
     fake_training(monkeypatch, coverage=0.5, live=2.0, at_close=8)  # the CLI adds them to the run's count
     out = invoke(*train_args(tmp_path, tmp_path / "ann"))
     assert out.exit_code == 0 and "10 states annotated live" in out.output, out.output
+    assert "(2 during the rollouts, 8 while the run shut down, kept in the cache)" in out.output, out.output
+
+
+def test_train_says_how_the_target_share_moved_from_the_first_rollout_to_the_last(tmp_path, monkeypatch):
+    import illm_tools.rl.run as run_module
+
+    def train(cfg, on_metrics=None, should_stop=None):
+        for update, share in enumerate((0.25, 0.5), 1):  # the live fallback's answers land between rollouts
+            on_metrics({"global_step": update * cfg.batch_size, "charts/target_coverage": share,
+                        "charts/live_annotations": 3.0, "charts/score": 0.0})
+        return {"global_step": 2 * cfg.batch_size, "live_at_close": 0}
+
+    monkeypatch.setattr(run_module, "train", train)
+    args = train_args(tmp_path, tmp_path / "ann")
+    args[args.index("--frames") + 1] = 128
+    out = invoke(*args)
+    assert out.exit_code == 0, out.output
+    assert "steps with an LLM target 38% on average (25% in the first rollout, 50% in the last); 6 states annotated " \
+        "live (6 during the rollouts, 0 while the run shut down" in out.output, out.output
 
 
 def test_annotate_given_a_cache_as_its_dataset_says_what_to_pass(tmp_path):
@@ -229,3 +248,27 @@ def test_a_run_whose_live_answers_came_too_late_says_so(tmp_path, monkeypatch):
     closing = [line for line in out.output.splitlines() if line.startswith("warning: no step had an LLM target")]
     assert len(closing) == 1 and "the 8 states annotated live landed after the rollouts" in closing[0], out.output
     assert "none of them a state this run visited" not in out.output
+
+
+def test_eval_of_one_run_per_method_says_one_seed_cannot_compare_methods(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    import illm_tools.rl.run as run_module
+
+    rates = {"illm": 0.64, "ppo": 0.5}
+
+    def evaluate(run, episodes, seed, greedy):
+        method = Path(run).name
+        return {"run": str(run), "env_id": "BabyAI-GoToLocal-v0", "method": method, "episodes": episodes,
+                "score": rates[method], "score_name": "success rate", "success_rate": rates[method],
+                "mean_return": 0.5, "mean_length": 20.0, "frames": 8192}
+
+    monkeypatch.setattr(run_module, "evaluate", evaluate)
+    for name in rates:
+        fake_run(tmp_path / name, 0, [(100, 1.0, 1)])
+    out = invoke("eval", tmp_path / "illm", tmp_path / "ppo", "--episodes", 50)
+    assert out.exit_code == 0, out.output
+    (line,) = [line for line in out.output.splitlines() if line.startswith("runs per method")]
+    assert "illm 1, ppo 1" in line and "here they overlap" in line and "one seed cannot say which method" in line
+    alone = invoke("eval", tmp_path / "illm", "--episodes", 50)  # one method: nothing compared, no line
+    assert alone.exit_code == 0 and "runs per method" not in alone.output, alone.output
