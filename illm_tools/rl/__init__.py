@@ -11,7 +11,7 @@ import importlib
 _EXPORTS = {
     "load_checkpoint": "checkpoint", "load_policy": "checkpoint", "TrainConfig": "config",
     "GridMissionNet": "networks", "MissionVocab": "networks", "Trainer": "ppo", "make_pool": "run",
-    "Rollout": "storage", "gae": "storage", "two_stream_advantages": "storage",
+    "Rollout": "storage", "gae": "storage", "two_stream_advantages": "storage", "run_config": "build",
 }
 
 __all__ = sorted(_EXPORTS)
