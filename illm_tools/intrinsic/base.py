@@ -53,9 +53,10 @@ Hooks, in the order the trainer calls them per update: `observe` after every env
 update, and reaches the advantages through the intrinsic value stream); `aux_loss` on each
 minibatch of the first `distill_epochs` epochs (its gradient reaches the policy network: iLLM's
 distillation); `update` once after the policy update (a bonus's own model, own optimiser: RND's
-predictor); `state_dict` / `load_state_dict` with every checkpoint. `use_provider` is not the
-trainer's: whoever assembles a run (`illm_tools.rl.run.train`) calls it once, after building the
-trainer, with the run's `TargetProvider` (a bonus that reads more of it than the stored targets).
+predictor); `state_dict` / `load_state_dict` with every checkpoint; `use_provider` once, when the
+trainer has built the bonus, with the run's `TargetProvider`: the one the run's assembly
+(`illm_tools.rl.run`) built for the kind of targets the bonus declares (`target_kind`), for a bonus
+that reads more of it than the stored targets.
 """
 
 from __future__ import annotations
@@ -195,9 +196,10 @@ class IntrinsicBonus(ABC):
         return self
 
     def use_provider(self, provider: TargetProvider) -> None:
-        """Called once with the run's `TargetProvider` after the bonus is built, by whoever
-        assembles the run (`illm_tools.rl.run.train`), for a bonus that reads more of the
-        provider than the targets the trainer stores (ELLM: each step's goals). Default: nothing."""
+        """Called once by the trainer, after it built the bonus, with the run's `TargetProvider` (the
+        one registered for the bonus's `target_kind`, built by the run's assembly,
+        `illm_tools.rl.run`), for a bonus that reads more of the provider than the targets the
+        trainer stores (ELLM: each step's goals). Default: nothing."""
 
     def policy_outputs(self, net, features: torch.Tensor) -> dict[str, torch.Tensor]:
         """What the bonus reads of the policy network beyond its features, for `features` [..., F]
