@@ -132,7 +132,7 @@ class Trainer:
 
         self.records, self.args, self.setup = records, args, setup
         self.cache = AnnotationCache(cache_root)  # its own reader, as a trainer process has
-        self.builder = setup.builder(llm.model, llm.fingerprint())
+        self.builder = setup.builder_of(llm)
         self.live = RemoteLive(url, client=f"sim-trainer-{i}", llm=llm, setup=setup, budget=args.budget, token=token)
         self.visits: Counter = Counter()
         self.keys: dict = {}
