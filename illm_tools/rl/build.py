@@ -16,7 +16,7 @@ from typing import Any
 
 from illm_tools.errors import UsageError
 from illm_tools.rl.config import TrainConfig
-from illm_tools.rl.names import flag_of, flat_settings
+from illm_tools.rl.names import flag_of
 from illm_tools.rl.presets import PRESET_FIELDS, bonus_weights
 
 AUTO_CHOICES = ("model_dtype", "quant", "action_space")
@@ -59,18 +59,20 @@ def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) 
     from the run's is refused in one line naming its option."""
     from illm_tools.rl.checkpoint import RESUMABLE_CHANGES, read_config
 
-    stored = flat_settings(read_config(run_dir))
+    own = {**read_config(run_dir), "run_dir": str(run_dir), "resume": True}  # the folder may have moved
+    stored = TrainConfig.from_dict(own).flat()
     changes = {k: settings[k] for k in given if k in settings
                and not (k in AUTO_CHOICES and settings[k] in ("auto", None))}
-    merged = flat_settings({**stored, **changes})
-    refused = sorted(f"{flag_of(k)} (the run has {stored.get(k)!r})" for k, v in merged.items()
+    cfg = TrainConfig.from_dict({**stored, **changes})
+    now = cfg.flat()  # compared as the config holds them ("1" and [1] alike, the LLM named one way)
+    refused = sorted(f"{flag_of(k)} (the run has {stored.get(k)!r})" for k, v in now.items()
                      if stored.get(k) != v and k not in RESUMABLE_CHANGES)
     if refused:
         allowed = sorted(flag_of(k) for k in RESUMABLE_CHANGES if k != "resume")
         raise UsageError(f"--resume continues {run_dir} with its own settings, and {', '.join(refused)} would "
                          f"change what it learns: leave {'them' if len(refused) > 1 else 'it'} out, or train into a "
                          f"new --out (a resumed run may change {', '.join(allowed)})")
-    return TrainConfig.from_dict({**merged, "run_dir": str(run_dir), "resume": True})
+    return cfg
 
 
 def adopt_setup(cfg: TrainConfig, given: Collection[str], say: Callable[[str], None] | None = None) -> TrainConfig:
