@@ -1,12 +1,11 @@
 """The LLM backend seam: an unknown backend is refused in one line, the stub answers
 deterministically from the prompt, a backend defined in this test file plugs in through the
-registry (one class plus one entry) and annotates and trains unchanged, and the whole pipeline
-runs on the stub, text and hop mode alike, with no weights."""
+registry (one class plus one entry) and annotates and trains unchanged (the whole pipeline on the
+stub, text and hop mode alike: tests/test_pipeline.py)."""
 
 from __future__ import annotations
 
 import csv
-import json
 
 import numpy as np
 import pytest
@@ -71,16 +70,3 @@ def test_a_backend_registered_from_a_test_file_annotates_and_trains(tmp_path):
         BACKENDS.pop("tiny")
 
 
-def test_the_pipeline_runs_on_the_stub_in_text_and_hop_mode(tmp_path):
-    traj = tmp_path / "traj"
-    ok(["collect", "--env", "MiniGrid-MultiRoom-N6-v0", "--steps", 64, "--num-envs", 2, "--out", traj])
-    for mode in ("obs", "hop"):
-        ann = tmp_path / f"ann-{mode}"
-        out = ok(["annotate", traj, "--cache", ann, "--backend", "stub", "--model", "stub:24", "--mode", mode,
-                  "--history", 0, "--limit", 6])
-        assert "annotated 6 states (12 rows" in out
-        ok(["train", "--env", "MiniGrid-MultiRoom-N6-v0", "--mode", mode, "--method", "illm", "--cache", ann,
-            "--backend", "stub", "--model", "stub:24", "--history", 0, "--num-envs", 2, "--num-steps", 16,
-            "--frames", 32, "--live-budget", 0, "--out", tmp_path / f"run-{mode}"])
-        (result,) = json.loads(ok(["eval", tmp_path / f"run-{mode}", "--episodes", 2, "--json"]))
-        assert result["episodes"] == 2

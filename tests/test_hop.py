@@ -1,10 +1,9 @@
 """iLLM(hop): the Hopfield translation, hop records and keys, the language tasks on spliced
-embeddings, Z_h in the policy, and hop runs that train, resume and evaluate (tiny random LLM)."""
+embeddings and Z_h in the policy (hop runs that annotate, train, resume and evaluate on MiniGrid and
+Atari: tests/test_pipeline.py)."""
 
 from __future__ import annotations
 
-import csv
-import json
 
 import numpy as np
 import pytest
@@ -147,38 +146,6 @@ def test_z_h_batches_equal_single_windows_and_records_carry_the_window(tiny_lm):
     window = context.window_embeddings(records[0].frames, records[0].prev_actions)
     alone = context.z_h([window])
     assert torch.allclose(alone[0], zs[-1][0], atol=1e-5)
-
-
-@pytest.mark.slow  # 15 s: keeps the fast tier under its 2 minutes
-def test_hop_annotate_train_resume_eval_on_minigrid_and_atari(tmp_path, tiny_lm):
-    model = tiny_lm.spec.path
-    for env_id, extra in (("MiniGrid-MultiRoom-N6-v0", []),
-                          ("ALE/MontezumaRevenge-v5", ["--env-option", "max_num_frames_per_episode=400"])):
-        name = env_id.replace("/", "-")
-        traj, ann = tmp_path / f"traj-{name}", tmp_path / f"ann-{name}"
-        ok(["collect", "--env", env_id, "--steps", 48, "--num-envs", 2, "--out", traj, *extra])
-        out = ok(["annotate", traj, "--cache", ann, "--model", model, "--dtype", "float32", "--mode", "hop",
-                  "--history", 1, "--limit", 5, "--batch-size", 4])
-        assert "annotated 5 states (10 rows" in out
-        rows = json.loads(ok(["cache", "info", ann, "--json"]))
-        assert rows["tasks"] == {"action": 5, "summary": 5}
-        train = ["train", "--env", env_id, "--mode", "hop", "--method", "illm", "--cache", ann, "--model", model,
-                 "--dtype", "float32", "--history", 1, "--num-envs", 2, "--num-steps", 16, "--live-budget", 2,
-                 "--live-mode", "sync", "--out", tmp_path / f"run-{name}", *extra]
-        cold = ["train", "--env", env_id, "--mode", "hop", "--method", "illm", "--cache", ann, "--model", model,
-                "--dtype", "float32", "--history", 1, "--num-envs", 2, "--num-steps", 4, "--live-budget", 0,
-                "--frames", 8, "--out", tmp_path / f"cold-{name}", *extra]
-        ok(cold)  # the collection's episodes start from the same seeds: their first states are cached
-        with open(tmp_path / f"cold-{name}" / "metrics.csv", newline="") as fh:
-            assert float(next(csv.DictReader(fh))["cache_hit_rate"]) > 0  # the trainer's hop keys are annotate's
-        ok([*train, "--frames", 32])
-        ok([*train, "--frames", 64, "--resume"])
-        with open(tmp_path / f"run-{name}" / "metrics.csv", newline="") as fh:
-            metrics = list(csv.DictReader(fh))
-        assert [int(r["global_step"]) for r in metrics] == [32, 64]
-        assert all(float(r["live_annotations"]) > 0 or float(r["target_coverage"]) > 0 for r in metrics)
-        (result,) = json.loads(ok(["eval", tmp_path / f"run-{name}", "--episodes", 2, "--json"]))
-        assert result["episodes"] == 2
 
 
 def test_hop_records_from_a_table_match_the_trainer_s(tmp_path):

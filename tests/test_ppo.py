@@ -35,49 +35,6 @@ def test_gae_matches_a_direct_computation():
     assert torch.allclose(ret, adv + values)
 
 
-def _paying_methods() -> list[str]:
-    """Every registered method whose bonus reaches the advantages, but ELLM (it pays only where a
-    caption matches a suggested goal's text: test_ellm.py follows its reward into the loss)."""
-    from illm_tools.intrinsic.registry import METHODS, get_method
-
-    return [name for name in METHODS if get_method(name).pays_reward and name != "ellm"]
-
-
-@pytest.mark.parametrize("method", _paying_methods())
-def test_the_bonus_reaches_the_advantages_the_loss_uses(tmp_path, monkeypatch, method):
-    trainer, _ = make_trainer(tmp_path, mode=method, int_gamma=0.9)
-    ro, records, _, next_values = trainer.collect_rollout()
-    trainer.attach_targets(ro, records)
-    bonus = trainer.intrinsic_rewards(ro).reward
-    assert (bonus > 0).any()
-    with_bonus = trainer.advantages(ro, bonus, next_values).advantages
-    without = trainer.advantages(ro, torch.zeros_like(bonus), next_values).advantages
-    # GAE is linear in the reward: the difference is the (gamma_int * lambda)-discounted bonus to go
-    expected = torch.zeros_like(bonus)
-    running = torch.zeros(bonus.shape[1])
-    for t in reversed(range(bonus.shape[0])):
-        running = bonus[t] + 0.9 * 0.95 * running  # the intrinsic stream is non-episodic
-        expected[t] = running
-    assert torch.allclose(with_bonus - without, expected, atol=1e-5)
-    assert (with_bonus >= without - 1e-6).all() and (with_bonus > without).any()
-
-    # and, in the real loop, the update step receives advantages with the bonus in them
-    seen = {}
-
-    def capture(ro, adv):
-        seen.update(ro=ro, adv=adv)
-        return {}
-
-    monkeypatch.setattr(trainer, "update", capture)
-    trainer.train_one_update()
-    ro, adv = seen["ro"], seen["adv"]
-    with torch.no_grad():  # the network is untouched, so this is the rollout's bootstrap value
-        next_ext = trainer.net(*trainer._policy_inputs(trainer.obs)).value_ext
-    ext_only, _ = gae(ro.rewards, ro.values_ext, next_ext, ro.ends, trainer.cfg.gamma, trainer.cfg.gae_lambda)
-    assert not torch.allclose(adv.advantages, ext_only)
-    assert adv.returns_int.abs().sum() > 0
-
-
 def test_ppo_mode_has_no_intrinsic_reward_and_no_head_loss(tmp_path):
     trainer, _ = make_trainer(tmp_path, mode="ppo", updates=1)
     assert not trainer.net.has_heads

@@ -1,16 +1,12 @@
 """RND: a frozen target, a predictor that learns what it sees (so the reward for a repeated
-observation falls), observation normalisation, checkpoint resume, and `illm train --method rnd`."""
+observation falls), observation normalisation, checkpoint resume (`illm train --method rnd` end to
+end: tests/test_methods.py)."""
 
 from __future__ import annotations
 
-import csv
-import json
-
 import pytest
 import torch
-from typer.testing import CliRunner
 
-from cli.main import app
 from illm_tools.intrinsic import BonusContext, RNDBonus, RNDConfig
 from illm_tools.rl import Trainer, load_checkpoint
 from illm_tools.rl.build import run_config
@@ -108,23 +104,3 @@ def test_rnd_trains_through_the_trainer_and_its_state_survives_a_resume(tmp_path
     assert all(torch.equal(v, target[k]) for k, v in resumed.bonus.target.state_dict().items())
 
 
-@pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
-def test_illm_train_method_rnd_end_to_end(tmp_path):
-    runner, run = CliRunner(), tmp_path / "rnd"
-    result = runner.invoke(app, ["train", "--method", "rnd", "--frames", "4096",
-                                 "--bonus-option", "update_proportion=0.5", "--out", str(run)])
-    assert result.exit_code == 0, result.output
-    assert "trained rnd" in result.output and "LLM target" not in result.output
-    cfg = json.loads((run / "config.json").read_text())
-    assert cfg["method"] == "rnd" and (cfg["ext_coef"], cfg["int_coef"]) == (2.0, 1.0)  # RND's preset by default
-    assert cfg["bonus_options"] == {"update_proportion": 0.5}
-    with open(run / "metrics.csv", newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    assert [int(r["global_step"]) for r in rows] == [2048, 4096]
-    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    assert all(r["losses/rnd_predictor_loss"] > 0 and r["charts/intrinsic_reward"] > 0 for r in rows)
-    assert "predictor" in load_checkpoint(run)["bonus"]
-    result = runner.invoke(app, ["eval", str(run), "--episodes", "2", "--json"])
-    assert result.exit_code == 0, result.output
-    (row,) = json.loads(result.output)
-    assert row["method"] == "rnd" and row["frames"] == 4096

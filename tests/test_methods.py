@@ -1,0 +1,119 @@
+"""Every training method of the registry (`illm_tools.intrinsic.registry.METHODS`), the same checks
+each: its bonus reaches the advantages the loss uses (GAE is linear in the reward; the update step
+receives exactly the two-stream advantages of the bonus the trainer computed, changed by it), and a
+method that needs no LLM target trains end to end through `illm train --method M --bonus-option ...`
+(its options in config.json, its own model trained and checkpointed, its loss logged) and `illm eval`
+reads the run. A method added to the registry is in both by default: `OWN` says what it logs and
+keeps, and its absence there fails the end-to-end case. ELLM pays only where a caption matches a
+goal the LLM suggested: test_ellm.py follows its reward into the loss with a goal provider."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from cli.main import app
+from illm_tools.intrinsic.registry import METHODS, get_method
+from illm_tools.rl import gae, load_checkpoint, two_stream_advantages
+from fakes import make_trainer
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+OWN = {  # method: (a --bonus-option, the loss it logs, its part of the checkpoint's bonus state)
+    "illm": (None, "losses/distill_action", None),
+    "illm-shuffled": (None, "losses/distill_action", None),
+    "rnd": ("update_proportion=0.5", "losses/rnd_predictor_loss", "predictor"),
+    "ngu": ("k=5", "losses/ngu_embedding_loss", "embedding"),
+    "apt": ("k=8", "losses/apt_embedding_loss", "embedding"),
+}
+SLOW_END_TO_END = {"rnd", "ngu"}  # 10-20 s each on 2 cores; apt stays in the fast tier
+
+
+def paying() -> list[str]:
+    """Every registered method whose bonus's reward is paid, but ELLM (see the docstring)."""
+    return [name for name in METHODS if get_method(name).pays_reward and name != "ellm"]
+
+
+def without_targets() -> list:
+    """Every method with a bonus that needs no LLM target: trains from nothing but the environment."""
+    return [pytest.param(name, marks=[pytest.mark.slow] if name in SLOW_END_TO_END else [])
+            for name, method in METHODS.items()
+            if method.entry_point is not None and not method.needs_targets and method.pays_reward]
+
+
+@pytest.mark.parametrize("method", paying())
+def test_the_bonus_reaches_the_advantages_the_loss_uses(tmp_path, monkeypatch, method):
+    trainer, _ = make_trainer(tmp_path, mode=method, int_gamma=0.9)
+    assert trainer.cfg.pays_bonus and trainer.bonus is not None
+    assert (trainer.provider is None) != get_method(method).needs_targets
+    ro, records, _, next_values = trainer.collect_rollout()
+    trainer.attach_targets(ro, records)
+    bonus = trainer.intrinsic_rewards(ro).reward
+    assert bonus.shape == (32, 4) and (bonus > 0).any()
+    with_bonus = trainer.advantages(ro, bonus, next_values).advantages
+    without = trainer.advantages(ro, torch.zeros_like(bonus), next_values).advantages
+    # GAE is linear in the reward: the difference is the (gamma_int * lambda)-discounted bonus to go
+    expected = torch.zeros_like(bonus)
+    running = torch.zeros(bonus.shape[1])
+    for t in reversed(range(bonus.shape[0])):
+        running = bonus[t] + 0.9 * 0.95 * running  # the intrinsic stream is non-episodic
+        expected[t] = running
+    assert torch.allclose(with_bonus - without, expected, atol=1e-5)
+    assert (with_bonus >= without - 1e-6).all() and (with_bonus > without).any()
+
+    # in the real loop, the update step receives the advantages of the bonus the trainer computed
+    seen = {}
+    real_update, real_rewards = trainer.update, trainer.intrinsic_rewards
+
+    def rewards(ro, *args, **kwargs):
+        seen["bonus"] = out = real_rewards(ro, *args, **kwargs)
+        return out
+
+    def capture(ro, adv):
+        seen.update(ro=ro, adv=adv)
+        with torch.no_grad():  # the bootstrap values of this rollout (the network is not yet updated)
+            seen["next"] = trainer.net(*trainer._policy_inputs(trainer.obs))
+        return real_update(ro, adv)
+
+    monkeypatch.setattr(trainer, "intrinsic_rewards", rewards)
+    monkeypatch.setattr(trainer, "update", capture)
+    logged = trainer.train_one_update()
+    cfg, ro, adv, nxt, reward = trainer.cfg, seen["ro"], seen["adv"], seen["next"], seen["bonus"].reward
+    kw = dict(gamma=cfg.gamma, int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
+              int_coef=cfg.int_coef, int_episodic=cfg.int_episodic)
+    expected = two_stream_advantages(ro, reward, nxt.value_ext, nxt.value_int, **kw)
+    plain = two_stream_advantages(ro, None, nxt.value_ext, nxt.value_int, **kw)
+    assert torch.allclose(adv.advantages, expected.advantages, atol=1e-5)  # the loss saw the bonus ...
+    assert not torch.allclose(adv.advantages, plain.advantages)         # ... and it changed them
+    ext_only, _ = gae(ro.rewards, ro.values_ext, nxt.value_ext, ro.ends, cfg.gamma, cfg.gae_lambda)
+    assert not torch.allclose(adv.advantages, ext_only) and adv.returns_int.abs().sum() > 0
+    assert logged["charts/intrinsic_reward"] > 0 and logged["charts/adv_int_abs"] > 0
+    assert logged[OWN[method][1]] > 0
+
+
+@pytest.mark.parametrize("method", without_targets())
+def test_a_method_without_llm_targets_trains_end_to_end(tmp_path, method):
+    option, loss, part = OWN[method]
+    runner, run = CliRunner(), tmp_path / method
+    result = runner.invoke(app, ["train", "--method", method, "--frames", "4096", "--bonus-option", option,
+                                 "--out", str(run)])
+    assert result.exit_code == 0, result.output
+    assert f"trained {method}" in result.output and "LLM target" not in result.output
+    cfg = json.loads((run / "config.json").read_text())
+    key, value = option.split("=")
+    assert cfg["method"] == method and cfg["bonus_options"] == {key: type(cfg["bonus_options"][key])(value)}
+    if method == "rnd":  # RND's preset by default
+        assert (cfg["ext_coef"], cfg["int_coef"]) == (2.0, 1.0)
+    with open(run / "metrics.csv", newline="") as fh:
+        assert [int(r["global_step"]) for r in csv.DictReader(fh)] == [2048, 4096]
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert all(r["charts/intrinsic_reward"] > 0 and r[loss] > 0 for r in rows)
+    assert part in load_checkpoint(run)["bonus"]
+    result = runner.invoke(app, ["eval", str(run), "--episodes", "2", "--json"])
+    assert result.exit_code == 0, result.output
+    (row,) = json.loads(result.output)
+    assert row["method"] == method and row["frames"] == 4096
