@@ -191,8 +191,9 @@ def register(app: typer.Typer) -> None:
             targets += f" ({coverage[0]:.0%} in the first rollout, {coverage[-1]:.0%} in the last)"
         during, at_close = live_total[0], result.get("live_at_close", 0)  # at close: the worker's last chunk
         live_total[0] += at_close
-        live = f"; {live_total[0]:,.0f} states annotated live ({during:,.0f} during the rollouts, {at_close:,} while " \
-            "the run shut down, kept in the cache)" if cfg.needs_targets and cfg.live_budget else ""
+        live = f"; {live_total[0]:,.0f} states annotated live" if cfg.needs_targets and cfg.live_budget else ""
+        if live and live_total[0]:
+            live += f" ({during:,.0f} during the rollouts, {at_close:,} while the run shut down, kept in the cache)"
         none = no_target_line(cfg, coverage, live_total[0])
         if result.get("stopped"):
             typer.echo(f"stopped at {result['global_step']:,} frames{targets}; resume with "

@@ -130,7 +130,7 @@ def test_coverage_says_in_one_line_when_annotating_ahead_will_not_help():
 
     assert ahead_warning([row(0, 0.77), row(3, 0.12)]) is None  # every history finds a real share
     lower = ahead_warning([row(0, 0.77), row(3, 0.004)])
-    assert lower.startswith("warning: annotating ahead will not help at history 3") and "0.4% at history 3" in lower
+    assert lower.startswith("warning: annotating ahead will not help at history 3") and "(history 3: 0.4%)" in lower
     assert "--history 0 (77% found)" in lower and "--live-budget" in lower and "\n" not in lower
     none = ahead_warning([row(0, 0.01), row(3, 0.0)])
     assert "history 0, 3" in none and "collect more steps" in none and "lower --history" in none

@@ -66,6 +66,7 @@ def test_train_names_a_cache_that_holds_nothing_and_a_run_with_no_target(tmp_pat
     fine = invoke(*train_args(tmp_path, tmp_path / "an2"), "--live-budget", "8")
     assert fine.exit_code == 0, fine.output
     assert "no step had an LLM target" not in fine.output, fine.output
+    assert "; 0 states annotated live -> " in fine.output, fine.output  # no split of nothing
 
 
 def test_a_foreign_cache_that_gave_no_target_is_named_with_what_it_holds(tmp_path, monkeypatch):

@@ -182,9 +182,9 @@ def ahead_warning(rows: Sequence[dict], floor: float = AHEAD_FLOOR) -> str | Non
     low = sorted(k for k, v in share.items() if v < floor)
     if not low:
         return None
-    found = ", ".join(f"{share[k]:.1%} at history {k}" for k in low)
+    found = "; ".join(f"history {k}: {share[k]:.1%}" for k in low)
     line = (f"warning: annotating ahead will not help at history {', '.join(map(str, low))}: a run's new episodes "
-            f"find only {found} of their steps among all {rows[0]['steps']:,} steps' states here")
+            f"would find under {floor:.0%} of their steps among the states of these {rows[0]['steps']:,} steps ({found})")
     good = sorted(k for k, v in share.items() if v >= floor)
     if good:
         return (f"{line}; annotate and train with --history {good[0]} ({share[good[0]]:.0%} found), "
