@@ -1,7 +1,7 @@
 """The files of a training run directory, and loading a trained run's policy for other stages.
 
 Owns `run_dir/checkpoint.pt` and `checkpoint.prev.pt`, `run_dir/config.json` (`write_config`,
-`read_config`), `run_dir/metrics.jsonl` (one JSON object per update, every metric),
+`read_config`: `illm_tools.rl.names`, re-exported), `run_dir/metrics.jsonl` (one JSON object per update, every metric),
 `run_dir/metrics.csv` (the same rows, a fixed set of columns, for spreadsheets and `illm report`),
 TensorBoard events when asked and `load_policy`, which rebuilds the network from config.json + the
 checkpoint for `collect` / `eval`.
@@ -28,13 +28,12 @@ import torch
 
 from illm_tools import durable
 from illm_tools.errors import DamagedFileError, UsageError
-from illm_tools.rl.names import flat_settings, upgrade_config
+from illm_tools.rl.names import CONFIG_NAME, flat_settings, read_config, write_config  # noqa: F401  (re-exported)
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "checkpoint.pt"
 PREVIOUS_NAME = "checkpoint.prev.pt"
-CONFIG_NAME = "config.json"
 CHECKPOINT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 METRICS_NAME = "metrics.jsonl"
@@ -183,27 +182,6 @@ def load_checkpoint(run_dir: Path) -> dict:
             log.warning("%s; using the previous checkpoint %s (update %s, %s frames)", latest, previous,
                         state.get("update"), f"{int(state.get('global_step', 0)):,}")
         return state
-
-
-def write_config(run_dir: Path, config: dict) -> None:
-    """Write run_dir/config.json atomically (temporary file, fsync, rename)."""
-    durable.write_text(Path(run_dir) / CONFIG_NAME, json.dumps(config, indent=2))
-
-
-def read_config(run_dir: Path) -> dict:
-    """run_dir/config.json as written by `illm train`; one line when it is absent or damaged."""
-    path = Path(run_dir) / CONFIG_NAME
-    if not path.is_file():
-        raise UsageError(f"{run_dir} is not a training run (no {CONFIG_NAME}): pass a folder written by `illm train`")
-    try:
-        config = json.loads(path.read_text())
-        if not isinstance(config, dict) or "env_id" not in config or not ({"method", "mode"} & set(config)):
-            raise ValueError("not a run's settings")
-        config = upgrade_config(config)
-    except (ValueError, UnicodeDecodeError) as e:
-        raise DamagedFileError(f"{path} is damaged ({type(e).__name__}): the checkpoint holds the same settings; "
-                               "restore the file from a copy") from None
-    return config
 
 
 # settings a resumed run may change; any other difference is refused

@@ -23,7 +23,8 @@ from illm_tools.llm.spec import LLMSpec
 from illm_tools.rl.derived import DerivedSettings
 from illm_tools.rl.eval_config import EvalConfig  # noqa: F401  (re-exported: where callers found it)
 from illm_tools.rl.names import GROUPS, NESTED, RENAMED, flat_settings, group_dict, upgrade_config  # noqa: F401
-from illm_tools.rl.presets import BONUS_PRESETS, DEFAULT_PRESET, PRESET_FIELDS, bonus_weights, preset_text  # noqa: F401
+from illm_tools.rl.presets import (BONUS_PRESETS, DEFAULT_PRESET, PRESET_DEFAULTS, PRESET_FIELDS,  # noqa: F401
+                                   bonus_weights, preset_text)
 from illm_tools.tasks.calibration import ACTION_TARGETS, CALIBRATIONS
 
 MODES = METHODS  # the bonus registry, name -> method (a live mapping: methods registered later count)
@@ -154,14 +155,14 @@ class TrainConfig(DerivedSettings):
     """Weight of the extrinsic advantage in the summed advantage."""
     int_coef: float = BONUS_PRESETS[DEFAULT_PRESET]["int_coef"]
     """Weight of the intrinsic advantage (summed with the extrinsic one; two streams, see `reward_streams`)."""
-    reward_streams: int = 2
+    reward_streams: int = PRESET_DEFAULTS["reward_streams"]
     """2: the bonus has its own value head and GAE (RND's two streams; `int_gamma`, `int_episodic`);
     1: the paper's Algorithm 1, r* = ext_coef r + int_coef b in one episodic stream with one critic."""
-    bonus_schedule: str = "constant"
+    bonus_schedule: str = PRESET_DEFAULTS["bonus_schedule"]
     """The intrinsic advantage's weight over the run (`illm_tools.rl.bonus_schedule`): constant,
     anneal (linear to 0 over the run), or success (1 - the running success rate: it fades as the
     level is solved)."""
-    int_ext_cap: float = 0.0
+    int_ext_cap: float = PRESET_DEFAULTS["int_ext_cap"]
     """Cap the intrinsic advantage at this multiple of the extrinsic one (mean |.| per rollout) where
     the task paid anything in the rollout; 0: no cap (the bonus alone steers until a reward is found)."""
 
@@ -177,7 +178,7 @@ class TrainConfig(DerivedSettings):
     """Prompt template layout, as in `illm annotate --layout`."""
     action_score: str = "sum"
     """Calibration of the stored action log-probs: sum (paper), mean per token, or pmi."""
-    action_target: str = "distribution"
+    action_target: str = PRESET_DEFAULTS["action_target"]
     """f^a's target: distribution (softmax of the calibrated scores) or argmax (the one-hot of the
     best one: the paper's Algorithm 1 line 7 and Appendix A select the highest log-probability)."""
     live_budget: int | str = 16
@@ -343,13 +344,6 @@ class TrainConfig(DerivedSettings):
 
         return {n: default(LLMSpec if NESTED[n][0] == "llm" else ILLMConfig, NESTED[n][1]) if n in NESTED
                 else default(cls, n) for n in names}
-
-    @classmethod
-    def comparable(cls, data: Mapping) -> dict:
-        """A run's config.json as runs are compared (`illm_tools.rl.compare.comparable`)."""
-        from illm_tools.rl.compare import comparable
-
-        return comparable(data)
 
     @classmethod
     def from_dict(cls, data: Mapping) -> "TrainConfig":

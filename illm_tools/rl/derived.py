@@ -46,7 +46,7 @@ class DerivedSettings:
 
         space = self.action_space
         if space == "auto" and self.resume and (self.run_dir / "config.json").is_file():
-            from illm_tools.rl.checkpoint import read_config
+            from illm_tools.rl.names import read_config
 
             space = read_config(self.run_dir).get("action_space", space)
         return resolve_action_space(self.env_id, space)

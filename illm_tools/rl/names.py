@@ -7,14 +7,22 @@ still has one flat name, the name of its option (`--model` -> model, `--dtype` -
 composed. `NESTED` maps each such name to where it lives now; `upgrade_config` reads a config of any
 version (flat, composed or a mix: flat names win) into this version's shape, and `flat_settings`
 gives a config's settings under the flat names, values as the config holds them (the LLM's model
-named as `LLMSpec` names it), which is how runs are compared (resume, `illm report`).
+named as `LLMSpec` names it), which is how runs are compared (resume, `illm report`). A run folder's
+config.json is written and read here (`write_config`, `read_config`: any version's, in this shape).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 from collections.abc import Mapping
+from pathlib import Path
 
+from illm_tools import durable
+from illm_tools.errors import DamagedFileError, UsageError
+
+CONFIG_NAME = "config.json"
+"""A run folder's settings file (`write_config`, `read_config`)."""
 RENAMED = {"mode": "method"}
 """Settings renamed since runs were first written (old name -> new): config.json files and
 checkpoints of older runs are read under the new names."""
@@ -108,3 +116,24 @@ FLAGS = {"env_id": "--env", "run_dir": "--out", "obs_mode": "--mode", "total_ste
 def flag_of(name: str) -> str:
     """The option that sets the setting `name` ("--frames" for total_steps)."""
     return FLAGS.get(name, "--" + name.replace("_", "-"))
+
+
+def write_config(run_dir: Path, config: dict) -> None:
+    """Write run_dir/config.json atomically (temporary file, fsync, rename)."""
+    durable.write_text(Path(run_dir) / CONFIG_NAME, json.dumps(config, indent=2))
+
+
+def read_config(run_dir: Path) -> dict:
+    """run_dir/config.json as written by `illm train`; one line when it is absent or damaged."""
+    path = Path(run_dir) / CONFIG_NAME
+    if not path.is_file():
+        raise UsageError(f"{run_dir} is not a training run (no {CONFIG_NAME}): pass a folder written by `illm train`")
+    try:
+        config = json.loads(path.read_text())
+        if not isinstance(config, dict) or "env_id" not in config or not ({"method", "mode"} & set(config)):
+            raise ValueError("not a run's settings")
+        config = upgrade_config(config)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise DamagedFileError(f"{path} is damaged ({type(e).__name__}): the checkpoint holds the same settings; "
+                               "restore the file from a copy") from None
+    return config

@@ -23,6 +23,8 @@ BONUS_PRESETS = {  # `illm train --bonus-preset`: how the bonus enters the advan
 }
 DEFAULT_PRESET = "small"
 """The preset whose values are `TrainConfig`'s defaults (the default method's, illm's)."""
+PRESET_DEFAULTS = {"reward_streams": 2, "action_target": "distribution", "bonus_schedule": "constant", "int_ext_cap": 0.0}
+"""The settings only some presets name, at the value the others keep (TrainConfig's defaults of them)."""
 PRESET_FIELDS = ("lambda_a", "beta_hc", "ext_coef", "int_coef", "reward_streams", "action_target", "bonus_schedule",
                  "int_ext_cap")
 """The settings a preset names, by their option names (a preset leaves out those it keeps at
@@ -30,14 +32,11 @@ TrainConfig's default)."""
 
 
 def bonus_weights(preset: str, **given) -> dict:
-    """Every PRESET_FIELDS setting of a BONUS_PRESETS entry (TrainConfig's default where the preset
+    """Every PRESET_FIELDS setting of a BONUS_PRESETS entry (`PRESET_DEFAULTS` where the preset
     names none); `given` values not None win."""
-    from illm_tools.rl.config import TrainConfig
-
     if preset not in BONUS_PRESETS:
         raise UsageError(f"--bonus-preset must be one of {', '.join(BONUS_PRESETS)}, got {preset!r}")
-    defaults = TrainConfig.defaults(PRESET_FIELDS)
-    chosen = {**defaults, **BONUS_PRESETS[preset]}
+    chosen = {**PRESET_DEFAULTS, **BONUS_PRESETS[preset]}
     return {k: v if given.get(k) is None else (float(given[k]) if isinstance(v, float) else given[k])
             for k, v in chosen.items()}
 
