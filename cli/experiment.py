@@ -43,7 +43,7 @@ def register(app: typer.Typer) -> None:
         config = config_from_options(ExperimentConfig, options)
         loaded, cluster, results = config.load()
         jobs, launcher, dry_run = config.jobs, config.launcher, config.dry_run
-        grid = plan(loaded, results)
+        grid = plan(loaded, results, say=lambda line: typer.echo(line, err=True))  # e.g. a cache's setup adopted
         runs = select(grid, config.only)
         counts = {s: sum(r.status == s for r in runs) for s in ("done", "resume", "new")}
         picked = f"; --only picks {len(runs)} of them" if config.only else ""

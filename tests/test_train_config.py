@@ -92,7 +92,9 @@ frames: 256
 settings: {{cache: {stub_cache}, num_envs: 4, num_steps: 32, live_budget: 0, lambda_a: 0.2}}
 method_settings: {{rnd: {{bonus_preset: paper, bonus_options: {{update_proportion: 0.5}}}}}}
 """)
-    runs = plan(load_spec(spec), tmp_path / "results")
+    said = []
+    runs = plan(load_spec(spec), tmp_path / "results", say=said.append)
+    assert len(said) == 1 and said[0].startswith("adopting the cache's setup: --backend stub")  # once, not per run
     seen = _captured(monkeypatch)
     for run in runs:
         options = ["--env", run.env_id, "--method", run.config.method, "--seed", "0", "--frames", "256",

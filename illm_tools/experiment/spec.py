@@ -7,6 +7,7 @@ from __future__ import annotations
 import fnmatch
 import itertools
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -87,9 +88,17 @@ def _combos(spec: Spec) -> list[tuple[dict, dict]]:
     return out
 
 
-def plan(spec: Spec, results: str | Path) -> list[Run]:
+def plan(spec: Spec, results: str | Path, say: Callable[[str], None] | None = None) -> list[Run]:
     """Every run of the grid with its TrainConfig (all built now: a bad value is refused before
-    anything runs) and its status from its folder."""
+    anything runs) and its status from its folder; `say` hears each line `run_config` says (a cache's
+    setup adopted) once."""
+    said: set[str] = set()
+
+    def once(line: str) -> None:
+        if say is not None and line not in said:
+            said.add(line)
+            say(line)
+
     from illm_tools.envs import suite_of
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.checkpoint import CHECKPOINT_NAME, load_checkpoint
@@ -133,7 +142,7 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
             run_dir = results / env_id.replace("/", "-") / label / f"seed{seed}"
             settings = {**base, "env_id": env_id, "method": method, "seed": seed,
                         "total_steps": spec.env_frames.get(env_id, spec.frames), "run_dir": run_dir, "threads": 1}
-            cfg = _run_config(settings, spec, f"{env_id} {label} seed {seed}")
+            cfg = _run_config(settings, spec, f"{env_id} {label} seed {seed}", once)
             status = "new"
             if (run_dir / CHECKPOINT_NAME).exists():
                 done = int(load_checkpoint(run_dir)["global_step"])
@@ -144,14 +153,14 @@ def plan(spec: Spec, results: str | Path) -> list[Run]:
     return runs
 
 
-def _run_config(settings: dict, spec: Spec, run: str):
+def _run_config(settings: dict, spec: Spec, run: str, say: Callable[[str], None] | None = None):
     """A grid run's TrainConfig, built as `illm train` builds one (`illm_tools.rl.build.run_config`:
     preset expanded, the cache's setup adopted, a resumed run's settings merged); refused in one line
     naming the run."""
     from illm_tools.rl.build import run_config
 
     try:
-        return run_config(settings)
+        return run_config(settings, say=say)
     except (IllmError, TypeError) as e:
         raise UsageError(f"{spec.line('settings')}: the run {run} is refused: {e}") from None
 
