@@ -23,7 +23,8 @@ BONUS_PRESETS = {  # `illm train --bonus-preset`: how the bonus enters the advan
 }
 DEFAULT_PRESET = "small"
 """The preset whose values are `TrainConfig`'s defaults (the default method's, illm's)."""
-PRESET_DEFAULTS = {"reward_streams": 2, "action_target": "distribution", "bonus_schedule": "constant", "int_ext_cap": 0.0}
+PRESET_DEFAULTS = {"reward_streams": 2, "action_target": "distribution", "bonus_schedule": "constant",
+                   "int_ext_cap": 0.0}
 """The settings only some presets name, at the value the others keep (TrainConfig's defaults of them)."""
 PRESET_FIELDS = ("lambda_a", "beta_hc", "ext_coef", "int_coef", "reward_streams", "action_target", "bonus_schedule",
                  "int_ext_cap")
