@@ -7,6 +7,8 @@ declared and validated once where it lives; `illm_tools.rl.names` maps the flat 
 specs and older config.json files onto them. `illm_tools.rl.build.run_config` builds a run's config
 from what was given (presets, a resumed run, the cache's setup); the presets live in
 `illm_tools.rl.presets`, `EvalConfig` in `illm_tools.rl.eval_config` (all re-exported here).
+`TrainConfig()` is what `illm train` trains with no option (the illm method, the `small` preset);
+for another method `run_config({"method": ...})` adds that method's preset, as the command line does.
 """
 
 from __future__ import annotations
