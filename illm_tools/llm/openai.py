@@ -31,7 +31,7 @@ server). The model spec is "NAME@URL" (and "#VAR"), so every place that names a 
 - The fingerprint carries the served model's name, the engine and its version (`GET /version`,
   vLLM's; else the `Server` header), the embedder, and never the URL (the same engine and model on
   another host answer the same) nor the key.
-- On connecting (once per process and endpoint), two probes (`_probe_engine`):
+- On connecting (once per process and endpoint), two probes (`openai_engine._probe_engine`):
   * whether the engine takes a list of prompts per request (vLLM, SGLang do; llama-cpp-python's
     server answers 500): where it does not, every prompt goes alone, still `concurrency` at a time.
     Said in one line and written into the fingerprint's engine description.
@@ -50,243 +50,19 @@ Hop mode is refused: an endpoint takes text, not input embeddings.
 
 from __future__ import annotations
 
-import json
 import logging
-import os
-import re
 import time
-import urllib.error
-import urllib.request
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 
-from illm_tools.errors import IllmError, UsageError
+from illm_tools.errors import UsageError
+from illm_tools.llm.openai_engine import (_ENGINES, Client, EndpointError, _check_ranking,  # noqa: F401 (re-exported)
+                                          _fingerprint, embed_url, openai_spec, parse_spec)
 
 NAME = "openai"
-DEFAULT_KEY_ENV = "OPENAI_API_KEY"
-_SPEC = re.compile(r"^(?P<model>[^@#\s]+)@(?P<url>https?://[^#;\s]+?)/?(?:#(?P<key>[A-Za-z_][A-Za-z0-9_]*))?"
-                   r"(?:;embed=(?P<embed>https?://[^#;\s]+?)/?)?$")
-_FINGERPRINTS: dict[str, dict] = {}
-_ENGINES: dict[str, "EngineProbe"] = {}
 log = logging.getLogger(__name__)
-
-ALIGNMENT_CONTEXTS = ("One, two, three, four, five,", "The capital of France is")
-"""The alignment probe's contexts, tried in turn until one of its likely next tokens stays one token
-when scored with it; whatever the token, the check compares the engine with itself."""
-ALIGNMENT_TOP = 5
-"""Likely next tokens asked for (`logprobs` of the generation): the probe scores the most likely one
-that is whole text and stays one token after the context (a byte-level token is not)."""
-ALIGNMENT_TOLERANCE = 0.1
-"""Nats by which the generated token's log-prob and the echoed one may differ. The two come from
-the same weights through two paths (a decode step; a prefill), which differ by rounding: under
-0.01 nats in float32, a few hundredths in bfloat16 on a GPU. A shifted echo is off by nats (8.3 for
-SmolLM2-135M's " six" under llama-cpp-python 0.3.x)."""
-
-
-class EndpointError(IllmError):
-    """The endpoint failed a request after its retries, or answered something illm cannot use."""
-
-
-def openai_spec(model: str, endpoint: str | None, api_key_env: str | None = None,
-                embed_endpoint: str | None = None) -> str:
-    """The model spec "NAME@URL[#VAR][;embed=URL]" of a served model."""
-    if not endpoint:
-        raise UsageError("--backend openai needs --endpoint URL (the server's OpenAI base, e.g. http://127.0.0.1:8000/v1)")
-    if not endpoint.startswith(("http://", "https://")):
-        raise UsageError(f"--endpoint must be an http(s) URL, got {endpoint!r}")
-    if embed_endpoint and not embed_endpoint.startswith(("http://", "https://")):
-        raise UsageError(f"--embed-endpoint must be an http(s) URL, got {embed_endpoint!r}")
-    spec = (f"{model}@{endpoint.rstrip('/')}" + (f"#{api_key_env}" if api_key_env else "")
-            + (f";embed={embed_endpoint.rstrip('/')}" if embed_endpoint else ""))
-    parse_spec(spec)
-    return spec
-
-
-def embed_url(spec: str) -> str | None:
-    """The pooling endpoint's base URL of a spec (`--embed-endpoint`), or None."""
-    parse_spec(spec)
-    return _SPEC.match(spec).group("embed")
-
-
-def parse_spec(spec: str) -> tuple[str, str, str]:
-    """(served model name, base URL, key variable) of a spec; anything else refused in one line."""
-    m = _SPEC.match(spec or "")
-    if m is None:
-        raise UsageError(f"--backend openai names its model as the server serves it, with --endpoint URL (model spec "
-                         f"NAME@URL), not {spec!r}")
-    return m.group("model"), m.group("url"), m.group("key") or DEFAULT_KEY_ENV
-
-
-@dataclass(frozen=True)
-class EngineProbe:
-    """What the connection probes found (`_probe_engine`)."""
-
-    batches: bool
-    """The engine takes a list of prompts in one request."""
-    aligned: bool | None
-    """Its echoed prompt log-probs agree with its generation's (None: it gives no prompt log-probs)."""
-    detail: str
-    """The probe's figures, for the refusal's line."""
-
-
-class Client:
-    """JSON over HTTP to one endpoint, with a timeout and retries (urllib: a few short calls per
-    batch need no more)."""
-
-    def __init__(self, url: str, key_env: str = DEFAULT_KEY_ENV, *, timeout: float = 120.0, retries: int = 4,
-                 backoff: float = 0.5):
-        self.url, self.key, self.timeout, self.retries, self.backoff = url, os.environ.get(key_env), timeout, retries, backoff
-
-    def call(self, path: str, body: dict | None = None, *, root: bool = False) -> tuple[dict, dict]:
-        """(JSON answer, headers named in lower case) of GET (body None) or POST `path` under the base URL (or
-        its root)."""
-        base = re.sub(r"/v1$", "", self.url) if root else self.url
-        headers = {"Content-Type": "application/json", **({"Authorization": f"Bearer {self.key}"} if self.key else {})}
-        data = None if body is None else json.dumps(body).encode()
-        last = ""
-        for attempt in range(self.retries + 1):
-            request = urllib.request.Request(base + path, data=data, headers=headers,
-                                             method="GET" if body is None else "POST")
-            try:
-                with urllib.request.urlopen(request, timeout=self.timeout) as response:
-                    return json.loads(response.read() or b"{}"), {k.lower(): v for k, v in response.headers.items()}
-            except urllib.error.HTTPError as e:
-                detail = e.read().decode(errors="replace")[:200]
-                if e.code != 429 and e.code < 500:
-                    raise EndpointError(f"{base + path} refused the request ({e.code}: {detail})") from None
-                last = f"{e.code}: {detail}"
-            except (urllib.error.URLError, OSError, TimeoutError) as e:
-                last = str(getattr(e, "reason", e))
-            except ValueError as e:
-                raise EndpointError(f"{base + path} answered what is not JSON ({e})") from None
-            if attempt < self.retries:
-                time.sleep(self.backoff * 2 ** attempt)
-        raise EndpointError(f"{base + path} failed {self.retries + 1} times (last: {last}): check the server, or "
-                            "annotate later; nothing of this chunk was written")
-
-
-def _fingerprint(spec: str) -> dict:
-    """The served model's fingerprint (memoised per process: it asks the server)."""
-    if spec not in _FINGERPRINTS:
-        model, url, key = parse_spec(spec)
-        client = Client(url, key, timeout=20.0, retries=1)
-        try:
-            models, headers = client.call("/models")
-        except EndpointError as e:
-            raise UsageError(f"no OpenAI-compatible server answers at {url} ({e}): start one (docs/scale.md: serving "
-                             "Llama-3-8B with vLLM) or check --endpoint") from None
-        served = [m.get("id") for m in models.get("data", [])]
-        if model not in served:
-            raise UsageError(f"the server at {url} serves {', '.join(map(str, served)) or 'no model'}, not {model!r}: "
-                             "pass --model as it names it")
-        try:
-            version, _ = client.call("/version", root=True)
-            engine = f"version {version.get('version', '?')}"
-        except EndpointError:
-            engine = f"server {headers['server']}" if headers.get("server") else "unknown"
-        pooled = embed_url(spec)
-        dim, pooling = _embedding_endpoint(Client(pooled, key, timeout=60.0, retries=1) if pooled else client, model,
-                                           models, required=pooled is not None)
-        probe = _probe_engine(Client(url, key, timeout=60.0, retries=0), model)
-        _ENGINES[spec] = probe
-        if not probe.batches:
-            engine += "; one prompt per request"
-            log.info("the engine at %s (%s) takes one prompt per request: illm sends them one at a time, "
-                     "--concurrency at a time", url, engine.split(";")[0])
-        if dim:
-            embedder = f"endpoint /v1/embeddings ({dim})" if not pooled else f"pooling endpoint, {pooling} ({dim})"
-        else:
-            from illm_tools.llm.sentence import MODEL_NAME, PIP_NAME, package_version
-
-            embedder = f"{MODEL_NAME}@{PIP_NAME}-{package_version()} (local: the endpoint has no embeddings)"
-        _FINGERPRINTS[spec] = {"model_id": model, "source": "openai", "engine": engine, "sha256": None,
-                               "revision": None, "embedder": embedder, "embedding_dim": dim, "dtype": "served",
-                               "quant": "served"}
-    return dict(_FINGERPRINTS[spec])
-
-
-def _embedding_endpoint(client: Client, model: str, served: dict, *, required: bool) -> tuple[int | None, str]:
-    """(dimension, description) of the texts' embeddings from `client`'s `/v1/embeddings` for `model`,
-    or (None, "") where it has none and none was asked for. A pooling endpoint given with
-    --embed-endpoint must serve the same weights as the completions endpoint: where both say what
-    they serve (vLLM's `root`, the weights' folder or hub id) the two must agree."""
-    where = client.url
-    try:
-        answer, _ = client.call("/embeddings", {"model": model, "input": ["probe"]})
-        dim = len(answer["data"][0]["embedding"])
-    except (EndpointError, KeyError, IndexError, TypeError) as e:
-        if not required:
-            return None, ""
-        raise UsageError(f"the pooling endpoint {where} gives no embeddings of {model!r} ({e}): start the same weights "
-                         "with vLLM's pooling runner (docs/scale.md) or leave --embed-endpoint out") from None
-    if not required:
-        return dim, ""
-    try:
-        pooled_models, _ = client.call("/models")
-        version, _ = client.call("/version", root=True)
-    except EndpointError:
-        pooled_models, version = {}, {}
-    roots = {m.get("id"): m.get("root") for m in pooled_models.get("data", [])}
-    mine = {m.get("id"): m.get("root") for m in served.get("data", [])}
-    if roots.get(model) and mine.get(model) and roots[model] != mine[model]:
-        raise UsageError(f"the pooling endpoint {where} serves {roots[model]} as {model!r}, the completions endpoint "
-                         f"{mine[model]}: embeddings must come from the same weights; start both on one model")
-    return dim, f"{roots.get(model) or model}, engine {version.get('version', '?')}"
-
-
-def _probe_engine(client: Client, model: str) -> EngineProbe:
-    """Ask the engine once: does it take a list of prompts; are its echoed prompt log-probs those its
-    generation gives (see the module docstring)?"""
-    try:
-        answer, _ = client.call("/completions", {"model": model, "prompt": ["One,", "Two,"], "max_tokens": 1,
-                                                 "temperature": 0})
-        batches = len(answer.get("choices", [])) == 2
-    except EndpointError:
-        batches = False
-    detail = "its echo never scored one of the likely next tokens as one token after the context"
-    for context in ALIGNMENT_CONTEXTS:
-        try:
-            generated, _ = client.call("/completions", {"model": model, "prompt": context, "max_tokens": 1,
-                                                        "temperature": 0, "logprobs": ALIGNMENT_TOP})
-            lp = generated["choices"][0]["logprobs"]
-            top = (lp.get("top_logprobs") or [None])[0] or {lp["tokens"][0]: lp["token_logprobs"][0]}
-        except (EndpointError, KeyError, IndexError, TypeError, AttributeError):
-            return EngineProbe(batches, None, "it gives no log-probabilities with its completions")
-        for token, generated_lp in sorted(top.items(), key=lambda kv: -float(kv[1])):
-            if not token.strip() or "\ufffd" in token:  # a byte of a character: its text is not the token
-                continue
-            text = context + token
-            try:
-                echoed, _ = client.call("/completions", {"model": model, "prompt": text, "max_tokens": 1,
-                                                         "temperature": 0, "echo": True, "logprobs": 1})
-                lp = echoed["choices"][0]["logprobs"]
-                scored = [(o, v) for o, v in zip(lp["text_offset"], lp["token_logprobs"]) if o < len(text)]
-            except (EndpointError, KeyError, IndexError, TypeError):
-                return EngineProbe(batches, None, "it gives no prompt log-probabilities (echo with logprobs)")
-            after = [v for o, v in scored if o >= len(context)]
-            if len(after) != 1 or after[0] is None or len(context) not in [o for o, _ in scored]:
-                continue  # the token is not one token once scored with the context: the next likely one
-            echo_lp = float(after[0])
-            detail = (f"the token {token!r} after {context!r} has log-prob {float(generated_lp):.2f} when generated and "
-                      f"{echo_lp:.2f} when scored with echo")
-            return EngineProbe(batches, abs(echo_lp - float(generated_lp)) <= ALIGNMENT_TOLERANCE, detail)
-    return EngineProbe(batches, None, detail)
-
-
-def _check_ranking(spec: str) -> None:
-    """Raise `EndpointError` (one line) unless the engine serving `spec` passed the alignment probe."""
-    engine = _fingerprint(spec)["engine"]  # probes the engine on first use
-    probe = _ENGINES[spec]
-    if probe.aligned:
-        return
-    what = ("its prompt log-probabilities are not those of its own generation (as if shifted by one position)"
-            if probe.aligned is False else "it cannot score prompt tokens")
-    raise EndpointError(f"the engine at {parse_spec(spec)[1]} ({engine}) cannot rank actions: "
-                        f"{what}: {probe.detail}; rank with vLLM or --backend transformers, or pass --tasks summary to "
-                        "write only summaries through this engine; nothing was annotated")
 
 
 class OpenAIBackend:
