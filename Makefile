@@ -74,9 +74,9 @@ test-fast: install
 	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n auto -m "not slow"
 
 # The main job end to end on the embedded model (SmolLM2-135M), each stage doing its job: collect 2,000 steps
-# of BabyAI-GoToRedBallNoDists-v0, whose history-0 views repeat (its coverage table: the 24 most visited
-# states cover about half of a new episode's steps; GoToLocal's 2,000 steps cover 1%, and its run would find
-# almost no targets); annotate those 24; train a short illm run, whose closing line says the share of its steps
+# of BabyAI-GoToRedBallNoDists-v0, whose history-0 views repeat, so that states annotated ahead are states
+# a run meets (GoToLocal's 2,000 steps hold 1% of a new episode's steps: its run would find almost no
+# targets; docs/measured.md); annotate the 24 most visited; train a short illm run, whose closing line says the share of its steps
 # that had a target and the states the live fallback annotated during it (--live-mode sync: the run waits for
 # 4 missed states a rollout and uses them at once; the default async worker first loads the model, which a
 # run of a few seconds outlasts only on a quiet machine); a ppo run; evaluate both with 95% intervals, and say
