@@ -134,7 +134,7 @@ def verify(
 @friendly
 def merge(
     sources: list[Path] = typer.Argument(..., help="Caches to copy from (left untouched)."),
-    into: Path = typer.Option(..., "--into", help="Cache to merge into (created if absent)."),
+    into: Path = typer.Option(..., "--into", "--cache", help="Cache to merge into (created if absent)."),
 ) -> None:
     """Copy into --into every entry it lacks from verified sources; keys are never duplicated."""
     from illm_tools.cache.verify import merge as run
@@ -165,7 +165,7 @@ def export(
 @friendly
 def import_(
     path: Path = typer.Argument(..., help="Parquet file written by `illm cache export` (or `datasets`' to_parquet)."),
-    into: Path = typer.Option(..., "--into", help="Cache to add the entries to (created if absent)."),
+    into: Path = typer.Option(..., "--into", "--cache", help="Cache to add the entries to (created if absent)."),
 ) -> None:
     """Add a shared file's entries to a cache; keys it already holds are skipped.
 

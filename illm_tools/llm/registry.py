@@ -70,7 +70,9 @@ _ALIASES: tuple[ModelSpec, ...] = (
     ModelSpec(
         "smollm2-135m-babyai", "local", "smollm2-135m-babyai",
         notes="student of the BabyAI oracle: SmolLM2-135M distilled on UnlockLocal and GoToLocal (not shipped)",
-        build="bash experiments/distil.sh (about 25 min on 2 cores)",
+        build=("`illm distil CACHE --student smollm2-135m --out models/smollm2-135m-babyai` on the BabyAI oracle's "
+               "answers of UnlockLocal and GoToLocal (in a clone, `bash experiments/distil.sh` does all of it, about 25 min "
+               "on 2 cores)"),
     ),
     ModelSpec("llama3", "hub", "meta-llama/Meta-Llama-3-8B", gpu_quant="4bit",
               notes="paper comparison model (gated: HF_TOKEN); 4-bit NF4 on a GPU unless --quant none"),
@@ -182,7 +184,7 @@ def locate(spec: ModelSpec) -> Path:
     if spec.build and not (folder / "config.json").is_file():
         raise ModelNotFoundError(
             f"model {spec.alias!r} is a student that is not built here ({folder} has no config.json); build it with "
-            f"`{spec.build}`, or set {MODELS_ENV} to the folder that holds it"
+            f"{spec.build}, or set {MODELS_ENV} to the folder that holds it"
         )
     if not (folder / "config.json").is_file():
         raise ModelNotFoundError(

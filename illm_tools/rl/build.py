@@ -91,6 +91,6 @@ def adopt_setup(cfg: TrainConfig, given: Collection[str], say: Callable[[str], N
     if setup is None:
         return cfg
     if say is not None:
-        say(f"adopting the cache's setup: {setup.options()} ({setup.entries:,} entries; give any of these options to "
+        say(f"adopting the cache's setup: {setup.options()} ({setup.entries:,} states answered for every task; give any of these options to "
             "choose another)")
     return TrainConfig.from_dict({**cfg.flat(), **setup.fields()})

@@ -145,7 +145,8 @@ class HeldSetup:
     layout: str
     renderer: str
     entries: int
-    """Entries of the setup's least annotated task."""
+    """Entries of the setup's least annotated task: the states answered for every task (a cache's
+    entries are rows, one per state and task)."""
 
     def options(self) -> str:
         """The flags that select it ("--backend oracle --history 0 --layout shared")."""
@@ -218,7 +219,7 @@ def adopt(cache, tasks: Sequence[str], renderer: str | None) -> HeldSetup | None
     it holds none (or the folder holds no cache yet); several are refused in one line naming each."""
     setups = cache_setups(cache, tasks, renderer)
     if len(setups) > 1:
-        listed = "; ".join(f"{s.options()} ({s.entries:,} entries)" for s in setups)
+        listed = "; ".join(f"{s.options()} ({s.entries:,} states)" for s in setups)
         root = getattr(cache, "root", cache)
         raise UsageError(f"the cache {root} holds {len(setups)} setups for the tasks {','.join(tasks)}: {listed}. "
                          "Pass the options of the one to train with")
