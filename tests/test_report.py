@@ -145,6 +145,9 @@ def test_report_folder_tables_figures_and_grouping(tmp_path):
     assert "BabyAI-GoToLocal-v0, ppo (success rate): seeds 0, 1, 2; budget: trained 200 frames" in md
     for link in ["curves-BabyAI-GoToLocal-v0.png", "final.png", "visitation-BabyAI-GoToLocal-v0-illm.png"]:
         assert f"]({link})" in md  # relative links
+    local, obj = md.split("## BabyAI-GoToObj-v0")[0], md.split("## BabyAI-GoToObj-v0")[1]
+    assert "shaded: pointwise 95% bootstrap band" in local  # 3 seeds: a band drawn and named
+    assert "no band: one seed per line" in obj and "bootstrap band" not in obj.split("## ")[0]  # one seed: none named
 
     again = tmp_path / "rep2"  # final score over the last two points, (0, 100] and (100, 200], episode-weighted
     CliRunner().invoke(app, ["report", *map(str, runs), "--every", "100", "--out", str(again), "--final-points", "2",

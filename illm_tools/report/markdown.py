@@ -45,6 +45,11 @@ def _split(label: str) -> tuple[str, str]:
     return method, rest[:-1] if rest.endswith(")") else rest
 
 
+def _banded(row: dict) -> bool:
+    """The row's learning curve has a bootstrap band somewhere (several seeds at some frame)."""
+    return any(v is not None and v == v for v in row.get("band_low") or ())
+
+
 def _table(header: list[str], lines: list[list[str]]) -> list[str]:
     return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
             + ["| " + " | ".join(_esc(c) for c in line) + " |" for line in lines])
@@ -80,7 +85,9 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
                       [[m] + [cells.get((m, c), "-") for c in columns] for m in methods])
     if curves_png:
         out += ["", f"![{score} against frames, {env}]({curves_png})", "",
-                f"Learning curves ({curves_png}): mean over seeds, shaded: pointwise 95% bootstrap band."]
+                f"Learning curves ({curves_png}): mean over seeds, "
+                + ("shaded: pointwise 95% bootstrap band." if any(_banded(r) for r in rows)
+                   else "no band: one seed per line, nothing to bootstrap over.")]
     heatmaps = [r for r in rows if r["visitation"]]
     if heatmaps:
         out += ["", "Visitation (visits per cell, summed over seeds, log colour scale):", ""]

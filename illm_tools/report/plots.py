@@ -101,6 +101,7 @@ def curves_png(env_id: str, score_name: str, rows: list[dict], path: Path, colou
     colour = {**colours(lines), **(colour or {})}
     fig, axes = plt.subplots(1, len(titles), figsize=(4.6 * len(titles) + 1.8, 3.8), dpi=100, squeeze=False,
                              sharey=True)
+    banded = False
     for ax, title in zip(axes[0], titles):
         for row, (where, line) in zip(rows, placed):
             if where != title:
@@ -111,10 +112,14 @@ def curves_png(env_id: str, score_name: str, rows: list[dict], path: Path, colou
             low, high = _nan(row["band_low"]), _nan(row["band_high"])
             if np.isfinite(low).any():
                 ax.fill_between(frames, low, high, color=colour[line], alpha=0.2, linewidth=0)
+                banded = True
+        if score_name == "success rate":  # the whole range: an autoscaled axis makes a gap of 0.007 a cliff
+            ax.set_ylim(-0.02, 1.02)
         ax.set_xlabel("frames")
         ax.set_title(title or env_id, fontsize=9)
         ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel(f"{score_name} (mean over seeds, 95% bootstrap band)", fontsize=8)
+    axes[0][0].set_ylabel(f"{score_name} (mean over seeds{', 95% bootstrap band' if banded else '; one seed: no band'})",
+                          fontsize=8)
     handles = {}
     for ax in axes[0]:
         for h, lab in zip(*ax.get_legend_handles_labels()):
