@@ -13,6 +13,7 @@ block names the test files that use it."""
 from __future__ import annotations
 
 import csv
+import functools
 import importlib.metadata
 import json
 import os
@@ -29,11 +30,9 @@ import gymnasium as gym
 import numpy as np
 
 from illm_tools.envs.suite import EpisodeStats, ObsSpec, Suite
-from illm_tools.intrinsic import Targets
 from illm_tools.keys import fingerprint_hash
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.llm.stub import StubBackend
-from illm_tools.rl import TrainConfig, Trainer
 from illm_tools.tasks.state import StateRecord
 
 ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
@@ -87,6 +86,8 @@ class FakeProvider:
         self.num_actions, self.dim, self.calls, self.records = num_actions, dim, 0, []
 
     def targets(self, records):
+        from illm_tools.intrinsic import Targets
+
         self.calls += 1
         self.records.extend(records)
         probs = np.zeros((len(records), self.num_actions), np.float32)
@@ -112,6 +113,8 @@ class RefusingProvider:
 
 def make_trainer(tmp_path, mode="illm", updates=2, pool=None, **kw):
     # settings by their option names (lambda_a=..., backend=...); the stub's 8-wide embeddings size the heads
+    from illm_tools.rl import TrainConfig, Trainer
+
     cfg = TrainConfig.from_dict(dict(run_dir=tmp_path / "run", method=mode, num_envs=4, num_steps=32,
                                      total_steps=4 * 32 * updates, backend="stub", model="stub:8", head_hidden=32,
                                      tensorboard=False, update_epochs=2, num_minibatches=2, **kw))
@@ -437,7 +440,12 @@ class TinySuite(Suite):
 SHORT_ACTIONS = ("turn left", "turn right", "go forward")
 STUB_MODEL = "stub:16"
 STUB_LLM = LLMSpec(backend="stub", model=STUB_MODEL, dtype="float32")
-STUB_FINGERPRINT = fingerprint_hash(StubBackend(STUB_MODEL).fingerprint)
+
+
+@functools.cache
+def stub_fingerprint() -> str:
+    """The stub's fingerprint hash (built on first use: the stub resolves its dtype, which imports torch)."""
+    return fingerprint_hash(StubBackend(STUB_MODEL).fingerprint)
 
 
 def serve_state(i: int) -> StateRecord:
@@ -449,7 +457,7 @@ def serve_request(pending, client="run-a", session="s1", **changes) -> dict:
     """A `POST /annotate` body of the stub's setup for `pending` [(state, visits)]; `changes` override."""
     from illm_tools.serve import record_to_json
 
-    body = {"client": client, "session": session, "model_fingerprint": STUB_FINGERPRINT, "env_id": "BabyAI-GoToLocal-v0", "renderer": "babyai-text@1",
+    body = {"client": client, "session": session, "model_fingerprint": stub_fingerprint(), "env_id": "BabyAI-GoToLocal-v0", "renderer": "babyai-text@1",
             "history_len": 0, "layout": "shared", "tasks": ["action", "summary"],
             "states": [{**record_to_json(s), "visits": n} for s, n in pending]}
     body.update(changes)
