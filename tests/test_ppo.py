@@ -1,4 +1,5 @@
-"""PPO trainer: GAE, the bonus reaching the loss, modes, metrics, checkpoint and resume."""
+"""PPO trainer: GAE, modes, metrics, checkpoint and resume (the bonus reaching the loss, for every method:
+tests/test_methods.py)."""
 
 import json
 
