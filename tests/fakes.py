@@ -123,6 +123,40 @@ def make_trainer(tmp_path, mode="illm", updates=2, pool=None, **kw):
     return Trainer(cfg, pool, provider), provider
 
 
+def one_update_seen(trainer, monkeypatch) -> SimpleNamespace:
+    """One `trainer.train_one_update()` with what its update step was handed: `logged` (its logs), `ro`
+    (the rollout), `adv` (the advantages the loss used), `bonus` (the reward the trainer computed), `next`
+    (the rollout's bootstrap values, the network not yet updated), and the advantages
+    `two_stream_advantages` gives from them with the bonus (`expected`) and without (`without`)."""
+    import torch
+
+    from illm_tools.rl import two_stream_advantages
+
+    seen = {}
+    real_update, real_rewards = trainer.update, trainer.intrinsic_rewards
+
+    def rewards(ro, *args, **kwargs):
+        seen["bonus"] = out = real_rewards(ro, *args, **kwargs)
+        return out
+
+    def capture(ro, adv):
+        seen.update(ro=ro, adv=adv)
+        with torch.no_grad():
+            seen["next"] = trainer.net(*trainer._policy_inputs(trainer.obs))
+        return real_update(ro, adv)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(trainer, "intrinsic_rewards", rewards)
+        patch.setattr(trainer, "update", capture)
+        logged = trainer.train_one_update()
+    cfg, ro, nxt = trainer.cfg, seen["ro"], seen["next"]
+    kw = dict(gamma=cfg.gamma, int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
+              int_coef=cfg.int_coef, int_episodic=cfg.int_episodic)
+    return SimpleNamespace(logged=logged, ro=ro, adv=seen["adv"], bonus=seen["bonus"].reward, next=nxt,
+                           expected=two_stream_advantages(ro, seen["bonus"].reward, nxt.value_ext, nxt.value_int, **kw),
+                           without=two_stream_advantages(ro, None, nxt.value_ext, nxt.value_int, **kw))
+
+
 @contextmanager
 def plugins_installed(monkeypatch, points: dict[str, list[tuple[str, str]]]) -> Iterator[list[list[str]]]:
     """Plug-ins as if installed: `importlib.metadata.entry_points` answers `points` ({group: [(name,

@@ -15,10 +15,10 @@ from cli.main import app
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic import BonusRewards, IntrinsicBonus, NoBonus
 from illm_tools.intrinsic.registry import METHODS, Method, get_method, register
-from illm_tools.rl import TrainConfig, Trainer, load_checkpoint, two_stream_advantages
+from illm_tools.rl import TrainConfig, Trainer, load_checkpoint
 from illm_tools.rl.config import MODES
 from illm_tools.rl.networks import GRID_CHANNEL_SIZES, GridMissionNet
-from fakes import FakePool
+from fakes import FakePool, one_update_seen
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -153,26 +153,13 @@ def test_a_bonus_defined_outside_plugs_in_and_reaches_the_advantages(tmp_path, m
     assert isinstance(bonus, CountBonus) and bonus.scale == 2.0 and not trainer.net.has_heads
     assert trainer.provider is None and trainer.cfg.pays_bonus
 
-    seen = {}
-    real_update = trainer.update
-
-    def capture(ro, adv):
-        seen.update(ro=ro, adv=adv)
-        with torch.no_grad():  # the bootstrap values of this rollout (the network is not yet updated)
-            seen["next"] = trainer.net(*trainer._policy_inputs(trainer.obs))
-        return real_update(ro, adv)
-
-    monkeypatch.setattr(trainer, "update", capture)
-    metrics = trainer.train_one_update()
-    cfg, ro, adv, nxt = trainer.cfg, seen["ro"], seen["adv"], seen["next"]
+    seen = one_update_seen(trainer, monkeypatch)
+    cfg, adv, metrics = trainer.cfg, seen.adv, seen.logged
     assert bonus.observed == cfg.num_steps and bonus.updates == 1
     assert (bonus.last_reward > 0).all() and (bonus.last_reward <= 2.0).all()
-    kw = dict(gamma=cfg.gamma, int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
-              int_coef=cfg.int_coef, int_episodic=cfg.int_episodic)
-    expected = two_stream_advantages(ro, bonus.last_reward, nxt.value_ext, nxt.value_int, **kw)
-    without = two_stream_advantages(ro, None, nxt.value_ext, nxt.value_int, **kw)
-    assert torch.allclose(adv.advantages, expected.advantages, atol=1e-6)  # the loss saw the bonus ...
-    assert (adv.advantages - without.advantages).abs().max() > 0.1      # ... and it changed them
+    assert torch.equal(seen.bonus, bonus.last_reward)
+    assert torch.allclose(adv.advantages, seen.expected.advantages, atol=1e-6)  # the loss saw the bonus ...
+    assert (adv.advantages - seen.without.advantages).abs().max() > 0.1      # ... and it changed them
     assert metrics["charts/count_unique"] > 0 and metrics["losses/count_updates"] == 1
     assert metrics["charts/adv_int_abs"] > 0 and metrics["losses/value_loss_int"] > 0
 

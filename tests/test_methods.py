@@ -18,8 +18,8 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from illm_tools.intrinsic.registry import METHODS, get_method
-from illm_tools.rl import gae, load_checkpoint, two_stream_advantages
-from fakes import make_trainer
+from illm_tools.rl import gae, load_checkpoint
+from fakes import make_trainer, one_update_seen
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -66,29 +66,10 @@ def test_the_bonus_reaches_the_advantages_the_loss_uses(tmp_path, monkeypatch, m
     assert (with_bonus >= without - 1e-6).all() and (with_bonus > without).any()
 
     # in the real loop, the update step receives the advantages of the bonus the trainer computed
-    seen = {}
-    real_update, real_rewards = trainer.update, trainer.intrinsic_rewards
-
-    def rewards(ro, *args, **kwargs):
-        seen["bonus"] = out = real_rewards(ro, *args, **kwargs)
-        return out
-
-    def capture(ro, adv):
-        seen.update(ro=ro, adv=adv)
-        with torch.no_grad():  # the bootstrap values of this rollout (the network is not yet updated)
-            seen["next"] = trainer.net(*trainer._policy_inputs(trainer.obs))
-        return real_update(ro, adv)
-
-    monkeypatch.setattr(trainer, "intrinsic_rewards", rewards)
-    monkeypatch.setattr(trainer, "update", capture)
-    logged = trainer.train_one_update()
-    cfg, ro, adv, nxt, reward = trainer.cfg, seen["ro"], seen["adv"], seen["next"], seen["bonus"].reward
-    kw = dict(gamma=cfg.gamma, int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
-              int_coef=cfg.int_coef, int_episodic=cfg.int_episodic)
-    expected = two_stream_advantages(ro, reward, nxt.value_ext, nxt.value_int, **kw)
-    plain = two_stream_advantages(ro, None, nxt.value_ext, nxt.value_int, **kw)
-    assert torch.allclose(adv.advantages, expected.advantages, atol=1e-5)  # the loss saw the bonus ...
-    assert not torch.allclose(adv.advantages, plain.advantages)         # ... and it changed them
+    seen = one_update_seen(trainer, monkeypatch)
+    cfg, ro, adv, nxt, logged = trainer.cfg, seen.ro, seen.adv, seen.next, seen.logged
+    assert torch.allclose(adv.advantages, seen.expected.advantages, atol=1e-5)  # the loss saw the bonus ...
+    assert not torch.allclose(adv.advantages, seen.without.advantages)       # ... and it changed them
     ext_only, _ = gae(ro.rewards, ro.values_ext, nxt.value_ext, ro.ends, cfg.gamma, cfg.gae_lambda)
     assert not torch.allclose(adv.advantages, ext_only) and adv.returns_int.abs().sum() > 0
     assert logged["charts/intrinsic_reward"] > 0 and logged["charts/adv_int_abs"] > 0
