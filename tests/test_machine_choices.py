@@ -70,7 +70,7 @@ def test_a_run_adopts_its_caches_setup_and_its_live_rows_land_in_it(traj, tmp_pa
               "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-budget", 8, "--live-mode", "sync",
               "--out", tmp_path / "run")
     assert "adopting the cache's setup: --backend stub --model stub --dtype bfloat16 --quant none --history 0 " \
-           "--layout shared (4 entries" in said
+           "--layout shared (4 states answered for every task" in said
     config = json.loads((tmp_path / "run" / "config.json").read_text())
     assert (config["llm"]["backend"], config["llm"]["dtype"], config["history_len"]) == ("stub", "bfloat16", 0)
     setups = AnnotationCache(tmp_path / "ann").setups()
