@@ -26,7 +26,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
 
-import gymnasium as gym
 import numpy as np
 
 from illm_tools.envs.suite import EpisodeStats, ObsSpec, Suite
@@ -420,36 +419,21 @@ class TinyBackend(StubBackend):
 TINY = "Tiny-Corridor-v0"
 
 
-class Corridor(gym.Env):
-    """Five cells; 'go right' from the fourth reaches the goal (reward 1). The grid shows the agent
-    as a key (MiniGrid code 5) in row 3 of a 7x7x3 view."""
+def _docs_example(name: str):
+    """A module of docs/examples loaded from its file (under a name of its own, so the plug-in test that
+    installs it as `corridor_suite` still imports it afresh): the docs' corridor is the tests' corridor."""
+    import importlib.util
 
-    def __init__(self, length: int = 5, render_text: bool = True):
-        self.length, self.render_text = int(length), render_text
-        self.action_names = ("go left", "go right")
-        self.action_space = gym.spaces.Discrete(2)
-        self.observation_space = gym.spaces.Box(0, 10, (7, 7, 3), np.uint8)
+    path = Path(__file__).resolve().parents[1] / "docs" / "examples" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"illm_docs_example_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
-    def _obs(self):
-        grid = np.ones((7, 7, 3), np.uint8)
-        grid[self.pos, 3, 0] = 5
-        return grid
 
-    def _info(self, info):
-        info.update(text=f"You are {self.length - 1 - self.pos} steps from the goal" if self.render_text else "",
-                    mission="reach the end of the corridor", valid_actions=list(self.action_names))
-        return info
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.pos = int(self.np_random.integers(0, self.length - 1))
-        return self._obs(), self._info({})
-
-    def step(self, action):
-        self.pos = max(0, self.pos + (1 if int(action) == 1 else -1))
-        done = self.pos >= self.length - 1
-        info = {"success": True} if done else {}
-        return self._obs(), float(done), done, False, self._info(info)
+Corridor = _docs_example("corridor_suite").Corridor
+"""Cells in a row; 'go right' from the last but one reaches the goal (reward 1), the agent a key (MiniGrid
+code 5) in a 7x7x3 grid: docs/examples/corridor_suite.py's environment."""
 
 
 class TinySuite(Suite):
