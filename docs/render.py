@@ -1,0 +1,118 @@
+"""The README's results table, rendered from the suite's results.json files, never typed by hand.
+
+`python docs/render.py` rewrites the block between `<!-- results:begin -->` and `<!-- results:end -->`
+in README.md; `python docs/render.py --check` exits 1 when README.md's block differs from what the files
+say (tests/test_claims.py runs the same comparison, so a hand-edited number fails the test suite).
+
+Sources (docs/results/, written by `illm report`):
+- suite-report/results.json: each level's final success rate per method (IQM [95% CI], 5 seeds) and
+  the aggregate over the 8 levels with the probability of improvement over ppo;
+- suite-report-half/results.json: the aggregate over the 4 levels of the report half;
+- suite-tune/results.json: which levels are the tune half (its `envs`).
+
+Numbers are printed with the report's own formatting (`illm_tools.report.markdown.num`, 3 decimals),
+so README and report.md read the same digits. Two words, two counts: illm is *above* a control on a
+level when its IQM is higher, *clear of* it when its 95% interval lies wholly above the control's.
+Bold marks only the levels where illm is clear of both ppo and the shuffled control.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from illm_tools.report.markdown import iqm_cell, num
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "docs" / "results"
+README = ROOT / "README.md"
+BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+METHODS = ("illm", "ppo", "illm-shuffled", "rnd", "illm-noreward")
+CONTROLS = ("ppo", "illm-shuffled")
+
+
+def _load(name: str) -> dict:
+    return json.loads((RESULTS / name / "results.json").read_text())
+
+
+def _short(env_id: str) -> str:
+    return env_id.split("-", 1)[1].rsplit("-v", 1)[0]
+
+
+def counts(suite: dict) -> dict:
+    """Per level: illm's final IQM above both controls' IQMs; illm's interval clear of both intervals.
+
+    IQMs are compared as printed (3 decimals): two that print the same (PutNextLocal, illm 0.0117 and the
+    shuffled control 0.0117) are a tie, not "above"."""
+    finals = {(r["env_id"], r["label"]): r["final"] for r in suite["rows"]}
+    above, clear = [], []
+    for env in suite["envs"]:
+        mine = finals[(env, "illm")]
+        others = [finals[(env, c)] for c in CONTROLS]
+        if all(float(num(mine["iqm"])) > float(num(o["iqm"])) for o in others):
+            above.append(env)
+        if all(mine["ci_low"] > o["ci_high"] for o in others):
+            clear.append(env)
+    return {"above": above, "clear": clear, "n": len(suite["envs"])}
+
+
+def render() -> str:
+    """The markdown block between the markers (markers excluded)."""
+    suite, half, tune = _load("suite-report"), _load("suite-report-half"), _load("suite-tune")
+    tune_envs = set(tune["envs"])
+    finals = {(r["env_id"], r["label"]): r["final"] for r in suite["rows"]}
+    c = counts(suite)
+    order = [e for e in suite["envs"] if e in tune_envs] + [e for e in suite["envs"] if e not in tune_envs]
+    lines = [
+        "| level (half, frames) | " + " | ".join(METHODS) + " |",
+        "|---|" + "---|" * len(METHODS),
+    ]
+    for env in order:
+        half_name = "tune" if env in tune_envs else "report"
+        frames = finals[(env, "illm")]["frames"]
+        cells = [iqm_cell(finals[(env, m)]) for m in METHODS]
+        if env in c["clear"]:
+            cells[0] = f"**{cells[0]}**"
+        lines.append(f"| {_short(env)} ({half_name}, {frames:,}) | " + " | ".join(cells) + " |")
+    for title, source in ((f"all {c['n']}, IQM over all runs", suite), ("report half (4 levels)", half)):
+        agg = {r["label"]: r for r in source["aggregate"]["rows"]}
+        lines.append(f"| {title} | " + " | ".join(iqm_cell(agg[m]) for m in METHODS) + " |")
+    agg = {r["label"]: r for r in suite["aggregate"]["rows"]}
+    rh = {r["label"]: r for r in half["aggregate"]["rows"]}
+    clear_half = sorted("tune" if e in tune_envs else "report" for e in c["clear"])
+    lines += [
+        "",
+        f"illm's IQM is **above** both ppo's and the shuffled control's on {len(c['above'])} of the "
+        f"{c['n']} levels; its 95% interval is **clear of** both on {len(c['clear'])} of {c['n']} "
+        f"(bold; {clear_half.count('tune')} on the tune half, {clear_half.count('report')} on the report "
+        f"half). Probability of improvement over ppo: all {c['n']} levels "
+        f"{iqm_cell({'iqm': agg['illm']['poi'], 'ci_low': agg['illm']['poi_low'], 'ci_high': agg['illm']['poi_high']})}, "
+        f"report half {iqm_cell({'iqm': rh['illm']['poi'], 'ci_low': rh['illm']['poi_low'], 'ci_high': rh['illm']['poi_high']})}.",
+    ]
+    return "\n".join(lines)
+
+
+def splice(text: str, block: str) -> str:
+    """`text` with the block between the markers replaced; one-line error if the markers are missing."""
+    if BEGIN not in text or END not in text:
+        raise SystemExit(f"README.md lacks the markers {BEGIN} ... {END}: add them where the table goes")
+    head, rest = text.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    return f"{head}{BEGIN}\n{block}\n{END}{tail}"
+
+
+def main(argv: list[str]) -> int:
+    text = README.read_text()
+    wanted = splice(text, render())
+    if "--check" in argv:
+        if wanted != text:
+            print("README.md's results table differs from docs/results: run `python docs/render.py`")
+            return 1
+        return 0
+    README.write_text(wanted)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
