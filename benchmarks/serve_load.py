@@ -21,6 +21,8 @@ trainers' newer lists (by design: a trainer's newest list replaces its older one
 to the end and never landed: 0 expected); and the cache: it verifies, nothing stored twice.
 
 Everything runs on 127.0.0.1 with a token; every loop is bounded in count and time.
+One script past 400 lines: a benchmark a user runs and reads top to bottom (trainers, server, watcher,
+the figures), not a module others import.
 
     .venv/bin/python benchmarks/serve_load.py --minutes 10                 # the full run: 8 trainers
     .venv/bin/python benchmarks/serve_load.py --minutes 1 --budget 4       # a short check

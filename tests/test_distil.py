@@ -2,7 +2,10 @@
 (the loss falls, it ranks the teacher's best action first more often than its base), through the
 annotator's own scoring path; an interrupted run resumes to the very student an uninterrupted one
 makes; the student is a model folder `--model PATH` loads, with its own fingerprint; bad inputs get
-one line and leave nothing behind. Also `illm collect --policy bot`, the student's lessons' source."""
+one line and leave nothing behind. Also `illm collect --policy bot`, the student's lessons' source.
+
+One module past 400 lines: its fixtures (an oracle cache, a tiny model, a student distilled once) are
+built once per module and every test reads them; split, each part would build them again."""
 
 from __future__ import annotations
 

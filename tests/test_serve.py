@@ -4,7 +4,10 @@ requests get a 4xx and one line; a client that dies mid-request leaves nothing b
 trainers through one server fill one cache that verifies, with nothing stored twice. For a
 cluster: a token on every request (and required beyond loopback), limits answered with 413/503
 and Retry-After, a trainer's pending list its own, a stalled client cut off, SIGTERM finishing the
-batch in progress, and a trainer that survives its server killed and restarted."""
+batch in progress, and a trainer that survives its server killed and restarted.
+
+One module a little past 400 lines: its server fixtures (`served`, `start_server`) are shared by every
+test of one server's life, from a request to a restart (the limits' own tests: test_serve_hardening.py)."""
 
 from __future__ import annotations
 
