@@ -68,7 +68,7 @@ engine: $(ENGINE_STAMP)
 # The two environments install side by side (about 2 minutes each on 2 cores, mostly downloads and unpacking).
 test:
 	$(MAKE) -j2 install engine
-	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n auto --dist loadgroup
+	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n auto --dist loadgroup --durations=15
 
 test-fast: install
 	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n auto -m "not slow"
