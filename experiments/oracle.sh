@@ -12,6 +12,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-results/oracle}
 ILLM=${ILLM:-.venv/bin/illm}
+make -s gemma  # its probes load Gemma-3-270M (not part of make install)
 JOBS=${JOBS:-2}
 REPORT=${REPORT:-docs/results/oracle}
 export HF_HUB_OFFLINE=1 TOKENIZERS_PARALLELISM=false

