@@ -31,14 +31,6 @@ class DerivedSettings:
         """Rollout + update iterations in the run (at least one)."""
         return max(1, self.total_steps // self.batch_size)
 
-    @property
-    def is_resolved(self) -> bool:
-        """Whether the machine's and the env's choices are made (`TrainConfig.resolved`)."""
-        llm = self.llm
-        return self.device != "auto" and self.action_space != "auto" and \
-            (self.heads_bf16 is not None or not self.uses_heads) and \
-            (not self.uses_llm or (self.llm_device not in (None, "auto") and "auto" not in (llm.dtype, llm.quant)))
-
     def resolved_action_space(self) -> str:
         """`action_space`, or for auto a resumed run's own as its config.json recorded it, else the
         suite's default for the env (`illm_tools.envs.resolve_action_space`)."""

@@ -49,8 +49,7 @@ class Trainer:
                              "pass one or train with mode ppo")
         if pool.num_envs != cfg.num_envs:
             raise UsageError(f"the pool has {pool.num_envs} envs, the config asks for {cfg.num_envs}")
-        if not cfg.is_resolved:  # a config made by hand (`run.train` resolves the run's once, as it records it)
-            cfg = cfg.resolved()
+        cfg = cfg.resolved()  # a config made by hand; the run's (`run.train`) comes resolved and stays as it is
         self.cfg, self.pool, self.on_metrics = cfg, pool, on_metrics
         self.device = torch.device(cfg.device)
         self.suite = suite_of(cfg.env_id)

@@ -140,7 +140,7 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
 @contextmanager
 def build_run(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
               checkpoint: dict | None = None) -> Iterator:
-    """The whole run assembled from its config (resolved here unless it is: `TrainConfig.resolved`),
+    """The whole run assembled from its config (resolved here: `TrainConfig.resolved`, a no-op on a resolved one),
     in one place: the env pool (`make_pool`), the method's target provider with its live annotator
     (`make_provider`), then the trainer, which builds the network, the bonus and the state sources
     and restores `checkpoint` on --resume (read here when not given). Yields the `Trainer`; closes
@@ -148,7 +148,7 @@ def build_run(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None
     from illm_tools.rl.checkpoint import load_checkpoint
     from illm_tools.rl.ppo import Trainer
 
-    cfg = cfg if cfg.is_resolved else cfg.resolved()
+    cfg = cfg.resolved()  # a resolved config comes back as it is, nothing measured again
     if cfg.resume and checkpoint is None:
         checkpoint = load_checkpoint(cfg.run_dir)
     pool, provider = make_pool(cfg, int(checkpoint["global_step"]) if checkpoint is not None else 0), None
