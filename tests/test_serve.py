@@ -172,7 +172,7 @@ def test_two_trainers_share_one_server_and_one_cache(tmp_path, served):
     ann = tmp_path / "ann"
     common = [sys.executable, "-m", "cli.main", "train", "--env", ENV, "--method", "illm", "--cache", str(ann),
               "--backend", "stub", "--model", MODEL, "--history", "0", "--num-envs", "2", "--num-steps", "32",
-              "--frames", "320", "--live-budget", "32", "--annotator", url]
+              "--frames", "320", "--live-budget", "32", "--live-mode", "sync", "--annotator", url]
     env = ENV_OFFLINE
     runs = [subprocess.Popen([*common, "--seed", str(i), "--out", str(tmp_path / f"run{i}")], env=env,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
@@ -185,7 +185,19 @@ def test_two_trainers_share_one_server_and_one_cache(tmp_path, served):
     assert report.ok and report.rows == len(AnnotationCache(ann))  # nothing stored twice
     landed = [sum(json.loads(line).get("charts/live_annotations", 0) for line in
                   (tmp_path / f"run{i}" / "metrics.jsonl").read_text().splitlines()) for i in range(2)]
-    assert all(n > 0 for n in landed)  # each run was told its states landed
+    assert all(n > 0 for n in landed)  # each run was told its states landed (sync: in the rollout that sent them)
+
+
+def test_a_request_that_waits_is_answered_once_its_states_have_landed(start_server):
+    url, _ = start_server(slow=0.5)  # each batch of 8 takes half a second: without the wait, nothing lands in time
+    pending = [(state(i), 1) for i in range(1, 13)]  # two batches
+    status, answer = call(url + "/annotate", request(pending, wait=30))
+    assert status == 202 and answer["queued"] == 12 and answer["landed"] == 12 and not answer["pending"]
+    status, answer = call(url + "/annotate", request(pending[:2], client="run-b", wait=0))  # no wait: at once
+    assert status == 202 and answer["landed"] == 0
+    for wrong in (-1, 1e9, "10", True, None):
+        status, answer = call(url + "/annotate", json.loads(json.dumps(request(pending, wait=wrong))))
+        assert status == 400 and answer["error"].startswith("wait must be a number of seconds"), (wrong, answer)
 
 
 def test_a_trainer_without_its_server_is_refused_in_one_line(tmp_path):

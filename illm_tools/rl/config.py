@@ -189,8 +189,9 @@ class TrainConfig(DerivedSettings):
     all: every missed state (with sync, a target on every step: for fast annotators such as the
     oracle, or an LLM on a GPU)."""
     live_mode: str = "async"
-    """sync: annotate in the trainer's process, which waits; async: a worker process beside the
-    rollouts, whose answers later rollouts use (the trainer never waits)."""
+    """sync: annotate in the trainer's process, which waits (with --annotator: the server answers once
+    the rollout's states have landed); async: a worker process (or the server) beside the rollouts,
+    whose answers later rollouts use (the trainer never waits)."""
     annotator: str | None = None
     """URL of an `illm serve` server (http://127.0.0.1:PORT) that annotates the run's missed states,
     shared with other runs, instead of the run's own worker; `live_budget` states per rollout."""

@@ -18,6 +18,11 @@ log = logging.getLogger("illm_tools.rl.live")
 """The live annotators' one logger (this client's lines are live annotation's, as `illm_tools.rl.live`'s are)."""
 
 
+SYNC_WAIT = 60.0
+"""Seconds a trainer in `--live-mode sync` lets the server hold a rollout's request until its states
+land (the server's own cap is `illm_tools.serve.scheduler.MAX_WAIT`)."""
+
+
 @dataclass
 class AnnotatorAccess:
     """How a trainer proves itself to its `illm serve` server. Not a field of TrainConfig: a run's
@@ -45,12 +50,15 @@ class RemoteLive:
     per rollout): a server that does not answer (down, restarting) is tried again after 1, 2, 4 ...
     `max_backoff` seconds, and the newest list is sent when it answers (what the dead server held
     is sent again: nothing is lost, and the cache's keys keep anything from being stored twice); a
-    full server (503) is left alone for its Retry-After; a refused list (4xx) is dropped."""
+    full server (503) is left alone for its Retry-After; a refused list (4xx) is dropped.
 
-    waits = False
+    With `wait` (seconds; `--live-mode sync`) there is no sender thread: `submit` posts the list and
+    the server holds the answer until those states have landed (at most `wait` seconds), so this
+    rollout uses them, as with an annotator of the trainer's own; a server that is down or busy is
+    left alone for its back-off and the rollout goes on with what the cache has."""
 
     def __init__(self, url: str, *, client: str, llm: LLMSpec, setup: AnnotationSetup, budget: int | None,
-                 token: str | None = None, timeout: float = 10.0, max_backoff: float = 10.0):
+                 token: str | None = None, timeout: float = 10.0, max_backoff: float = 10.0, wait: float = 0.0):
         import os
         import secrets
         import threading
@@ -72,12 +80,21 @@ class RemoteLive:
         info = self.server_stats(what="start")
         self._check_server(info, llm)
         self.max_states = int(info.get("limits", {}).get("max_states", 0)) or None
+        self.wait = float(wait)
         self._lock = threading.Lock()
         self._outbox: list | None = None
         self._wake = threading.Event()
         self._closing = threading.Event()
-        self._thread = threading.Thread(target=self._sender, name="illm-annotator-client", daemon=True)
-        self._thread.start()
+        self._failures, self._not_before = 0, 0.0  # the back-off of a server down or busy
+        self._thread = None
+        if not self.waits:
+            self._thread = threading.Thread(target=self._sender, name="illm-annotator-client", daemon=True)
+            self._thread.start()
+
+    @property
+    def waits(self) -> bool:
+        """Whether `submit` returns once the server has put the states in the cache (sync)."""
+        return self.wait > 0
 
     def _check_server(self, info: dict, llm: LLMSpec) -> None:
         from illm_tools.annotate.wire import PROTOCOL
@@ -134,10 +151,33 @@ class RemoteLive:
         todo = list(missing[:limit])
         counts = list(visits[:limit]) if visits is not None else [1] * len(todo)
         states = [{**record_to_json(r), "visits": int(n)} for r, n in zip(todo, counts)]
+        if self.waits:
+            return self._send_now(states) if states else 0
         with self._lock:
             self._outbox = states
         self._wake.set()
         return 0
+
+    def _send_now(self, states: list) -> int:
+        """Sync: post `states` and wait for them to land (unless the server is in its back-off);
+        returns the states of this run the server reports landed."""
+        import time
+
+        if time.monotonic() < self._not_before:
+            return 0
+        self._pace(self._send(states))
+        return self.landed()
+
+    def _pace(self, retry: float | None) -> None:
+        """After a request: done (None) clears the back-off; otherwise the next is not sent before
+        `retry` seconds (0: 1, 2, 4 ... `max_backoff` by the failures in a row)."""
+        import time
+
+        if retry is None:
+            self._failures = 0
+            return
+        self._failures += 1
+        self._not_before = time.monotonic() + (retry or min(self.max_backoff, 2.0 ** (self._failures - 1)))
 
     def _say(self, state: str, message: str, *args) -> None:
         """Log `message` when the server's state changes (once, not per rollout)."""
@@ -149,9 +189,8 @@ class RemoteLive:
         """The sender thread: the newest list to the server, backing off while it is down or busy."""
         import time
 
-        failures, not_before = 0, 0.0
         while not self._closing.is_set():
-            pause = not_before - time.monotonic()
+            pause = self._not_before - time.monotonic()
             if pause > 0:  # backing off: a newer list waits too
                 self._closing.wait(pause)
                 continue
@@ -162,14 +201,12 @@ class RemoteLive:
             if states is None or self._closing.is_set():
                 continue
             retry = self._send(states)
+            self._pace(retry)
             if retry is None:  # done with this list (accepted, or refused for good)
-                failures = 0
                 with self._lock:
                     if self._outbox is states:
                         self._outbox = None
             else:  # kept (unless a newer one replaces it) and tried again after the pause
-                failures += 1
-                not_before = time.monotonic() + (retry or min(self.max_backoff, 2.0 ** (failures - 1)))
                 self._wake.set()
 
     def _send(self, states: list) -> float | None:
@@ -186,8 +223,9 @@ class RemoteLive:
                 return self.max_backoff
         self.counts["sent"] += 1
         try:
+            wait = {"wait": self.wait} if self.waits else {}
             answer = self._call("/annotate", {**self.setup, "client": self.client, "session": self.session,
-                                              "states": states})
+                                              "states": states, **wait}, timeout=self.timeout + self.wait)
         except urllib.error.HTTPError as e:
             try:
                 why = json.loads(e.read()).get("error", "")
@@ -266,7 +304,8 @@ class RemoteLive:
         effort, at most `timeout` seconds: an absent server has nothing to withdraw)."""
         self._closing.set()
         self._wake.set()
-        self._thread.join(timeout)  # a daemon: one stuck on a stalled server ends with the process
+        if self._thread is not None:
+            self._thread.join(timeout)  # a daemon: one stuck on a stalled server ends with the process
         try:
             self._call("/annotate", {**self.setup, "client": self.client, "session": self.session, "states": []},
                        timeout=timeout)

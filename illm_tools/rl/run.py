@@ -78,11 +78,11 @@ def make_live(cfg: TrainConfig, llm, setup, cache):
     if cfg.live_budget == 0:
         return None
     from illm_tools.rl.live import AsyncLive, SyncLive, WorkerSpec
-    from illm_tools.rl.live_remote import RemoteLive
+    from illm_tools.rl.live_remote import SYNC_WAIT, RemoteLive
 
     if cfg.annotator is not None:
         return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
-                          budget=cfg.live_limit)
+                          budget=cfg.live_limit, wait=SYNC_WAIT if cfg.live_mode == "sync" else 0.0)
     if cfg.live_mode == "async":
         spec = WorkerSpec(cache=str(cfg.cache), llm=llm, setup=setup, threads=cfg.live_threads)
         return AsyncLive(spec, budget=cfg.live_limit)

@@ -4,8 +4,9 @@ A trainer started with `--annotator http://HOST:PORT` posts, after each rollout,
 cache lookup missed (most visited first, with their visit counts) instead of handing them to a
 worker of its own; the server annotates them through the same `Annotator` and cache API as
 `illm annotate`, under its own setup (model, history, layout, tasks, hop settings), so the answers
-land in the shared cache, where the trainer finds them on a later rollout (it never waits). One
-model in memory serves every trainer.
+land in the shared cache, where the trainer finds them on a later rollout (it never waits; with
+`--live-mode sync` its request asks to be answered once they have landed, and the same rollout uses
+them). One model in memory serves every trainer.
 
 The package, one concern a module:
 - `config`: `ServeConfig` (the options) and `ServeLimits` (every limit, each an option), the
@@ -21,9 +22,11 @@ The package, one concern a module:
 Endpoints (JSON):
 - `POST /annotate` {"client", "session", "model_fingerprint", "env_id", "renderer", "history_len",
   "layout", "tasks", "states": [{"mission", "history": [[obs, action], ...], "observation",
-  "valid_actions", "visits"[, "frames", "prev_actions" for a hop state]}]} -> 202 {"queued",
-  "queue", "landed"[, "failed", "failure"]} (`landed`: the trainer's states annotated since its
-  previous request; `failed`: those the engine could not annotate, with the last reason). An empty
+  "valid_actions", "visits"[, "frames", "prev_actions" for a hop state]}][, "wait": seconds]} ->
+  202 {"queued", "queue", "landed"[, "failed", "failure", "pending"]} (`landed`: the trainer's states
+  annotated since its previous request; `failed`: those the engine could not annotate, with the
+  last reason; with `wait` (at most 120 s) the answer comes once none of the trainer's states is
+  queued or in the engine, or the wait is over: `pending` says which). An empty
   `states` list withdraws the trainer's pending states. Refusals are {"error": one line} with 400
   (bad JSON or fields), 401 (token), 403 (Host or Origin), 408 (too slow), 409 (another model or
   setup), 413 (too large), 415 (not JSON), 429 (a client's cap) or 503 (the server's), the last two

@@ -22,7 +22,7 @@ import time
 
 from illm_tools.annotate.wire import TOKEN_ENV
 from illm_tools.serve.protocol import RequestError, read_json
-from illm_tools.serve.scheduler import AnnotationServer
+from illm_tools.serve.scheduler import AnnotationServer, requested_wait
 
 log = logging.getLogger(__name__)
 
@@ -195,6 +195,13 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
         except RequestError as e:
             log.info("refused a request (%d): %s", e.status, str(e)[:300])
             return error(e.status, str(e), e.retry_after)
+        wait = requested_wait(body)
+        if wait and answer["queued"]:  # held until its states land (a trainer in --live-mode sync)
+            later = await server.settled(server.trainer_of(body), wait)
+            answer = {**answer, **later, "landed": answer["landed"] + later["landed"],
+                      "failed": answer.get("failed", 0) + later.get("failed", 0)}
+            if not answer["failed"]:
+                answer.pop("failed")
         return web.json_response(answer, status=202)
 
     async def stats(request: web.Request) -> web.Response:

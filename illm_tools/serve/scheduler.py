@@ -15,6 +15,10 @@ answered as failed and no batch starts until the engine returns (requests are st
 stop waits for the batch in progress at most until its deadline. A batch that raises is retried
 state by state: a state failing in the engine is answered to its trainers (`failed`, `failure` in
 their next answer) and counted, and every other state lands.
+
+Waiting. A request may ask to be answered once its states have landed (`"wait": seconds`, at most
+`MAX_WAIT`): a trainer in `--live-mode sync` uses the answers in the rollout that asked for them, as
+with an annotator of its own, whatever the machine's speed (`settled`).
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ from illm_tools.tasks.state import StateRecord
 log = logging.getLogger(__name__)
 
 MAX_RETRY_AFTER = 60
+MAX_WAIT = 120.0
+"""The longest a request may ask to be held until its states land (`"wait"`)."""
 """Longest Retry-After a busy server answers (seconds)."""
 MAX_HOP_CONTEXTS = 4
 """Hop translations (projections) the annotator keeps between batches; beyond, they are rebuilt."""
@@ -55,6 +61,14 @@ class Pending:
     record: StateRecord
     visits: int
     clients: set[tuple[str, str]] = field(default_factory=set)
+
+
+def requested_wait(body: dict) -> float:
+    """The seconds a request asks to be held until its states land (`"wait"`, default 0)."""
+    wait = body.get("wait", 0)
+    if isinstance(wait, bool) or not isinstance(wait, (int, float)) or not 0 <= wait <= MAX_WAIT:
+        raise RequestError(400, f"wait must be a number of seconds in 0..{MAX_WAIT:g}, got {str(wait)[:40]}")
+    return float(wait)
 
 
 class AnnotationServer:
@@ -90,6 +104,8 @@ class AnnotationServer:
         self._seen: dict[tuple[str, str], float] = {}  # when each trainer last sent (to forget the gone)
         self._served: dict[str, int] = {}  # client name -> the round it last got a state (round-robin)
         self._round = 0
+        self._in_engine: set[tuple[str, str]] = set()  # trainers with states in the batch in progress
+        self._waiters: dict[tuple[str, str], asyncio.Event] = {}  # trainers whose request waits (`settled`)
         self._stuck: asyncio.Future | None = None  # a batch past its deadline, still in the engine
         self._wake = asyncio.Event()
         self._stop: asyncio.Event | None = None
@@ -125,7 +141,8 @@ class AnnotationServer:
         if missing:
             raise RequestError(400, f"the request lacks {', '.join(missing)} (a trainer of protocol {PROTOCOL} "
                                     "sends them: use the server's illm version)")
-        trainer = (text(body["client"], "client", MAX_ID_CHARS, 400), text(body["session"], "session", MAX_ID_CHARS, 400))
+        trainer = self.trainer_of(body)
+        requested_wait(body)  # checked before anything is queued
         if body["model_fingerprint"] != self.fingerprint:
             raise RequestError(409, f"this server annotates with {self.llm.options()} (fingerprint {self.fingerprint}); "
                                     f"the request's fingerprint {str(body['model_fingerprint'])[:80]!r} is another model "
@@ -156,12 +173,45 @@ class AnnotationServer:
         else:  # withdrawn: the trainer is done
             self._clients.pop(trainer, None)
             self._seen.pop(trainer, None)
+            self._wake_waiters()
         self._forget_gone()
         answer = {"queued": len(entries), "queue": self.queue_size(), "landed": self._landed.pop(trainer, 0)}
         failed = self._failed.pop(trainer, None)
         if failed:
             answer.update(failed=failed[0], failure=failed[1])
         return answer
+
+    @staticmethod
+    def trainer_of(body: dict) -> tuple[str, str]:
+        """The trainer a request comes from: its (client, session)."""
+        return text(body["client"], "client", MAX_ID_CHARS, 400), text(body["session"], "session", MAX_ID_CHARS, 400)
+
+    def pending_for(self, trainer: tuple[str, str]) -> bool:
+        """Whether some state of `trainer`'s is queued or in the engine now."""
+        return trainer in self._clients or trainer in self._in_engine
+
+    async def settled(self, trainer: tuple[str, str], timeout: float) -> dict:
+        """Wait (at most `timeout` seconds) until none of `trainer`'s states is queued or in the engine,
+        then take what became of them since its answer: {"landed"[, "failed", "failure"], "queue"}."""
+        if timeout > 0 and self.pending_for(trainer):
+            event = self._waiters.setdefault(trainer, asyncio.Event())
+            try:
+                await asyncio.wait_for(event.wait(), timeout)
+            except asyncio.TimeoutError:
+                pass
+            finally:
+                self._waiters.pop(trainer, None)
+        answer = {"landed": self._landed.pop(trainer, 0), "queue": self.queue_size(),
+                  "pending": self.pending_for(trainer)}
+        failed = self._failed.pop(trainer, None)
+        if failed:
+            answer.update(failed=failed[0], failure=failed[1])
+        return answer
+
+    def _wake_waiters(self) -> None:
+        for trainer, event in self._waiters.items():
+            if not self.pending_for(trainer):
+                event.set()
 
     def _check_room(self, trainer: tuple[str, str], entries: dict) -> None:
         """RequestError (429 or 503, with Retry-After) when queueing `entries` for `trainer` (in place
@@ -361,6 +411,14 @@ class AnnotationServer:
             stopper.cancel()
 
     async def _run_batch(self, batch: list[Pending]) -> None:
+        self._in_engine = {trainer for p in batch for trainer in p.clients}
+        try:
+            await self._annotate_batch(batch)
+        finally:
+            self._in_engine = set()
+            self._wake_waiters()
+
+    async def _annotate_batch(self, batch: list[Pending]) -> None:
         start = time.perf_counter()
         self.annotating = len(batch)
         future = self._in_thread(batch)
