@@ -1,20 +1,25 @@
-"""`illm annotate` against the loop a user would write first, on the same states, model and dtype.
+"""`illm annotate` against the loop a user would write first, and the engine's cost by tokens.
 
-States: distinct BabyAI GoToLocal steps from a random-policy collection, with the paper's 3-step
-history (prompts of about 370 tokens). Both sides answer both language tasks for every state:
-- naive: one full forward per candidate action (log-softmax, gather), then one `generate` of 64
-  greedy tokens per state and one forward over prompt + summary for the mean-pooled embedding;
-- illm: `Annotator.annotate` (context KV reused for all candidates, states batched by length, the
-  prompt prefix shared by the two tasks computed once, batched greedy decoding).
-Prints states/s of both and the speedup, illm's mean summary length and the share of summaries
-that ended at end-of-text (rather than at the 64-token limit), and the share of this machine's
-matmul rate in the dtype (measured in the same run) that illm's forward passes reach (2 x non-embedding
-parameters x tokens fed, attention left out). Targets: speedup >= 8x; >= 4 states/s for both tasks together.
+Part 1 (GoToLocal, the paper's 3-step history, prompts of about 370 tokens): the naive loop (one
+full forward per candidate action, then one `generate` of 64 greedy tokens per state and one
+forward over prompt + summary for the mean-pooled embedding) against `Annotator.annotate`
+(candidates packed behind one copy of the prompt, states batched by a token budget, the prompt
+prefix shared by the two tasks computed once, batched greedy decoding). Target: speedup >= 8x.
 
-    .venv/bin/python benchmarks/annotate.py [--states 32] [--naive-states 4] [--batch-size 8]
-    .venv/bin/python benchmarks/annotate.py --device cuda [--quant 4bit] [--history 0] --batch-size 32
+Part 2 (issue 53's table): for each case (GoToLocal at history 0 and 3, Crafter and MiniHack at
+history 3; both tasks) and `--batch-size` 4 and 16, the engine before (each candidate behind a copy
+of its state's prompt, batches bounded by their state count) and after (candidates packed, batches
+bounded by the token budget too): states/s, the peak resident memory above the resident memory
+before the run (VmHWM, reset per measurement through /proc/self/clear_refs), the share of
+states whose top action equals `--batch-size 1`'s, and the prefill rate: 2 x non-embedding
+parameters x tokens fed in the passes of more than one token (prompts, packed candidates) over
+those passes' time, as a share of this machine's matmul rate in the dtype (measured in the same
+run). Target: prefill >= 50% of the matmul rate.
 
-On CUDA it also prints the peak GPU memory (torch.cuda.max_memory_allocated) of the illm run.
+    .venv/bin/python benchmarks/annotate.py [--states 16] [--naive-states 4] [--cases crafter-h3,minihack-h3]
+    .venv/bin/python benchmarks/annotate.py --device cuda [--quant 4bit] --batch-sizes 32,256 --naive-states 0
+
+On CUDA the peak is the device's (torch.cuda.max_memory_allocated).
 """
 
 from __future__ import annotations
@@ -26,6 +31,10 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+CASES = {"gotolocal-h0": ("BabyAI-GoToLocal-v0", 0), "gotolocal-h3": ("BabyAI-GoToLocal-v0", 3),
+         "crafter-h3": ("CrafterReward-v1", 3), "minihack-h3": ("MiniHack-River-Monster-v0", 3)}
+"""Case name -> (env id, history length)."""
 
 
 def matmul_rate(dtype, seconds: float = 2.0, device: str = "cpu") -> float:
@@ -79,15 +88,134 @@ def naive(lm, jobs) -> None:
         hidden[0, ids.shape[1]:].mean(0)
 
 
+def rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) / 1024 for line in f if line.startswith("VmRSS"))
+
+
+def peak_mb() -> float:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) / 1024 for line in f if line.startswith("VmHWM"))
+
+
+def reset_peak() -> None:
+    """The process's peak resident memory (VmHWM) set to its resident memory now (Linux)."""
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+
+
+class Prefill:
+    """Tokens and seconds of the decoder's passes of more than one token (prompts, packed candidates)."""
+
+    def __init__(self, lm, device: str):
+        import torch
+
+        self.tokens, self.seconds, self._start = 0, 0.0, 0.0
+        self._sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+        decoder = lm.model.get_decoder()
+        self._hooks = [decoder.register_forward_pre_hook(self._before, with_kwargs=True),
+                       decoder.register_forward_hook(self._after, with_kwargs=True)]
+        self._wide = False
+
+    def _before(self, _module, _args, kwargs):
+        ids = kwargs.get("input_ids")
+        self._wide = ids is not None and ids.shape[1] > 1
+        if self._wide:
+            self._sync()
+            self.tokens += int(ids.numel())
+            self._start = time.perf_counter()
+
+    def _after(self, _module, _args, _kwargs, _out):
+        if self._wide:
+            self._sync()
+            self.seconds += time.perf_counter() - self._start
+
+    def remove(self) -> None:
+        for h in self._hooks:
+            h.remove()
+
+
+def measure(lm, annotator_of, plan, device: str) -> tuple[float, float, list]:
+    """(states/s, peak memory above the start in MB, rows) of annotating `plan` with a fresh cache."""
+    import torch
+
+    from illm_tools.serve.memory import release_free_memory
+
+    gpu = device.startswith("cuda")
+    annotator = annotator_of()
+    annotator.neutral_scores(plan[0][0].prompt.candidates)
+    release_free_memory()  # memory freed by earlier measurements handed back: the growth is this one's
+    if gpu:
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated() / 2**20
+    else:
+        base = rss_mb()
+        reset_peak()
+    start = time.perf_counter()
+    rows = annotator.annotate(plan)
+    seconds = time.perf_counter() - start
+    peak = (torch.cuda.max_memory_allocated() / 2**20 if gpu else peak_mb()) - base
+    return len(plan) / seconds, peak, rows
+
+
+def engine_table(args, lm, rate: float, params: int) -> None:
+    """Part 2: the before/after table over the cases and batch sizes."""
+    import dataclasses
+
+    import torch
+
+    from illm_tools.annotate.engine import Annotator
+    from illm_tools.cache.store import AnnotationCache
+    from illm_tools.envs import renderer_of
+
+    before = dataclasses.replace(lm, pack_candidates=False, batch_tokens=None)
+    print(f"\nengine by tokens: {args.states} states a case, both tasks; budget {lm.batch_tokens:,} tokens a batch "
+          f"(after); peak = resident memory above the run's start")
+    print("| case | prompt tokens | batch | before: states/s | before: peak MB | after: states/s | after: peak MB "
+          "| after: same top action as batch 1 | after: prefill % of matmul |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in args.cases.split(","):
+        env_id, history = CASES[name]
+        with tempfile.TemporaryDirectory() as tmp:
+            records = babyai_states(args.states, history, Path(tmp), env_id=env_id)
+            if not records:
+                print(f"| {name} | no states with a full history | | | | | | | |")
+                continue
+
+            def annotator_of(model=lm, batch=1, folder=[0]):
+                folder[0] += 1
+                return Annotator(model, AnnotationCache(Path(tmp) / f"ann{folder[0]}"), model=args.model,
+                                 layout=args.layout, batch_size=batch, chunk=len(records), history_len=history)
+
+            probe = annotator_of()
+            plan = probe.plan(probe.visited(records, [env_id] * len(records), [renderer_of(env_id)] * len(records)))
+            tokens = sum(len(lm.encode(jobs[0].prompt.text)) for jobs in plan) / max(len(plan), 1)
+            _, _, rows = measure(lm, lambda: annotator_of(lm, 1), plan, args.device)
+            best1 = {r["key"]: r["chosen_index"] for r in rows if r["task"] == "action"}
+            for batch in (int(b) for b in args.batch_sizes.split(",")):
+                old_rate, old_peak, _ = measure(before, lambda: annotator_of(before, batch), plan, args.device)
+                counter = Prefill(lm, args.device)
+                new_rate, new_peak, rows = measure(lm, lambda: annotator_of(lm, batch), plan, args.device)
+                counter.remove()
+                same = sum(best1[r["key"]] == r["chosen_index"] for r in rows if r["task"] == "action")
+                share = 2 * params * counter.tokens / max(counter.seconds, 1e-9) / 1e9 / rate
+                print(f"| {name} | {tokens:.0f} | {batch} | {old_rate:.2f} | {old_peak:.0f} | {new_rate:.2f} | "
+                      f"{new_peak:.0f} | {same}/{len(best1)} | {100 * share:.0f}% |", flush=True)
+                torch.cuda.empty_cache() if args.device.startswith("cuda") else None
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="smollm2-135m")
     parser.add_argument("--dtype", default="auto", help="auto: what `illm annotate` picks on this machine.")
-    parser.add_argument("--states", type=int, default=32, help="States annotated by illm.")
-    parser.add_argument("--naive-states", type=int, default=4, help="States annotated by the naive loop (slow).")
-    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--states", type=int, default=16, help="States annotated per measurement.")
+    parser.add_argument("--naive-states", type=int, default=4, help="States of the naive loop (slow; 0 skips part 1).")
+    parser.add_argument("--batch-size", type=int, default=8, help="Part 1's --batch-size.")
+    parser.add_argument("--batch-sizes", default="4,16", help="Part 2's batch sizes (comma-separated).")
+    parser.add_argument("--cases", default=",".join(CASES), help=f"Part 2's cases: {', '.join(CASES)} ('' skips it).")
+    parser.add_argument("--batch-tokens", type=int, default=None, help="The token budget (default: from free memory).")
     parser.add_argument("--layout", default="shared", help="Template layout: shared or paper.")
-    parser.add_argument("--history", type=int, default=3, help="History pairs in the prompts (the paper's: 3).")
+    parser.add_argument("--history", type=int, default=3, help="Part 1's history pairs (the paper's: 3).")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (as `illm annotate`).")
     parser.add_argument("--quant", default="none", help="none, 4bit or 8bit (bitsandbytes; CUDA).")
     args = parser.parse_args()
@@ -98,60 +226,47 @@ def main() -> None:
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.devices import resolve_device
     from illm_tools.envs import renderer_of
-    from illm_tools.llm.loading import load_model
+    from illm_tools.llm.budget import describe
     from illm_tools.llm.dtype import resolve_dtype
+    from illm_tools.llm.loading import load_model
     from illm_tools.tasks.prompts import SUMMARY_TOKENS
 
     args.device = resolve_device(args.device)
     args.dtype = resolve_dtype(args.dtype, args.device)
-    lm = load_model(args.model, dtype=args.dtype, quant=args.quant, device=args.device)
+    lm = load_model(args.model, dtype=args.dtype, quant=args.quant, device=args.device, batch_tokens=args.batch_tokens)
     rate = matmul_rate(getattr(torch, args.dtype), device=args.device)
-    gpu = args.device.startswith("cuda")
-    with tempfile.TemporaryDirectory() as tmp:
-        records = babyai_states(args.states, args.history, Path(tmp))
-        annotator = Annotator(lm, AnnotationCache(Path(tmp) / "ann"), model=args.model, layout=args.layout,
-                              batch_size=args.batch_size, chunk=args.states, history_len=args.history)
-        plan = annotator.plan(annotator.visited(records, ["BabyAI-GoToLocal-v0"] * len(records),
-                                                [renderer_of("BabyAI-GoToLocal-v0")] * len(records)))
-        jobs = [(s[0], s[1]) for s in plan]
-        tokens = [0]
-
-        def count(_module, _args, kwargs):
-            tokens[0] += kwargs["input_ids"].numel()
-
-        hook = lm.model.register_forward_pre_hook(count, with_kwargs=True)
-        annotator.neutral_scores(jobs[0][0].prompt.candidates)  # once per model; not part of the timing
-        tokens[0] = 0
-        if gpu:
-            torch.cuda.reset_peak_memory_stats()
-        start = time.perf_counter()
-        rows = annotator.annotate(plan)
-        t_illm = time.perf_counter() - start
-        peak = torch.cuda.max_memory_allocated() / 2**30 if gpu else None
-        hook.remove()
-        start = time.perf_counter()
-        naive(lm, jobs[: args.naive_states])
-        t_naive = time.perf_counter() - start
-
     params = sum(p.numel() for n, p in lm.model.named_parameters() if "embed" not in n)
-    prompt_tokens = sum(len(lm.encode(a.prompt.text)) for a, _ in jobs) / len(jobs)
-    illm_rate = len(jobs) / t_illm
-    naive_rate = args.naive_states / t_naive
-    achieved = 2 * params * tokens[0] / t_illm / 1e9
-    lengths = [r["_tokens"] for r in rows if r["task"] == "summary"]  # generated tokens, end-of-text excluded
-    ended = sum(n < SUMMARY_TOKENS for n in lengths)  # a summary cut by the limit has exactly SUMMARY_TOKENS
-    print(f"model {args.model} ({args.dtype}, quant {args.quant}) on {args.device}, {len(jobs)} BabyAI GoToLocal "
-          f"states, {args.history}-step history, action prompt ~{prompt_tokens:.0f} tokens, layout {args.layout}, "
-          f"batch {args.batch_size}, {torch.get_num_threads()} threads")
-    print(f"naive loop        {naive_rate:6.2f} states/s  ({args.naive_states} states, action ranking + summary)")
-    print(f"illm annotate     {illm_rate:6.2f} states/s  ({len(jobs)} states, action ranking + summary)")
-    print(f"speedup           {illm_rate / naive_rate:6.1f}x  (target >= 8x; illm target >= 4 states/s)")
-    print(f"summaries         {sum(lengths) / len(lengths):6.1f} tokens on average (limit {SUMMARY_TOKENS}); "
-          f"{ended}/{len(lengths)} ended at end-of-text")
-    print(f"{args.dtype} matmul rate {rate:6.0f} GFLOP/s measured; illm forward passes reach {achieved:.0f} GFLOP/s "
-          f"= {100 * achieved / rate:.0f}% of it ({tokens[0] / len(jobs):.0f} tokens fed per state)")
-    if peak is not None:
-        print(f"peak GPU memory   {peak:6.2f} GiB (torch.cuda.max_memory_allocated, illm annotate)")
+    print(f"model {args.model} ({args.dtype}, quant {args.quant}) on {args.device}, {torch.get_num_threads()} threads; "
+          f"{args.dtype} matmul rate {rate:.0f} GFLOP/s measured")
+    print(describe(lm, 1000, 16))
+    if args.naive_states:
+        with tempfile.TemporaryDirectory() as tmp:
+            records = babyai_states(args.states, args.history, Path(tmp))
+            annotator = Annotator(lm, AnnotationCache(Path(tmp) / "ann"), model=args.model, layout=args.layout,
+                                  batch_size=args.batch_size, chunk=args.states, history_len=args.history)
+            plan = annotator.plan(annotator.visited(records, ["BabyAI-GoToLocal-v0"] * len(records),
+                                                    [renderer_of("BabyAI-GoToLocal-v0")] * len(records)))
+            jobs = [(s[0], s[1]) for s in plan]
+            annotator.neutral_scores(jobs[0][0].prompt.candidates)  # once per model; not part of the timing
+            start = time.perf_counter()
+            rows = annotator.annotate(plan)
+            t_illm = time.perf_counter() - start
+            start = time.perf_counter()
+            naive(lm, jobs[: args.naive_states])
+            t_naive = time.perf_counter() - start
+        prompt_tokens = sum(len(lm.encode(a.prompt.text)) for a, _ in jobs) / len(jobs)
+        illm_rate, naive_rate = len(jobs) / t_illm, args.naive_states / t_naive
+        lengths = [r["_tokens"] for r in rows if r["task"] == "summary"]  # generated tokens, end-of-text excluded
+        ended = sum(n < SUMMARY_TOKENS for n in lengths)  # a summary cut by the limit has exactly SUMMARY_TOKENS
+        print(f"part 1: {len(jobs)} BabyAI GoToLocal states, {args.history}-step history, action prompt "
+              f"~{prompt_tokens:.0f} tokens, layout {args.layout}, batch {args.batch_size}")
+        print(f"naive loop        {naive_rate:6.2f} states/s  ({args.naive_states} states, action ranking + summary)")
+        print(f"illm annotate     {illm_rate:6.2f} states/s  ({len(jobs)} states, action ranking + summary)")
+        print(f"speedup           {illm_rate / naive_rate:6.1f}x  (target >= 8x)")
+        print(f"summaries         {sum(lengths) / len(lengths):6.1f} tokens on average (limit {SUMMARY_TOKENS}); "
+              f"{ended}/{len(lengths)} ended at end-of-text")
+    if args.cases:
+        engine_table(args, lm, rate, params)
 
 
 if __name__ == "__main__":

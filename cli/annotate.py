@@ -77,6 +77,11 @@ def annotate_and_report(config) -> None:
         + ("" if not stats.stopped_early else "; stopped by a signal, run again to go on" if stop.requested
            else "; stopped at --max-minutes, run again to go on")
     )
+    if stats.too_long:
+        shown = "; ".join(f"#{rank + 1:,} of {env} ({tokens:,} tokens)" for rank, env, tokens in stats.too_long[:5])
+        typer.echo(f"skipped {len(stats.too_long):,} states longer than the model's context (most visited first): "
+                   f"{shown}{' ...' if len(stats.too_long) > 5 else ''}; a shorter --history, or a model of a longer "
+                   "context, takes them")
     if config.limit is not None:
         typer.echo(f"the {result.selected_states:,} most visited states cover {result.selected_step_share:.0%} "
                    f"of the {result.dataset_steps:,} steps")

@@ -17,7 +17,7 @@ DICT_FLAGS = {"bonus_options": "--bonus-option", "network_options": "--network-o
               "task_weights": "--task-weight"}
 ALIASES = {**{k: v for k, v in FLAGS.items() if k not in DICT_FLAGS}, "obs_mode": ("--mode",)}
 NAMES = {"llm.dtype": "model_dtype"}  # the LLM's dtype keeps its flat name (illm_tools.rl.names), --dtype its flag
-NOT_OPTIONS = {"llm.device", "llm.offline"}  # the LLM's device is --llm-device; a run never downloads
+NOT_OPTIONS = {"llm.device", "llm.offline", "llm.batch_tokens"}  # --llm-device; never downloads; default budget
 EXAMPLE = ("Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm --frames 200000 --seed 0 "
            "--out runs/gotolocal-illm")
 

@@ -53,7 +53,7 @@ def _train_tokenizer(folder, *, add_bos: bool):
 
 def _tiny_model(folder, vocab: int, kind: str, layers: int = 2) -> None:
     import torch
-    from transformers import AutoModelForCausalLM, Gemma3TextConfig, LlamaConfig
+    from transformers import AutoModelForCausalLM, Gemma3TextConfig, GPT2Config, LlamaConfig
 
     torch.manual_seed(0)
     common = dict(vocab_size=vocab, hidden_size=64, intermediate_size=128, num_hidden_layers=layers,
@@ -62,6 +62,9 @@ def _tiny_model(folder, vocab: int, kind: str, layers: int = 2) -> None:
     if kind == "sliding":
         config = Gemma3TextConfig(**common, head_dim=16, sliding_window=8,
                                   layer_types=["sliding_attention", "full_attention"])
+    elif kind == "gpt2":  # learned absolute positions, fused attention projections, no key-value heads
+        config = GPT2Config(vocab_size=vocab, n_embd=64, n_layer=layers, n_head=4, n_positions=1024,
+                            bos_token_id=1, eos_token_id=0, tie_word_embeddings=True)
     else:
         config = LlamaConfig(**common)
     model = AutoModelForCausalLM.from_config(config)
@@ -90,6 +93,12 @@ def tiny_lm(tmp_path_factory):
 def tiny_lm_bos(tmp_path_factory):
     """Tiny random Llama whose tokenizer prepends <bos> (like Gemma)."""
     return _build(tmp_path_factory, "tiny-llama-bos", add_bos=True)
+
+
+@pytest.fixture(scope="session")
+def tiny_lm_gpt2(tmp_path_factory):
+    """Tiny random GPT-2 (the registry's `gpt2` family)."""
+    return _build(tmp_path_factory, "tiny-gpt2", kind="gpt2")
 
 
 @pytest.fixture(scope="session")

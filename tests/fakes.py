@@ -20,6 +20,8 @@ import os
 import random
 import stat
 import time
+import urllib.error
+import urllib.request
 import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -480,6 +482,22 @@ def serve_request(pending, client="run-a", session="s1", **changes) -> dict:
             "states": [{**record_to_json(s), "visits": n} for s, n in pending]}
     body.update(changes)
     return body
+
+
+def call(url: str, body=None, raw: bytes | None = None, token: str | None = None,
+         headers: dict | None = None, timeout: float = 30.0) -> tuple[int, dict]:
+    """(status, JSON answer) of a GET (no body) or POST to an `illm serve` server; `headers` gets a
+    refusal's headers."""
+    data = raw if raw is not None else (None if body is None else json.dumps(body).encode())
+    sent = {"Content-Type": "application/json", **({"Authorization": f"Bearer {token}"} if token else {})}
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, data=data, method="GET" if data is None else "POST",
+                                                           headers=sent), timeout=timeout) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        if headers is not None:
+            headers.update(e.headers)
+        return e.code, json.loads(e.read())
 
 
 def wait_for(check, seconds: float = 60.0, what: str = ""):

@@ -18,7 +18,7 @@ def _max_diff(got: list[list[float]], want: list[list[float]]) -> float:
     return max(abs(a - b) for g, w in zip(got, want) for a, b in zip(g, w))
 
 
-@pytest.mark.parametrize("fixture", ["tiny_lm", "tiny_lm_bos", "tiny_lm_sliding"])
+@pytest.mark.parametrize("fixture", ["tiny_lm", "tiny_lm_bos", "tiny_lm_gpt2", "tiny_lm_sliding"])
 def test_matches_plain_forward_per_candidate(fixture, request):
     lm = request.getfixturevalue(fixture)
     contexts = [babyai_context(i) for i in range(5)]  # three lengths, so batches mix padding

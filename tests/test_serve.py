@@ -21,8 +21,6 @@ import socket
 import subprocess
 import sys
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
 
 import pytest
@@ -33,7 +31,7 @@ from illm_tools.cache import AnnotationCache, verify
 from illm_tools.llm.stub import StubBackend
 from illm_tools.serve import AnnotationServer, RequestError, ServeConfig, ServeLimits, record_to_json
 from fakes import STUB_LLM as LLM, STUB_MODEL as MODEL
-from fakes import hop_states, serve_request as request, serve_state as state, wait_for
+from fakes import call, hop_states, serve_request as request, serve_state as state, wait_for
 
 runner = CliRunner()
 ENV = "BabyAI-GoToLocal-v0"
@@ -125,20 +123,6 @@ def served(start_server):
     if proc.poll() is None:
         proc.send_signal(2)
         proc.wait(30)
-
-
-def call(url: str, body=None, raw: bytes | None = None, token: str | None = None,
-         headers: dict | None = None) -> tuple[int, dict]:
-    data = raw if raw is not None else (None if body is None else json.dumps(body).encode())
-    sent = {"Content-Type": "application/json", **({"Authorization": f"Bearer {token}"} if token else {})}
-    try:
-        with urllib.request.urlopen(urllib.request.Request(url, data=data, method="GET" if data is None else "POST",
-                                                           headers=sent), timeout=30) as r:
-            return r.status, json.loads(r.read())
-    except urllib.error.HTTPError as e:
-        if headers is not None:
-            headers.update(e.headers)
-        return e.code, json.loads(e.read())
 
 
 def test_the_server_refuses_bad_requests_survives_a_dying_client_and_reports(served):

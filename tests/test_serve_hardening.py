@@ -152,8 +152,13 @@ def held_engine(tmp_path) -> AnnotationServer:
     EngineStub.gate = threading.Event()
     server = make(tmp_path, lm=EngineStub(MODEL))
     server.batches = []
-    annotate = server._annotate
-    server._annotate = lambda items: (server.batches.append({f"{p.record.mission}: {p.record.observation}" for p in items}), annotate(items))[1]
+    annotate = server.annotator.annotate_states  # called once per batch (one setup), then per state on a fault
+
+    def recorded(records, *args, **kwargs):
+        server.batches.append({f"{r.mission}: {r.observation}" for r in records})
+        return annotate(records, *args, **kwargs)
+
+    server.annotator.annotate_states = recorded
     return server
 
 
@@ -318,7 +323,7 @@ def test_the_server_checks_a_frame_against_its_own_env_not_the_clients_word(tmp_
 
 def test_the_hop_projections_the_server_keeps_are_bounded(tmp_path):
     from illm_tools.hop.context import HopTracker
-    from illm_tools.serve.scheduler import MAX_HOP_CONTEXTS
+    from illm_tools.serve.batch import MAX_HOP_CONTEXTS
 
     server = make(tmp_path, history_len=1)
     rng = np.random.default_rng(0)

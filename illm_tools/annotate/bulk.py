@@ -128,7 +128,8 @@ def _gathered(stats: Stats, state) -> Stats:
 
     parts = gather_object([(stats.annotated_states, stats.rows, stats.summaries, stats.summary_tokens,
                             stats.per_task, stats.stopped_early, stats.seconds)])
-    total = Stats(states=stats.states, keys=stats.keys, hits=stats.hits, misses=stats.misses)
+    total = Stats(states=stats.states, keys=stats.keys, hits=stats.hits, misses=stats.misses,
+                  too_long=stats.too_long)  # planned alike by every process
     for annotated, rows, summaries, tokens, per_task, stopped, seconds in parts:
         total.annotated_states += annotated
         total.rows += rows

@@ -65,6 +65,9 @@ class Stats:
     """Summaries generated."""
     stopped_early: bool = False
     """True when the time limit ended the run before its plan was done."""
+    too_long: list = field(default_factory=list)
+    """States refused before the engine, longer than the model's context: (rank among the visited
+    states, most visited first; env id; tokens it needs)."""
     seconds: float = 0.0
     per_task: dict = field(default_factory=dict)
 
@@ -101,6 +104,7 @@ class Annotator:
         self._builders: dict[tuple[str, str], PromptBuilder] = {}
         self._neutral: dict[tuple[str, ...], list[float]] = {}
         self._hop: dict[tuple, object] = {}
+        self._said_too_long = False
 
     @classmethod
     def of_setup(cls, lm, cache: AnnotationCache, llm, setup, **options) -> Annotator:
@@ -136,7 +140,7 @@ class Annotator:
         stats.hits += len(present)
         stats.misses += len(set(flat)) - len(present)
         plan = []
-        for record, builder, keys in zip(visited.records, visited.builders, visited.keys):
+        for rank, (record, builder, keys) in enumerate(zip(visited.records, visited.builders, visited.keys)):
             history = None
             jobs = []
             for task, key in zip(visited.tasks, keys):
@@ -145,16 +149,54 @@ class Annotator:
                 present.add(key)  # a key shared by two states (e.g. one summary prompt) is planned once
                 history = format_history(record) if history is None else history
                 jobs.append(Job(key, builder.render(task, record, history), builder, record))
-            if jobs:
+            needed = self.tokens_needed(jobs)
+            if needed is not None:
+                stats.too_long.append((rank, builder.env_id, needed))
+                self._say_too_long(builder.env_id, needed)
+            elif jobs:
                 plan.append(jobs)
         return plan
+
+    @property
+    def context_length(self) -> int | None:
+        """The backend's context in tokens, where it states one (None: no gate here)."""
+        return getattr(self.lm, "context_length", None)
+
+    def tokens_needed(self, jobs: Sequence[Job]) -> int | None:
+        """The tokens a state's jobs need when the longest is more than the model's context (its prompt
+        plus its longest candidate, or plus the generated tokens), else None: such a state is
+        refused before the engine (hop prompts, a window of a few embeddings, are not measured)."""
+        limit = self.context_length
+        if limit is None or not jobs or jobs[0].builder.renderer.startswith("hop@"):
+            return None
+        needed = max(self.lm.tokens_needed(j.prompt.text, j.prompt.candidates, get_task(j.prompt.task).max_new_tokens)
+                     for j in jobs)
+        return needed if needed > limit else None
+
+    def state_too_long(self, record: StateRecord, env_id: str, renderer: str) -> int | None:
+        """The tokens `record` needs under this annotator's tasks when more than the model's context
+        (`tokens_needed`), else None (`illm serve` refuses such a state at arrival)."""
+        if self.context_length is None or renderer.startswith("hop@"):
+            return None
+        builder = self.builder(env_id, renderer)
+        history = format_history(record)
+        jobs = [Job("", builder.render(task, record, history), builder, record) for task in self.tasks]
+        return self.tokens_needed(jobs)
+
+    def _say_too_long(self, env_id: str, needed: int) -> None:
+        """Log the first state refused for its length (later ones are counted in `Stats.too_long`)."""
+        if not self._said_too_long:
+            log.warning("a state of %s needs %d tokens, more than %s's context of %d: refused before the engine "
+                        "(further ones are counted, not logged)", env_id, needed, self.model, self.context_length)
+        self._said_too_long = True
 
     def annotate_states(self, records: Sequence[StateRecord], env_id: str, renderer: str,
                         **run_options) -> Stats:
         """Annotate what the cache lacks of these states of one env now (the live fallback's call),
         most visited first; `run_options` go to `run`."""
-        return self.run(self.plan(self.visited(records, [env_id] * len(records), [renderer] * len(records))),
-                        **run_options)
+        stats = Stats()
+        plan = self.plan(self.visited(records, [env_id] * len(records), [renderer] * len(records)), stats=stats)
+        return self.run(plan, stats=stats, **run_options)
 
     def run(self, plan: list[list[Job]], *, stats: Stats | None = None,
             on_progress: Callable[[int, Stats], None] | None = None, max_seconds: float | None = None,

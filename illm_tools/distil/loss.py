@@ -137,13 +137,13 @@ def measure(lm, examples: Sequence[Example], *, batch_size: int = 8, text_weight
     (batches sorted by length, as the annotator batches); `on_progress(n)` after each batch."""
     import time
 
-    from illm_tools.llm.scoring import length_batches
+    from illm_tools.llm.budget import token_batches
 
     start = time.perf_counter()
     m = Measure(states=len(examples))
     kl = nll = 0.0
     ranked = texts = agree = 0
-    for batch in length_batches([e.longest for e in examples], batch_size):
+    for batch in token_batches([e.longest for e in examples], batch_size, None):
         r = lesson_loss(lm, [examples[i] for i in batch], text_weight=text_weight, grad=False)
         kl += r.ranking_kl * r.ranked
         nll += r.text_nll * r.texts

@@ -210,11 +210,13 @@ def selecting_options(backend: str, model: str, dtype: str, quant: str) -> str:
 
 
 def load_backend(name: str, model: str, *, dtype: str = "auto", quant: str = "none", device: str = "cpu",
-                 cache_dir: str | None = None):
+                 cache_dir: str | None = None, batch_tokens: int | None = None):
     """The backend `name` serving `model` (an alias, hub id or folder for transformers), computing in
-    `dtype` ("auto": `backend_dtype`, as the commands resolve it)."""
+    `dtype` ("auto": `backend_dtype`, as the commands resolve it); `batch_tokens` (given only when
+    set: a plug-in backend need not take it) bounds an engine batch (`illm_tools.llm.budget`)."""
+    engine = {"batch_tokens": batch_tokens} if batch_tokens is not None else {}
     return backend_class(name).load(model, dtype=backend_dtype(name, dtype, device), quant=quant, device=device,
-                                    cache_dir=cache_dir)
+                                    cache_dir=cache_dir, **engine)
 
 
 def backend_fingerprint(name: str, model: str, *, dtype: str = "auto", quant: str = "none") -> dict:

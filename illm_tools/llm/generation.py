@@ -26,7 +26,9 @@ import numpy as np
 
 from illm_tools.errors import UsageError
 from illm_tools.llm.loading import LoadedModel
-from illm_tools.llm.scoring import PrefixState, cache_kwargs, extend, length_batches
+from illm_tools.llm.budget import token_batches
+from illm_tools.llm.forward import cache_kwargs
+from illm_tools.llm.scoring import PrefixState, extend
 
 log = logging.getLogger(__name__)
 
@@ -107,9 +109,12 @@ def _decode_cache(state: PrefixState, room: int):
     return cache
 
 
-def greedy_from(lm: LoadedModel, state: PrefixState, max_new_tokens: int) -> list[tuple[list[int], bool, np.ndarray]]:
+def greedy_from(lm: LoadedModel, state: PrefixState, max_new_tokens: int, *,
+                release: bool = False) -> list[tuple[list[int], bool, np.ndarray]]:
     """Greedy decoding after an already-computed prompt state (e.g. a shared prefix extended by
-    each row's own suffix); per row: tokens, finished, embedding. `state` is left untouched.
+    each row's own suffix); per row: tokens, finished, embedding. `state` is left untouched, unless
+    `release`: its cache's layers are then dropped once copied into the decoding buffer (a caller
+    done with it holds one copy of the prompts' keys and values while decoding, not two).
 
     Each step feeds one token per row still decoding, with the mask and position ids `extend`
     would give it; the next token is the argmax of the logits (as transformers' greedy search).
@@ -125,6 +130,8 @@ def greedy_from(lm: LoadedModel, state: PrefixState, max_new_tokens: int) -> lis
     sums = torch.zeros((n, lm.hidden_size), dtype=torch.float64)
     rows = list(range(n))  # the original row of each batch row still decoding
     cache = _decode_cache(state, max_new_tokens)
+    if release and cache.layers is not state.cache.layers:
+        state.cache.layers = []
     width = state.attention_mask.shape[1]
     mask = F.pad(state.attention_mask, (0, max_new_tokens), value=1)  # every new column is a real token
     positions = state.lengths
@@ -170,7 +177,7 @@ def generate(lm: LoadedModel, prompts: Sequence[str], *, max_new_tokens: int = 6
     if any(not ids for ids in encoded):
         raise UsageError("cannot generate from an empty prompt")
     results: list[Generation | None] = [None] * len(encoded)
-    for batch in length_batches([len(ids) for ids in encoded], batch_size):
+    for batch in token_batches([len(ids) + max_new_tokens for ids in encoded], batch_size, lm.batch_tokens):
         for i, (ids, finished, emb) in zip(batch, _greedy(lm, [encoded[i] for i in batch], max_new_tokens)):
             text = lm.tokenizer.decode(ids, skip_special_tokens=True)
             results[i] = Generation(text, ids, finished, emb)
@@ -187,7 +194,7 @@ def embed_texts(lm: LoadedModel, texts: Sequence[str], *, batch_size: int = 8) -
         raise UsageError("cannot embed an empty text with a tokenizer that adds no special tokens")
     out = np.zeros((len(texts), lm.hidden_size), dtype=np.float32)
     skip = len(lm.bos_ids)
-    for batch in length_batches([len(ids) for ids in encoded], batch_size):
+    for batch in token_batches([len(ids) for ids in encoded], batch_size, lm.batch_tokens):
         state = extend(lm, [encoded[i] for i in batch], hidden=True)
         hidden = state.last_hidden.double()
         for row, i in enumerate(batch):

@@ -14,8 +14,9 @@ from collections.abc import Sequence
 
 from illm_tools.llm.generation import Generation, greedy_from
 from illm_tools.llm.loading import LoadedModel
-from illm_tools.llm.scoring import (CandidateScores, common_prefix, extend, has_sliding_window, length_batches,
-                                    merge_states, plan_state, score_continuations)
+from illm_tools.llm.budget import token_batches
+from illm_tools.llm.scoring import (CandidateScores, common_prefix, extend, has_sliding_window, merge_states,
+                                    plan_state, plan_tokens, score_continuations)
 
 
 def can_share_prefix(lm: LoadedModel) -> bool:
@@ -27,8 +28,10 @@ def score_and_generate(lm: LoadedModel, contexts: Sequence[str], candidates: Seq
                        decode_batch: int = 32) -> tuple[list[CandidateScores], list[Generation]]:
     """For each state i: log P(candidates[i] | contexts[i]) and the greedy continuation of
     prompts[i], computing the tokens the two prompts share once. Prompts are prefilled in
-    length-sorted batches of `batch_size`; the summaries of up to `decode_batch` states are then
-    decoded together (decoding is per-step overhead bound: wider steps cost less per state)."""
+    length-sorted batches of at most `batch_size` states and `lm.batch_tokens` tokens (a state's:
+    its action prompt with its packed candidates, its summary prompt's own tokens and the summary);
+    the summaries of up to `decode_batch` states, and the budget's tokens, are then decoded
+    together (decoding is per-step overhead bound: wider steps cost less per state)."""
     plans = [plan_state(lm, c, cands) for c, cands in zip(contexts, candidates)]
     summary_ids = [lm.encode(p) for p in prompts]
     # keep one token of each summary prompt out of the prefix: its logits start the decoding
@@ -36,23 +39,28 @@ def score_and_generate(lm: LoadedModel, contexts: Sequence[str], candidates: Seq
     scores: list[CandidateScores | None] = [None] * len(plans)
     gens: list[Generation | None] = [None] * len(plans)
     pending: list[tuple[list[int], object]] = []  # (state indices, summary state) awaiting decoding
+    decode_tokens = [len(s) + max_new_tokens for s in summary_ids]
+    budget = lm.batch_tokens
 
     def decode() -> None:
         rows = [i for batch, _ in pending for i in batch]
-        decoded = greedy_from(lm, merge_states([state for _, state in pending]), max_new_tokens)
+        merged = merge_states([state for _, state in pending])
+        pending.clear()  # the merged state is the only holder of the prompts' keys: released into the buffer
+        decoded = greedy_from(lm, merged, max_new_tokens, release=True)
         for i, (ids, finished, emb) in zip(rows, decoded):
             gens[i] = Generation(lm.tokenizer.decode(ids, skip_special_tokens=True), ids, finished, emb)
-        pending.clear()
 
-    for batch in length_batches([len(p.prefix) for p in plans], batch_size):
+    costs = [plan_tokens(lm, p) + len(s) - shared_n + max_new_tokens
+             for p, s, shared_n in zip(plans, summary_ids, shared)]
+    for batch in token_batches(costs, batch_size, budget):
         prefix = extend(lm, [plans[i].prefix[:shared[i]] for i in batch])
-        action = extend(lm, [plans[i].prefix[shared[i]:] for i in batch], past=prefix)
-        logps = score_continuations(lm, action, [plans[i].continuations for i in batch],
-                                    [plans[i].skip for i in batch])
+        logps = score_continuations(lm, prefix, [plans[i].continuations for i in batch], [plans[i].skip for i in batch],
+                                    leads=[plans[i].prefix[shared[i]:] for i in batch])  # the action prompt's own end
         for i, lp in zip(batch, logps):
             scores[i] = CandidateScores.from_logprobs(lp)
         pending.append((batch, extend(lm, [summary_ids[i][shared[i]:] for i in batch], past=prefix)))
-        if sum(len(b) for b, _ in pending) >= decode_batch:
+        held = [i for b, _ in pending for i in b]
+        if len(held) >= decode_batch or (budget is not None and len(held) * max(decode_tokens[i] for i in held) >= budget):
             decode()
     if pending:
         decode()

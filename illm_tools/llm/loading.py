@@ -60,6 +60,14 @@ class LoadedModel:
     """Special tokens the tokenizer puts before a text (e.g. Gemma's <bos>); SmolLM2 has none."""
     eos_ids: tuple[int, ...] = field(default_factory=tuple)
     """Token ids that end a generation."""
+    batch_tokens: int | None = None
+    """Tokens one engine batch may hold (`illm_tools.llm.budget`; None: batches bounded by their
+    state count alone)."""
+    context_length: int | None = None
+    """The model's context in tokens (None: not stated by its config): a longer state is refused."""
+    pack_candidates: bool = True
+    """Score a state's candidates packed behind one copy of its prompt (`illm_tools.llm.packed`); False:
+    behind a copy each (the reference path, and benchmarks/annotate.py's "before")."""
 
     @property
     def device(self) -> Any:
@@ -332,9 +340,11 @@ def _quiet_transformers() -> Iterator[None]:
 
 
 def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
-               cache_dir: str | os.PathLike | None = None, device: str = "cpu") -> LoadedModel:
+               cache_dir: str | os.PathLike | None = None, device: str = "cpu",
+               batch_tokens: int | None = None) -> LoadedModel:
     """Load an alias, hub id (from the HF cache; downloaded first where the machine is online:
-    `illm_tools.llm.hub`) or local folder for inference."""
+    `illm_tools.llm.hub`) or local folder for inference; `batch_tokens`: what one engine batch may
+    hold (default: from the memory free now, `illm_tools.llm.budget`)."""
     dtype, quant = _normalise(dtype, quant)
     spec = resolve(name)
     root = cache_root(cache_dir)
@@ -368,5 +378,13 @@ def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
     model.eval().requires_grad_(False)
     bos_ids = _prepare_tokenizer(tokenizer)
     hidden = model.config.get_text_config().hidden_size
+    from illm_tools.llm import budget
+    from illm_tools.llm.packed import packs_model
+
+    if not packs_model(model):
+        log.info("%s has sliding-window attention: a state's candidates are scored behind a copy of its prompt "
+                 "each (a packed mask would not apply its windows), so its batches cost more memory", spec.alias)
     return LoadedModel(spec.alias, model, tokenizer, fingerprint, int(hidden), spec,
-                       bos_ids=bos_ids, eos_ids=_eos_ids(model, tokenizer))
+                       bos_ids=bos_ids, eos_ids=_eos_ids(model, tokenizer),
+                       batch_tokens=batch_tokens or budget.default_budget(model, model.device),
+                       context_length=budget.context_length(model))

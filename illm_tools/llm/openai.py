@@ -96,7 +96,8 @@ class OpenAIBackend:
         return _embedding_dim()
 
     @classmethod
-    def load(cls, model: str, *, dtype: str = "float32", quant: str = "none", device: str = "cpu", cache_dir=None):
+    def load(cls, model: str, *, dtype: str = "float32", quant: str = "none", device: str = "cpu", cache_dir=None,
+             batch_tokens=None):
         return cls(model)
 
     @staticmethod

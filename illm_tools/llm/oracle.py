@@ -108,7 +108,7 @@ class OracleBackend:
     # --- building ------------------------------------------------------------------------------
     @classmethod
     def load(cls, model: str = NAME, *, dtype: str = "float32", quant: str = "none", device: str = "cpu",
-             cache_dir=None) -> OracleBackend:
+             cache_dir=None, batch_tokens=None) -> OracleBackend:
         return cls(model)
 
     @staticmethod

@@ -21,8 +21,12 @@ how a prompt head shared by both language tasks is computed once.
 Left padding is also exact for sliding-window models (Gemma 3): the pads sit before every real
 token, so each window holds the same real tokens; padding between a prefix and new rows would
 not, so `extend` refuses rows of unequal length after a prefix on such models.
-Candidates are right-padded behind the context cache (repeated K times per state); trailing
-padding is never attended by real tokens, so it needs no care beyond ignoring its outputs.
+A state's candidates are packed one after another behind one copy of its context cache, each
+seeing the context and its own earlier tokens through a 4D mask, positions restarting after the
+context (`illm_tools.llm.packed`): a state holds its prompt's KV once, not once per candidate.
+Sliding-window models, whose windows such a mask would not apply, run each candidate behind a
+copy of the cache (`repeated_logprobs`, right-padded: trailing padding is never attended by real
+tokens). Batches of states are bounded by a token budget (`illm_tools.llm.budget`).
 
 Tokenisation boundary. Context and candidate are tokenised together: ids(context + candidate).
 When ids(context) is a prefix of that (the usual case, candidates start with a space), the
@@ -36,14 +40,15 @@ So the sum is always log P(candidate's tokens | the tokens before them), joint t
 from __future__ import annotations
 
 import copy
-import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from illm_tools.errors import UsageError
+from illm_tools.llm.forward import cache_kwargs, forward_mode, returned_cache
 from illm_tools.llm.loading import LoadedModel
+from illm_tools.llm.packed import packs_model
 
 log = logging.getLogger(__name__)
 
@@ -147,41 +152,7 @@ def _left_pad(rows: Sequence[Sequence[int]], pad_id: int, device: Any) -> tuple[
 
 def has_sliding_window(lm: LoadedModel) -> bool:
     """Whether some attention layer sees only a window of recent columns (e.g. Gemma 3)."""
-    config = lm.model.config.get_text_config()
-    types = getattr(config, "layer_types", None)
-    if types is not None:
-        return "sliding_attention" in types
-    return getattr(config, "sliding_window", None) is not None
-
-
-@functools.lru_cache(maxsize=1)
-def _cache_name() -> str:
-    """The keyword a causal LM's forward takes its KV cache under: `cache` since transformers 5.24
-    (which warns on the older `past_key_values`), `past_key_values` before."""
-    import inspect
-
-    from transformers import LlamaForCausalLM
-
-    return "cache" if "cache" in inspect.signature(LlamaForCausalLM.forward).parameters else "past_key_values"
-
-
-def cache_kwargs(cache: Any) -> dict:
-    """{keyword: cache} for a model's forward, under the name the installed transformers reads."""
-    return {_cache_name(): cache}
-
-
-def returned_cache(out: Any) -> Any:
-    """The KV cache a forward returned (`out.cache` since transformers 5.24, `past_key_values` before)."""
-    return out.cache if _cache_name() == "cache" else out.past_key_values
-
-
-def _forward_mode(grad: bool):
-    """autograd on (training: `illm distil`) or inference mode (annotation, probing)."""
-    import contextlib
-
-    import torch
-
-    return contextlib.nullcontext() if grad else torch.inference_mode()
+    return not packs_model(lm.model)
 
 
 def extend(lm: LoadedModel, rows: Sequence[Sequence[int]], past: PrefixState | None = None, *,
@@ -217,7 +188,7 @@ def extend(lm: LoadedModel, rows: Sequence[Sequence[int]], past: PrefixState | N
     last = torch.tensor([ids.shape[1] - 1], device=lm.device)
     inputs = {"input_ids": ids} if embeds is None else {
         "inputs_embeds": embeds.to(device=lm.device, dtype=lm.model.get_input_embeddings().weight.dtype)}
-    with _forward_mode(grad):
+    with forward_mode(grad):
         out = lm.model(**inputs, attention_mask=full_mask, position_ids=position_ids,
                        **cache_kwargs(cache), use_cache=True, logits_to_keep=last,
                        output_hidden_states=hidden)
@@ -230,12 +201,15 @@ def extend(lm: LoadedModel, rows: Sequence[Sequence[int]], past: PrefixState | N
 
 
 def score_continuations(lm: LoadedModel, state: PrefixState, continuations: Sequence[Sequence[Sequence[int]]],
-                        skip: Sequence[Sequence[int]] | None = None) -> list[list[list[float]]]:
+                        skip: Sequence[Sequence[int]] | None = None,
+                        leads: Sequence[Sequence[int]] | None = None) -> list[list[list[float]]]:
     """For each row of `state`, the per-token log-probs of each of its token continuations.
 
     `continuations[i]` lists row i's candidates (any number). `skip[i][k]` leading tokens of a
-    candidate are fed but not scored (context tokens after a straddling boundary). `state` is
-    left untouched, so the same state can score further candidates.
+    candidate are fed but not scored (context tokens after a straddling boundary). `leads[i]`:
+    tokens of row i's context after `state` (a task's own prompt suffix after a shared prefix),
+    fed with the candidates where they are packed (no copy of the state's cache for them). `state`
+    is left untouched, so the same state can score further candidates.
     """
     flat = [list(c) for cands in continuations for c in cands]
     skips = [s for row in (skip or [[0] * len(c) for c in continuations]) for s in row]
@@ -243,7 +217,7 @@ def score_continuations(lm: LoadedModel, state: PrefixState, continuations: Sequ
         if len(continuations) != state.batch_size:
             raise ValueError(f"{len(continuations)} candidate lists for {state.batch_size} rows")
         return [[] for _ in continuations]
-    values = continuation_logprobs(lm, state, continuations).tolist()
+    values = continuation_logprobs(lm, state, continuations, leads=leads).tolist()
     per_row = [vals[s:len(c)] for vals, c, s in zip(values, flat, skips)]
     result, start = [], 0
     for cands in continuations:
@@ -253,16 +227,22 @@ def score_continuations(lm: LoadedModel, state: PrefixState, continuations: Sequ
 
 
 def continuation_logprobs(lm: LoadedModel, state: PrefixState, continuations: Sequence[Sequence[Sequence[int]]], *,
-                          grad: bool = False) -> Any:
+                          grad: bool = False, leads: Sequence[Sequence[int]] | None = None) -> Any:
     """float32 [N, W]: the log-prob of each token of each continuation after its row of `state`
     (rows' continuations flattened in order, N in all, right-padded to the longest, W; positions
     past a continuation's end hold 0). The first token's log-prob is the state's last logits';
-    tokens 2.. come from one forward of the continuations behind the row's cache, repeated once per
-    continuation. `grad`: keep autograd on (training)."""
+    tokens 2.. come from one forward of each row's continuations packed behind its cache
+    (`illm_tools.llm.packed`), or, on a sliding-window model, behind a copy of the row's cache per
+    continuation (`repeated_logprobs`). `leads`: per row, context tokens after `state` fed first
+    (packed with the candidates, else run through `extend`). `grad`: keep autograd on (training)."""
     import torch
 
     if len(continuations) != state.batch_size:
         raise ValueError(f"{len(continuations)} candidate lists for {state.batch_size} rows")
+    if leads is not None and any(leads) and not packs_candidates(lm):
+        state, leads = extend(lm, leads, past=state, grad=grad), None
+    if leads is not None and not any(leads):
+        leads = None
     flat = [list(c) for cands in continuations for c in cands]
     index = torch.tensor([i for i, cands in enumerate(continuations) for _ in cands], device=lm.device)
     width = max(max(len(c) for c in flat), 1)
@@ -272,13 +252,33 @@ def continuation_logprobs(lm: LoadedModel, state: PrefixState, continuations: Se
         ids[r, :len(cand)] = torch.as_tensor(cand, dtype=torch.long)
         real[r, :len(cand)] = True
     ids, real = ids.to(lm.device), real.to(lm.device)
+    if packs_candidates(lm) and (width > 1 or leads is not None):
+        from illm_tools.llm.packed import packed_logprobs
+
+        return packed_logprobs(lm, state, continuations, ids, real, grad, leads)
     first = state.last_logprobs[index].gather(1, ids[:, :1])
     if width == 1:
         return torch.where(real, first, torch.zeros_like(first))
+    return repeated_logprobs(lm, state, index, ids, real, first, grad)
+
+
+def packs_candidates(lm: LoadedModel) -> bool:
+    """Whether a state's candidates are packed behind one copy of its prefix (`llm.packed`): every
+    model but a sliding-window one, whose window a custom mask would not apply."""
+    return lm.pack_candidates and packs_model(lm.model)
+
+
+def repeated_logprobs(lm: LoadedModel, state: PrefixState, index: Any, ids: Any, real: Any, first: Any,
+                      grad: bool) -> Any:
+    """`continuation_logprobs` with the row's cache repeated once per continuation (K copies of the
+    prefix's KV): the path of sliding-window models, and the reference the packed one is tested against."""
+    import torch
+
+    width = ids.shape[1]
     rows = state.select(index)
     inputs = ids[:, :-1]
     position_ids = rows.lengths[:, None] + torch.arange(width - 1, device=lm.device)
-    with _forward_mode(grad):
+    with forward_mode(grad):
         out = lm.model(input_ids=inputs, attention_mask=torch.cat([rows.attention_mask, real[:, :-1].long()], 1),
                        position_ids=position_ids, **cache_kwargs(rows.cache), use_cache=True)
         logits = out.logits.float()
@@ -314,22 +314,25 @@ def plan_state(lm: LoadedModel, context: str, candidates: Sequence[str]) -> _Pla
     return _Plan(context_ids[:shared], [ids[shared:] for ids in joint], [o - shared for o in owns])
 
 
-def length_batches(lengths: Sequence[int], batch_size: int) -> list[list[int]]:
-    """Indices grouped into batches of similar length (sorted, so padding stays small)."""
-    if batch_size < 1:
-        raise UsageError("batch_size must be at least 1")
-    order = sorted(range(len(lengths)), key=lengths.__getitem__)
-    return [order[i:i + batch_size] for i in range(0, len(order), batch_size)]
+def plan_tokens(lm: LoadedModel, plan: _Plan) -> int:
+    """The tokens a planned state holds in the engine: its prefix and its candidates packed behind
+    it (`llm.packed`), or, where candidates are not packed, a copy of the prefix per candidate."""
+    if packs_candidates(lm):
+        return len(plan.prefix) + sum(max(len(c) - 1, 0) for c in plan.continuations)
+    return len(plan.prefix) * max(len(plan.continuations), 1) + sum(len(c) for c in plan.continuations)
 
 
 def score_candidates(lm: LoadedModel, contexts: Sequence[str], candidates: Sequence[Sequence[str]], *,
                      batch_size: int = 8) -> list[CandidateScores]:
-    """log P(candidate | context) for each state's candidates (joint tokenisation, KV reuse)."""
+    """log P(candidate | context) for each state's candidates (joint tokenisation, KV reuse), in
+    batches of at most `batch_size` states and `lm.batch_tokens` tokens (`illm_tools.llm.budget`)."""
+    from illm_tools.llm.budget import token_batches
+
     if len(contexts) != len(candidates):
         raise UsageError(f"{len(contexts)} contexts but {len(candidates)} candidate lists")
     plans = [plan_state(lm, ctx, cands) for ctx, cands in zip(contexts, candidates)]
     results: list[CandidateScores | None] = [None] * len(plans)
-    for batch in length_batches([len(p.prefix) for p in plans], batch_size):
+    for batch in token_batches([plan_tokens(lm, p) for p in plans], batch_size, lm.batch_tokens):
         state = extend(lm, [plans[i].prefix for i in batch])
         scored = score_continuations(lm, state, [plans[i].continuations for i in batch],
                                      [plans[i].skip for i in batch])

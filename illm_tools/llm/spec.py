@@ -52,6 +52,10 @@ class LLMSpec:
     that embeds the summaries; unset: the endpoint's own /v1/embeddings, else a local sentence model."""
     offline: bool = dataclasses.field(default=False, compare=False)
     """Never download a hub model: use only what is in the Hugging Face cache (as HF_HUB_OFFLINE=1)."""
+    batch_tokens: int | None = dataclasses.field(default=None, compare=False)
+    """transformers: tokens one engine batch may hold (its states' prompts, packed candidates and summary
+    tokens; --batch-size stays the most states); default: a quarter of the memory free when the model
+    loads (RAM on a CPU, device memory on CUDA) over what a token holds."""
 
     def __post_init__(self) -> None:
         from illm_tools.devices import check_device
@@ -65,6 +69,9 @@ class LLMSpec:
         if self.quant not in (*QUANTS, "auto"):
             raise UsageError(f"--quant must be one of {', '.join(QUANTS)} or auto, got {self.quant!r}")
         check_device(self.device)
+        from illm_tools.settings import check_numbers
+
+        check_numbers(self, positive=("batch_tokens",))
         if not 0.0 <= self.oracle_noise <= 1.0:
             raise UsageError(f"--oracle-noise must be between 0 and 1, got {self.oracle_noise}")
         model = resolve_model(self.backend, self.model, oracle_noise=self.oracle_noise, endpoint=self.endpoint,
@@ -120,7 +127,7 @@ class LLMSpec:
         spec = self._concrete()
         with self._downloads():
             return load_backend(spec.backend, spec.model, dtype=spec.dtype, quant=spec.quant, device=spec.device,
-                                cache_dir=cache_dir)
+                                cache_dir=cache_dir, batch_tokens=self.batch_tokens)
 
     def check_use(self, env_id: str, renderer: str) -> None:
         """Refuse in one line an env (or hop states) the backend cannot read (the oracle: hop)."""

@@ -52,7 +52,7 @@ class StubBackend:
 
     @classmethod
     def load(cls, model: str, *, dtype: str = "auto", quant: str = "none", device: str = "cpu",
-             cache_dir=None) -> StubBackend:
+             cache_dir=None, batch_tokens=None) -> StubBackend:
         return cls(model, dtype=dtype, quant=quant)
 
     @staticmethod

@@ -29,10 +29,11 @@ class TransformersBackend:
     # --- building ------------------------------------------------------------------------------
     @classmethod
     def load(cls, model: str, *, dtype: str = "bfloat16", quant: str = "none", device: str = "cpu",
-             cache_dir: str | os.PathLike | None = None) -> TransformersBackend:
+             cache_dir: str | os.PathLike | None = None, batch_tokens: int | None = None) -> TransformersBackend:
         from illm_tools.llm.loading import load_model
 
-        return cls(load_model(model, dtype=dtype, quant=quant, device=device, cache_dir=cache_dir))
+        return cls(load_model(model, dtype=dtype, quant=quant, device=device, cache_dir=cache_dir,
+                              batch_tokens=batch_tokens))
 
     @staticmethod
     def model_fingerprint(model: str, *, dtype: str = "bfloat16", quant: str = "none") -> dict:
@@ -67,6 +68,23 @@ class TransformersBackend:
                                       batch_size=batch_size)
         return (self.score(contexts, candidates, batch_size=batch_size),
                 self.generate(prompts, max_new_tokens=max_new_tokens, batch_size=batch_size))
+
+    @property
+    def context_length(self) -> int | None:
+        """The model's context in tokens (None: its config states none)."""
+        return self.lm.context_length
+
+    def tokens_needed(self, prompt: str, candidates: Sequence[str] | None, max_new_tokens: int) -> int:
+        """The positions one task of a state takes: its prompt, then its longest candidate or its
+        generated tokens. Texts whose UTF-8 bytes could not reach the context are not tokenised (a
+        token holds at least one byte)."""
+        longest = max((len(c.encode()) for c in candidates or ()), default=0)
+        bound = len(self.lm.bos_ids) + len(prompt.encode()) + longest + max_new_tokens
+        if self.context_length is None or bound <= self.context_length:
+            return bound
+        tokenize = self.lm.tokenizer
+        own = max((len(tokenize(c, add_special_tokens=False)["input_ids"]) for c in candidates or ()), default=0)
+        return len(self.lm.encode(prompt)) + own + max_new_tokens
 
     @property
     def shares_prefix(self) -> bool:

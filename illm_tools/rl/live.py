@@ -46,6 +46,8 @@ class SyncLive:
         self.annotator, self.setup, self.budget = annotator, setup, budget
         self.threads = threads
         """Torch threads of the LLM calls (the policy runs on fewer); None keeps the current count."""
+        self.too_long = 0
+        """Missed states refused for being longer than the model's context (the annotator logs the first)."""
 
     def submit(self, missing: Sequence[StateRecord], visits: Sequence[int] | None = None) -> int:
         """Annotate the first `budget` of `missing` (most visited first); returns how many."""
@@ -57,14 +59,16 @@ class SyncLive:
         if not todo:
             return 0
         with torch_threads(self.threads) if self.threads else nullcontext():
-            return self.annotator.annotate_states(todo, self.setup.env_id, self.setup.renderer).annotated_states
+            stats = self.annotator.annotate_states(todo, self.setup.env_id, self.setup.renderer)
+        self.too_long += len(stats.too_long)  # logged once by the annotator
+        return stats.annotated_states
 
     def landed(self) -> int:
         """States annotated since the last call that `submit` did not count (none: it waits)."""
         return 0
 
     def stats(self) -> dict[str, float]:
-        return {"live_queue": 0.0}
+        return {"live_queue": 0.0, **({"live_too_long": float(self.too_long)} if self.too_long else {})}
 
     def close(self) -> None:
         pass

@@ -40,9 +40,10 @@ NESTED = {flat: (group, name) for group, names in GROUPS.items() for flat, name 
 DERIVED = ("embedding_dim",)
 """Settings older versions wrote that are now derived from others (`TrainConfig.embedding_dim`:
 the LLM's hidden size): dropped on reading."""
-LLM_NOT_SETTINGS = ("device", "offline")
+LLM_NOT_SETTINGS = ("device", "offline", "batch_tokens")
 """`LLMSpec` fields that are no run setting: its device is `TrainConfig.llm_device` (default: the
-run's `device`), and a run never downloads what it lacks."""
+run's `device`), a run never downloads what it lacks, and its live annotator's batches take the
+default budget."""
 
 
 def group_dict(group: str, value) -> dict:

@@ -42,8 +42,7 @@ from illm_tools.serve.config import (MIN_TOKEN_BITS, ServeConfig, ServeLimits, c
                                      is_loopback, token_bits)
 from illm_tools.serve.http import make_app, serve  # noqa: F401
 from illm_tools.serve.protocol import RequestError, ServerSetup, read_json  # noqa: F401
-from illm_tools.serve.scheduler import (MAX_RETRY_AFTER, AnnotationServer, Pending,  # noqa: F401
-                                        release_free_memory, resident_mb)
+from illm_tools.serve.scheduler import MAX_RETRY_AFTER, AnnotationServer, Pending  # noqa: F401
 
 MAX_REQUEST_BYTES = ServeLimits().max_request_bytes
 """The default largest request body (413 above; `--max-request-mb`)."""

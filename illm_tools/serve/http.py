@@ -21,8 +21,8 @@ import logging
 import time
 
 from illm_tools.annotate.wire import TOKEN_ENV
-from illm_tools.serve.protocol import RequestError, read_json
-from illm_tools.serve.scheduler import AnnotationServer, requested_wait
+from illm_tools.serve.protocol import RequestError, read_json, requested_wait, trainer_of
+from illm_tools.serve.scheduler import AnnotationServer
 
 log = logging.getLogger(__name__)
 
@@ -197,7 +197,7 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
             return error(e.status, str(e), e.retry_after)
         wait = requested_wait(body)
         if wait and answer["queued"]:  # held until its states land (a trainer in --live-mode sync)
-            later = await server.settled(server.trainer_of(body), wait)
+            later = await server.settled(trainer_of(body), wait)
             answer = {**answer, **later, "landed": answer["landed"] + later["landed"],
                       "failed": answer.get("failed", 0) + later.get("failed", 0)}
             if not answer["failed"]:

@@ -55,6 +55,23 @@ def text(value, name: str, limit: int, status: int = 413) -> str:
     return value
 
 
+MAX_WAIT = 120.0
+"""The longest a request may ask to be held until its states land (`"wait"`)."""
+
+
+def requested_wait(body: dict) -> float:
+    """The seconds a request asks to be held until its states land (`"wait"`, default 0)."""
+    wait = body.get("wait", 0)
+    if isinstance(wait, bool) or not isinstance(wait, (int, float)) or not 0 <= wait <= MAX_WAIT:
+        raise RequestError(400, f"wait must be a number of seconds in 0..{MAX_WAIT:g}, got {str(wait)[:40]}")
+    return float(wait)
+
+
+def trainer_of(body: dict) -> tuple[str, str]:
+    """The trainer a request comes from: its (client, session)."""
+    return text(body["client"], "client", MAX_ID_CHARS, 400), text(body["session"], "session", MAX_ID_CHARS, 400)
+
+
 def whole(value, name: str, low: int, high: int) -> int:
     if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
         raise RequestError(400, f"{name} must be a whole number in {low}..{high:,}, got {str(value)[:40]}")

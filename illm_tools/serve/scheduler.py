@@ -26,7 +26,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -34,23 +33,16 @@ from dataclasses import asdict, dataclass, field
 from illm_tools.annotate.wire import PROTOCOL
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.serve.config import ServeConfig, ServeLimits
-from illm_tools.serve.memory import release_free_memory, resident_mb
-from illm_tools.serve.protocol import MAX_ID_CHARS, RequestError, ServerSetup, text
+from illm_tools.serve.batch import annotate_batch, in_thread, one_line
+from illm_tools.serve.memory import resident_mb
+from illm_tools.serve.protocol import RequestError, ServerSetup, requested_wait, trainer_of
 from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
 
 MAX_RETRY_AFTER = 60
-MAX_WAIT = 120.0
-"""The longest a request may ask to be held until its states land (`"wait"`)."""
 """Longest Retry-After a busy server answers (seconds)."""
-MAX_HOP_CONTEXTS = 4
-"""Hop translations (projections) the annotator keeps between batches; beyond, they are rebuilt."""
-
-
-def one_line(e: BaseException) -> str:
-    return f"{type(e).__name__}: {(str(e).splitlines() or [''])[0][:300]}"
 
 
 @dataclass
@@ -61,14 +53,6 @@ class Pending:
     record: StateRecord
     visits: int
     clients: set[tuple[str, str]] = field(default_factory=set)
-
-
-def requested_wait(body: dict) -> float:
-    """The seconds a request asks to be held until its states land (`"wait"`, default 0)."""
-    wait = body.get("wait", 0)
-    if isinstance(wait, bool) or not isinstance(wait, (int, float)) or not 0 <= wait <= MAX_WAIT:
-        raise RequestError(400, f"wait must be a number of seconds in 0..{MAX_WAIT:g}, got {str(wait)[:40]}")
-    return float(wait)
 
 
 class AnnotationServer:
@@ -141,7 +125,7 @@ class AnnotationServer:
         if missing:
             raise RequestError(400, f"the request lacks {', '.join(missing)} (a trainer of protocol {PROTOCOL} "
                                     "sends them: use the server's illm version)")
-        trainer = self.trainer_of(body)
+        trainer = trainer_of(body)
         requested_wait(body)  # checked before anything is queued
         if body["model_fingerprint"] != self.fingerprint:
             raise RequestError(409, f"this server annotates with {self.llm.options()} (fingerprint {self.fingerprint}); "
@@ -161,6 +145,11 @@ class AnnotationServer:
         entries: dict[tuple, Pending] = {}
         for item in states:
             record, visits = self.setup.parse_state(item, setup)
+            needed = self.annotator.state_too_long(record, setup.env_id, setup.renderer)
+            if needed is not None:
+                raise RequestError(413, f"a state needs {needed:,} tokens, more than the context of the server's model "
+                                        f"({self.annotator.context_length:,}): send shorter states (a shorter "
+                                        "--history, shorter texts)")
             entry = entries.setdefault((setup, record), Pending(setup, record, 0, {trainer}))
             entry.visits += visits
         if entries:
@@ -180,11 +169,6 @@ class AnnotationServer:
         if failed:
             answer.update(failed=failed[0], failure=failed[1])
         return answer
-
-    @staticmethod
-    def trainer_of(body: dict) -> tuple[str, str]:
-        """The trainer a request comes from: its (client, session)."""
-        return text(body["client"], "client", MAX_ID_CHARS, 400), text(body["session"], "session", MAX_ID_CHARS, 400)
 
     def pending_for(self, trainer: tuple[str, str]) -> bool:
         """Whether some state of `trainer`'s is queued or in the engine now."""
@@ -313,63 +297,9 @@ class AnnotationServer:
                 del self._clients[trainer]
         return list(batch.values())
 
-    def _annotate(self, items: Sequence[Pending]) -> tuple[int, int]:
-        done = rows = 0
-        by_setup: dict[AnnotationSetup, list[Pending]] = {}
-        for p in items:
-            by_setup.setdefault(p.setup, []).append(p)
-        for setup, group in by_setup.items():
-            stats = self.annotator.annotate_states([p.record for p in group], setup.env_id, setup.renderer)
-            done, rows = done + stats.annotated_states, rows + stats.rows
-        return done, rows
-
     def annotate(self, batch: Sequence[Pending]) -> tuple[int, int, list[tuple[Pending, str]]]:
-        """Annotate a batch (blocking; runs in the batch thread, touching no queue state): what the
-        cache lacks of it, one shard per setup; a batch that raises is tried again state by state.
-        Returns (states annotated, rows written, [(failed state, one-line reason)])."""
-        self.cache.refresh()  # trainers and other servers may have written meanwhile
-        try:
-            done, rows = self._annotate(batch)
-            return done, rows, []
-        except Exception as e:  # noqa: BLE001 - one state's fault must not cost the others theirs
-            if len(batch) == 1:
-                return 0, 0, [(batch[0], one_line(e))]
-            done = rows = 0
-            failed = []
-            for p in batch:  # rows written before the fault are in the cache: its keys skip them
-                try:
-                    d, r = self._annotate([p])
-                    done, rows = done + d, rows + r
-                except Exception as e1:  # noqa: BLE001
-                    failed.append((p, one_line(e1)))
-            return done, rows, failed
-        finally:
-            hop = getattr(self.annotator, "_hop", None)  # the annotator's projections: bounded here
-            if isinstance(hop, dict) and len(hop) > MAX_HOP_CONTEXTS:
-                hop.clear()
-            release_free_memory()
-
-    def _in_thread(self, batch: Sequence[Pending]) -> asyncio.Future:
-        """`annotate(batch)` in a daemon thread (one a stop need not wait for past the deadline)."""
-        loop = asyncio.get_running_loop()
-        future = loop.create_future()
-
-        def settle(result, error) -> None:
-            if not future.done():
-                future.set_exception(error) if error is not None else future.set_result(result)
-
-        def work() -> None:
-            try:
-                result, error = self.annotate(batch), None
-            except BaseException as e:  # noqa: BLE001 - handed to the loop
-                result, error = None, e
-            try:
-                loop.call_soon_threadsafe(settle, result, error)
-            except RuntimeError:  # the loop is closed: the server stopped past the deadline
-                pass
-
-        threading.Thread(target=work, name="illm-serve-batch", daemon=True).start()
-        return future
+        """Annotate a batch (blocking: `illm_tools.serve.batch.annotate_batch`)."""
+        return annotate_batch(self.annotator, batch)
 
     def _answer(self, batch: Sequence[Pending], failed: Sequence[tuple[Pending, str]]) -> None:
         """Tell each trainer of the batch what became of its states: landed, or failed with the reason."""
@@ -421,7 +351,7 @@ class AnnotationServer:
     async def _annotate_batch(self, batch: list[Pending]) -> None:
         start = time.perf_counter()
         self.annotating = len(batch)
-        future = self._in_thread(batch)
+        future = in_thread(lambda: self.annotate(batch), "illm-serve-batch")
         deadline = self.limits.batch_deadline
         try:
             await asyncio.wait([future], timeout=deadline)
