@@ -33,16 +33,11 @@ def info(
 
     if not (path / "manifest.json").is_file():
         raise UsageError(f"no annotation cache at {path}: run `illm annotate DATA --cache {path}` first")
-    from illm_tools.llm.backend import model_options
-    from illm_tools.tasks.setup import setup_rows
+    from illm_tools.tasks.setup import listed_setups
 
     cache = AnnotationCache(path)
     stats = cache.info()
-    stats["setups"] = [
-        {**{k: u[k] for k in ("task", "model", "model_fingerprint", "history_len", "template_version", "renderer",
-                              "decoding", "entries")},
-         "model_options": model_options(u["model"], u["model_fingerprint"]), "layouts": u["layouts"]}
-        for u in sorted(setup_rows(cache), key=lambda u: (u["task"], -u["entries"]))]
+    stats["setups"] = listed_setups(cache)
     if as_json:
         emit_json(stats)
         return
@@ -59,8 +54,9 @@ def info(
         typer.echo("    | task | model, dtype, quantisation | history | layout | template | renderer | entries |")
         typer.echo("    |---|---|---|---|---|---|---|")
         for u in stats["setups"]:
-            typer.echo(f"    | {u['task']} | {u['model_options']} | {u['history_len']} | {'/'.join(u['layouts']) or '?'} | "
-                       f"v{u['template_version']} | {u['renderer']} | {u['entries']:,} |")
+            where = f" (served at {', '.join(u['served_at'])})" if u["served_at"] else ""
+            typer.echo(f"    | {u['task']} | {u['model_options']}{where} | {u['history_len']} | "
+                       f"{'/'.join(u['layouts']) or '?'} | v{u['template_version']} | {u['renderer']} | {u['entries']:,} |")
 
 
 @app.command("show", epilog="Example: illm cache show data/ann --limit 3")

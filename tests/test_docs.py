@@ -150,3 +150,54 @@ def test_a_broken_site_fails_the_strict_build(tmp_path, damage, said):
         page.write_text(page.read_text().replace("<!-- options: eval -->", ""))
     result = build(root, tmp_path / "site")
     assert result.returncode != 0 and said in result.stdout + result.stderr, result.stdout + result.stderr
+
+
+def _command_lines(text: str) -> list[str]:
+    """The `illm ...` command lines of a page's fenced shell blocks (continuations joined, comments cut)."""
+    lines = []
+    for block in re.findall(r"```(?:bash|sh|shell|console)?\n(.*?)```", text, re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = re.sub(r"\s#\s.*$", "", line).strip()
+            found = re.search(r"(?:^|[\s;&|(])(?:\S*/)?illm\s+(.*)$", line)
+            if found and not line.startswith("#"):
+                lines.append(found.group(1))
+    return lines
+
+
+def _pages() -> list[Path]:
+    return [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+
+
+def test_every_command_in_the_docs_is_one_the_cli_takes():
+    """Every `illm` command line of README.md and docs/: its command exists and each of its options is
+    one of that command's (parsed by the CLI's own command tree; placeholders such as DATA are left
+    as they are, and an option inside [brackets] is still checked)."""
+    import shlex
+
+    import typer.main
+
+    from cli.main import app
+
+    root = typer.main.get_command(app)
+    wrong, seen = [], 0
+    for page in _pages():
+        for line in _command_lines(page.read_text()):
+            try:
+                words = shlex.split(line.replace("[", " ").replace("]", " "))
+            except ValueError:
+                words = line.split()
+            command, path = root, []
+            while words and getattr(command, "commands", None) and words[0] in command.commands:
+                command = command.commands[words[0]]
+                path.append(words.pop(0))
+            if getattr(command, "commands", None) and words and not words[0].startswith("-"):
+                wrong.append(f"{page.relative_to(ROOT)}: `illm {line}`: no command {words[0]!r}")
+                continue
+            known = {opt for p in command.params for opt in (*p.opts, *p.secondary_opts)} | {"--help"}
+            for word in words:
+                flag = word.split("=", 1)[0]
+                if flag.startswith("--") and flag not in known:
+                    wrong.append(f"{page.relative_to(ROOT)}: `illm {' '.join(path)}` has no option {flag}")
+            seen += 1
+    assert seen > 100, seen  # the pages' commands were found
+    assert not wrong, "\n".join(wrong)

@@ -6,6 +6,7 @@ retries on 429/5xx, one line and nothing written when the server keeps failing."
 from __future__ import annotations
 
 import asyncio
+import logging
 import socket
 import threading
 
@@ -50,11 +51,15 @@ class Server:
             s.bind(("127.0.0.1", 0))
             self.port = s.getsockname()[1]
         self.loop = asyncio.new_event_loop()
-        runner = web.AppRunner(app)
-        self.loop.run_until_complete(runner.setup())
-        self.loop.run_until_complete(web.TCPSite(runner, "127.0.0.1", self.port).start())
+        self.runner = web.AppRunner(app)
+        self.loop.run_until_complete(self.runner.setup())
+        self.loop.run_until_complete(web.TCPSite(self.runner, "127.0.0.1", self.port).start())
         threading.Thread(target=self.loop.run_forever, daemon=True).start()
         self.url = f"http://127.0.0.1:{self.port}/v1"
+
+    def stop(self) -> None:
+        """Stop answering: the port is closed, as an engine that was shut down."""
+        asyncio.run_coroutine_threadsafe(self.runner.cleanup(), self.loop).result(10)
 
     def _echo(self, prompt: str) -> dict:
         tok = self.lm.tokenizer(prompt, add_special_tokens=False, return_offsets_mapping=True)
@@ -282,3 +287,50 @@ def test_a_pooling_endpoint_of_the_same_weights_embeds_the_summaries(tiny_lm, tm
     with pytest.raises(UsageError, match="pooling endpoint http://127.0.0.1:9/v1 gives no embeddings"):
         load_backend("openai", resolve_model("openai", "tiny", endpoint=completions.url,
                                              embed_endpoint="http://127.0.0.1:9/v1"))
+
+
+def test_a_cache_annotated_through_an_engine_trains_with_the_engine_stopped_under_any_address(tiny_lm, tmp_path,
+                                                                                             caplog):
+    """Issue 54: annotated at 127.0.0.1, more states through `localhost`: one setup (the weights'
+    fingerprint, not the address); with the engine stopped, `illm cache info` lists it without
+    asking anything and `illm train --live-budget 0` adopts it and trains on its targets."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from illm_tools.collect import CollectConfig, collect
+
+    runner = CliRunner()
+    engine = Server(tiny_lm)
+    traj, ann = tmp_path / "traj", tmp_path / "ann"
+    collect(CollectConfig(env_id="BabyAI-GoToRedBallNoDists-v0", out=traj, steps=256, num_envs=4, seed=0))
+    for url, limit in ((engine.url, 8), (engine.url.replace("127.0.0.1", "localhost"), 12)):
+        done = runner.invoke(app, ["annotate", str(traj), "--cache", str(ann), "--backend", "openai", "--model", "tiny",
+                                   "--endpoint", url, "--history", "0", "--limit", str(limit)])
+        assert done.exit_code == 0, done.output
+    engine.stop()
+    from illm_tools.llm import openai_engine
+
+    openai_engine._FINGERPRINTS.clear()  # what this process asked the engine: a later command starts afresh
+    openai_engine._ENGINES.clear()
+    info = runner.invoke(app, ["cache", "info", str(ann), "--json"])
+    assert info.exit_code == 0, info.output
+    setups = json.loads(info.output)["setups"]
+    assert sorted(u["task"] for u in setups) == ["action", "summary"]  # one setup per task
+    assert all(len(u["served_at"]) == 2 and u["entries"] == 12 for u in setups), setups
+    assert all("another file or revision" not in u["model_options"] for u in setups)
+    done = runner.invoke(app, ["train", "--env", "BabyAI-GoToRedBallNoDists-v0", "--method", "illm", "--cache", str(ann),
+                               "--live-budget", "0", "--num-envs", "4", "--num-steps", "32", "--frames", "256",
+                               "--seed", "0", "--out", str(tmp_path / "run")])
+    assert done.exit_code == 0, done.output
+    assert "adopting the cache's setup: --backend openai --model tiny" in done.output
+    metrics = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert max(m.get("charts/target_coverage", 0.0) for m in metrics) > 0  # targets of the cached states
+    with caplog.at_level(logging.WARNING, logger="illm_tools.rl.run"):
+        live = runner.invoke(app, ["train", "--env", "BabyAI-GoToRedBallNoDists-v0", "--method", "illm", "--cache",
+                                   str(ann), "--live-budget", "4", "--num-envs", "4", "--num-steps", "32", "--frames",
+                                   "128", "--seed", "1", "--out", str(tmp_path / "run-live")])
+    assert live.exit_code == 0, live.output  # the cache's targets alone, said in one line
+    said = [r.getMessage() for r in caplog.records if "trains from the cache's targets alone" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("no OpenAI-compatible server answers at http://"), said

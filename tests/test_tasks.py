@@ -162,7 +162,8 @@ def test_one_setup_module_makes_the_keys_reads_a_caches_setups_adopts_and_checks
     assert adopt(tmp_path / "ann", setup.tasks, setup.renderer) is None  # no cache in the folder yet
     annotator.annotate_states([record(), record("You see a wall 1 step forward")], setup.env_id, setup.renderer)
     held = cache_setups(tmp_path / "ann", setup.tasks, setup.renderer)  # a cache's folder, or the cache
-    assert held == [HeldSetup("stub", llm.model, "float32", "none", 1, "shared", "babyai-text@1", entries=2)]
+    assert held == [HeldSetup("stub", llm.model, "float32", "none", 1, "shared", "babyai-text@1", entries=2,
+                              model_fingerprint=llm.fingerprint(), served_at=(llm.model,))]
     assert held[0].options().endswith("--history 1 --layout shared") and held[0].fields()["model_dtype"] == "float32"
     assert adopt(cache, setup.tasks, setup.renderer) == held[0] and cache_setups(cache, setup.tasks, "other@1") == []
     check_setup(cache, setup.builder_of(llm), llm=llm, tasks=setup.tasks)  # its own setup: nothing refused

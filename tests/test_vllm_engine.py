@@ -37,7 +37,13 @@ def dtype():
 
 
 @pytest.fixture(scope="session")
-def engines(smollm2_cache, tmp_path_factory):
+def engine_servers():
+    """The `VLLMServer`s `engines` started (the last test stops them)."""
+    return []
+
+
+@pytest.fixture(scope="session")
+def engines(smollm2_cache, tmp_path_factory, engine_servers):
     """The completions server and the pooling server of the embedded model's weights: their URLs. Session
     scope: started once in the worker that runs this module (a module's fixture is set up again when its
     tests are interleaved with another module's). `--optimization-level 0` (no torch.compile: it builds
@@ -57,6 +63,7 @@ def engines(smollm2_cache, tmp_path_factory):
     logs = tmp_path_factory.mktemp("engine")
     servers = [VLLMServer(weights, served_name=SERVED, python=python, runner=r, dtype=resolve_dtype("auto"),
                           log=logs / f"{r}.log", kv_cache_gib=1.0, optimization=0) for r in ("generate", "pooling")]
+    engine_servers.extend(servers)
     try:
         for server in servers:  # both compile at once
             server.start()
@@ -139,3 +146,34 @@ def test_a_training_runs_live_fallback_through_it_lands_targets(engines, tmp_pat
     landed = AnnotationCache(tmp_path / "ann").tasks()
     assert landed.get("action", 0) >= 8 and landed.get("summary", 0) >= 8, landed
     assert "states annotated live" in done.output
+
+
+def test_its_cache_trains_with_the_engines_stopped_under_either_address(engines, engine_servers, tmp_path):
+    """Issue 54, last in the module (it stops the engines): annotated at 127.0.0.1, a few states more
+    through `localhost`; with both servers stopped `illm cache info` lists one setup per task and
+    `illm train --live-budget 0` adopts it and trains on its targets."""
+    import json
+
+    from illm_tools.llm import openai_engine
+
+    traj = collected(tmp_path / "traj", 256, 4, env="BabyAI-GoToRedBallNoDists-v0")
+    ann = tmp_path / "ann"
+    for url, pooled, limit in ((engines[0], engines[1], 12), (engines[0].replace("127.0.0.1", "localhost"),
+                                                              engines[1].replace("127.0.0.1", "localhost"), 16)):
+        _annotate(traj, ann, "--backend", "openai", "--model", SERVED, "--endpoint", url, "--embed-endpoint", pooled,
+                  tasks="action,summary", limit=limit)
+    for server in engine_servers:
+        server.stop()
+    openai_engine._FINGERPRINTS.clear()  # what this process asked the engines: a later command starts afresh
+    openai_engine._ENGINES.clear()
+    info = runner.invoke(app, ["cache", "info", str(ann), "--json"])
+    assert info.exit_code == 0, info.output
+    setups = json.loads(info.output)["setups"]
+    assert sorted(u["task"] for u in setups) == ["action", "summary"], setups
+    assert all(len(u["served_at"]) == 2 and u["entries"] == 16 for u in setups), setups
+    done = runner.invoke(app, ["train", "--env", "BabyAI-GoToRedBallNoDists-v0", "--method", "illm", "--cache", str(ann),
+                               "--live-budget", "0", "--num-envs", "4", "--num-steps", "32", "--frames", "256",
+                               "--seed", "0", "--out", str(tmp_path / "run"), "--device", "cpu"])
+    assert done.exit_code == 0, done.output
+    metrics = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert max(m.get("charts/target_coverage", 0.0) for m in metrics) > 0

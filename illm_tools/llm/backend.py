@@ -162,13 +162,22 @@ def check_backend_use(backend: str, env_id: str, renderer: str) -> None:
 def describe_model(model: str, fingerprint: str) -> dict | None:
     """{"backend", "model", "dtype", "quant"} whose fingerprint hash is `fingerprint` (what a cache
     row stores with its `model`), or None when no backend here reproduces it (another revision or
-    file, or a model not available on this machine)."""
+    file, or a model not available on this machine). A backend whose fingerprint only its engine
+    knows (`describe_offline`: openai) describes its rows from their model spec, trusting the
+    row's hash: nothing is contacted."""
     from illm_tools.keys import fingerprint_hash
     from illm_tools.llm.hub import no_downloads
 
+    for name in BACKENDS:  # a backend only its engine can fingerprint describes its rows from the spec
+        offline = getattr(backend_class(name), "describe_offline", None)
+        found = offline(model) if offline is not None else None
+        if found is not None:
+            return found
     with no_downloads():  # a row's model is described from what is here, never fetched
         for name in BACKENDS:
             cls = backend_class(name)
+            if getattr(cls, "describe_offline", None) is not None:
+                continue
             for dtype in ("bfloat16", "float32", "float16"):
                 for quant in ("none", "4bit", "8bit"):
                     try:

@@ -59,7 +59,7 @@ import numpy as np
 
 from illm_tools.errors import UsageError
 from illm_tools.llm.openai_engine import (_ENGINES, Client, EndpointError, _check_ranking,  # noqa: F401 (re-exported)
-                                          _fingerprint, embed_url, openai_spec, parse_spec)
+                                          _fingerprint, describe_offline, embed_url, openai_spec, parse_spec)
 
 NAME = "openai"
 log = logging.getLogger(__name__)
@@ -133,6 +133,11 @@ class OpenAIBackend:
         if len(choices) != len(prompts):
             raise EndpointError(f"{self.client.url}/completions answered {len(choices)} choices for {len(prompts)} prompts")
         return choices
+
+    @staticmethod
+    def describe_offline(model: str) -> dict | None:
+        """A cache row's model as its options without asking the engine (`openai_engine.describe_offline`)."""
+        return describe_offline(model)
 
     @staticmethod
     def check_ranking(model: str) -> None:

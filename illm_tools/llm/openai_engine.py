@@ -40,6 +40,26 @@ class EndpointError(IllmError):
     """The endpoint failed a request after its retries, or answered something illm cannot use."""
 
 
+class EngineUnreachableError(UsageError):
+    """No OpenAI-compatible server answers at a model spec's endpoint (its identity cannot be asked)."""
+
+
+def describe_offline(spec: str) -> dict | None:
+    """A cache row's served model as its options, from the spec alone ({"backend", "model", "dtype",
+    "quant"}; None when `spec` is no openai spec): the engine is never asked, so a cache annotated
+    through an engine is read, listed and adopted with the engine stopped. The row's fingerprint
+    hash, not its URL, is the model's identity."""
+    if _SPEC.match(spec or "") is None:
+        return None
+    return {"backend": "openai", "model": spec, "dtype": "float32", "quant": "none"}
+
+
+def served_as(spec: str) -> tuple[str, bool]:
+    """What a spec serves whatever its address: the model's served name, and whether a pooling
+    endpoint embeds (another embedder, another fingerprint)."""
+    return parse_spec(spec)[0], embed_url(spec) is not None
+
+
 def openai_spec(model: str, endpoint: str | None, api_key_env: str | None = None,
                 embed_endpoint: str | None = None) -> str:
     """The model spec "NAME@URL[#VAR][;embed=URL]" of a served model."""
@@ -114,8 +134,8 @@ class Client:
                 raise EndpointError(f"{base + path} answered what is not JSON ({e})") from None
             if attempt < self.retries:
                 time.sleep(self.backoff * 2 ** attempt)
-        raise EndpointError(f"{base + path} failed {self.retries + 1} times (last: {last}): check the server, or "
-                            "annotate later; nothing of this chunk was written")
+        raise EndpointError(f"{base + path} failed {self.retries + 1} times (last: {last}): check the server; what "
+                            "it had not answered was not written to the cache")
 
 
 def _fingerprint(spec: str) -> dict:
@@ -126,8 +146,8 @@ def _fingerprint(spec: str) -> dict:
         try:
             models, headers = client.call("/models")
         except EndpointError as e:
-            raise UsageError(f"no OpenAI-compatible server answers at {url} ({e}): start one (docs/scale.md: serving "
-                             "Llama-3-8B with vLLM) or check --endpoint") from None
+            raise EngineUnreachableError(f"no OpenAI-compatible server answers at {url} ({e}): start one (docs/scale.md: "
+                                         "serving Llama-3-8B with vLLM) or check --endpoint") from None
         served = [m.get("id") for m in models.get("data", [])]
         if model not in served:
             raise UsageError(f"the server at {url} serves {', '.join(map(str, served)) or 'no model'}, not {model!r}: "

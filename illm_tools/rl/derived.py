@@ -67,7 +67,7 @@ class DerivedSettings:
     def embedding_dim(self) -> int:
         """Width of the LLM's text embeddings (its hidden size; 576 for SmolLM2-135M), what each text
         head of the policy predicts: read from the model's config, without loading weights."""
-        return _hidden_size(self.llm.backend, self.llm.model)
+        return _hidden_size(self.llm.backend, self.llm.model, None if self.cache is None else str(self.cache))
 
     @property
     def tasks(self) -> tuple[str, ...]:
@@ -127,6 +127,17 @@ class DerivedSettings:
 
 
 @functools.lru_cache(maxsize=None)
-def _hidden_size(backend: str, model: str) -> int:
-    """A model's hidden size, read once per process (`LLMSpec.hidden_size`)."""
-    return LLMSpec(backend=backend, model=model).hidden_size()
+def _hidden_size(backend: str, model: str, cache: str | None = None) -> int:
+    """A model's hidden size, read once per process (`LLMSpec.hidden_size`); for a model only its
+    engine can describe (openai) when none answers, the width of the embeddings `cache` holds of it."""
+    from illm_tools.llm.openai_engine import EngineUnreachableError
+
+    try:
+        return LLMSpec(backend=backend, model=model).hidden_size()
+    except EngineUnreachableError:
+        from illm_tools.tasks.setup import cached_identity
+
+        found = cached_identity(cache, backend, model)
+        if found is None or found[1] is None:
+            raise
+        return found[1]

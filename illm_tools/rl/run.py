@@ -58,18 +58,45 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     cache = AnnotationCache(cfg.cache)
     llm, setup = cfg.llm, cfg.annotation_setup  # resolved: the machine's device and dtype
     llm.check_use(setup.env_id, setup.renderer)
-    if any(get_task(t).kind == "ranking" for t in setup.tasks):
+    fingerprint, answers = run_identity(cfg)
+    if answers and any(get_task(t).kind == "ranking" for t in setup.tasks):
         llm.check_ranking()  # before the run starts: an engine that cannot rank (openai backend)
-    builder = setup.builder_of(llm)
+    builder = setup.builder(llm.model, fingerprint)
     if len(cache) == 0 and cfg.live_budget == 0:
         raise CacheError(f"the cache {cfg.cache} is empty and --live-budget is 0: nothing would give targets; "
                          "run `illm annotate` first or allow a live budget")
     if len(cache) and not cfg.new_setup:
         check_setup(cache, builder, llm=llm, tasks=setup.tasks)
     provider = provider_class(method.bonus_class).for_run(cfg, cache, builder, num_actions=num_actions,
-                                                          live=make_live(cfg, llm, setup, cache),
+                                                          live=make_live(cfg, llm, setup, cache) if answers else None,
                                                           shuffle_seed=method.target_shuffle)  # illm-shuffled
     return provider
+
+
+def run_identity(cfg: TrainConfig) -> tuple[str, bool]:
+    """(the fingerprint hash of the run's model, whether its engine answers). Asked of the backend
+    (no weights loaded); where only an engine can tell (openai) and none answers, read from the
+    cache's rows of the same served model (`cached_identity`): a run trains from the cache with the
+    engine stopped, under any address it was annotated at. With a live budget it says in one line
+    that the run goes on with the cache's targets alone."""
+    import logging
+
+    from illm_tools.llm.openai_engine import EngineUnreachableError
+    from illm_tools.tasks.setup import cached_identity
+
+    try:
+        return cfg.llm.fingerprint(), True
+    except EngineUnreachableError as e:
+        unreachable = str(e).split(" (")[0]  # "no OpenAI-compatible server answers at URL"
+    found = cached_identity(cfg.cache, cfg.llm.backend, cfg.llm.model)
+    if found is None:
+        raise UsageError(f"{unreachable}: start it, or train from a cache that holds this model's annotations "
+                         f"({cfg.cache} holds none)")
+    if cfg.live_budget != 0 and cfg.annotator is None:
+        logging.getLogger(__name__).warning(
+            "%s: this run trains from the cache's targets alone, its missed states are not annotated (start the "
+            "engine for the live fallback, or pass --live-budget 0)", unreachable)
+    return found[0], False
 
 
 def make_live(cfg: TrainConfig, llm, setup, cache):

@@ -147,6 +147,11 @@ class HeldSetup:
     entries: int
     """Entries of the setup's least annotated task: the states answered for every task (a cache's
     entries are rows, one per state and task)."""
+    model_fingerprint: str = ""
+    """The model's identity: its fingerprint hash, as every key of the setup carries it."""
+    served_at: tuple[str, ...] = ()
+    """The model specs the rows were written under, most entries first (for a served model, the
+    addresses its engine was reached at: one setup whatever the address, `model` the first)."""
 
     def options(self) -> str:
         """The flags that select it ("--backend oracle --history 0 --layout shared")."""
@@ -176,6 +181,41 @@ def setup_rows(cache) -> list[dict]:
     return [{**row, "layouts": layouts_of(row["task"], row["prompt"])} for row in cache.setups()]
 
 
+def listed_setups(cache) -> list[dict]:
+    """The setups an `AnnotationCache` holds as `illm cache info` lists them, one per task and model
+    identity (its fingerprint: a served model reached at two addresses is one setup), each with its
+    model's options, the addresses it was served at (openai: the engines' URLs) and its entries,
+    by task and most entries first. Nothing is contacted and no model is loaded."""
+    from illm_tools.llm.backend import model_options
+
+    merged: dict[tuple, dict] = {}
+    for u in setup_rows(cache):
+        key = (u["task"], u["model_fingerprint"], u["history_len"], u["template_version"], u["renderer"],
+               u["decoding"])
+        seen = merged.get(key)
+        if seen is None:
+            merged[key] = seen = {**{k: u[k] for k in ("task", "model", "model_fingerprint", "history_len",
+                                                      "template_version", "renderer", "decoding")},
+                                  "entries": 0, "layouts": list(u["layouts"]), "specs": {}}
+        seen["entries"] += int(u["entries"])
+        seen["specs"][u["model"]] = seen["specs"].get(u["model"], 0) + int(u["entries"])
+    out = []
+    for seen in merged.values():
+        specs = sorted(seen.pop("specs").items(), key=lambda kv: -kv[1])
+        seen["model"] = specs[0][0]
+        seen["model_options"] = model_options(seen["model"], seen["model_fingerprint"])
+        seen["served_at"] = _addresses([m for m, _ in specs])
+        out.append(seen)
+    return sorted(out, key=lambda u: (u["task"], -u["entries"]))
+
+
+def _addresses(specs: Sequence[str]) -> list[str]:
+    """The engine URLs of served model specs (openai's "NAME@URL"), in order; [] for other models."""
+    from illm_tools.llm.openai_engine import describe_offline, parse_spec
+
+    return [parse_spec(m)[1] for m in specs if describe_offline(m) is not None]
+
+
 def _open(cache):
     """`cache` as an `AnnotationCache` (given one, or its folder); None for a folder that holds no cache yet."""
     from illm_tools.cache.store import AnnotationCache
@@ -193,6 +233,7 @@ def cache_setups(cache, tasks: Sequence[str], renderer: str | None = None) -> li
 
     cache = _open(cache)
     per_task: dict[tuple, dict[str, int]] = {}
+    specs: dict[tuple, dict[str, int]] = {}  # the model strings of a setup (one per address it was served at)
     for row in setup_rows(cache) if cache is not None else []:
         task = row["task"]
         if task not in tasks:
@@ -207,11 +248,21 @@ def cache_setups(cache, tasks: Sequence[str], renderer: str | None = None) -> li
         for layout in row["layouts"]:
             if spec.templates[layout][1] != row["template_version"]:
                 continue  # an older template of the layout: this code renders another prompt
-            key = (model["backend"], model["model"], model["dtype"], model["quant"], int(row["history_len"]), layout,
-                   row["renderer"])
+            # the model's identity is its fingerprint, not the string it was named by (an engine's address)
+            key = (model["backend"], row["model_fingerprint"], model["dtype"], model["quant"], int(row["history_len"]),
+                   layout, row["renderer"])
             per_task.setdefault(key, {})[task] = per_task.get(key, {}).get(task, 0) + int(row["entries"])
-    return sorted((HeldSetup(*key, entries=min(counts.values())) for key, counts in per_task.items()
-                   if set(counts) == set(tasks)), key=lambda s: -s.entries)
+            named = specs.setdefault(key, {})
+            named[row["model"]] = named.get(row["model"], 0) + int(row["entries"])
+    held = []
+    for key, counts in per_task.items():
+        if set(counts) != set(tasks):
+            continue
+        backend, fingerprint, dtype, quant, history, layout, renderer = key
+        served = tuple(sorted(specs[key], key=lambda m: -specs[key][m]))
+        held.append(HeldSetup(backend, served[0], dtype, quant, history, layout, renderer, entries=min(counts.values()),
+                              model_fingerprint=fingerprint, served_at=served))
+    return sorted(held, key=lambda s: -s.entries)
 
 
 def adopt(cache, tasks: Sequence[str], renderer: str | None) -> HeldSetup | None:
@@ -234,14 +285,48 @@ def adopt_model(cache) -> dict | None:
     found: dict[tuple, tuple[dict, int]] = {}
     for row in cache.setups():
         model = describe_model(row["model"], row["model_fingerprint"])
-        if model is not None:
-            key = tuple(model.values())
-            found[key] = (model, found.get(key, (model, 0))[1] + int(row["entries"]))
+        if model is not None:  # one model setup per fingerprint, whatever address its engine was reached at
+            key = (model["backend"], row["model_fingerprint"], model["dtype"], model["quant"])
+            found[key] = (found.get(key, (model, 0))[0], found.get(key, (model, 0))[1] + int(row["entries"]))
     if len(found) > 1:
         listed = "; ".join(f"{selecting_options(**m)} ({n:,} entries)" for m, n in found.values())
         raise UsageError(f"the cache {cache.root} holds annotations of {len(found)} model setups: {listed}. Pass the "
                          "options of the one to serve")
     return next(iter(found.values()))[0] if found else None
+
+
+def cached_identity(cache, backend: str, model: str) -> tuple[str, int | None] | None:
+    """For a model only its engine can fingerprint (openai): the fingerprint hash and embedding width
+    the cache's rows carry for the same served model at any address (`openai_engine.served_as`),
+    when they carry one; None when they carry none; several are refused in one line. A run that
+    cannot reach the engine reads its keys from these, so training from the cache asks it nothing."""
+    from illm_tools.cache.store import AnnotationCache
+
+    if backend != "openai" or cache is None or not (Path(cache) / "manifest.json").is_file():
+        return None
+    from illm_tools.llm.openai_engine import served_as
+
+    want = served_as(model)
+    cache = cache if isinstance(cache, AnnotationCache) else AnnotationCache(cache)
+    found: dict[str, set] = {}
+    for row in cache.setups():
+        try:
+            same = served_as(row["model"]) == want
+        except UsageError:  # a row of another backend
+            continue
+        if same:
+            found.setdefault(row["model_fingerprint"], set())
+    if not found:
+        return None
+    if len(found) > 1:
+        raise UsageError(f"the cache {cache.root} holds rows of {want[0]} with {len(found)} model identities (other "
+                         "weights or engines behind its address): start the engine, whose answers say which is "
+                         "this run's")
+    fingerprint = next(iter(found))
+    table = cache.table(["model_fingerprint", "embedding_dim"])
+    dims = {d for f, d in zip(table.column("model_fingerprint").to_pylist(), table.column("embedding_dim").to_pylist())
+            if f == fingerprint and d is not None}
+    return fingerprint, (dims.pop() if len(dims) == 1 else None)
 
 
 _FLAGS = {"history_len": "--history", "layout": "--layout", "renderer": "renderer", "template_version": "template version",
