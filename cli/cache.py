@@ -132,12 +132,17 @@ def merge(
     sources: list[Path] = typer.Argument(..., help="Caches to copy from (left untouched)."),
     into: Path = typer.Option(..., "--into", "--cache", help="Cache to merge into (created if absent)."),
 ) -> None:
-    """Copy into --into every entry it lacks from verified sources; keys are never duplicated."""
+    """Copy into --into every entry it lacks from verified sources; keys are never duplicated.
+
+    Every row is checked before it enters (its key recomputed from its own columns, finite log-probs,
+    its lists and embedding consistent); a bad row is left out and counted."""
     from illm_tools.cache.verify import merge as run
 
-    report = run(sources, into)
+    check, found = _row_check()
+    report = run(sources, into, check=check)
     typer.echo(f"merged {counted(len(sources), 'cache')} into {into}: {counted(report.rows_copied, 'row')} copied, "
-               f"{report.rows_skipped:,} already present, {counted(len(report.shards_written), 'new shard')}")
+               f"{report.rows_skipped:,} already present or refused, {counted(len(report.shards_written), 'new shard')}")
+    _say_refused(found)
 
 
 @app.command("export", epilog="Example: illm cache export data/ann --format parquet --out data/share/ann.parquet")
@@ -165,12 +170,38 @@ def import_(
 ) -> None:
     """Add a shared file's entries to a cache; keys it already holds are skipped.
 
-    No key is stored twice."""
+    No key is stored twice. Every row is checked before it enters (its key recomputed from its own
+    columns, finite log-probs, its lists and embedding consistent); a bad row is left out and counted."""
     from illm_tools.cache.share import import_parquet
 
-    report = import_parquet(path, into)
+    check, found = _row_check()
+    report = import_parquet(path, into, check=check)
+    left = report.rows - report.added - len(found.refused) - len(found.conflicts)
     typer.echo(f"imported {path}: {report.added:,} new entries of its {report.rows:,} rows "
-               f"({report.rows - report.added:,} already present) -> {into}")
+               f"({left:,} already present, {len(found.refused) + len(found.conflicts):,} refused) -> {into}")
+    _say_refused(found)
+
+
+def _row_check():
+    """The check every imported or merged row passes (`illm_tools.tasks.rows`), and what it found."""
+    from illm_tools.tasks.rows import Checked, check_rows, model_dims
+
+    found = Checked()
+    dims: dict[str, int] = {}
+
+    def check(table, cache):
+        if not dims:
+            dims.update(model_dims(cache))
+        return check_rows(table, cache, dims, found)
+
+    return check, found
+
+
+def _say_refused(found) -> None:
+    from illm_tools.tasks.rows import summary
+
+    for line in summary(found):
+        typer.echo(line)
 
 
 @app.command("repair", epilog="Example: illm cache repair data/ann --drop-damaged")

@@ -336,6 +336,17 @@ def make_rows(start: int, stop: int, tag: str = "t") -> list[dict]:
     return rows
 
 
+def stub_annotated(root, n: int = 6) -> Path:
+    """A cache at `root` of `n` BabyAI-like states annotated by the stub backend (history 0, action and
+    summary): real rows, whose keys their own columns give (what an import checks)."""
+    from illm_tools.annotate.engine import Annotator
+    from illm_tools.cache.store import AnnotationCache
+
+    annotator = Annotator(StubBackend(STUB_MODEL), AnnotationCache(root), model=STUB_LLM.model, history_len=0)
+    annotator.annotate_states([serve_state(i) for i in range(n)], "BabyAI-GoToLocal-v0", "babyai-text@1")
+    return Path(root)
+
+
 def keys_of(rows: list[dict]) -> list[str]:
     return [r["key"] for r in rows]
 

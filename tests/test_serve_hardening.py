@@ -377,3 +377,76 @@ def test_a_trainer_says_once_which_of_its_states_the_engine_could_not_annotate(t
         live.close(timeout=0.5)
     said = [r.getMessage() for r in caplog.records if "could not annotate" in r.getMessage()]
     assert len(said) == 1 and "the engine cannot take this state" in said[0] and live.counts["failed"] == 1
+
+
+def test_the_trainers_client_clamps_retry_after_follows_no_redirect_and_survives_a_bad_answer(caplog):
+    """The trainer's serve client (`RemoteLive`): a Retry-After of inf or 1e9 waits at most 60 s; an
+    answer that is not an object is said once and the sender goes on; a redirect is not followed, so
+    the token never reaches the other address."""
+    import http.server
+    import json as _json
+
+    from illm_tools.annotate.wire import PROTOCOL
+    from illm_tools.rl.live_remote import RETRY_AFTER, RemoteLive, retry_after
+    from illm_tools.tasks.setup import AnnotationSetup
+
+    assert [retry_after(v) for v in ("inf", "1e9", "nan", "-3", "x", None, "7")] == [60.0, 60.0, 1.0, 1.0, 5.0, 5.0, 7.0]
+    elsewhere: list = []  # requests that reached the redirect's target
+
+    class Other(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # where urllib's default handling would take a POST answered 302
+            elsewhere.append(self.headers.get("Authorization"))
+            self.send_response(200)
+            self.send_header("Content-Length", "2")
+            self.end_headers()
+            self.wfile.write(b"{}")
+
+        do_POST = do_GET
+
+        def log_message(self, *args):
+            pass
+
+    other = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Other)
+    answers = [(503, {"Retry-After": "inf"}, b"{}"), (202, {}, b"[1, 2]"),
+               (302, {"Location": f"http://127.0.0.1:{other.server_port}/annotate"}, b"")]
+
+    class Fake(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # /stats: an illm server of the stub's setup
+            self._send(200, {}, _json.dumps({"protocol": PROTOCOL, "model_fingerprint": LLM.fingerprint(),
+                                             "limits": {"max_states": 64}}).encode())
+
+        def do_POST(self):
+            self.rfile.read(int(self.headers["Content-Length"]))
+            self._send(*(answers.pop(0) if answers else (202, {}, b'{"queued": 1, "queue": 1, "landed": 0}')))
+
+        def _send(self, status, headers, body):
+            self.send_response(status)
+            for k, v in headers.items():
+                self.send_header(k, v)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    fake = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Fake)
+    for s in (fake, other):
+        threading.Thread(target=s.serve_forever, daemon=True).start()
+    try:
+        with caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
+            live = RemoteLive(f"http://127.0.0.1:{fake.server_port}", client="run", llm=LLM, token="t" * 40,
+                              setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0), budget=8)
+            live.max_backoff = 0.05  # the pauses the answers below ask for, shortened (Retry-After is not)
+            assert live._send([{"x": 1}]) == RETRY_AFTER[1]  # 503 with Retry-After: inf -> at most 60 s
+            assert live._send([{"x": 1}]) == 0.05 and live.counts["refused"] == 1  # a list: said, the run goes on
+            assert live._send([{"x": 1}]) == 0.05 and live.counts["refused"] == 2  # 302: not followed
+            assert live._send([{"x": 1}]) is None and live.counts["accepted"] == 1  # and it sends again
+            live.close(timeout=0.5)
+        assert elsewhere == []  # the token went nowhere else
+        said = [r.getMessage() for r in caplog.records]
+        assert sum("not an illm server's answer" in m for m in said) == 1, said
+        assert sum("answered a redirect (302)" in m for m in said) == 1, said
+    finally:
+        fake.shutdown()
+        other.shutdown()

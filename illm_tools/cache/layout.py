@@ -57,7 +57,9 @@ def verify_hint(root: Path) -> str:
 
 
 def is_shard_name(name: str) -> bool:
-    return name.startswith(SHARD_PREFIX) and name.endswith(SHARD_SUFFIX)
+    """A file name the cache writes its shards under: no folder in it (no separator, no `..`)."""
+    return isinstance(name, str) and name.startswith(SHARD_PREFIX) and name.endswith(SHARD_SUFFIX) and \
+        "/" not in name and "\\" not in name and ".." not in name
 
 
 def shard_files(root: Path) -> list[str]:
@@ -108,6 +110,11 @@ def read_manifest(root: Path) -> dict:
     check_kind_version(manifest.get("kind"), manifest.get("version"), str(path))
     if not isinstance(manifest.get("shards"), list):
         raise CacheError(f"{path} has no shard list; {verify_hint(root)}")
+    for entry in manifest["shards"]:
+        if not isinstance(entry, dict) or not is_shard_name(entry.get("name")):
+            name = entry.get("name") if isinstance(entry, dict) else entry
+            raise CacheError(f"{path} lists {str(name)[:80]!r}, not a shard name of this cache (a file beside the "
+                             f"manifest): run `illm cache repair {root} --drop-damaged` to list the whole shards again")
     return manifest
 
 

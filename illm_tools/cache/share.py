@@ -18,6 +18,7 @@ Publishing on the Hugging Face Hub (where the network allows) goes through this 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -96,8 +97,11 @@ def _checked(table: pa.Table, where: Path) -> pa.Table:
                           f"({str(e).splitlines()[0][:100]})") from None
 
 
-def import_parquet(path: str | os.PathLike, into: str | os.PathLike) -> ShareReport:
-    """Add a Parquet file's annotation rows to a cache (created if absent); keys it holds are skipped."""
+def import_parquet(path: str | os.PathLike, into: str | os.PathLike,
+                   check: Callable[[pa.Table, AnnotationCache], pa.Table] | None = None) -> ShareReport:
+    """Add a Parquet file's annotation rows to a cache (created if absent); keys it holds are skipped.
+    `check(table, cache)` returns the rows of each batch that may enter (`illm_tools.tasks.rows`: the
+    layer above gives it; nothing is checked without one)."""
     path = Path(path)
     if not path.is_file():
         raise UsageError(f"no file at {path}: pass a Parquet file written by `illm cache export`")
@@ -111,7 +115,9 @@ def import_parquet(path: str | os.PathLike, into: str | os.PathLike) -> ShareRep
     for batch in parquet.iter_batches(batch_size=IMPORT_BATCH):
         table = _checked(pa.Table.from_batches([batch]).replace_schema_metadata(parquet.schema_arrow.metadata), path)
         report.rows += table.num_rows
-        if cache.write(table):
+        if check is not None:
+            table = check(table, cache)
+        if table.num_rows and cache.write(table):
             report.shards += 1
     report.added = len(cache) - before
     return report

@@ -164,9 +164,10 @@ def drop_damaged(root: str | os.PathLike) -> DropReport:
     return report
 
 
-def merge(sources: list[str | os.PathLike], into: str | os.PathLike) -> MergeReport:
+def merge(sources: list[str | os.PathLike], into: str | os.PathLike, check=None) -> MergeReport:
     """Copy into ``into`` every row of ``sources`` whose key it lacks. Sources are only read;
-    a damaged source is refused before anything is written."""
+    a damaged source is refused before anything is written. ``check(table, cache)`` returns the rows
+    of each shard that may enter (`illm_tools.tasks.rows`, given by the layer above)."""
     into = Path(into)
     resolved = {Path(s).resolve() for s in sources}
     if into.exists() and into.resolve() in resolved:
@@ -184,7 +185,8 @@ def merge(sources: list[str | os.PathLike], into: str | os.PathLike) -> MergeRep
         copied = skipped = 0
         for entry in layout.read_manifest(src)["shards"]:
             table = _read_verified(src, entry)
-            name = target.write(table)
+            checked = check(table, target) if check is not None else table
+            name = target.write(checked) if checked.num_rows else None
             added = target.shard_rows(name) if name else 0
             copied, skipped = copied + added, skipped + table.num_rows - added
             if name:

@@ -7,6 +7,7 @@ three take the same calls (`submit`, `landed`, `stats`, `close`) and log under t
 from __future__ import annotations
 
 import logging
+import urllib.request
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,6 +19,22 @@ log = logging.getLogger("illm_tools.rl.live")
 """The live annotators' one logger (this client's lines are live annotation's, as `illm_tools.rl.live`'s are)."""
 
 
+class BadAnswer(ValueError):
+    """The server answered something that is not an illm server's answer (not a JSON object, too large)."""
+
+
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    """urllib's redirect handling replaced: a 3xx is an HTTPError, never followed (with the token)."""
+
+    def redirect_request(self, req, fp, code, msg, headers, newurl):
+        return None
+
+
+_OPENER = urllib.request.build_opener(_NoRedirect())
+MAX_ANSWER_BYTES = 1 << 20
+"""The largest answer a trainer reads from its server (an answer is a few counts)."""
+RETRY_AFTER = (1.0, 60.0)
+"""The range a server's Retry-After is clamped to (seconds): no answer parks the sender longer."""
 SYNC_WAIT = 60.0
 """Seconds a trainer in `--live-mode sync` lets the server hold a rollout's request until its states
 land (the server's own cap is `illm_tools.serve.scheduler.MAX_WAIT`)."""
@@ -31,6 +48,19 @@ class AnnotatorAccess:
     annotator_token: str | None = None
     """Token of the --annotator server (its --token); default: the ILLM_SERVE_TOKEN environment
     variable, which keeps it out of `ps` and the shell's history. Never written to the run's files."""
+
+
+def retry_after(value) -> float:
+    """A Retry-After header's seconds clamped to `RETRY_AFTER` (5 when absent or not a finite number)."""
+    import math
+
+    try:
+        seconds = float(value) if value is not None else 5.0
+    except ValueError:
+        seconds = 5.0
+    if not math.isfinite(seconds):
+        seconds = RETRY_AFTER[1] if seconds > 0 else RETRY_AFTER[0]
+    return min(RETRY_AFTER[1], max(RETRY_AFTER[0], seconds))
 
 
 class RemoteLive:
@@ -109,16 +139,25 @@ class RemoteLive:
                              "targets; train with the server's options or start a server for this model")
 
     def _call(self, path: str, body: dict | None = None, timeout: float | None = None) -> dict:
+        """The server's JSON object answer to GET (no body) or POST `path`. Redirects are not followed
+        (an HTTPError: the token goes to the configured URL only); an answer that is not a JSON object,
+        or over `MAX_ANSWER_BYTES`, is a `BadAnswer`."""
         import json
-        import urllib.request
 
         from illm_tools.annotate.wire import auth_headers
 
         data = None if body is None else json.dumps(body).encode()
         request = urllib.request.Request(self.url + path, data=data, method="GET" if body is None else "POST",
                                          headers={"Content-Type": "application/json", **auth_headers(self._token)})
-        with urllib.request.urlopen(request, timeout=timeout or self.timeout) as response:
-            return json.loads(response.read())
+        with _OPENER.open(request, timeout=timeout or self.timeout) as response:
+            raw = response.read(MAX_ANSWER_BYTES + 1)
+        try:
+            answer = json.loads(raw) if len(raw) <= MAX_ANSWER_BYTES else None
+        except ValueError:
+            answer = None
+        if not isinstance(answer, dict):
+            raise BadAnswer(f"{self.url}{path} answered what is not a JSON object of at most {MAX_ANSWER_BYTES:,} bytes")
+        return answer
 
     def server_stats(self, what: str = "") -> dict:
         """The server's GET /stats; at start (`what`), a server that does not answer, or refuses this
@@ -235,10 +274,7 @@ class RemoteLive:
                 self.counts["busy"] += 1
                 self._say("busy", "the annotation server at %s is full (%s); this run backs off and goes on training",
                           self.url, why)
-                try:
-                    return max(1.0, float(e.headers.get("Retry-After", 5)))
-                except ValueError:
-                    return 5.0
+                return retry_after(e.headers.get("Retry-After"))
             if e.code == 401:  # a restarted server with another token: it may get ours back
                 self.counts["refused"] += 1
                 self._say("refused", "the annotation server at %s refuses this run's token (%s); the run goes on "
@@ -247,10 +283,20 @@ class RemoteLive:
             if e.code == 408:
                 self.counts["unanswered"] += 1
                 return 0.0
+            if 300 <= e.code < 400:  # never followed: the token goes to the configured URL only
+                self.counts["refused"] += 1
+                self._say("refused", "the annotation server at %s answered a redirect (%s), which this run does not "
+                                     "follow; the run goes on with the targets the cache has", self.url, e.code)
+                return self.max_backoff
             self.counts["refused"] += 1  # 400, 409, 413: this list can never be accepted
             self._say("refused", "the annotation server refused this run's request (%s: %s); the run goes on with "
                                  "the targets the cache has", e.code, why[:300])
             return None
+        except BadAnswer as e:
+            self.counts["refused"] += 1
+            self._say("malformed", "%s: not an illm server's answer; the run goes on with the targets the cache has",
+                      e)
+            return self.max_backoff
         except (urllib.error.URLError, OSError, ValueError) as e:
             self.counts["unanswered"] += 1
             self._say("down", "the annotation server at %s does not answer (%s); the run goes on with the targets the "
