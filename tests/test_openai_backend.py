@@ -6,7 +6,9 @@ retries on 429/5xx, one line and nothing written when the server keeps failing."
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
+import re
 import socket
 import threading
 
@@ -40,6 +42,7 @@ class Server:
         self.lm, self.name, self.fail, self.requests = lm, name, 0, 0
         self.status, self.drop = 503, False  # how a failing request fails: this status, or the connection cut
         self.single, self.shifted, self.no_echo = single, shifted, no_echo
+        self.mutate = self.mutate_embeddings = None  # an answer rewritten before it is sent (a misbehaving engine)
         self.backend = TransformersBackend(lm)
         app = web.Application()
         served = {"id": self.name, **({"root": root} if root else {})}  # vLLM's `root`: the weights it serves
@@ -108,7 +111,12 @@ class Server:
             gens = self.backend.generate(prompts, max_new_tokens=body["max_tokens"])
             choices = [{"text": g.text, "finish_reason": "stop" if g.finished else "length",
                         "logprobs": {"tokens": ["?"] * len(g.token_ids)}} for g in gens]
-        return web.json_response({"choices": [{**c, "index": i} for i, c in enumerate(choices)]})
+        answer = {"choices": [{**c, "index": i} for i, c in enumerate(choices)]}
+        if self.mutate is not None and body.get("echo") and len(prompts) > 1:  # a ranking request: misbehave
+            answer = self.mutate(answer)
+            if isinstance(answer, web.StreamResponse):
+                return answer
+        return web.json_response(answer)
 
     async def embeddings(self, request):
         from aiohttp import web
@@ -116,7 +124,10 @@ class Server:
         self.requests += 1
         body = await request.json()
         vectors = self.backend.embed(body["input"])
-        return web.json_response({"data": [{"index": i, "embedding": v.tolist()} for i, v in enumerate(vectors)]})
+        answer = {"data": [{"index": i, "embedding": v.tolist()} for i, v in enumerate(vectors)]}
+        if self.mutate_embeddings is not None:
+            answer = self.mutate_embeddings(answer)
+        return web.json_response(answer)
 
 
 @pytest.fixture(scope="module")
@@ -334,3 +345,80 @@ def test_a_cache_annotated_through_an_engine_trains_with_the_engine_stopped_unde
     assert live.exit_code == 0, live.output  # the cache's targets alone, said in one line
     said = [r.getMessage() for r in caplog.records if "trains from the cache's targets alone" in r.getMessage()]
     assert len(said) == 1 and said[0].startswith("no OpenAI-compatible server answers at http://"), said
+
+
+def _nan(answer):
+    answer["choices"][0]["logprobs"]["token_logprobs"][-2] = float("nan")  # sent as NaN, which JSON lacks
+    return answer
+
+
+def _unscored(answer):
+    answer["choices"][1]["logprobs"]["token_logprobs"][-2] = None
+    return answer
+
+
+def _misaligned(answer):
+    offsets = answer["choices"][0]["logprobs"]["text_offset"]
+    offsets[-2] = offsets[-3]  # two tokens at one offset: the log-probs no longer say which text they score
+    return answer
+
+
+def _inf(answer):
+    from aiohttp import web
+
+    answer["choices"][0]["logprobs"]["token_logprobs"][-2] = -123.25
+    text = json.dumps(answer).replace("-123.25", "1e400")  # valid JSON, read as infinity
+    return web.Response(text=text, content_type="application/json")
+
+
+def _duplicate(answer):
+    answer["choices"][1]["index"] = 0
+    return answer
+
+
+def _missing(answer):
+    answer["choices"].pop()
+    return answer
+
+
+def _redirect(answer):
+    from aiohttp import web
+
+    return web.Response(status=302, headers={"Location": "http://127.0.0.1:9/v1/completions"})
+
+
+def _short_embeddings(answer):
+    for d in answer["data"]:
+        d["embedding"] = d["embedding"][:-1]
+    return answer
+
+
+@pytest.mark.parametrize("mutate,said", [
+    (_nan, "answered what is not JSON (NaN is not a finite number)"), (_inf, "not all finite numbers at most 0"),
+    (_unscored, "not all finite numbers at most 0"), (_misaligned, "token offsets that are not increasing"),
+    (_duplicate, "each index once is expected"), (_missing, "each index once is expected"),
+    (_redirect, "answered a redirect (302), which illm does not follow")])
+def test_an_engines_malformed_ranking_is_refused_in_one_line_naming_it(tiny_lm, tmp_path, mutate, said):
+    engine = Server(tiny_lm)
+    spec = resolve_model("openai", "tiny", endpoint=engine.url)
+    remote = load_backend("openai", spec)
+    engine.mutate = mutate
+    with pytest.raises(EndpointError, match=re.escape(said)) as e:
+        remote.score(["Valid actions: turn left, go forward. Action:"], [[" turn left", " go forward"]])
+    assert engine.url in str(e.value) and len(str(e.value).splitlines()) == 1
+    engine.stop()
+
+
+def test_an_engines_embeddings_of_another_width_or_an_answer_too_large_are_refused(tiny_lm, monkeypatch):
+    from illm_tools.llm import openai_engine
+
+    engine = Server(tiny_lm)
+    remote = load_backend("openai", resolve_model("openai", "tiny", endpoint=engine.url))
+    engine.mutate_embeddings = _short_embeddings
+    with pytest.raises(EndpointError, match="not finite vectors of 64 dimensions"):
+        remote.embed(["go to the red ball"])
+    engine.mutate_embeddings = None
+    monkeypatch.setattr(openai_engine, "MAX_ANSWER_BYTES", 200)  # a cap this answer passes
+    with pytest.raises(EndpointError, match="answered more than 0 MiB: refused"):
+        remote.embed(["go to the red ball"])
+    engine.stop()

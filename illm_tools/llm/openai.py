@@ -40,6 +40,12 @@ server). The model spec is "NAME@URL" (and "#VAR"), so every place that names a 
     two log-probs of that token must agree within `ALIGNMENT_TOLERANCE`. An engine that scores token i with the logits at position i
     instead of i-1 (llama-cpp-python 0.3.x) fails, and ranking through it is refused in one line
     before anything is annotated (its rankings would be noise); summaries still run through it.
+- An engine's answers are checked before anything is stored, each failure one line naming the
+  engine's URL: JSON without NaN or Infinity and at most `MAX_ANSWER_BYTES`; one choice per prompt,
+  each index once; a candidate's echoed tokens one run in increasing offsets, each with a finite
+  log-prob at most 0 (a candidate with no scored token would otherwise sum to 0 and win); an
+  embedding finite and of the width the engine gave at connection. A redirect is never followed,
+  so the API key goes to the configured endpoint only.
 - Requests go `concurrency` at a time (threads: the waiting is on the network), each with a
   timeout; 429 and 5xx answers and lost connections are retried with exponential backoff
   (`retries` times), then refused in one line. Annotation writes a chunk only when all of its
@@ -129,10 +135,13 @@ class OpenAIBackend:
             return [c for p in prompts for c in self._choices([p], body)]
         answer, _ = self.client.call("/completions", {"model": self.served, **body,
                                                       "prompt": prompts if self.engine.batches else prompts[0]})
-        choices = sorted(answer.get("choices", []), key=lambda c: c.get("index", 0))
-        if len(choices) != len(prompts):
-            raise EndpointError(f"{self.client.url}/completions answered {len(choices)} choices for {len(prompts)} prompts")
-        return choices
+        choices = answer.get("choices")
+        indices = [c.get("index") if isinstance(c, dict) else None for c in choices or []]
+        if not isinstance(choices, list) or sorted(i for i in indices if type(i) is int) != list(range(len(prompts))) \
+                or len(indices) != len(prompts):
+            raise EndpointError(f"{self.client.url}/completions answered choices {indices[:8]} for {len(prompts)} prompts "
+                                "(each index once is expected): not used")
+        return sorted(choices, key=lambda c: c["index"])
 
     @staticmethod
     def describe_offline(model: str) -> dict | None:
@@ -158,11 +167,29 @@ class OpenAIBackend:
             if not offsets or logprobs is None:
                 raise EndpointError(f"{self.client.url}/completions gave no prompt log-probabilities (echo with logprobs): "
                                     "this engine cannot rank candidates; vLLM can (docs/scale.md)")
-            ends = list(offsets[1:]) + [len(prompt) + 10**9]
-            token_lp = [float(logprobs[i]) for i in range(len(offsets))
-                        if offsets[i] < len(prompt) and ends[i] > len(context) and logprobs[i] is not None]
-            out.append(token_lp)
+            out.append(self._candidate_logprobs(prompt, len(context), offsets, logprobs))
         return CandidateScores.from_logprobs(out)
+
+    def _candidate_logprobs(self, prompt: str, start: int, offsets, logprobs) -> list[float]:
+        """The log-probs of the echoed tokens that end after the context (`start` characters): one
+        run of consecutive tokens, each scored with a finite log-prob, in increasing offsets; else
+        refused in one line naming the engine (a candidate with no scored token would sum to 0)."""
+        import math
+
+        where = f"{self.client.url}/completions"
+        if len(offsets) != len(logprobs) or any(type(o) is not int for o in offsets) or \
+                any(b <= a for a, b in zip(offsets, offsets[1:])):
+            raise EndpointError(f"{where} answered token offsets that are not increasing, one per log-prob: not used")
+        ends = list(offsets[1:]) + [len(prompt) + 10**9]
+        inside = [i for i in range(len(offsets)) if offsets[i] < len(prompt)]  # the echo, without a generated token
+        mine = [i for i in inside if ends[i] > start]
+        if not mine or mine != list(range(mine[0], inside[-1] + 1)):
+            raise EndpointError(f"{where} answered no contiguous tokens for a candidate ({prompt[start:][:40]!r}): not used")
+        values = [logprobs[i] for i in mine]
+        if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v > 0 for v in values):
+            raise EndpointError(f"{where} answered a candidate's token log-probs {values[:6]}, not all finite numbers "
+                                "at most 0: not used")
+        return [float(v) for v in values]
 
     def score(self, contexts, candidates, *, batch_size: int = 8):
         _check_ranking(self.model)
@@ -198,7 +225,18 @@ class OpenAIBackend:
 
         def call(chunk):
             answer, _ = self.embed_client.call("/embeddings", {"model": self.served, "input": chunk})
-            return [d["embedding"] for d in sorted(answer["data"], key=lambda d: d.get("index", 0))]
+            data = answer.get("data")
+            where = f"{self.embed_client.url}/embeddings"
+            if not isinstance(data, list) or sorted(d.get("index", -1) for d in data if isinstance(d, dict)) != \
+                    list(range(len(chunk))):
+                raise EndpointError(f"{where} answered {len(data) if isinstance(data, list) else 'no'} embeddings for "
+                                    f"{len(chunk)} texts (each index once is expected): not used")
+            vectors = [d["embedding"] for d in sorted(data, key=lambda d: d["index"])]
+            array = np.asarray(vectors, dtype=np.float64) if all(isinstance(v, list) for v in vectors) else None
+            if array is None or array.ndim != 2 or array.shape[1] != self.hidden_size or not np.isfinite(array).all():
+                raise EndpointError(f"{where} answered embeddings that are not finite vectors of {self.hidden_size} "
+                                    "dimensions (the width it gave when illm connected): not used")
+            return list(array.astype(np.float32))
 
         chunks = [texts[i:i + batch_size] for i in range(0, len(texts), batch_size)]
         return np.asarray([e for part in self._map(call, chunks) for e in part], dtype=np.float32)

@@ -40,6 +40,24 @@ class EndpointError(IllmError):
     """The endpoint failed a request after its retries, or answered something illm cannot use."""
 
 
+MAX_ANSWER_BYTES = 256 * 2**20
+"""The largest answer read from an engine (a batch of echoed prompts with their log-probs is a few MiB)."""
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a finite number")
+
+
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    """A 3xx is an HTTPError, never followed: the API key goes to the configured endpoint only."""
+
+    def redirect_request(self, req, fp, code, msg, headers, newurl):
+        return None
+
+
+_OPENER = urllib.request.build_opener(_NoRedirect())
+
+
 class EngineUnreachableError(UsageError):
     """No OpenAI-compatible server answers at a model spec's endpoint (its identity cannot be asked)."""
 
@@ -121,10 +139,19 @@ class Client:
             request = urllib.request.Request(base + path, data=data, headers=headers,
                                              method="GET" if body is None else "POST")
             try:
-                with urllib.request.urlopen(request, timeout=self.timeout) as response:
-                    return json.loads(response.read() or b"{}"), {k.lower(): v for k, v in response.headers.items()}
+                with _OPENER.open(request, timeout=self.timeout) as response:
+                    raw = response.read(MAX_ANSWER_BYTES + 1)
+                    if len(raw) > MAX_ANSWER_BYTES:
+                        raise EndpointError(f"{base + path} answered more than {MAX_ANSWER_BYTES // 2**20} MiB: refused")
+                    answer = json.loads(raw or b"{}", parse_constant=_no_constant)
+                    if not isinstance(answer, dict):
+                        raise EndpointError(f"{base + path} answered what is not a JSON object")
+                    return answer, {k.lower(): v for k, v in response.headers.items()}
             except urllib.error.HTTPError as e:
-                detail = e.read().decode(errors="replace")[:200]
+                detail = e.read(2000).decode(errors="replace")[:200]
+                if 300 <= e.code < 400:
+                    raise EndpointError(f"{base + path} answered a redirect ({e.code}), which illm does not follow (the "
+                                        "key goes to --endpoint only): give the engine's own URL") from None
                 if e.code != 429 and e.code < 500:
                     raise EndpointError(f"{base + path} refused the request ({e.code}: {detail})") from None
                 last = f"{e.code}: {detail}"
