@@ -14,6 +14,7 @@ import logging
 import secrets
 import socket
 import threading
+import time
 import urllib.error
 import urllib.request
 from contextlib import contextmanager
@@ -24,6 +25,7 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from illm_tools.cache import AnnotationCache
+from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.llm.stub import StubBackend
 from illm_tools.serve import AnnotationServer, ServeLimits, record_to_json, serve, token_bits
@@ -450,3 +452,49 @@ def test_the_trainers_client_clamps_retry_after_follows_no_redirect_and_survives
     finally:
         fake.shutdown()
         other.shutdown()
+
+
+def test_peers_are_counted_by_group_headers_have_their_own_timeout_and_nothing_is_decompressed(tmp_path):
+    import zlib
+
+    from illm_tools.serve.config import peer_group
+
+    assert {peer_group(a) for a in ("127.0.0.1", "127.0.0.5", "::1", "::ffff:127.0.0.9")} == {"loopback"}
+    assert peer_group("10.1.2.3") == peer_group("10.1.2.250") == "10.1.2.0/24" != peer_group("10.1.3.1")
+    assert peer_group("2001:db8::1") == peer_group("2001:db8::ffff:1") == "2001:db8::/64"
+    server = make(tmp_path, max_connections_per_peer=3, header_timeout=1.0)
+    with running(server) as url:  # the request timeout stays 30 s: an idle connection is kept
+        port = int(url.rsplit(":", 1)[1])
+        held = [socket.create_connection(("127.0.0.1", port), source_address=(f"127.0.0.{k}", 0)) for k in (2, 3, 4)]
+        try:  # three loopback addresses are one peer: a fourth connection from a fifth is refused
+            with socket.create_connection(("127.0.0.1", port), source_address=("127.0.0.5", 0)) as extra:
+                extra.settimeout(15)
+                assert extra.recv(4096).decode().startswith("HTTP/1.1 503")
+            held[0].sendall(b"POST /annotate HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")  # headers begun, never ended
+            held[0].settimeout(15)
+            started = time.monotonic()
+            assert held[0].recv(4096) == b""  # cut by the header timeout, not the request timeout
+            assert time.monotonic() - started < 15
+            held[1].settimeout(0.5)
+            with pytest.raises(TimeoutError):  # idle, sending nothing: kept past the header timeout
+                time.sleep(2.0)
+                held[1].recv(4096)
+        finally:
+            for s in held:
+                s.close()
+        before = stats(url)["resident_mb"]
+        bomb = zlib.compress(b"[" + b" " * (256 * 2**20) + b"]", 9)  # 256 MiB of JSON in ~250 KiB
+        code, answer, _ = post(url, raw=bomb, headers={"Content-Encoding": "deflate"})
+        assert code == 415 and "must not be compressed" in answer["error"]
+        assert stats(url)["resident_mb"] - before < 64  # nothing was inflated
+        body = request([(state(1), 1)])
+        for field, value, said in (("model_fingerprint", ["f"] * 10_000, "model_fingerprint must be a string"),
+                                   ("wait", "1e400", "1e400 is not a finite number")):
+            raw = json.dumps({**body, field: value}).replace('"1e400"', "1e400").encode()
+            code, answer, _ = post(url, raw=raw)
+            assert code == 400 and said in answer["error"], answer
+
+
+def test_a_max_request_size_too_small_for_one_state_is_refused_at_start():
+    with pytest.raises(UsageError, match="--max-request-mb 1e-07 cannot hold one state"):
+        ServeLimits(max_request_mb=1e-7)

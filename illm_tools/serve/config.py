@@ -66,6 +66,28 @@ def is_loopback(host: str) -> bool:
     return bool(found) and all(ipaddress.ip_address(a).is_loopback for a in found)
 
 
+def peer_group(address: str) -> str:
+    """The group a peer address is counted in for the connection caps: loopback as one (127.0.0.0/8
+    and ::1 are this machine), an IPv4 address by its /24, an IPv6 address by its /64 (one host or
+    one site takes many addresses there at no cost); anything else (a unix socket) as itself."""
+    import ipaddress
+
+    try:
+        ip = ipaddress.ip_address(address.split("%")[0])
+    except ValueError:
+        return address
+    if ip.is_loopback or (ip.version == 6 and ip.ipv4_mapped is not None and ip.ipv4_mapped.is_loopback):
+        return "loopback"
+    if ip.version == 6 and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    prefix = 24 if ip.version == 4 else 64
+    return str(ipaddress.ip_network(f"{ip}/{prefix}", strict=False))
+
+
+MIN_REQUEST_BYTES = 64 * 2**10
+"""The smallest --max-request-mb a server takes (64 KiB: one state at every per-field limit)."""
+
+
 @dataclass
 class ServeLimits:
     """What one request, one client and one connection may take of a server. The defaults fit
@@ -96,10 +118,13 @@ class ServeLimits:
     max_connections: int = 256
     """Open connections in all; a further one is answered 503 and closed."""
     max_connections_per_peer: int = 64
-    """Open connections from one address; a further one is answered 503 and closed."""
+    """Open connections from one peer: loopback as one, an IPv4 /24, an IPv6 /64 (`peer_group`); a
+    further one is answered 503 and closed."""
+    header_timeout: float = 5.0
+    """Seconds a client has to finish a request's headers once it has started them (closed after)."""
     request_timeout: float = 30.0
-    """Seconds a client has to send its request's headers, then its body (408 after, closed); an idle
-    connection is closed after as long: a slow or stalled client holds nothing."""
+    """Seconds a client has to send its request's body (408 after, closed); an idle connection is
+    closed after as long: a slow or stalled client holds nothing."""
     batch_deadline: float = 600.0
     """Seconds a batch may take in the engine: past it its states are answered as failed, and a stop
     (Ctrl-C, SIGTERM) exits without waiting longer for it."""
@@ -110,7 +135,10 @@ class ServeLimits:
         check_numbers(self, positive=("max_states", "max_request_mb", "max_text_chars", "max_actions",
                                       "max_action_chars", "max_visits", "max_clients", "max_sessions",
                                       "max_client_share", "max_queue", "max_connections", "max_connections_per_peer",
-                                      "request_timeout", "batch_deadline"))
+                                      "header_timeout", "request_timeout", "batch_deadline"))
+        if self.max_request_bytes < MIN_REQUEST_BYTES:
+            raise UsageError(f"--max-request-mb {self.max_request_mb:g} cannot hold one state at the per-field limits: "
+                             f"give at least {MIN_REQUEST_BYTES / 2**20:g}")
         if self.max_client_share > 1:
             raise UsageError(f"--max-client-share is a share of --max-queue, in (0, 1], got {self.max_client_share:g}")
 

@@ -1,10 +1,12 @@
 """The HTTP side of `illm serve`: aiohttp's request handling behind a gate of our own.
 
 The gate (`Gate`) owns the listening socket's connections, whatever aiohttp version runs: at most
-`max_connections` open and `max_connections_per_peer` from one address (a further one is answered
-503 and closed), and a connection that is not inside a request for `request_timeout` seconds (its
-headers never finished, or idle between requests) is closed; a request's body has as long again
-(408). Then, per request: the Host header must name the server's own address when it listens on
+`max_connections` open and `max_connections_per_peer` from one peer (loopback as one, an IPv4 /24,
+an IPv6 /64: `config.peer_group`; a further one is answered 503 and closed); a connection that has
+started a request's headers has `header_timeout` seconds to finish them, and one idle between
+requests `request_timeout` seconds, then it is closed; a request's body has `request_timeout`
+(408). aiohttp parses at most `MAX_HEADERS` headers and decompresses nothing: a body with a
+`Content-Encoding` is answered 415 unread. Then, per request: the Host header must name the server's own address when it listens on
 loopback without a token, and an Origin header must be the server's own origin (a web page in a
 browser on the node cannot post to it: 403); a POST must be `Content-Type: application/json` (415);
 the token, when there is one (401, the connection closed); the body is read within the timeout and
@@ -26,6 +28,9 @@ from illm_tools.serve.scheduler import AnnotationServer
 
 log = logging.getLogger(__name__)
 
+MAX_HEADERS = 64
+"""Headers aiohttp parses in one request (more: 400); a trainer sends six."""
+
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
 
 
@@ -36,11 +41,14 @@ class _Connection(asyncio.Protocol):
         self.gate, self.inner, self.transport, self.peer = gate, None, None, ""
         self.active = 0  # requests being handled now
         self.since = time.monotonic()  # when it last started being idle (or opened)
+        self.started: float | None = None  # when the bytes of a request not yet handled began to arrive
 
     def connection_made(self, transport) -> None:
+        from illm_tools.serve.config import peer_group
+
         self.transport = transport
         peer = transport.get_extra_info("peername")
-        self.peer = str(peer[0]) if isinstance(peer, tuple) else str(peer)
+        self.peer = peer_group(str(peer[0]) if isinstance(peer, tuple) else str(peer))
         refusal = self.gate.admit(self)
         if refusal is not None:
             self.gate.server.totals["connections_refused"] += 1
@@ -58,6 +66,8 @@ class _Connection(asyncio.Protocol):
             self.inner.connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
+        if not self.active and self.started is None:
+            self.started = time.monotonic()  # a request's headers begin: `header_timeout` to finish them
         if self.inner is not None:
             self.inner.data_received(data)
 
@@ -78,6 +88,7 @@ class Gate:
 
     def __init__(self, server: AnnotationServer, factory, timeout: float):
         self.server, self.factory, self.timeout = server, factory, timeout
+        self.header_timeout = min(server.limits.header_timeout, timeout)
         self.limits = server.limits
         self.open: dict[int, _Connection] = {}  # id(transport) -> connection
         self.per_peer: dict[str, int] = {}
@@ -87,7 +98,7 @@ class Gate:
         if len(self.open) >= self.limits.max_connections:
             return f"the server has {len(self.open)} connections open, its --max-connections: try again shortly"
         if self.per_peer.get(conn.peer, 0) >= self.limits.max_connections_per_peer:
-            return (f"this address has {self.per_peer[conn.peer]} connections open, the server's "
+            return (f"this peer ({conn.peer}) has {self.per_peer[conn.peer]} connections open, the server's "
                     "--max-connections-per-peer: close some")
         self.open[id(conn.transport)] = conn
         self.per_peer[conn.peer] = self.per_peer.get(conn.peer, 0) + 1
@@ -107,12 +118,14 @@ class Gate:
         return self.open.get(id(transport))
 
     async def sweep(self) -> None:
-        """Close, every fraction of the timeout, the connections idle (or stuck in their headers) longer."""
+        """Close, every fraction of the timeouts, the connections idle longer than the request timeout,
+        or stuck in a request's headers longer than the header timeout."""
         while True:
-            await asyncio.sleep(min(1.0, self.timeout / 4))
+            await asyncio.sleep(min(1.0, self.header_timeout / 4))
             now = time.monotonic()
             for conn in list(self.open.values()):
-                if not conn.active and now - conn.since > self.timeout and conn.transport is not None:
+                stuck = conn.started is not None and now - conn.started > self.header_timeout
+                if not conn.active and (stuck or now - conn.since > self.timeout) and conn.transport is not None:
                     conn.transport.close()
                     self.release(conn)
 
@@ -144,6 +157,9 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
         origin = request.headers.get("Origin")
         if origin is not None and (own_origins is None or origin not in own_origins):
             return error(403, "cross-origin requests are refused: a trainer sends no Origin header", close=True)
+        encoding = request.headers.get("Content-Encoding", "identity").strip().lower()
+        if encoding not in ("", "identity"):  # never decompressed (a small body can inflate without bound)
+            return error(415, f"a request's body must not be compressed (Content-Encoding {encoding[:40]!r})", close=True)
         if request.method == "POST" and request.content_type != "application/json":
             return error(415, f"a request's Content-Type must be application/json, got {request.content_type[:60]!r}",
                          close=True)
@@ -163,6 +179,7 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
         conn = gate.of(request.transport) if gate is not None else None
         if conn is not None:
             conn.active += 1
+            conn.started = None
         try:
             refused = refusal(request)
             if refused is not None:
@@ -239,7 +256,8 @@ async def serve(server: AnnotationServer, host: str, port: int, stop: asyncio.Ev
     bound = listening.sockets[0].getsockname()[1]
     app = make_app(server, token=token, request_timeout=timeout, own_hosts=own_hosts(host, bound, token), gate=gate)
     # the gate closes idle and stalled connections (`Gate.sweep`), whatever this aiohttp version does itself
-    runner = web.AppRunner(app, access_log=None, handle_signals=False, keepalive_timeout=3600)
+    runner = web.AppRunner(app, access_log=None, handle_signals=False, keepalive_timeout=3600,
+                           auto_decompress=False, max_headers=MAX_HEADERS)
     await runner.setup()
     gate.factory = runner.server
     await listening.start_serving()

@@ -36,11 +36,18 @@ def _no_constant(name: str):
     raise ValueError(f"{name} is not JSON")
 
 
+def _finite(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"{text[:40]} is not a finite number")
+    return value
+
+
 def read_json(raw: bytes):
     """The body as JSON; RequestError(400) in one line for anything else (bad bytes, NaN or
     Infinity, nesting deeper than the parser's recursion limit)."""
     try:
-        return json.loads(raw, parse_constant=_no_constant)
+        return json.loads(raw, parse_constant=_no_constant, parse_float=_finite)
     except (ValueError, RecursionError, UnicodeDecodeError) as e:
         what = "nested too deeply" if isinstance(e, RecursionError) else str(e).splitlines()[0][:200]
         raise RequestError(400, f"the request body is not JSON ({what})") from None

@@ -35,7 +35,7 @@ from illm_tools.llm.spec import LLMSpec
 from illm_tools.serve.config import ServeConfig, ServeLimits
 from illm_tools.serve.batch import annotate_batch, in_thread, one_line
 from illm_tools.serve.memory import resident_mb
-from illm_tools.serve.protocol import RequestError, ServerSetup, requested_wait, trainer_of
+from illm_tools.serve.protocol import MAX_ID_CHARS, RequestError, ServerSetup, requested_wait, text, trainer_of
 from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
@@ -127,6 +127,7 @@ class AnnotationServer:
                                     "sends them: use the server's illm version)")
         trainer = trainer_of(body)
         requested_wait(body)  # checked before anything is queued
+        text(body["model_fingerprint"], "model_fingerprint", MAX_ID_CHARS, 400)  # its type before anything reads it
         if body["model_fingerprint"] != self.fingerprint:
             raise RequestError(409, f"this server annotates with {self.llm.options()} (fingerprint {self.fingerprint}); "
                                     f"the request's fingerprint {str(body['model_fingerprint'])[:80]!r} is another model "
