@@ -254,7 +254,8 @@ def test_a_trainer_cannot_replace_or_withdraw_another_trainers_list(tmp_path):
 
 def test_limits_answer_413_and_503_with_retry_after_as_documented(tmp_path):
     server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, history_len=0,
-                              limits=ServeLimits(max_clients=2, max_states=3, max_queue=4, max_client_share=1.0))
+                              limits=ServeLimits(max_clients=2, max_states=3, max_queue=4, max_client_share=1.0,
+                                                 max_peer_share=1.0))
     with pytest.raises(RequestError, match=r"at most 3 states \(the server's --max-states\), this one 4") as e:
         server.submit(request([(state(i), 1) for i in range(4)]))
     assert e.value.status == 413

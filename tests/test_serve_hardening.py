@@ -28,7 +28,7 @@ from illm_tools.cache import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.llm.stub import StubBackend
-from illm_tools.serve import AnnotationServer, ServeLimits, record_to_json, serve, token_bits
+from illm_tools.serve import AnnotationServer, RequestError, ServeLimits, record_to_json, serve, token_bits
 from illm_tools.tasks.state import StateRecord
 from fakes import SHORT_ACTIONS as ACTIONS, STUB_LLM as LLM, STUB_MODEL as MODEL, hop_states, wait_for
 from fakes import serve_request as request, serve_state as state
@@ -498,3 +498,24 @@ def test_peers_are_counted_by_group_headers_have_their_own_timeout_and_nothing_i
 def test_a_max_request_size_too_small_for_one_state_is_refused_at_start():
     with pytest.raises(UsageError, match="--max-request-mb 1e-07 cannot hold one state"):
         ServeLimits(max_request_mb=1e-7)
+
+
+def test_a_peer_inventing_client_names_takes_one_turn_and_its_share_while_anothers_states_land(tmp_path):
+    """Quotas that hold against invented names: a peer's names share its turn of each round and its
+    share of the queue and of the trainer slots (`--max-peer-share`), whatever names it sends under."""
+    server = make(tmp_path, max_queue=64, max_clients=16, max_sessions=4)
+    flood = "10.0.0.0/24"
+    accepted = 0
+    for n in range(40):  # invented names, each a fresh client with states the others do not have
+        states = [(StateRecord(f"flood {n} {i}", (), "", ACTIONS), 10**6) for i in range(8)]
+        try:
+            server.submit(request(states, client=f"name-{n}", session="s"), peer=flood)
+            accepted += 1
+        except RequestError as e:
+            assert e.status == 429 and "--max-peer-share" in str(e), str(e)
+    assert accepted == 4 and server.queue_size() == 32  # half the queue: the peer's share, not more
+    fair = [(StateRecord("the fair one", (), f"You see {i}", ACTIONS), 1) for i in range(4)]
+    assert server.submit(request(fair, client="fair"), peer="10.0.9.0/24")["queued"] == 4  # room left for others
+    first, second = server.next_batch(), server.next_batch()
+    landed = sum(p.record.mission == "the fair one" for p in first + second)
+    assert landed == 4 and sum(p.record.mission == "the fair one" for p in first) == 4  # one turn each: 4 of 8

@@ -1,4 +1,9 @@
-"""One batch of the server's pending states through its annotator, in a thread of its own.
+"""One batch of the server's pending states: which states it takes (`take_turns`), and their way
+through the annotator, in a thread of its own.
+
+`take_turns` is the fair order: round-robin across peers (a peer's client names share its turn),
+then across a peer's client names, least recently served first, each name's states most visited
+first, one state a turn until the batch is full; a state already taken is skipped.
 
 `annotate_batch` writes what the cache lacks of the batch, one shard per setup; a batch that
 raises is tried again state by state, so one state's fault costs the others nothing. `in_thread`
@@ -16,6 +21,41 @@ from illm_tools.serve.memory import release_free_memory
 
 MAX_HOP_CONTEXTS = 4
 """Hop translations (projections) the annotator keeps between batches; beyond, they are rebuilt."""
+
+
+def take_turns(lanes: dict, served: dict, served_peer: dict, round_: int, chunk: int) -> dict:
+    """The batch {(setup, record): Pending} of at most `chunk` states from `lanes` ({(peer, client
+    name): {key: Pending}}), in the fair order (module docstring); `served` (by lane) and
+    `served_peer` (by peer) record `round_` for those served."""
+    by_peer: dict[str, list] = {}
+    for lane in sorted(lanes, key=lambda lane: served.get(lane, -1)):  # stable: ties in arrival order
+        by_peer.setdefault(lane[0], []).append(lane)
+    peers = sorted(by_peer, key=lambda peer: served_peer.get(peer, -1))
+    lists = {lane: sorted(states.values(), key=lambda p: -p.visits) for lane, states in lanes.items()}
+    at, turn = dict.fromkeys(lanes, 0), dict.fromkeys(peers, 0)
+    batch: dict = {}
+    while len(batch) < chunk:
+        took = False
+        for peer in peers:
+            if len(batch) >= chunk:
+                break
+            order = by_peer[peer]
+            for _ in range(len(order)):  # the peer's next client name with a state left
+                lane = order[turn[peer] % len(order)]
+                turn[peer] += 1
+                mine = lists[lane]
+                while at[lane] < len(mine) and (mine[at[lane]].setup, mine[at[lane]].record) in batch:
+                    at[lane] += 1
+                if at[lane] < len(mine):
+                    p = mine[at[lane]]
+                    batch[(p.setup, p.record)] = p
+                    at[lane] += 1
+                    served[lane] = served_peer[peer] = round_
+                    took = True
+                    break
+        if not took:
+            break
+    return batch
 
 
 def one_line(e: BaseException) -> str:

@@ -112,6 +112,9 @@ class ServeLimits:
     """Sessions (trainers) queued under one client name; a further one gets 429 with Retry-After."""
     max_client_share: float = 0.5
     """Share of --max-queue the states of one client name may hold (429 with Retry-After above)."""
+    max_peer_share: float = 0.5
+    """Share of --max-queue, and of --max-clients, one peer may hold whatever client names it sends
+    under (loopback is one peer, an IPv4 /24 or an IPv6 /64 another; 429 with Retry-After above)."""
     max_queue: int = 8192
     """States queued across all trainers; a request that would go beyond gets 503 with Retry-After
     (the trainer backs off and goes on training)."""
@@ -134,13 +137,16 @@ class ServeLimits:
 
         check_numbers(self, positive=("max_states", "max_request_mb", "max_text_chars", "max_actions",
                                       "max_action_chars", "max_visits", "max_clients", "max_sessions",
-                                      "max_client_share", "max_queue", "max_connections", "max_connections_per_peer",
+                                      "max_client_share", "max_peer_share", "max_queue", "max_connections", "max_connections_per_peer",
                                       "header_timeout", "request_timeout", "batch_deadline"))
         if self.max_request_bytes < MIN_REQUEST_BYTES:
             raise UsageError(f"--max-request-mb {self.max_request_mb:g} cannot hold one state at the per-field limits: "
                              f"give at least {MIN_REQUEST_BYTES / 2**20:g}")
         if self.max_client_share > 1:
             raise UsageError(f"--max-client-share is a share of --max-queue, in (0, 1], got {self.max_client_share:g}")
+        if self.max_peer_share > 1:
+            raise UsageError(f"--max-peer-share is a share of --max-queue and --max-clients, in (0, 1], got "
+                             f"{self.max_peer_share:g}")
 
     @property
     def max_request_bytes(self) -> int:

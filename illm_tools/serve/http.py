@@ -23,6 +23,7 @@ import logging
 import time
 
 from illm_tools.annotate.wire import TOKEN_ENV
+from illm_tools.serve.config import peer_group
 from illm_tools.serve.protocol import RequestError, read_json, requested_wait, trainer_of
 from illm_tools.serve.scheduler import AnnotationServer
 
@@ -44,8 +45,6 @@ class _Connection(asyncio.Protocol):
         self.started: float | None = None  # when the bytes of a request not yet handled began to arrive
 
     def connection_made(self, transport) -> None:
-        from illm_tools.serve.config import peer_group
-
         self.transport = transport
         peer = transport.get_extra_info("peername")
         self.peer = peer_group(str(peer[0]) if isinstance(peer, tuple) else str(peer))
@@ -208,7 +207,7 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
         try:  # a large body is parsed off the event loop: other requests and /stats are answered meanwhile
             body = await asyncio.get_running_loop().run_in_executor(None, read_json, raw) if len(raw) > 2**20 \
                 else read_json(raw)
-            answer = server.submit(body)
+            answer = server.submit(body, peer=peer_group(request.remote or ""))
         except RequestError as e:
             log.info("refused a request (%d): %s", e.status, str(e)[:300])
             return error(e.status, str(e), e.retry_after)

@@ -4,11 +4,13 @@ is `illm_tools.serve.http`).
 Queue. Each trainer, named by `client` (its run) and `session` (a random id it makes), has one
 pending list, replaced by its newest request, checked whole before anything is queued (`protocol`).
 Room: at most `max_queue` states (503) and `max_clients` trainers (503), `max_sessions` and
-`max_client_share` of the queue per client name (429); 429 and 503 carry Retry-After.
+`max_client_share` of the queue per client name, `max_peer_share` of the queue and of the trainers
+per peer, whatever names it sends under (429); 429 and 503 carry Retry-After.
 
-Scheduling. Round-robin across client names, least recently served first, one state per turn
-until the batch holds `chunk`; the visits a client declares only order its own states, so no count
-buys a place before another client's. A state two trainers both asked for is annotated once.
+Scheduling. Round-robin across peers (`config.peer_group`), then across a peer's client names,
+least recently served first, one state per turn until the batch holds `chunk` (`batch.take_turns`);
+the visits a client declares only order its own states, so no count buys a place before another
+client's, and no invented name a turn before another peer's. A state two trainers both asked for is annotated once.
 
 Faults. A batch runs in a daemon thread with a deadline (`batch_deadline`): past it, its states are
 answered as failed and no batch starts until the engine returns (requests are still answered); a
@@ -33,7 +35,7 @@ from dataclasses import asdict, dataclass, field
 from illm_tools.annotate.wire import PROTOCOL
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.serve.config import ServeConfig, ServeLimits
-from illm_tools.serve.batch import annotate_batch, in_thread, one_line
+from illm_tools.serve.batch import annotate_batch, in_thread, one_line, take_turns
 from illm_tools.serve.memory import resident_mb
 from illm_tools.serve.protocol import MAX_ID_CHARS, RequestError, ServerSetup, requested_wait, text, trainer_of
 from illm_tools.tasks.setup import AnnotationSetup
@@ -41,6 +43,8 @@ from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
 
+LOOPBACK = "loopback"
+"""The peer of every loopback address (`config.peer_group`), and of requests handed in-process."""
 MAX_RETRY_AFTER = 60
 """Longest Retry-After a busy server answers (seconds)."""
 
@@ -86,7 +90,9 @@ class AnnotationServer:
         self._landed: dict[tuple[str, str], int] = {}
         self._failed: dict[tuple[str, str], tuple[int, str]] = {}  # trainer -> (states failed, last reason)
         self._seen: dict[tuple[str, str], float] = {}  # when each trainer last sent (to forget the gone)
-        self._served: dict[str, int] = {}  # client name -> the round it last got a state (round-robin)
+        self._served: dict[tuple[str, str], int] = {}  # (peer, client name) -> the round it last got a state
+        self._served_peer: dict[str, int] = {}  # peer -> the round it last got a state (round-robin)
+        self._peer: dict[tuple[str, str], str] = {}  # trainer -> the peer its requests come from
         self._round = 0
         self._in_engine: set[tuple[str, str]] = set()  # trainers with states in the batch in progress
         self._waiters: dict[tuple[str, str], asyncio.Event] = {}  # trainers whose request waits (`settled`)
@@ -117,8 +123,9 @@ class AnnotationServer:
         return min(MAX_RETRY_AFTER, max(1, math.ceil(self.chunk / rate))) if rate else 5
 
     # --- requests ------------------------------------------------------------------------------
-    def submit(self, body) -> dict:
-        """Queue a parsed request body for its trainer (replacing that trainer's pending list)."""
+    def submit(self, body, peer: str = "loopback") -> dict:
+        """Queue a parsed request body for its trainer (replacing that trainer's pending list); `peer`:
+        the group of the address it came from (`config.peer_group`), whose share it counts in."""
         if not isinstance(body, dict):
             raise RequestError(400, "the request body must be a JSON object")
         missing = [k for k in ("client", "session", "model_fingerprint", "states") if k not in body]
@@ -154,15 +161,17 @@ class AnnotationServer:
             entry = entries.setdefault((setup, record), Pending(setup, record, 0, {trainer}))
             entry.visits += visits
         if entries:
-            self._check_room(trainer, entries)
+            self._check_room(trainer, entries, peer)
         self.totals["requests"] += 1
         self._seen[trainer] = time.monotonic()
         if entries:
             self._clients[trainer] = entries
+            self._peer[trainer] = peer
             self._wake.set()
         else:  # withdrawn: the trainer is done
             self._clients.pop(trainer, None)
             self._seen.pop(trainer, None)
+            self._peer.pop(trainer, None)
             self._wake_waiters()
         self._forget_gone()
         answer = {"queued": len(entries), "queue": self.queue_size(), "landed": self._landed.pop(trainer, 0)}
@@ -198,14 +207,19 @@ class AnnotationServer:
             if not self.pending_for(trainer):
                 event.set()
 
-    def _check_room(self, trainer: tuple[str, str], entries: dict) -> None:
+    def _check_room(self, trainer: tuple[str, str], entries: dict, peer: str = LOOPBACK) -> None:
         """RequestError (429 or 503, with Retry-After) when queueing `entries` for `trainer` (in place
-        of its list) would go beyond a limit; the trainer's current list stays queued."""
+        of its list) would go beyond a limit; the trainer's current list stays queued. A client name's
+        and a peer's shares: invented names take no more than their peer's."""
         limits, client = self.limits, trainer[0]
+        theirs = [who for who in self._clients if self._peer.get(who, LOOPBACK) == peer and who != trainer]
         if trainer not in self._clients:
             if len(self._clients) >= limits.max_clients:
                 raise RequestError(503, f"the server queues the states of {len(self._clients)} trainers, its limit "
                                         "(--max-clients): this run backs off and sends them again", self.retry_after())
+            if len(theirs) >= max(1, int(limits.max_peer_share * limits.max_clients)):
+                raise RequestError(429, f"the peer {peer} has {len(theirs)} trainers queued, its share of --max-clients "
+                                        "(--max-peer-share)", self.retry_after())
             sessions = sum(1 for who in self._clients if who[0] == client)
             if sessions >= limits.max_sessions:
                 raise RequestError(429, f"the client {client[:80]!r} has {sessions} sessions queued, the server's "
@@ -221,6 +235,11 @@ class AnnotationServer:
             raise RequestError(429, f"the client {client[:80]!r} would hold {len(mine | entries.keys()):,} queued states, "
                                     f"beyond its share {share:,} of the queue (--max-client-share): send fewer",
                                self.retry_after())
+        ours = {k for who in theirs for k in self._clients[who]}
+        share = max(1, int(limits.max_peer_share * limits.max_queue))
+        if len(ours | entries.keys()) > share:
+            raise RequestError(429, f"the peer {peer} would hold {len(ours | entries.keys()):,} queued states, beyond its "
+                                    f"share {share:,} of the queue (--max-peer-share): send fewer", self.retry_after())
 
     def _forget_gone(self) -> None:
         """Drop what is kept of trainers that went away without withdrawing (their landed and failed
@@ -232,11 +251,13 @@ class AnnotationServer:
                 self._seen.pop(who, None)
                 self._landed.pop(who, None)
                 self._failed.pop(who, None)
-        if len(self._served) > 2 * keep:
-            queued = {who[0] for who in self._clients}
-            for client in sorted(self._served, key=self._served.get)[: len(self._served) - keep]:
-                if client not in queued:
-                    del self._served[client]
+                self._peer.pop(who, None)
+        for served, queued in ((self._served, {(self._peer.get(w, LOOPBACK), w[0]) for w in self._clients}),
+                               (self._served_peer, {self._peer.get(w, LOOPBACK) for w in self._clients})):
+            if len(served) > 2 * keep:
+                for lane in sorted(served, key=served.get)[: len(served) - keep]:
+                    if lane not in queued:
+                        del served[lane]
 
     def queue_size(self) -> int:
         return len({k for entries in self._clients.values() for k in entries})
@@ -258,37 +279,21 @@ class AnnotationServer:
 
     # --- the scheduler ---------------------------------------------------------------------------
     def next_batch(self) -> list[Pending]:
-        """Take up to `chunk` pending states, round-robin across client names (least recently served
-        first), each client's own states most visited first; a state asked by several trainers is
-        one entry with all of them."""
-        queues: dict[str, dict[tuple, Pending]] = {}
-        for (client, _), entries in self._clients.items():
-            mine = queues.setdefault(client, {})
+        """Take up to `chunk` pending states, round-robin across peers (`config.peer_group`), then
+        across the client names of a peer, least recently served first, each client's own states
+        most visited first; a state asked by several trainers is one entry with all of them. A peer
+        gets one state a turn however many names it sends under."""
+        lanes: dict[tuple[str, str], dict[tuple, Pending]] = {}  # (peer, client name) -> its states
+        for trainer, entries in self._clients.items():
+            mine = lanes.setdefault((self._peer.get(trainer, LOOPBACK), trainer[0]), {})
             for key, entry in entries.items():
                 have = mine.get(key)
                 if have is None:
                     mine[key] = Pending(entry.setup, entry.record, entry.visits, set())
                 else:
                     have.visits += entry.visits
-        order = sorted(queues, key=lambda c: self._served.get(c, -1))  # stable: ties in arrival order
-        lists = {c: sorted(queues[c].values(), key=lambda p: -p.visits) for c in order}
-        at = dict.fromkeys(order, 0)
-        batch: dict[tuple, Pending] = {}
         self._round += 1
-        while len(batch) < self.chunk:
-            took = False
-            for c in order:
-                mine = lists[c]
-                while at[c] < len(mine) and (mine[at[c]].setup, mine[at[c]].record) in batch:
-                    at[c] += 1
-                if at[c] < len(mine) and len(batch) < self.chunk:
-                    p = mine[at[c]]
-                    batch[(p.setup, p.record)] = p
-                    at[c] += 1
-                    self._served[c] = self._round
-                    took = True
-            if not took:
-                break
+        batch = take_turns(lanes, self._served, self._served_peer, self._round, self.chunk)
         for trainer in list(self._clients):
             entries = self._clients[trainer]
             for key in batch.keys() & entries.keys():
