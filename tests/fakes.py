@@ -347,6 +347,33 @@ def stub_annotated(root, n: int = 6) -> Path:
     return Path(root)
 
 
+def trains_with_the_engine_stopped(ann, run, entries: int, env: str = "BabyAI-GoToRedBallNoDists-v0") -> str:
+    """Issue 54's checks of a cache annotated through an engine at two addresses, the engine stopped:
+    `illm cache info` lists one setup per task (served at both addresses, `entries` states each) and
+    `illm train --live-budget 0` adopts it and trains on its targets; returns the run's output."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from illm_tools.llm import openai_engine
+
+    runner = CliRunner()
+    openai_engine._FINGERPRINTS.clear()  # what this process asked the engine: a later command starts afresh
+    openai_engine._ENGINES.clear()
+    info = runner.invoke(app, ["cache", "info", str(ann), "--json"])
+    assert info.exit_code == 0, info.output
+    setups = json.loads(info.output)["setups"]
+    assert sorted(u["task"] for u in setups) == ["action", "summary"], setups  # one setup per task
+    assert all(len(u["served_at"]) == 2 and u["entries"] == entries for u in setups), setups
+    assert all("another file or revision" not in u["model_options"] for u in setups)
+    done = runner.invoke(app, ["train", "--env", env, "--method", "illm", "--cache", str(ann), "--live-budget", "0",
+                               "--num-envs", "4", "--num-steps", "32", "--frames", "256", "--seed", "0", "--out",
+                               str(run), "--device", "cpu"])
+    assert done.exit_code == 0, done.output
+    metrics = [json.loads(line) for line in (Path(run) / "metrics.jsonl").read_text().splitlines()]
+    assert max(m.get("charts/target_coverage", 0.0) for m in metrics) > 0  # targets of the cached states
+    return done.output
+
+
 def keys_of(rows: list[dict]) -> list[str]:
     return [r["key"] for r in rows]
 

@@ -23,6 +23,7 @@ from illm_tools.llm.backend import load_backend, resolve_model
 from illm_tools.llm.openai import EndpointError, OpenAIBackend
 from illm_tools.llm.transformers_backend import TransformersBackend
 from illm_tools.tasks.state import StateRecord
+from fakes import trains_with_the_engine_stopped
 
 pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")
 ACTIONS = ("turn left", "turn right", "go forward")
@@ -321,23 +322,8 @@ def test_a_cache_annotated_through_an_engine_trains_with_the_engine_stopped_unde
                                    "--endpoint", url, "--history", "0", "--limit", str(limit)])
         assert done.exit_code == 0, done.output
     engine.stop()
-    from illm_tools.llm import openai_engine
-
-    openai_engine._FINGERPRINTS.clear()  # what this process asked the engine: a later command starts afresh
-    openai_engine._ENGINES.clear()
-    info = runner.invoke(app, ["cache", "info", str(ann), "--json"])
-    assert info.exit_code == 0, info.output
-    setups = json.loads(info.output)["setups"]
-    assert sorted(u["task"] for u in setups) == ["action", "summary"]  # one setup per task
-    assert all(len(u["served_at"]) == 2 and u["entries"] == 12 for u in setups), setups
-    assert all("another file or revision" not in u["model_options"] for u in setups)
-    done = runner.invoke(app, ["train", "--env", "BabyAI-GoToRedBallNoDists-v0", "--method", "illm", "--cache", str(ann),
-                               "--live-budget", "0", "--num-envs", "4", "--num-steps", "32", "--frames", "256",
-                               "--seed", "0", "--out", str(tmp_path / "run")])
-    assert done.exit_code == 0, done.output
-    assert "adopting the cache's setup: --backend openai --model tiny" in done.output
-    metrics = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    assert max(m.get("charts/target_coverage", 0.0) for m in metrics) > 0  # targets of the cached states
+    said = trains_with_the_engine_stopped(ann, tmp_path / "run", 12)
+    assert "adopting the cache's setup: --backend openai --model tiny" in said
     with caplog.at_level(logging.WARNING, logger="illm_tools.rl.run"):
         live = runner.invoke(app, ["train", "--env", "BabyAI-GoToRedBallNoDists-v0", "--method", "illm", "--cache",
                                    str(ann), "--live-budget", "4", "--num-envs", "4", "--num-steps", "32", "--frames",

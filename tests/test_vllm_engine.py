@@ -20,7 +20,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
-from fakes import collected
+from fakes import collected, trains_with_the_engine_stopped
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("vllm")]  # one worker starts the servers once
 ROOT = Path(__file__).resolve().parents[1]
@@ -152,10 +152,6 @@ def test_its_cache_trains_with_the_engines_stopped_under_either_address(engines,
     """Issue 54, last in the module (it stops the engines): annotated at 127.0.0.1, a few states more
     through `localhost`; with both servers stopped `illm cache info` lists one setup per task and
     `illm train --live-budget 0` adopts it and trains on its targets."""
-    import json
-
-    from illm_tools.llm import openai_engine
-
     traj = collected(tmp_path / "traj", 256, 4, env="BabyAI-GoToRedBallNoDists-v0")
     ann = tmp_path / "ann"
     for url, pooled, limit in ((engines[0], engines[1], 12), (engines[0].replace("127.0.0.1", "localhost"),
@@ -164,16 +160,4 @@ def test_its_cache_trains_with_the_engines_stopped_under_either_address(engines,
                   tasks="action,summary", limit=limit)
     for server in engine_servers:
         server.stop()
-    openai_engine._FINGERPRINTS.clear()  # what this process asked the engines: a later command starts afresh
-    openai_engine._ENGINES.clear()
-    info = runner.invoke(app, ["cache", "info", str(ann), "--json"])
-    assert info.exit_code == 0, info.output
-    setups = json.loads(info.output)["setups"]
-    assert sorted(u["task"] for u in setups) == ["action", "summary"], setups
-    assert all(len(u["served_at"]) == 2 and u["entries"] == 16 for u in setups), setups
-    done = runner.invoke(app, ["train", "--env", "BabyAI-GoToRedBallNoDists-v0", "--method", "illm", "--cache", str(ann),
-                               "--live-budget", "0", "--num-envs", "4", "--num-steps", "32", "--frames", "256",
-                               "--seed", "0", "--out", str(tmp_path / "run"), "--device", "cpu"])
-    assert done.exit_code == 0, done.output
-    metrics = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    assert max(m.get("charts/target_coverage", 0.0) for m in metrics) > 0
+    trains_with_the_engine_stopped(ann, tmp_path / "run", 16)
