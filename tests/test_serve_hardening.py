@@ -472,9 +472,7 @@ def test_peers_are_counted_by_group_headers_have_their_own_timeout_and_nothing_i
                 assert extra.recv(4096).decode().startswith("HTTP/1.1 503")
             held[0].sendall(b"POST /annotate HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")  # headers begun, never ended
             held[0].settimeout(15)
-            started = time.monotonic()
-            assert held[0].recv(4096) == b""  # cut by the header timeout, not the request timeout
-            assert time.monotonic() - started < 15
+            assert held[0].recv(4096) == b""  # cut by the header timeout (1 s), not the request timeout (30 s)
             held[1].settimeout(0.5)
             with pytest.raises(TimeoutError):  # idle, sending nothing: kept past the header timeout
                 time.sleep(2.0)

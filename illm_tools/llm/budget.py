@@ -17,11 +17,8 @@ activations). `--batch-tokens` sets it instead.
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Sequence
 from typing import Any
-
-log = logging.getLogger(__name__)
 
 SHARE = 0.25
 """The share of the free memory at load that the batches may take (the rest: the trainer, the

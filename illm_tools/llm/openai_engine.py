@@ -15,6 +15,7 @@ import urllib.request
 from dataclasses import dataclass
 
 from illm_tools.errors import IllmError, UsageError
+from illm_tools.web import NO_REDIRECTS
 
 DEFAULT_KEY_ENV = "OPENAI_API_KEY"
 _SPEC = re.compile(r"^(?P<model>[^@#\s]+)@(?P<url>https?://[^#;\s]+?)/?(?:#(?P<key>[A-Za-z_][A-Za-z0-9_]*))?"
@@ -48,14 +49,6 @@ def _no_constant(name: str):
     raise ValueError(f"{name} is not a finite number")
 
 
-class _NoRedirect(urllib.request.HTTPRedirectHandler):
-    """A 3xx is an HTTPError, never followed: the API key goes to the configured endpoint only."""
-
-    def redirect_request(self, req, fp, code, msg, headers, newurl):
-        return None
-
-
-_OPENER = urllib.request.build_opener(_NoRedirect())
 
 
 class EngineUnreachableError(UsageError):
@@ -139,7 +132,7 @@ class Client:
             request = urllib.request.Request(base + path, data=data, headers=headers,
                                              method="GET" if body is None else "POST")
             try:
-                with _OPENER.open(request, timeout=self.timeout) as response:
+                with NO_REDIRECTS.open(request, timeout=self.timeout) as response:
                     raw = response.read(MAX_ANSWER_BYTES + 1)
                     if len(raw) > MAX_ANSWER_BYTES:
                         raise EndpointError(f"{base + path} answered more than {MAX_ANSWER_BYTES // 2**20} MiB: refused")

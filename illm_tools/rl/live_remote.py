@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from illm_tools.llm.spec import LLMSpec
+from illm_tools.web import NO_REDIRECTS
 from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
@@ -23,14 +24,6 @@ class BadAnswer(ValueError):
     """The server answered something that is not an illm server's answer (not a JSON object, too large)."""
 
 
-class _NoRedirect(urllib.request.HTTPRedirectHandler):
-    """urllib's redirect handling replaced: a 3xx is an HTTPError, never followed (with the token)."""
-
-    def redirect_request(self, req, fp, code, msg, headers, newurl):
-        return None
-
-
-_OPENER = urllib.request.build_opener(_NoRedirect())
 MAX_ANSWER_BYTES = 1 << 20
 """The largest answer a trainer reads from its server (an answer is a few counts)."""
 RETRY_AFTER = (1.0, 60.0)
@@ -149,7 +142,7 @@ class RemoteLive:
         data = None if body is None else json.dumps(body).encode()
         request = urllib.request.Request(self.url + path, data=data, method="GET" if body is None else "POST",
                                          headers={"Content-Type": "application/json", **auth_headers(self._token)})
-        with _OPENER.open(request, timeout=timeout or self.timeout) as response:
+        with NO_REDIRECTS.open(request, timeout=timeout or self.timeout) as response:
             raw = response.read(MAX_ANSWER_BYTES + 1)
         try:
             answer = json.loads(raw) if len(raw) <= MAX_ANSWER_BYTES else None
