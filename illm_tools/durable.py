@@ -5,12 +5,17 @@ removes its temporary file and leaves the old file as it was. This is the annota
 path (`illm_tools.cache.layout`), shared: shards, manifests, checkpoints, configs, metrics, state
 files, exports and reports all go through here.
 
-- `write_bytes(path, data)` / `write_text(path, text)`: the whole file at once;
+- `write_bytes(path, data)` / `write_text(path, text)`: the whole file at once; `write_json(path,
+  payload)` a small record (its keys sorted), its folder made first;
 - `staged(path)`: a context manager yielding an open temporary file for writers that stream
   (torch.save, numpy, parquet); the file is fsynced on exit and removed if the block raises;
   `commit(tmp, path)` renames it over the target and fsyncs the folder (kept apart so a caller can
   do something in between: checkpoints keep the previous file, the cache hooks crash tests in);
 - `fsync_dir(path)`: make a rename in `path` durable;
+- `commit_folder(tmp, path)`: a folder built whole in a temporary sibling (its files fsynced,
+  `fsync_files`) renamed into place, so it is complete or absent; the rename refuses a `path`
+  another process already filled, which the caller may take as its own;
+- `sha256_file(path)`: the hash of a file's bytes, for the records that say what was written;
 - `exclusive(lock_path, busy=...)`: hold a folder's writer lock (flock, released by the OS if the
   process dies): waits for it, or with `busy` raises that message at once when another process
   holds it (a training run's folder: two trainers must not write one run).
@@ -22,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import hashlib
+import json
 import os
 import uuid
 from collections.abc import Iterator
@@ -75,6 +81,25 @@ def commit(tmp: str | os.PathLike, path: str | os.PathLike) -> Path:
     return path
 
 
+def fsync_files(folder: str | os.PathLike) -> None:
+    """fsync every file directly in `folder`, so renaming them (or it) leaves them whole."""
+    for p in Path(folder).iterdir():
+        if p.is_file():
+            with open(p, "rb") as fh:
+                os.fsync(fh.fileno())
+
+
+def commit_folder(tmp: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Rename the folder `tmp`, its files fsynced here, to `path` and fsync the parent folder. Raises
+    OSError where `path` exists and is not empty (os.rename never merges folders)."""
+    path = Path(path)
+    fsync_files(tmp)
+    fsync_dir(tmp)
+    os.rename(tmp, path)
+    fsync_dir(path.parent)
+    return path
+
+
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Replace `path` with `data`, durably (see the module docstring)."""
     with staged(path) as fh:
@@ -85,6 +110,14 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 def write_text(path: str | os.PathLike, text: str) -> Path:
     """Replace `path` with `text` (UTF-8), durably."""
     return write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path: str | os.PathLike, payload: dict) -> Path:
+    """Replace `path` with `payload` as JSON, keys sorted, durably; its folder is made if absent (a
+    memo's or a record's first write into a cache)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_text(path, json.dumps(payload, sort_keys=True))
 
 
 def sha256_file(path: str | os.PathLike) -> str:

@@ -85,7 +85,8 @@ def _annotate(trajectories, cache, engine, *extra):
 def test_ranking_through_the_engine_is_refused_in_one_line_with_nothing_written(engine, trajectories, tmp_path):
     from llama_cpp import __version__
 
-    from illm_tools.llm.openai import OpenAIBackend, openai_spec
+    from illm_tools.llm.openai import OpenAIBackend
+    from illm_tools.llm.openai_wire import openai_spec
 
     backend = OpenAIBackend(openai_spec(SERVED, engine))
     assert not backend.engine.batches and "one prompt per request" in backend.fingerprint["engine"]

@@ -20,7 +20,8 @@ from illm_tools.annotate.engine import Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.llm.backend import load_backend, resolve_model
-from illm_tools.llm.openai import EndpointError, OpenAIBackend
+from illm_tools.llm.openai import OpenAIBackend
+from illm_tools.llm.openai_wire import EndpointError
 from illm_tools.llm.transformers_backend import TransformersBackend
 from illm_tools.tasks.state import StateRecord
 from fakes import trains_with_the_engine_stopped
@@ -396,7 +397,7 @@ def test_an_engines_malformed_ranking_is_refused_in_one_line_naming_it(tiny_lm, 
 
 
 def test_an_engines_embeddings_of_another_width_or_an_answer_too_large_are_refused(tiny_lm, monkeypatch):
-    from illm_tools.llm import openai_engine
+    from illm_tools.llm import openai_wire
 
     engine = Server(tiny_lm)
     remote = load_backend("openai", resolve_model("openai", "tiny", endpoint=engine.url))
@@ -404,7 +405,7 @@ def test_an_engines_embeddings_of_another_width_or_an_answer_too_large_are_refus
     with pytest.raises(EndpointError, match="not finite vectors of 64 dimensions"):
         remote.embed(["go to the red ball"])
     engine.mutate_embeddings = None
-    monkeypatch.setattr(openai_engine, "MAX_ANSWER_BYTES", 200)  # a cap this answer passes
+    monkeypatch.setattr(openai_wire, "MAX_ANSWER_BYTES", 200)  # a cap this answer passes
     with pytest.raises(EndpointError, match="answered more than 0 MiB: refused"):
         remote.embed(["go to the red ball"])
     engine.stop()

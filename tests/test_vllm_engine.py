@@ -93,12 +93,13 @@ def _rows(cache, task):
 
 
 def test_the_engine_passes_the_probes(engines):
-    from illm_tools.llm import openai
+    from illm_tools.llm import openai_wire
 
-    spec = openai.openai_spec(SERVED, engines[0], embed_endpoint=engines[1])
-    fingerprint = openai._fingerprint(spec)
+    spec = openai_wire.openai_spec(SERVED, engines[0], embed_endpoint=engines[1])
+    fingerprint = openai_wire.served_fingerprint(spec)
     assert fingerprint["engine"] == "version 0.32.0"  # vLLM's /version; one prompt list per request
-    assert openai._ENGINES[spec].batches and openai._ENGINES[spec].aligned, openai._ENGINES[spec].detail
+    probe = openai_wire.engine_probe(spec)
+    assert probe.batches and probe.aligned, probe.detail
     assert fingerprint["embedder"].startswith("pooling endpoint") and fingerprint["embedding_dim"] == 576
 
 

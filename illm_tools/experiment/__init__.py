@@ -30,7 +30,7 @@ A grid value may be a mapping: a bundle of settings applied together, named by i
 label's value), e.g. `annotator: [{name: oracle, backend: oracle}, {name: gpt2, model: gpt2}]`.
 
 Everything is checked before anything runs: the top-level keys, the method names, the env ids, the
-setting names (each a setting of `illm train` under its flat name, `illm_tools.rl.names`: model,
+setting names (each a setting of `illm train` under its flat name, `illm_tools.rl.config.FLAT`: model,
 model_dtype, lambda_a, ...; or `env_options.<name>`, which its suite checks) and their values (every
 run's TrainConfig is built, by `illm_tools.rl.build.run_config` as `illm train` builds one: the
 preset expanded, the cache's setup adopted where no model option is set, a resumed run's own
@@ -42,10 +42,15 @@ rest start; runs go `jobs` at a time, each in a process of its own with one torc
 `--only PATTERN` (repeatable) trains a part of the grid: the runs whose label (`ppo`,
 `illm-annotator=student`) or path under the results folder (`BabyAI-GoToLocal-v0/ppo/seed0`) a
 pattern matches (shell wildcards); the rest are left as they are, for a later call.
+
+Modules: spec.py, the spec file read and checked (`Spec`, `load_spec`, `Cluster`); config.py, the
+command's options (`ExperimentConfig`); plan.py, the grid planned into runs (`plan`, `select`,
+`claim_results`); launch.py, the runs trained (`run_experiment`).
 """
+from illm_tools.experiment.config import LAUNCHERS, ExperimentConfig, check_launcher
 from illm_tools.experiment.launch import POLL_S, run_experiment
-from illm_tools.experiment.spec import (LAUNCHERS, SPEC_COPY, TOP_KEYS, Cluster, ExperimentConfig, Run, Spec,
-                                        check_launcher, claim_results, load_spec, plan, select, unavailable_models)
+from illm_tools.experiment.plan import SPEC_COPY, Run, claim_results, plan, select, unavailable_models
+from illm_tools.experiment.spec import TOP_KEYS, Cluster, Spec, load_spec
 
 __all__ = ["LAUNCHERS", "POLL_S", "SPEC_COPY", "TOP_KEYS", "Cluster", "ExperimentConfig", "Run", "Spec",
            "check_launcher", "claim_results", "load_spec", "plan", "run_experiment", "select", "unavailable_models"]

@@ -9,7 +9,9 @@ from pathlib import Path
 from typing import Any
 
 from illm_tools.errors import UsageError
-from illm_tools.experiment.spec import Cluster, Run, Spec, check_launcher, claim_results, plan, select
+from illm_tools.experiment.config import check_launcher
+from illm_tools.experiment.plan import Run, claim_results, plan, select
+from illm_tools.experiment.spec import Cluster, Spec
 
 _STOP = None  # a local grid worker's copy of the grid's stop event (`_init_worker`)
 POLL_S = 0.5  # how often the local grid's parent checks `should_stop` while runs train

@@ -1,213 +1,185 @@
-"""The spec of an `illm experiment` (its format: the package's docstring) read and checked, and its
-grid planned into runs: each run's TrainConfig, folder and status, before anything trains. (The
-command's options, `ExperimentConfig` and `Cluster`, and the spec file read and checked, `Spec` and
-`load_spec`, are in config.py, re-exported here.)"""
+"""An `illm experiment`'s spec file (its format: the package's docstring) read and checked for
+shape: `Spec`, `load_spec`, and `Cluster`, its `cluster:` block (a run's job resources under a
+scheduler). Its names and values are checked when its grid is planned (`plan.py`)."""
 from __future__ import annotations
 
-import fnmatch
-import itertools
-import shutil
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from illm_tools.errors import IllmError, UsageError
-from illm_tools.experiment.config import (CLUSTER_KEYS, LAUNCHERS, REQUIRED, TOP_KEYS, Cluster,  # noqa: F401
-                                          ExperimentConfig, Spec, check_launcher, load_spec)
+from illm_tools.errors import UsageError
 
-SPEC_COPY = "spec.yaml"
+TOP_KEYS = ("name", "frames", "env_frames", "seeds", "envs", "methods", "grid", "method_grid", "settings",
+            "method_settings", "description", "paper", "cluster")
+REQUIRED = ("envs", "methods")
+
+
+@dataclass(frozen=True)
+class Cluster:
+    """Resources of one run's job under a scheduler: a spec's `cluster:` block, which the CLI's
+    --partition, --time-minutes, --cpus, --gpus and --mem-gb override."""
+    partition: str | None = None
+    time_minutes: int = 240
+    cpus: int = 1
+    gpus: int = 0
+    mem_gb: float | None = None
+
+    def merged(self, **overrides: Any) -> Cluster:
+        """These settings with every override that is not None, checked."""
+        from illm_tools.settings import check_numbers
+
+        out = replace(self, **{k: v for k, v in overrides.items() if v is not None})
+        check_numbers(out, positive=("time_minutes", "cpus", "mem_gb"), non_negative=("gpus",))
+        return out
+
+
+CLUSTER_KEYS = tuple(f.name for f in fields(Cluster))
 
 
 @dataclass
-class Run:
-    """One run of the grid."""
+class Spec:
+    """An experiment spec as read and checked for shape (`load_spec`), before `plan` checks its names."""
 
-    env_id: str
-    label: str
-    seed: int
-    config: Any
-    """Its `TrainConfig` (run_dir set)."""
-    status: str = "new"
-    """new | resume | done, from what its folder holds."""
+    name: str
+    path: Path
+    text: str
+    frames: int
+    seeds: list[int]
+    envs: list[str]
+    methods: list[str]
+    env_frames: dict[str, int] = field(default_factory=dict)
+    """Per env, frames per run over `frames`."""
+    grid: dict[str, list] = field(default_factory=dict)
+    method_grid: dict[str, dict[str, list]] = field(default_factory=dict)
+    """Per method, more grid values crossed with `grid` for that method's runs alone."""
+    settings: dict[str, Any] = field(default_factory=dict)
+    method_settings: dict[str, dict] = field(default_factory=dict)
+    paper: dict = field(default_factory=dict)
+    """What the paper sets for this table (documentation, checked by tests/test_experiment.py)."""
+    cluster: Cluster = field(default_factory=Cluster)
+    """Resources of a run's job under a scheduler."""
+    lines: dict[tuple, int] = field(default_factory=dict)
+    """(key, subkey, ...) -> line number in the file, for errors."""
 
-
-def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> None:
-    """Set a run setting (by its flat name, `illm_tools.rl.names`: as `illm train`'s options name it; or
-    env_options.KEY, or bonus_preset) in `fields`, refusing unknown names."""
-    from illm_tools.rl.config import TrainConfig
-    from illm_tools.rl.names import flat_names
-
-    known = set(flat_names(TrainConfig))
-    if name.startswith("env_options."):
-        fields.setdefault("env_options", {})[name.split(".", 1)[1]] = value
-        return
-    if name == "bonus_preset":  # a preset stands for its settings (`run_config` expands it), as in `illm train`
-        from illm_tools.rl.presets import bonus_weights
-
-        try:
-            bonus_weights(value)
-        except UsageError as e:
-            raise UsageError(f"{spec.line(*where)}: {e}") from None
-        fields[name] = value
-        return
-    if name in ("env_id", "method", "seed", "run_dir", "total_steps", "resume"):
-        raise UsageError(f"{spec.line(*where)}: {name} is set by the grid itself (envs, methods, seeds, frames, "
-                         "the results folder): remove it")
-    if name not in known:
-        import difflib
-
-        close = difflib.get_close_matches(name, sorted(known), n=1)
-        hint = f" (did you mean {close[0]}?)" if close else ""
-        raise UsageError(f"{spec.line(*where)}: unknown setting {name!r}{hint}; settings are `illm train`'s "
-                         "options by name (`illm train --help`) or env_options.KEY")
-    fields[name] = value
+    def line(self, *path) -> str:
+        for n in range(len(path), 0, -1):
+            if path[:n] in self.lines:
+                return f"{self.path} line {self.lines[path[:n]]}"
+        return str(self.path)
 
 
-def _label(method: str, combo: dict) -> str:
-    return "-".join([method, *(f"{k.split('.')[-1]}={v['name'] if isinstance(v, dict) else v}"
-                               for k, v in combo.items())])
+def _lines(node, prefix: tuple = ()) -> dict[tuple, int]:
+    """The line of every mapping key (and list item) of a composed YAML node, by its key path."""
+    import yaml
 
-
-def _combos(spec: Spec) -> list[tuple[dict, dict]]:
-    """Every combination of grid values, each with where its names are written in the spec: the
-    grid's alone, and for a method with a `method_grid`, the grid's crossed with its own (marked
-    with the method, so that only its runs take them; `plan` drops the plain grid's combinations
-    for that method)."""
-    def product(grids: dict[str, tuple]) -> list[dict]:
-        return [dict(zip(grids, values)) for values in itertools.product(*(g[1] for g in grids.values()))]
-
-    plain = {k: (("grid",), v) for k, v in spec.grid.items()}
-    out = []
-    for combo in product(plain):
-        out.append(({**combo, "__method__": None}, {k: plain[k][0] for k in combo}))
-    for method, extra in spec.method_grid.items():
-        grids = {**plain, **{k: (("method_grid", method), v) for k, v in extra.items()}}
-        for combo in product(grids):
-            out.append(({**combo, "__method__": method}, {k: grids[k][0] for k in combo}))
+    out: dict[tuple, int] = {}
+    if isinstance(node, yaml.MappingNode):
+        for key, value in node.value:
+            path = (*prefix, key.value)
+            out[path] = key.start_mark.line + 1
+            out.update(_lines(value, path))
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            out[(*prefix, i)] = item.start_mark.line + 1
+            out.update(_lines(item, (*prefix, i)))
     return out
 
 
-def plan(spec: Spec, results: str | Path, say: Callable[[str], None] | None = None) -> list[Run]:
-    """Every run of the grid with its TrainConfig (all built now: a bad value is refused before
-    anything runs) and its status from its folder; `say` hears each line `run_config` says (a cache's
-    setup adopted) once."""
-    said: set[str] = set()
+def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[int] | None = None) -> Spec:
+    """Read and check a spec file's shape (names and values are checked by `plan`)."""
+    import yaml
 
-    def once(line: str) -> None:
-        if say is not None and line not in said:
-            said.add(line)
-            say(line)
-
-    from illm_tools.envs import suite_of
-    from illm_tools.intrinsic.registry import get_method
-    from illm_tools.rl.checkpoint import CHECKPOINT_NAME, load_checkpoint
-
-    results = Path(results)
-    for i, method in enumerate(spec.methods):
-        try:
-            get_method(method)
-        except UsageError as e:
-            raise UsageError(f"{spec.line('methods', i)}: {e}") from None
-    for i, env_id in enumerate(spec.envs):
-        try:
-            suite_of(env_id)
-        except IllmError as e:
-            raise UsageError(f"{spec.line('envs', i)}: {e}") from None
-    for key in ("method_settings", "method_grid"):
-        for method in getattr(spec, key):
-            if method not in spec.methods:
-                raise UsageError(f"{spec.line(key, method)}: {key} names {method!r}, which is not among the spec's "
-                                 f"methods ({', '.join(spec.methods)})")
-    runs = []
-    for env_id, method, (combo, where) in itertools.product(spec.envs, spec.methods, _combos(spec)):
-        owner = combo["__method__"]  # None: the plain grid's, for the methods without a grid of their own
-        if owner != method and (owner is not None or method in spec.method_grid):
-            continue
-        combo = {k: v for k, v in combo.items() if k != "__method__"}
-        label = _label(method, combo)
-        base: dict = {}
-        for name, value in spec.settings.items():
-            _apply(base, name, value, spec, ("settings", name))
-        for name, value in (spec.method_settings.get(method) or {}).items():
-            _apply(base, name, value, spec, ("method_settings", method, name))
-        for name, value in combo.items():
-            if isinstance(value, dict):  # a bundle of settings, named by its `name`
-                for key, setting in value.items():
-                    if key != "name":
-                        _apply(base, key, setting, spec, (*where[name], name))
-            else:
-                _apply(base, name, value, spec, (*where[name], name))
-        for seed in spec.seeds:
-            run_dir = results / env_id.replace("/", "-") / label / f"seed{seed}"
-            settings = {**base, "env_id": env_id, "method": method, "seed": seed,
-                        "total_steps": spec.env_frames.get(env_id, spec.frames), "run_dir": run_dir, "threads": 1}
-            cfg = _run_config(settings, spec, f"{env_id} {label} seed {seed}", once)
-            status = "new"
-            if (run_dir / CHECKPOINT_NAME).exists():
-                done = int(load_checkpoint(run_dir)["global_step"])
-                status = "done" if done >= cfg.num_updates * cfg.batch_size else "resume"
-                if status == "resume":  # its own settings from its folder, as `illm train --resume` reads them
-                    cfg = _run_config({**settings, "resume": True}, spec, f"{env_id} {label} seed {seed}")
-            runs.append(Run(env_id, label, seed, cfg, status))
-    return runs
-
-
-def _run_config(settings: dict, spec: Spec, run: str, say: Callable[[str], None] | None = None):
-    """A grid run's TrainConfig, built as `illm train` builds one (`illm_tools.rl.build.run_config`:
-    preset expanded, the cache's setup adopted, a resumed run's settings merged); refused in one line
-    naming the run."""
-    from illm_tools.rl.build import run_config
-
+    path = Path(path)
+    if not path.is_file():
+        raise UsageError(f"no experiment spec at {path}: pass a YAML file (experiments/specs/ has examples)")
+    text = path.read_text()
     try:
-        return run_config(settings, say=say)
-    except (IllmError, TypeError) as e:
-        raise UsageError(f"{spec.line('settings')}: the run {run} is refused: {e}") from None
+        data = yaml.safe_load(text)
+        lines = _lines(yaml.compose(text)) if data else {}
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise UsageError(f"{path}{where} is not valid YAML ({getattr(e, 'problem', e)}): fix the spec") from None
+    if not isinstance(data, dict):
+        raise UsageError(f"{path} must be a mapping with keys {', '.join(REQUIRED)} (and "
+                         f"{', '.join(k for k in TOP_KEYS if k not in REQUIRED)})")
+    spec_lines = lines
+    for key in data:
+        if key not in TOP_KEYS:
+            import difflib
 
+            close = difflib.get_close_matches(str(key), TOP_KEYS, n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise UsageError(f"{path} line {spec_lines.get((key,), '?')}: unknown key {key!r}{hint}; a spec takes "
+                             f"{', '.join(TOP_KEYS)}")
+    for key in REQUIRED:
+        if not data.get(key):
+            raise UsageError(f"{path}: the spec needs a non-empty {key!r} list")
 
-def select(runs: list[Run], only: list[str] | tuple = ()) -> list[Run]:
-    """The runs that `--only`'s patterns pick (all of them without patterns): a pattern matches a run's
-    label or its path ENV/LABEL/seedN. A pattern that picks no run is refused, naming the labels."""
-    if not only:
-        return list(runs)
+    def as_list(key: str) -> list:
+        value = data[key]
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, list):
+            raise UsageError(f"{path} line {spec_lines.get((key,), '?')}: {key} must be a list")
+        return value
 
-    def picks(run: Run, pattern: str) -> bool:
-        path = "/".join(Path(run.config.run_dir).parts[-3:])  # ENV/LABEL/seedN, as `plan` made it
-        return fnmatch.fnmatchcase(run.label, pattern) or fnmatch.fnmatchcase(path, pattern)
-
-    unmatched = [p for p in only if not any(picks(r, p) for r in runs)]
-    if unmatched:
-        labels = ", ".join(dict.fromkeys(r.label for r in runs))
-        raise UsageError(f"--only {unmatched[0]!r} matches no run of this spec; its labels: {labels} "
-                         "(or a path ENV/LABEL/seedN)")
-    return [r for r in runs if any(picks(r, p) for p in only)]
-
-
-def claim_results(spec: Spec, results: str | Path) -> Path:
-    """Create the results folder with the spec copied in, or check that it holds this spec."""
-    results = Path(results)
-    copy = results / SPEC_COPY
-    if copy.exists():
-        if copy.read_text() != spec.text:
-            raise UsageError(f"{results} holds the results of another spec ({copy} differs from {spec.path}): pass "
-                             "another --out, or restore the spec that made them")
-        return results
-    if results.exists() and any(results.iterdir()):
-        raise UsageError(f"{results} holds files but no {SPEC_COPY}: pass another --out for this experiment")
-    results.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(spec.path, copy)
-    return results
-
-
-def unavailable_models(runs: list[Run]) -> dict[str, int]:
-    """The model aliases the runs still to train would load that this machine cannot load offline
-    (`illm models`), with how many runs each: a dry run names them before a grid fails on them."""
-    from illm_tools.llm.registry import list_models
-
-    missing = {m.alias for m in list_models() if not m.available}
-    out: dict[str, int] = {}
-    for run in runs:
-        cfg = run.config
-        if run.status != "done" and cfg.uses_llm and cfg.llm.backend == "transformers" and cfg.llm.model in missing:
-            out[cfg.llm.model] = out.get(cfg.llm.model, 0) + 1
-    return out
+    chosen_seeds = seeds if seeds is not None else data.get("seeds", 3)
+    seed_list = list(range(chosen_seeds)) if isinstance(chosen_seeds, int) else list(chosen_seeds)
+    if not seed_list or not all(isinstance(s, int) and s >= 0 for s in seed_list):
+        raise UsageError(f"{path} line {spec_lines.get(('seeds',), '?')}: seeds must be a count or a list of "
+                         "non-negative integers")
+    grid = data.get("grid") or {}
+    method_grid = data.get("method_grid") or {}
+    settings = data.get("settings") or {}
+    per_method = data.get("method_settings") or {}
+    for key, value in (("grid", grid), ("method_grid", method_grid), ("settings", settings),
+                       ("method_settings", per_method)):
+        if not isinstance(value, dict):
+            raise UsageError(f"{path} line {spec_lines.get((key,), '?')}: {key} must be a mapping")
+    grids = [(("grid",), grid)] + [(("method_grid", m), g) for m, g in method_grid.items()]
+    for where, values_of in grids:
+        if not isinstance(values_of, dict):
+            raise UsageError(f"{path} line {spec_lines.get(where, '?')}: {'.'.join(where)} must be a mapping of "
+                             "setting -> list of values")
+        for key, values in values_of.items():
+            if not isinstance(values, list) or not values:
+                raise UsageError(f"{path} line {spec_lines.get((*where, key), '?')}: {'.'.join(where)}.{key} must be "
+                                 "a non-empty list of values")
+            for value in values:
+                if isinstance(value, dict) and not value.get("name"):
+                    raise UsageError(f"{path} line {spec_lines.get((*where, key), '?')}: a bundle of settings in "
+                                     f"{'.'.join(where)}.{key} needs a name (its label), e.g. {{name: oracle, backend: "
+                                     "oracle}")
+    cluster = data.get("cluster") or {}
+    if not isinstance(cluster, dict) or set(cluster) - set(CLUSTER_KEYS):
+        bad = sorted(set(cluster) - set(CLUSTER_KEYS)) if isinstance(cluster, dict) else []
+        line = spec_lines.get(("cluster", *bad[:1]), spec_lines.get(("cluster",), "?"))
+        raise UsageError(f"{path} line {line}: cluster takes {', '.join(CLUSTER_KEYS)}")
+    try:
+        cluster = Cluster().merged(**cluster)
+    except UsageError as e:
+        raise UsageError(f"{path} line {spec_lines.get(('cluster',), '?')}: cluster: {e}") from None
+    paper = data.get("paper")
+    if paper is not None and not isinstance(paper, dict):
+        raise UsageError(f"{path} line {spec_lines.get(('paper',), '?')}: paper must be a mapping (what the paper "
+                         "sets: source, methods, grid, frames, seeds, differs)")
+    total = frames if frames is not None else data.get("frames", 50_000)
+    if not isinstance(total, int) or total <= 0:
+        raise UsageError(f"{path} line {spec_lines.get(('frames',), '?')}: frames must be a positive integer")
+    envs = [str(e) for e in as_list("envs")]
+    env_frames = {} if frames is not None else (data.get("env_frames") or {})
+    if not isinstance(env_frames, dict):
+        raise UsageError(f"{path} line {spec_lines.get(('env_frames',), '?')}: env_frames must be a mapping of env id "
+                         "-> frames")
+    for env_id, count in env_frames.items():
+        where = f"{path} line {spec_lines.get(('env_frames', env_id), '?')}"
+        if env_id not in envs:
+            raise UsageError(f"{where}: env_frames names {env_id!r}, which is not among the spec's envs")
+        if not isinstance(count, int) or isinstance(count, bool) or count <= 0:
+            raise UsageError(f"{where}: env_frames.{env_id} must be a positive integer, got {count!r}")
+    return Spec(name=str(data.get("name") or path.stem), path=path, text=text, frames=total, seeds=seed_list,
+                env_frames={str(k): int(v) for k, v in env_frames.items()},
+                envs=envs, methods=[str(m) for m in as_list("methods")], grid=grid,
+                method_grid=method_grid, settings=settings, method_settings=per_method, paper=paper or {},
+                cluster=cluster, lines=spec_lines)

@@ -31,7 +31,7 @@ from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
 
 from illm_tools.errors import UsageError
-from illm_tools.llm.spliced import SplicedPrompt  # noqa: F401  (part of the protocol: re-exported)
+from illm_tools.llm.spliced import SplicedPrompt
 from illm_tools.registry import Registry
 
 def _backend_problem(cls) -> str | None:
@@ -99,7 +99,7 @@ def resolve_model(backend: str, model: str | None, *, oracle_noise: float = 0.0,
         raise UsageError(f"--endpoint, --embed-endpoint and --api-key-env are the openai backend's: add --backend openai (this command "
                          f"uses --backend {backend})")
     if backend == "openai":
-        from illm_tools.llm.openai import openai_spec, parse_spec
+        from illm_tools.llm.openai_wire import openai_spec, parse_spec
 
         if model is None:
             raise UsageError("--backend openai needs --model, the model's name as the server serves it")
@@ -208,8 +208,8 @@ def selecting_options(backend: str, model: str, dtype: str, quant: str) -> str:
         noise = parse_spec(model)
         return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
     if backend == "openai":
-        from illm_tools.llm.openai import embed_url
-        from illm_tools.llm.openai import parse_spec as endpoint_of
+        from illm_tools.llm.openai_wire import embed_url
+        from illm_tools.llm.openai_wire import parse_spec as endpoint_of
 
         name, url, _ = endpoint_of(model)
         pooled = embed_url(model)

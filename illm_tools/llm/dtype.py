@@ -98,7 +98,7 @@ def _measured(key: str, shape: tuple[int, int, int]) -> dict:
              "s" * (torch.get_num_threads() != 1), shape[0], shape[1], shape[1], shape[2], record["bfloat16_gflops"],
              record["float32_gflops"], "bfloat16" if record["bf16_faster"] else "float32", path)
     try:
-        from illm_tools.llm.loading import _write_json_atomic
+        from illm_tools.durable import write_json as _write_json_atomic
 
         _write_json_atomic(path, {**(known if isinstance(known, dict) else {}), key: record})
     except OSError:  # a read-only home: the answer still holds for this process

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from illm_tools import durable
 from illm_tools.errors import DamagedFileError, UsageError
 from illm_tools.llm.registry import ModelSpec, locate, resolve
 
@@ -90,13 +91,6 @@ def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
     return Path(env).expanduser() if env else Path.home() / ".cache" / "illm"
 
 
-def _write_json_atomic(path: Path, payload: dict) -> None:
-    from illm_tools import durable
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    durable.write_text(path, json.dumps(payload, sort_keys=True))
-
-
 def _memo(path: Path, root: Path) -> tuple[Path, dict]:
     """The memo file of a file's hash and the identity (path, size, mtime) it is valid for."""
     st = path.stat()
@@ -115,17 +109,9 @@ def file_sha256(path: str | os.PathLike, root: Path) -> str:
                 return saved["sha256"]
         except (ValueError, KeyError):
             log.warning("ignoring unreadable hash memo %s", memo)
-    digest = _sha256(path)
-    _write_json_atomic(memo, {**ident, "sha256": digest})
+    digest = durable.sha256_file(path)
+    durable.write_json(memo, {**ident, "sha256": digest})
     return digest
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 SOURCE = "illm_source.json"
@@ -183,13 +169,6 @@ def _remove_stale_tmp(models: Path) -> None:
             continue
 
 
-def _fsync_tree(folder: Path) -> None:
-    for p in folder.iterdir():
-        if p.is_file():
-            with p.open("rb") as fh:
-                os.fsync(fh.fileno())
-
-
 def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
     """The safetensors folder of a GGUF model and the GGUF's sha256, de-quantising once.
 
@@ -227,16 +206,15 @@ def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
             model.save_pretrained(tmp)
             tokenizer.save_pretrained(tmp)
         shutil.rmtree(tmp / "gguf", ignore_errors=True)
-        files = {p.name: _sha256(p) for p in sorted(tmp.iterdir()) if p.is_file()}
-        _write_json_atomic(tmp / SOURCE, {"model_id": spec.model_id, "gguf_sha256": sha, "gguf_file": spec.gguf_file,
+        files = {p.name: durable.sha256_file(p) for p in sorted(tmp.iterdir()) if p.is_file()}
+        durable.write_json(tmp / SOURCE, {"model_id": spec.model_id, "gguf_sha256": sha, "gguf_file": spec.gguf_file,
                                           "files": files})
-        _fsync_tree(tmp)
         log.info("de-quantised %s in %.0f s", spec.alias, time.monotonic() - started)
         try:
-            os.rename(tmp, target)
+            durable.commit_folder(tmp, target)
             for name, digest in files.items():  # a rename keeps size and mtime: the hashes stay valid
                 memo, ident = _memo((target / name).resolve(), root)
-                _write_json_atomic(memo, {**ident, "sha256": digest})
+                durable.write_json(memo, {**ident, "sha256": digest})
         except OSError:  # another process finished first; its folder is as good as ours
             if not (target / "config.json").is_file():
                 raise

@@ -28,47 +28,29 @@ server). The model spec is "NAME@URL" (and "#VAR"), so every place that names a 
   deviates from the paper's mean-pooled hidden state over the generated tokens read with their
   prompt (the transformers backend's), which a completions endpoint does not return: the pooled
   text is read without its prompt. The fingerprint says which embedder was used.
-- The fingerprint carries the served model's name, the engine and its version (`GET /version`,
-  vLLM's; else the `Server` header), the embedder, and never the URL (the same engine and model on
-  another host answer the same) nor the key.
-- On connecting (once per process and endpoint), two probes (`openai_engine._probe_engine`):
-  * whether the engine takes a list of prompts per request (vLLM, SGLang do; llama-cpp-python's
-    server answers 500): where it does not, every prompt goes alone, still `concurrency` at a time.
-    Said in one line and written into the fingerprint's engine description.
-  * whether its echoed prompt log-probs are aligned: generate one token after a fixed context
-    with the log-probs of the likely next tokens, then score context + one of them with echo; the
-    two log-probs of that token must agree within `ALIGNMENT_TOLERANCE`. An engine that scores token i with the logits at position i
-    instead of i-1 (llama-cpp-python 0.3.x) fails, and ranking through it is refused in one line
-    before anything is annotated (its rankings would be noise); summaries still run through it.
-- An engine's answers are checked before anything is stored, each failure one line naming the
-  engine's URL: JSON without NaN or Infinity and at most `MAX_ANSWER_BYTES`; one choice per prompt,
-  each index once; a candidate's echoed tokens one run in increasing offsets, each with a finite
-  log-prob at most 0 (a candidate with no scored token would otherwise sum to 0 and win); an
-  embedding finite and of the width the engine gave at connection. A redirect is never followed,
-  so the API key goes to the configured endpoint only.
-- Requests go `concurrency` at a time (threads: the waiting is on the network), each with a
-  timeout; 429 and 5xx answers and lost connections are retried with exponential backoff
-  (`retries` times), then refused in one line. Annotation writes a chunk only when all of its
-  answers are in, so a failure leaves nothing half-written in the cache.
+- Requests go `concurrency` at a time (threads: the waiting is on the network). Annotation writes
+  a chunk only when all of its answers are in, so a failure leaves nothing half-written in the cache.
+
+What is asked of the engine on connecting (its fingerprint, whether it takes a list of prompts,
+whether its echoed log-probs are aligned), how requests are retried and how every answer is checked
+before it is stored is the wire protocol's, `illm_tools.llm.openai_wire`.
 
 Hop mode is refused: an endpoint takes text, not input embeddings.
 """
 
 from __future__ import annotations
 
-import logging
-import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from illm_tools.errors import UsageError
-from illm_tools.llm.openai_engine import (_ENGINES, Client, EndpointError, _check_ranking,  # noqa: F401 (re-exported)
-                                          _fingerprint, describe_offline, embed_url, openai_spec, parse_spec)
+from illm_tools.llm.openai_wire import (Client, candidate_logprobs, check_ranking, describe_offline, embed_url,
+                                        embedding_vectors, engine_probe, ordered_choices, parse_spec,
+                                        served_fingerprint)
 
 NAME = "openai"
-log = logging.getLogger(__name__)
 
 
 class OpenAIBackend:
@@ -85,13 +67,13 @@ class OpenAIBackend:
     def __init__(self, spec: str, *, concurrency: int = 16, timeout: float = 120.0, retries: int = 4):
         self.model = spec
         self.served, url, key = parse_spec(spec)
-        self.fingerprint = {k: v for k, v in _fingerprint(spec).items() if k != "embedding_dim"}
-        dim = _fingerprint(spec)["embedding_dim"]
+        self.fingerprint = {k: v for k, v in served_fingerprint(spec).items() if k != "embedding_dim"}
+        dim = served_fingerprint(spec)["embedding_dim"]
         self.client = Client(url, key, timeout=timeout, retries=retries)
         pooled = embed_url(spec)
         self.embed_client = Client(pooled, key, timeout=timeout, retries=retries) if pooled else self.client
         self.concurrency = concurrency
-        self.engine = _ENGINES[spec]
+        self.engine = engine_probe(spec)
         self.remote_embeddings = dim is not None
         self.hidden_size = int(dim) if dim else self._local_dim()
 
@@ -108,11 +90,11 @@ class OpenAIBackend:
 
     @staticmethod
     def model_fingerprint(model: str, *, dtype: str = "float32", quant: str = "none") -> dict:
-        return {k: v for k, v in _fingerprint(model).items() if k != "embedding_dim"}
+        return {k: v for k, v in served_fingerprint(model).items() if k != "embedding_dim"}
 
     @staticmethod
     def model_hidden_size(model: str) -> int:
-        dim = _fingerprint(model)["embedding_dim"]
+        dim = served_fingerprint(model)["embedding_dim"]
         return int(dim) if dim else OpenAIBackend._local_dim()
 
     @staticmethod
@@ -135,24 +117,18 @@ class OpenAIBackend:
             return [c for p in prompts for c in self._choices([p], body)]
         answer, _ = self.client.call("/completions", {"model": self.served, **body,
                                                       "prompt": prompts if self.engine.batches else prompts[0]})
-        choices = answer.get("choices")
-        indices = [c.get("index") if isinstance(c, dict) else None for c in choices or []]
-        if not isinstance(choices, list) or sorted(i for i in indices if type(i) is int) != list(range(len(prompts))) \
-                or len(indices) != len(prompts):
-            raise EndpointError(f"{self.client.url}/completions answered choices {indices[:8]} for {len(prompts)} prompts "
-                                "(each index once is expected): not used")
-        return sorted(choices, key=lambda c: c["index"])
+        return ordered_choices(answer, len(prompts), f"{self.client.url}/completions")
 
     @staticmethod
     def describe_offline(model: str) -> dict | None:
-        """A cache row's model as its options without asking the engine (`openai_engine.describe_offline`)."""
+        """A cache row's model as its options without asking the engine (`openai_wire.describe_offline`)."""
         return describe_offline(model)
 
     @staticmethod
     def check_ranking(model: str) -> None:
         """Refuse, in one line, ranking through an engine whose echoed log-probs failed the
-        connection's probe (see the module docstring); text tasks need no check."""
-        _check_ranking(model)
+        connection's probe (`openai_wire`); text tasks need no check."""
+        check_ranking(model)
 
     def _ranking(self, item):
         from illm_tools.llm.scoring import CandidateScores
@@ -160,39 +136,12 @@ class OpenAIBackend:
         context, candidates = item
         prompts = [context + c for c in candidates]
         choices = self._choices(prompts, {"max_tokens": 1, "temperature": 0, "echo": True, "logprobs": 1})
-        out = []
-        for prompt, choice in zip(prompts, choices):
-            lp = choice.get("logprobs") or {}
-            offsets, logprobs = lp.get("text_offset"), lp.get("token_logprobs")
-            if not offsets or logprobs is None:
-                raise EndpointError(f"{self.client.url}/completions gave no prompt log-probabilities (echo with logprobs): "
-                                    "this engine cannot rank candidates; vLLM can (docs/scale.md)")
-            out.append(self._candidate_logprobs(prompt, len(context), offsets, logprobs))
-        return CandidateScores.from_logprobs(out)
-
-    def _candidate_logprobs(self, prompt: str, start: int, offsets, logprobs) -> list[float]:
-        """The log-probs of the echoed tokens that end after the context (`start` characters): one
-        run of consecutive tokens, each scored with a finite log-prob, in increasing offsets; else
-        refused in one line naming the engine (a candidate with no scored token would sum to 0)."""
-        import math
-
         where = f"{self.client.url}/completions"
-        if len(offsets) != len(logprobs) or any(type(o) is not int for o in offsets) or \
-                any(b <= a for a, b in zip(offsets, offsets[1:])):
-            raise EndpointError(f"{where} answered token offsets that are not increasing, one per log-prob: not used")
-        ends = list(offsets[1:]) + [len(prompt) + 10**9]
-        inside = [i for i in range(len(offsets)) if offsets[i] < len(prompt)]  # the echo, without a generated token
-        mine = [i for i in inside if ends[i] > start]
-        if not mine or mine != list(range(mine[0], inside[-1] + 1)):
-            raise EndpointError(f"{where} answered no contiguous tokens for a candidate ({prompt[start:][:40]!r}): not used")
-        values = [logprobs[i] for i in mine]
-        if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v > 0 for v in values):
-            raise EndpointError(f"{where} answered a candidate's token log-probs {values[:6]}, not all finite numbers "
-                                "at most 0: not used")
-        return [float(v) for v in values]
+        return CandidateScores.from_logprobs([candidate_logprobs(choice, prompt, len(context), where)
+                                              for prompt, choice in zip(prompts, choices)])
 
     def score(self, contexts, candidates, *, batch_size: int = 8):
-        _check_ranking(self.model)
+        check_ranking(self.model)
         return self._map(self._ranking, list(zip(contexts, [list(c) for c in candidates])))
 
     def _completion(self, item):
@@ -225,18 +174,7 @@ class OpenAIBackend:
 
         def call(chunk):
             answer, _ = self.embed_client.call("/embeddings", {"model": self.served, "input": chunk})
-            data = answer.get("data")
-            where = f"{self.embed_client.url}/embeddings"
-            if not isinstance(data, list) or sorted(d.get("index", -1) for d in data if isinstance(d, dict)) != \
-                    list(range(len(chunk))):
-                raise EndpointError(f"{where} answered {len(data) if isinstance(data, list) else 'no'} embeddings for "
-                                    f"{len(chunk)} texts (each index once is expected): not used")
-            vectors = [d["embedding"] for d in sorted(data, key=lambda d: d["index"])]
-            array = np.asarray(vectors, dtype=np.float64) if all(isinstance(v, list) for v in vectors) else None
-            if array is None or array.ndim != 2 or array.shape[1] != self.hidden_size or not np.isfinite(array).all():
-                raise EndpointError(f"{where} answered embeddings that are not finite vectors of {self.hidden_size} "
-                                    "dimensions (the width it gave when illm connected): not used")
-            return list(array.astype(np.float32))
+            return embedding_vectors(answer, len(chunk), self.hidden_size, f"{self.embed_client.url}/embeddings")
 
         chunks = [texts[i:i + batch_size] for i in range(0, len(texts), batch_size)]
         return np.asarray([e for part in self._map(call, chunks) for e in part], dtype=np.float32)

@@ -1,18 +1,46 @@
-"""The openai backend's side of the wire: the model spec "NAME@URL[#VAR][;embed=URL]", the HTTP
-client with its timeout and retries, the served model's fingerprint, the pooling endpoint's check and
-the connection probes (`_probe_engine`; what they ask and why: `illm_tools.llm.openai`'s docstring).
-`openai.py` keeps the backend protocol over them; split from it to keep each file about one thing."""
+"""The wire protocol with an OpenAI-compatible engine: the model spec "NAME@URL[#VAR][;embed=URL]",
+the HTTP client (through `illm_tools.web`, with its timeout and retries), the served model's
+identity, the connection probes, and the checks of what the engine answers. The backend that ranks
+and generates over it is `illm_tools.llm.openai`; kept apart so that what is asked of an engine,
+and what its answers must be, read in one place whichever backend asks.
+
+- The fingerprint (`served_fingerprint`) carries the served model's name, the engine and its
+  version (`GET /version`, vLLM's; else the `Server` header), the embedder, and never the URL (the
+  same engine and model on another host answer the same) nor the key.
+- On connecting (once per process and endpoint), two probes (`_probe_engine`):
+  * whether the engine takes a list of prompts per request (vLLM, SGLang do; llama-cpp-python's
+    server answers 500): where it does not, every prompt goes alone, still `concurrency` at a time.
+    Said in one line and written into the fingerprint's engine description.
+  * whether its echoed prompt log-probs are aligned: generate one token after a fixed context
+    with the log-probs of the likely next tokens, then score context + one of them with echo; the
+    two log-probs of that token must agree within `ALIGNMENT_TOLERANCE`. An engine that scores
+    token i with the logits at position i instead of i-1 (llama-cpp-python 0.3.x) fails, and
+    ranking through it is refused in one line before anything is annotated (`check_ranking`: its
+    rankings would be noise); summaries still run through it.
+- An engine's answers are checked before anything is stored, each failure one line naming the
+  engine's URL: JSON without NaN or Infinity and at most `MAX_ANSWER_BYTES`; one choice per prompt,
+  each index once (`ordered_choices`); a candidate's echoed tokens one run in increasing offsets,
+  each with a finite log-prob at most 0 (`candidate_logprobs`: a candidate with no scored token
+  would otherwise sum to 0 and win); an embedding finite and of the width the engine gave at
+  connection (`embedding_vectors`). A redirect is never followed, so the API key goes to the
+  configured endpoint only.
+- Each request has a timeout; 429 and 5xx answers and lost connections are retried with
+  exponential backoff (`retries` times), then refused in one line.
+"""
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import re
 import time
 import urllib.error
 import urllib.request
 from dataclasses import dataclass
+
+import numpy as np
 
 from illm_tools.errors import IllmError, UsageError
 from illm_tools.web import NO_REDIRECTS
@@ -22,7 +50,7 @@ _SPEC = re.compile(r"^(?P<model>[^@#\s]+)@(?P<url>https?://[^#;\s]+?)/?(?:#(?P<k
                    r"(?:;embed=(?P<embed>https?://[^#;\s]+?)/?)?$")
 _FINGERPRINTS: dict[str, dict] = {}
 _ENGINES: dict[str, "EngineProbe"] = {}
-log = logging.getLogger("illm_tools.llm.openai")  # the backend's logger, as before the split
+log = logging.getLogger(__name__)
 
 ALIGNMENT_CONTEXTS = ("One, two, three, four, five,", "The capital of France is")
 """The alignment probe's contexts, tried in turn until one of its likely next tokens stays one token
@@ -35,26 +63,23 @@ ALIGNMENT_TOLERANCE = 0.1
 the same weights through two paths (a decode step; a prefill), which differ by rounding: under
 0.01 nats in float32, a few hundredths in bfloat16 on a GPU. A shifted echo is off by nats (8.3 for
 SmolLM2-135M's " six" under llama-cpp-python 0.3.x)."""
+MAX_ANSWER_BYTES = 256 * 2**20
+"""The largest answer read from an engine (a batch of echoed prompts with their log-probs is a few MiB)."""
 
 
 class EndpointError(IllmError):
     """The endpoint failed a request after its retries, or answered something illm cannot use."""
 
 
-MAX_ANSWER_BYTES = 256 * 2**20
-"""The largest answer read from an engine (a batch of echoed prompts with their log-probs is a few MiB)."""
+class EngineUnreachableError(UsageError):
+    """No OpenAI-compatible server answers at a model spec's endpoint (its identity cannot be asked)."""
 
 
 def _no_constant(name: str):
     raise ValueError(f"{name} is not a finite number")
 
 
-
-
-class EngineUnreachableError(UsageError):
-    """No OpenAI-compatible server answers at a model spec's endpoint (its identity cannot be asked)."""
-
-
+# --- the model spec ------------------------------------------------------------------------------
 def describe_offline(spec: str) -> dict | None:
     """A cache row's served model as its options, from the spec alone ({"backend", "model", "dtype",
     "quant"}; None when `spec` is no openai spec): the engine is never asked, so a cache annotated
@@ -101,6 +126,7 @@ def parse_spec(spec: str) -> tuple[str, str, str]:
     return m.group("model"), m.group("url"), m.group("key") or DEFAULT_KEY_ENV
 
 
+# --- requests ------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class EngineProbe:
     """What the connection probes found (`_probe_engine`)."""
@@ -158,8 +184,10 @@ class Client:
                             "it had not answered was not written to the cache")
 
 
-def _fingerprint(spec: str) -> dict:
-    """The served model's fingerprint (memoised per process: it asks the server)."""
+# --- the served model's identity and the probes --------------------------------------------------
+def served_fingerprint(spec: str) -> dict:
+    """The served model's fingerprint, with its "embedding_dim" (None: the local sentence model
+    embeds); memoised per process, as it asks the server and probes the engine."""
     if spec not in _FINGERPRINTS:
         model, url, key = parse_spec(spec)
         client = Client(url, key, timeout=20.0, retries=1)
@@ -196,6 +224,31 @@ def _fingerprint(spec: str) -> dict:
                                "revision": None, "embedder": embedder, "embedding_dim": dim, "dtype": "served",
                                "quant": "served"}
     return dict(_FINGERPRINTS[spec])
+
+
+def engine_probe(spec: str) -> EngineProbe:
+    """What the connection probes found of the engine serving `spec` (probing it on first use)."""
+    served_fingerprint(spec)
+    return _ENGINES[spec]
+
+
+def forget_engines() -> None:
+    """Forget what this process asked the engines, so that the next use asks afresh."""
+    _FINGERPRINTS.clear()
+    _ENGINES.clear()
+
+
+def check_ranking(spec: str) -> None:
+    """Raise `EndpointError` (one line) unless the engine serving `spec` passed the alignment probe."""
+    engine = served_fingerprint(spec)["engine"]  # probes the engine on first use
+    probe = _ENGINES[spec]
+    if probe.aligned:
+        return
+    what = ("its prompt log-probabilities are not those of its own generation (as if shifted by one position)"
+            if probe.aligned is False else "it cannot score prompt tokens")
+    raise EndpointError(f"the engine at {parse_spec(spec)[1]} ({engine}) cannot rank actions: "
+                        f"{what}: {probe.detail}; rank with vLLM or --backend transformers, or pass --tasks summary to "
+                        "write only summaries through this engine; nothing was annotated")
 
 
 def _embedding_endpoint(client: Client, model: str, served: dict, *, required: bool) -> tuple[int | None, str]:
@@ -266,14 +319,54 @@ def _probe_engine(client: Client, model: str) -> EngineProbe:
     return EngineProbe(batches, None, detail)
 
 
-def _check_ranking(spec: str) -> None:
-    """Raise `EndpointError` (one line) unless the engine serving `spec` passed the alignment probe."""
-    engine = _fingerprint(spec)["engine"]  # probes the engine on first use
-    probe = _ENGINES[spec]
-    if probe.aligned:
-        return
-    what = ("its prompt log-probabilities are not those of its own generation (as if shifted by one position)"
-            if probe.aligned is False else "it cannot score prompt tokens")
-    raise EndpointError(f"the engine at {parse_spec(spec)[1]} ({engine}) cannot rank actions: "
-                        f"{what}: {probe.detail}; rank with vLLM or --backend transformers, or pass --tasks summary to "
-                        "write only summaries through this engine; nothing was annotated")
+# --- the checks of an engine's answers -----------------------------------------------------------
+def ordered_choices(answer: dict, prompts: int, where: str) -> list[dict]:
+    """The choices of a completions answer to `prompts` prompts, in prompt order; refused in one line
+    naming `where` unless each index comes once."""
+    choices = answer.get("choices")
+    indices = [c.get("index") if isinstance(c, dict) else None for c in choices or []]
+    if not isinstance(choices, list) or sorted(i for i in indices if type(i) is int) != list(range(prompts)) \
+            or len(indices) != prompts:
+        raise EndpointError(f"{where} answered choices {indices[:8]} for {prompts} prompts "
+                            "(each index once is expected): not used")
+    return sorted(choices, key=lambda c: c["index"])
+
+
+def candidate_logprobs(choice: dict, prompt: str, start: int, where: str) -> list[float]:
+    """The log-probs of a choice's echoed tokens that end after the context (`start` characters of
+    `prompt`): one run of consecutive tokens, each scored with a finite log-prob, in increasing
+    offsets; else refused in one line naming `where` (a candidate with no scored token would sum to 0)."""
+    lp = choice.get("logprobs") or {}
+    offsets, logprobs = lp.get("text_offset"), lp.get("token_logprobs")
+    if not offsets or logprobs is None:
+        raise EndpointError(f"{where} gave no prompt log-probabilities (echo with logprobs): "
+                            "this engine cannot rank candidates; vLLM can (docs/scale.md)")
+    if len(offsets) != len(logprobs) or any(type(o) is not int for o in offsets) or \
+            any(b <= a for a, b in zip(offsets, offsets[1:])):
+        raise EndpointError(f"{where} answered token offsets that are not increasing, one per log-prob: not used")
+    ends = list(offsets[1:]) + [len(prompt) + 10**9]
+    inside = [i for i in range(len(offsets)) if offsets[i] < len(prompt)]  # the echo, without a generated token
+    mine = [i for i in inside if ends[i] > start]
+    if not mine or mine != list(range(mine[0], inside[-1] + 1)):
+        raise EndpointError(f"{where} answered no contiguous tokens for a candidate ({prompt[start:][:40]!r}): not used")
+    values = [logprobs[i] for i in mine]
+    if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v > 0 for v in values):
+        raise EndpointError(f"{where} answered a candidate's token log-probs {values[:6]}, not all finite numbers "
+                            "at most 0: not used")
+    return [float(v) for v in values]
+
+
+def embedding_vectors(answer: dict, texts: int, width: int, where: str) -> list[np.ndarray]:
+    """The embeddings of an answer to `texts` texts, in text order, as float32 vectors; refused in one
+    line naming `where` unless each index comes once with a finite vector of `width` dimensions."""
+    data = answer.get("data")
+    if not isinstance(data, list) or sorted(d.get("index", -1) for d in data if isinstance(d, dict)) != \
+            list(range(texts)):
+        raise EndpointError(f"{where} answered {len(data) if isinstance(data, list) else 'no'} embeddings for "
+                            f"{texts} texts (each index once is expected): not used")
+    vectors = [d["embedding"] for d in sorted(data, key=lambda d: d["index"])]
+    array = np.asarray(vectors, dtype=np.float64) if all(isinstance(v, list) for v in vectors) else None
+    if array is None or array.ndim != 2 or array.shape[1] != width or not np.isfinite(array).all():
+        raise EndpointError(f"{where} answered embeddings that are not finite vectors of {width} "
+                            "dimensions (the width it gave when illm connected): not used")
+    return list(array.astype(np.float32))
