@@ -6,7 +6,7 @@ Gravitar, Pitfall and Seaquest among them). The v5 settings stay (sticky actions
 preprocessing of Mnih et al. (2015) as Machado et al. (2018) recommend for v5: `AtariPreprocessing`
 (up to 30 no-op actions at reset, frame skip 4 with the max over the last two frames, grey, 84x84;
 no episode end on a lost life) and `FrameStackObservation` (the last 4 frames). The policy sees
-the (4, 84, 84) uint8 stack through the Nature CNN (`illm_tools.rl.networks.FrameNet`); a
+the (4, 84, 84) uint8 stack through the Nature CNN (network "frame", `FrameNet`); a
 trajectory keeps the newest frame only (84 x 84 bytes a row). The score is the mean episode
 return (the game's own points); there is no success.
 
@@ -95,7 +95,7 @@ class AtariSuite(Suite):
     prefixes = ("ALE/",)
     renderer = None
     score_name = "mean return"
-    network = "illm_tools.rl.networks:FrameNet"
+    network = "frame"
     description = "Atari 2600 games (ale-py v5), grey 84x84 frames, no text"
 
     def env_ids(self) -> list[str]:

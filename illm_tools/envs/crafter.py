@@ -101,7 +101,7 @@ class CrafterSuite(Suite):
     prefixes = ("Crafter",)
     score_name = "Crafter score"
     vector = "async"
-    network = "illm_tools.rl.networks:FrameNet"
+    network = "frame"
     description = "Crafter (crafter), 64x64 RGB picture; text written by illm; Crafter score"
 
     def hop_frame(self, raw: np.ndarray) -> np.ndarray:

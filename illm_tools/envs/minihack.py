@@ -4,7 +4,7 @@ agent and the game message for the policy, a text written by illm for the LLM.
 Env ids: every `MiniHack-*` id minihack registers. The paper's five tasks (Appendix C.2) map to
 the ids in `illm_tools.envs.minihack_text.TASKS`. The policy sees a flat int16 array: the 9x9
 glyph crop centred on the agent (glyph ids 0..5975) followed by the 256 bytes of the message line
-(`ObsSpec.parts`), read by `illm_tools.rl.networks.GlyphNet`. The text (renderer
+(`ObsSpec.parts`), read by network "glyph" (`GlyphNet`). The text (renderer
 "minihack-text@<version>", `minihack_text.render_text`) describes the message, what is near the
 agent with direction and distance, and the inventory; the actions get readable names. Success: the
 episode ends with NetHack's status TASK_SUCCESSFUL (MiniHack's reward for the goal); the score is
@@ -91,7 +91,7 @@ class MiniHackSuite(Suite):
     name = "minihack"
     prefixes = ("MiniHack-",)
     renderer = property(lambda self: _renderer())
-    network = "illm_tools.rl.networks:GlyphNet"
+    network = "glyph"
     description = "MiniHack tasks (minihack on NLE), glyphs and message; text written by illm"
 
     def env_ids(self) -> list[str]:

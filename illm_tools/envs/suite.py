@@ -6,7 +6,8 @@ A suite answers, for each of its env ids:
 - what the policy sees (`obs_spec`: shape, dtype and kind of one observation array, turned out of
   the env's own observation by `policy_obs`), what a trajectory keeps of it (`raw_obs`), how
   tensors are made of it (`observation`: the adapter the torso and the bonuses read it through), and
-  which policy network reads it (`network`, a "module:Class" entry point);
+  which policy network reads it (`network`, a plain name the rl layer resolves, e.g. "grid-mission";
+  a plug-in may give its own class as "module:Class");
 - its text: `renderer` ("name@version", part of every annotation cache key; None when the suite
   has no text observation, e.g. Atari), with `info["text"]` and `info["mission"]` set by `make`'s
   env after every reset and step, and `info["valid_actions"]` its readable action names;
@@ -117,8 +118,11 @@ class Suite:
     """What `episode_metrics()["score"]` is, for tables."""
     vector: str = "sync"
     """"sync" (envs stepped in this process) or "async" (one process each: slow envs)."""
-    network: str = "illm_tools.rl.networks:GridMissionNet"
-    """The policy network class for this suite's observations ("module:Class")."""
+    network: str = "grid-mission"
+    """The policy network for this suite's observations, by name: "grid-mission" (MiniGrid's grid and
+    mission), "frame" (pictures: stacked frames or RGB), "glyph" (MiniHack's glyphs and message), or
+    another name the rl layer's network table knows; a plug-in may give its own class as
+    "module:Class" instead."""
     description: str = ""
     """One line on the suite for the README and `illm envs`."""
 

@@ -13,13 +13,21 @@ its reward is paid. `ppo` has no bonus. Built in:
   illm-noreward  iLLM heads trained, no bonus paid (paper Table 3)
   ppo            no bonus
   rnd            Random Network Distillation (rnd.py); --bonus-preset rnd (advantage weights 2 / 1)
-  chibit         no bonus; the policy's torso is the LLM's first blocks (illm_tools/rl/chibit.py)
   ellm           ELLM (ellm.py): paid for transitions whose caption matches a goal the LLM suggested
                  (the cache's `goal` rows, `illm annotate --tasks goal`)
   ngu            Never Give Up (ngu.py): episodic kNN novelty x RND's life-long factor
   apt            Active Pre-Training (apt.py): particle-based entropy, kNN within the rollout
   illm-shuffled  iLLM, each state's targets another cached state's (a fixed permutation): the
                  control that tells the LLM's knowledge from curiosity
+
+and, from the layer that owns the policy networks (which registers it when imported), `chibit`: no
+bonus, the policy's torso the LLM's first blocks.
+
+An installed package's `illm.methods` entry point whose name a registered method already has (a
+built-in, or one registered by code, before or after the plug-ins are read) is refused: `get_method`,
+the look-up of every command, answers that name with one line naming the plug-in and the built-in,
+so a plug-in never silently loses its name to a built-in, nor takes a built-in's. The other names
+work on.
 
 A bonus's config is the run's own when its `config_class` names a TrainConfig field in `RUN_FIELD`
 (iLLM's `ILLMConfig` is `TrainConfig.illm`: lambda_a, beta_hc, ... are top-level options of `illm
@@ -61,9 +69,9 @@ class Method:
     """The `--bonus-preset` (bonus and advantage weights, `illm_tools.rl.config.BONUS_PRESETS`)
     `illm train` uses when none is given."""
     network: str | type | None = None
-    """The policy network class ("module:Class", a `GridMissionNet` subclass), None: the suite's
-    own (`illm_tools.envs.suite.Suite.network`). Its `Options` dataclass lists the
-    `--network-option`s it takes."""
+    """The policy network class (the class, or "module:Class" imported on first use: a
+    `GridMissionNet` subclass), None: the suite's own (`illm_tools.envs.suite.Suite.network`). Its
+    `Options` dataclass lists the `--network-option`s it takes."""
     target_shuffle: int | None = None
     """With `needs_targets`: None, each state's own LLM targets; an int, the seed of the fixed
     permutation that hands each state another cached state's targets instead (`CachedTargets`'s
@@ -72,7 +80,7 @@ class Method:
     @cached_property
     def network_class(self) -> type | None:
         """The method's own policy network class, loaded (None: it names none, and a run uses its
-        suite's, `illm_tools.rl.networks.make_network`, which checks the class)."""
+        suite's; the network layer checks the class)."""
         return load_reference(self.network) if isinstance(self.network, str) else self.network
 
     def network_options(self, options: Mapping[str, Any], network: type | None = None):
@@ -201,7 +209,57 @@ def _typed(name: str, hint: Any, value: Any) -> Any:
     return value  # other types: the config's own validation decides
 
 
-METHODS: Registry[Method] = Registry("method", "illm.methods", check=Method, hint="--method")
+class MethodRegistry(Registry):
+    """The methods' `Registry`, refusing the name an installed plug-in shares with a registered method
+    (see the module docstring): `plugins` keeps each entry point read (name -> "module:attribute"),
+    `clashes` each one that had a registered method's name (which keeps its entry, so `--help` and
+    the other names still work); `get_method` refuses a clashing name in one line naming both."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.plugins: dict[str, str] = {}
+        self.clashes: dict[str, str] = {}
+
+    def clash(self, name: str) -> str | None:
+        """The one line refusing `name` where an installed plug-in shares it with a registered method."""
+        if name not in self.clashes or name not in self._entries:
+            return None
+        entry = self._entries[name]
+        own = entry.summary if isinstance(entry, Method) else str(entry)
+        return (f"the installed plug-in method {name!r} ({self.clashes[name]}, entry point group {self.group}) has "
+                f"the name of the built-in method {name!r} ({own}): give the plug-in's entry point another name")
+
+    def register(self, name: str, entry: Any, *, replace: bool = False) -> Any:
+        if name in self.plugins and not replace:  # a plug-in read first, a built-in registered after it
+            self.clashes[name] = self.plugins.pop(name)
+            replace = True
+        return super().register(name, entry, replace=replace)
+
+    def read_plugins(self, *, again: bool = False) -> list[str]:
+        """`Registry.read_plugins`, keeping an entry point whose name is registered (by other than
+        that same entry point) out, in `clashes` (found afresh on every reading)."""
+        if self._plugins_read and not again:
+            return []
+        self._plugins_read = True
+        self.clashes = {}
+        from importlib.metadata import entry_points
+
+        added = []
+        for point in entry_points(group=self.group):
+            if point.name not in self._entries:
+                self._entries[point.name] = self.plugins[point.name] = point.value
+                added.append(point.name)
+            elif self.plugins.get(point.name) != point.value:
+                self.clashes[point.name] = point.value
+        return added
+
+    def __delitem__(self, name: str) -> None:
+        super().__delitem__(name)
+        self.plugins.pop(name, None)
+        self.clashes.pop(name, None)
+
+
+METHODS: Registry[Method] = MethodRegistry("method", "illm.methods", check=Method, hint="--method")
 """Every method by name, in registration order (a live view: methods registered later count, and
 installed packages' `illm.methods` entry points, each a `Method`)."""
 
@@ -212,10 +270,16 @@ def register(method: Method, *, replace: bool = False) -> Method:
 
 
 def get_method(name: str) -> Method:
-    """The method called `name`; one line listing the known ones otherwise."""
+    """The method called `name`; one line listing the known ones otherwise, or naming the installed
+    plug-in that shares the name with a built-in (`MethodRegistry.clash`)."""
     if not isinstance(name, str):
         raise UsageError(METHODS.unknown(name))
-    return METHODS.load(name)
+    METHODS.read_plugins()  # once a process: a plug-in may share a registered name
+    method = METHODS.load(name)
+    clash = METHODS.clash(name)
+    if clash:
+        raise UsageError(clash)
+    return method
 
 
 def method_help() -> str:
@@ -231,8 +295,6 @@ register(Method("illm-noreward", "iLLM heads only, no bonus: paper Table 3", "il
 register(Method("ppo", "no bonus", None, pays_reward=False))
 register(Method("rnd", "Random Network Distillation; advantage weights 2 / 1", "illm_tools.intrinsic.rnd:RNDBonus",
                 preset="rnd"))
-register(Method("chibit", "policy torso from the LLM's pretrained blocks, no bonus", None, pays_reward=False,
-                network="illm_tools.rl.chibit:ChibiTNet"))
 register(Method("ellm", "ELLM: reward for reaching a goal the LLM suggested (cache task goal)",
                 "illm_tools.intrinsic.ellm:ELLMBonus"))
 register(Method("ngu", "Never Give Up: episodic kNN novelty x RND life-long factor; intrinsic weight 0.3",

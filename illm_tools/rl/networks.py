@@ -8,9 +8,13 @@ grid's object/colour/state indices one-hot encoded instead of fed as raw numbers
 The other suites' torsos subclass it and replace `build_torso` / `features`: `FrameNet` (the Nature
 CNN of Mnih et al. 2015 on Atari's stacked frames or Crafter's picture) and `GlyphNet` (MiniHack's
 glyph crop through a learned glyph embedding and a small CNN, and the message bytes through a
-byte embedding and a 1-D convolution). `make_network` picks a run's class: the method's own
-network (ChibiT) or else the suite's (`Suite.network`), refusing a pair whose observation kinds
-do not fit (`kinds`).
+byte embedding and a 1-D convolution). `NETWORKS` names them for the suites: a suite says which
+torso reads its observations by a plain name (`Suite.network`: "grid-mission", "frame", "glyph"),
+which this layer resolves, so no suite names a class up the layers; a plug-in suite may instead give
+its own class as "module:Class" (or the class), or register it here (`NETWORKS.register`, or the
+`illm.networks` entry point) and give its name. `make_network` picks a run's class: the method's
+own network (ChibiT) or else the suite's, refusing a pair whose observation kinds do not fit
+(`kinds`).
 """
 
 from __future__ import annotations
@@ -21,8 +25,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from illm_tools.envs.encoding import (GRID_CHANNEL_SIZES, MISSION_WORDS, NUM_GLYPHS, PAD, UNK, MissionVocab,  # noqa: F401
-                                      conv_trunk, layer_init)
+from illm_tools.envs.encoding import GRID_CHANNEL_SIZES, NUM_GLYPHS, PAD, MissionVocab, conv_trunk, layer_init
+from illm_tools.errors import UsageError
+from illm_tools.registry import Registry, load_class
 
 def mlp_head(inp: int, hidden: int, out: int, *, std: float, act: type[nn.Module] = nn.Tanh) -> nn.Sequential:
     return nn.Sequential(layer_init(nn.Linear(inp, hidden)), act(), layer_init(nn.Linear(hidden, out), std))
@@ -193,21 +198,40 @@ class GlyphNet(GridMissionNet):
         return torch.cat([crop, self.message_conv(self.byte_embedding(message).transpose(1, 2))], dim=1)
 
 
+NETWORKS: Registry = Registry("network", "illm.networks", check=GridMissionNet, instance=False)
+"""The policy networks a suite names (`Suite.network`) by plain name -> class (or "module:Class" of
+this layer, imported on first use); installed packages add theirs through `illm.networks` entry
+points."""
+NETWORKS.register("grid-mission", GridMissionNet)
+NETWORKS.register("frame", FrameNet)
+NETWORKS.register("glyph", GlyphNet)
+
+
+def network_class(network: str | type, what: str) -> type[GridMissionNet]:
+    """The `GridMissionNet` subclass `network` names: a name in `NETWORKS`, a plug-in's
+    "module:Class" (the form every suite used before the names; old ones still resolve), or the
+    class itself. An unknown name is refused in one line listing the known ones."""
+    if isinstance(network, str) and ":" not in network:
+        if network not in NETWORKS:
+            raise UsageError(f"{what}: {NETWORKS.unknown(network)} (or a plug-in's 'module:Class')")
+        return NETWORKS.load(network)
+    return load_class(network, GridMissionNet, what)
+
+
 def make_network(method, env_id: str, num_actions: int, *, image_shape: tuple[int, ...], vocab_size: int,
                  network_options: dict, embedding_dim: int | None, head_hidden: int,
                  heads_bf16: bool | None = None, context_dim: int = 0,
                  tasks: tuple[str, ...] = ("action", "summary")) -> GridMissionNet:
-    """The policy network of a run: the method's own class (ChibiT) or else the suite's, checked to
-    read the suite's kind of observation; `network_options` as the class's `Options`."""
+    """The policy network of a run: the method's own class (ChibiT) or else the suite's
+    (`network_class` of `Suite.network`), checked to read the suite's kind of observation;
+    `network_options` as the class's `Options`."""
     from illm_tools.envs import suite_of
-    from illm_tools.errors import UsageError
-    from illm_tools.registry import load_class
 
     suite = suite_of(env_id)
     observation = suite.observation(env_id)
     spec = observation.spec
     cls = load_class(method.network, GridMissionNet, f"method {method.name}: network") if method.network else \
-        load_class(suite.network, GridMissionNet, f"suite {suite.name}: network")
+        network_class(suite.network, f"suite {suite.name}: network")
     if spec.kind not in cls.kinds:
         raise UsageError(f"--method {method.name}'s network {cls.__name__} reads {', '.join(cls.kinds)} "
                          f"observations; {env_id} gives {spec.kind} ({spec.description}): use another method")
