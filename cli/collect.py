@@ -12,8 +12,6 @@ import typer
 from cli.common import progress, score_text, write_mode
 from cli.errors import friendly
 
-ALIASES = {"env_id": "--env", "save_raw": ("--raw",)}
-DICT_FLAGS = {"env_options": "--env-option"}
 EXAMPLE = ("Example: illm collect --env BabyAI-GoToLocal-v0 --steps 20000 --out data/traj/gotolocal --seed 0  |  "
            "illm collect --env CrafterReward-v1 --steps 5000 --out data/traj/crafter  (`illm envs` lists every env)")
 
@@ -22,7 +20,7 @@ def _parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.collect import CollectConfig
 
-    params = dataclass_parameters(CollectConfig, aliases=ALIASES, dict_flags=DICT_FLAGS, exclude={"write"},
+    params = dataclass_parameters(CollectConfig, dict_fields={"env_options"}, exclude={"write"},
                                   defaults={}, required={"env_id", "out"},
                                   extra_help={"env_options": "E.g. max_episode_steps=500."})
     flags = [("append", "--append", "Add to an existing dataset at --out."),
@@ -39,7 +37,7 @@ def register(app: typer.Typer) -> None:
         from illm_tools.collect import collect as run
 
         write = write_mode(options.pop("append"), options.pop("overwrite"))
-        config = config_from_options(CollectConfig, {**options, "write": write}, DICT_FLAGS)
+        config = config_from_options(CollectConfig, {**options, "write": write}, {"env_options"})
         start = time.perf_counter()
         with progress(config.steps, f"collect {config.env_id}") as advance:
             done = [0]
@@ -52,12 +50,18 @@ def register(app: typer.Typer) -> None:
             summary = run(config, on_progress)
         seconds = time.perf_counter() - start
         ret = f", mean return {summary['mean_return']:.3f}" if summary["score_name"] != "mean return" else ""
+        running = summary["episodes_running"]
         typer.echo(
             f"collected {summary['rows']:,} steps, {summary['episodes_finished']:,} finished episodes "
-            f"({summary['score_name']} {score_text(summary['score'])}{ret}) "
+            f"({summary['score_name']} {score_text(summary['score'])}{ret}) and {running:,} still running at the end, "
             f"from {config.env_id} ({summary['action_space']} actions) with policy {summary['policy']} in "
             f"{seconds:.1f}s -> {summary['out']}"
         )
+        if summary["biased"]:
+            typer.echo(f"warning: only {summary['episodes_finished']:,} episodes finished beside the {running:,} still "
+                       f"running: the quick ones finish first, so the {summary['score_name']} above leans toward them "
+                       "(a longer episode, often a failure, has not ended yet); a larger --steps reads it fairly",
+                       err=True)
 
     collect.__signature__ = inspect.Signature(_parameters())
     app.command(epilog=EXAMPLE)(friendly(collect))

@@ -14,6 +14,7 @@ import pyarrow.compute as pc
 from illm_tools.data.trajectories import TrajectoryWriter
 from illm_tools.errors import UsageError
 from illm_tools.registry import Registry
+from illm_tools.settings import setting
 
 NO_RENDERER = "none"
 """The `renderer` of rows from a suite without a text observation (their `obs_text` is empty)."""
@@ -23,7 +24,7 @@ NO_RENDERER = "none"
 class CollectConfig:
     """Everything that determines a collection run."""
 
-    env_id: str
+    env_id: str = setting(flag="--env")
     """Id of the environment, e.g. BabyAI-GoToLocal-v0, MiniHack-River-Monster-v0, CrafterReward-v1,
     ALE/MontezumaRevenge-v5 (`illm envs` lists them)."""
     out: Path
@@ -45,7 +46,7 @@ class CollectConfig:
     paper Tables 1 and 5, augmented otherwise), or with a trained policy its run's own."""
     num_dists: int | None = None
     """Number of distractors for levels that take it (paper Table 1); None keeps the level's own."""
-    save_raw: bool = True
+    save_raw: bool = setting(True, flag=("--raw",))
     """Store the raw observation array beside its text (needed by the Hopfield path)."""
     write: str = "new"
     """How the dataset folder is written: new refuses a folder that holds data; append adds to it;
@@ -100,9 +101,9 @@ def resolved_action_space(config: CollectConfig) -> str:
     (so the policy's actions fit the env); "auto" otherwise, resolved by the env pool."""
     if config.action_space != "auto" or config.policy in POLICIES:
         return config.action_space
-    from illm_tools.rl.checkpoint import read_config
+    from illm_tools.rl.saved import read_run
 
-    return read_config(Path(config.policy)).get("action_space", "auto")
+    return read_run(Path(config.policy)).settings.get("action_space", "auto")
 
 
 def check_append(config: CollectConfig, names: list[str]) -> None:
@@ -157,13 +158,15 @@ POLICIES.register("bot", "illm_tools.envs.babyai_bot:bot_policy")  # minigrid's 
 def make_policy(config: CollectConfig, pool) -> Policy:
     if config.policy in POLICIES:
         return POLICIES[config.policy](config, pool)
-    from illm_tools.rl.checkpoint import load_policy  # a trained run's policy
+    from illm_tools.rl.policy import load_policy  # a trained run's policy
 
     return load_policy(config.policy, pool)
 
 
 def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | None = None) -> dict:
-    """Run the collection; returns a summary (rows, episodes, successes, output folder)."""
+    """Run the collection; returns a summary (rows, episodes finished and still running at the end,
+    whether so few finished that the score leans toward the quick ones (`biased`), the score, the
+    output folder)."""
     from illm_tools.envs.pool import EnvPool
 
     pool = EnvPool(config.env_id, config.num_envs, config.seed, action_space=resolved_action_space(config),
@@ -182,6 +185,7 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
     episode_ids = np.arange(next_episode, next_episode + n)
     next_episode += n
     finished: list = []  # the EpisodeStats of the logged episodes
+    running = np.zeros(n, dtype=bool)  # envs whose current episode has logged steps and has not ended
     with writer:
         obs = pool.reset()
         done_steps = 0
@@ -212,10 +216,12 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
                 "policy": [policy.name] * take,
             })
             done_steps += take
+            running[:take] = True
             for episode in result.episodes:
                 i = episode.env_index
                 if i < take:  # an episode whose last step was logged
                     finished.append(episode)
+                    running[i] = False
                 episode_ids[i] = next_episode
                 next_episode += 1
             obs = result.obs
@@ -226,6 +232,8 @@ def collect(config: CollectConfig, on_progress: Callable[[int, dict], None] | No
         "out": str(config.out),
         "rows": writer.rows_written,
         "episodes_finished": len(finished),
+        "episodes_running": int(running.sum()),
+        "biased": bool(running.sum()) and len(finished) < 2 * int(running.sum()),
         "success_rate": figures["success_rate"],
         "score": figures["score"],
         "score_name": pool.suite.score_name,
