@@ -38,7 +38,7 @@ from illm_tools.rl.live import SyncLive  # noqa: E402
 from illm_tools.rl.ppo import Trainer  # noqa: E402
 from illm_tools.rl.providers import provider_class  # noqa: E402
 from illm_tools.rl.run import make_pool  # noqa: E402
-from illm_tools.rl.run import torch_threads  # noqa: E402
+from illm_tools.rl.threads import torch_threads  # noqa: E402
 
 PHASES = ("time/rollout_s", "time/targets_s", "time/update_s")
 
@@ -63,7 +63,7 @@ def provider_for(method, cfg: TrainConfig, cache_dir: Path, num_actions: int, fi
     tasks = tuple(getattr(method, "target_tasks", ("action", "summary")))
     cache = AnnotationCache(cache_dir)
     annotator = GoalAwareAnnotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", tasks=tasks,
-                                   history_len=cfg.history_len, chunk=10_000)
+                                   history_len=cfg.setup.history_len, chunk=10_000)
     builder = annotator.builder(cfg.env_id, renderer_of(cfg.env_id))
     live = SyncLive(annotator, cfg.annotation_setup, 10**9) if fill else None
     # the provider registered for the targets the method's bonus reads (CachedTargets, ELLM's GoalTargets), as a run
@@ -85,7 +85,7 @@ def run(cfg: TrainConfig, cache_dir: Path, fill: bool = False) -> tuple[float, d
 
     try:
         provider = provider_for(method, cfg, cache_dir, len(pool.action_names), fill)
-        trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
+        trainer = Trainer(cfg.resolved(), pool, provider, on_metrics=on_metrics)
         start = time.perf_counter()
         last = trainer.train()
         elapsed = time.perf_counter() - start
@@ -110,10 +110,10 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         def config(mode: str, name: str) -> TrainConfig:
-            return TrainConfig(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
+            return TrainConfig.from_dict(dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
                                num_envs=args.num_envs, num_steps=args.num_steps,
                                cache=Path(tmp) / f"ann-{mode}", live_budget=0, tensorboard=False,
-                               checkpoint_every=0, threads=args.threads)
+                               checkpoint_every=0, threads=args.threads))
 
         print(f"env {args.env}, {args.frames} frames, {args.num_envs} envs x {args.num_steps} steps, "
               f"{args.threads} thread(s)", flush=True)

@@ -37,7 +37,8 @@ from illm_tools.rl.live import SyncLive
 from illm_tools.rl.ppo import Trainer
 from illm_tools.rl.run import make_pool
 from illm_tools.llm.spec import LLMSpec
-from illm_tools.rl.run import make_provider, torch_threads
+from illm_tools.rl.run import make_provider
+from illm_tools.rl.threads import torch_threads
 from illm_tools.rl.targets import CachedTargets
 
 DIM = 576  # SmolLM2-135M's hidden size: the f^hc head is as large as with the embedded model
@@ -51,10 +52,10 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
         provider = make_provider(cfg, len(pool.action_names))
     elif cfg.uses_heads:
         cache = AnnotationCache(cache_dir)
-        annotator = Annotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", history_len=cfg.history_len,
+        annotator = Annotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", history_len=cfg.setup.history_len,
                                        chunk=10_000)
-        builder = annotator.builder(cfg.env_id, cfg.renderer)
-        live = SyncLive(annotator, cfg.annotation_setup, cfg.live_budget) if cfg.live_budget else None
+        builder = annotator.builder(cfg.env_id, cfg.annotation_setup.renderer)
+        live = SyncLive(annotator, cfg.annotation_setup, cfg.targets.live_budget) if cfg.targets.live_budget else None
         provider = CachedTargets(cache, builder, calibration="sum", num_actions=len(pool.action_names),
                                  embedding_dim=DIM, live=live)
     phases: dict[str, float] = {}
@@ -63,7 +64,7 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
         for k in ("time/rollout_s", "time/targets_s", "time/update_s"):
             phases[k] = phases.get(k, 0.0) + m[k] / cfg.num_updates
 
-    trainer = Trainer(cfg, pool, provider, on_metrics=on_metrics)
+    trainer = Trainer(cfg.resolved(), pool, provider, on_metrics=on_metrics)
     start = time.perf_counter()
     try:
         last = trainer.train()
@@ -95,9 +96,9 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         def config(mode: str, name: str, live_budget: int) -> TrainConfig:
-            return TrainConfig(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
+            return TrainConfig.from_dict(dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
                                num_envs=args.num_envs, num_steps=args.num_steps,  # SmolLM2's width: DIM
-                               live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads)
+                               live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads))
 
         if args.mode == "hop":
             hop = {"obs_mode": "hop", "history_len": args.history, "llm": LLMSpec(dtype=args.dtype)}

@@ -19,7 +19,7 @@ PHASES = {"base": ("base model on the held-out states", "states"), "train": ("di
 def _parameters() -> list[inspect.Parameter]:
     """`DistilConfig`'s fields as options (`cli.options`), the cache positional."""
     from cli.options import dataclass_parameters
-    from illm_tools.distil.run import DistilConfig
+    from illm_tools.distil.config import DistilConfig
 
     return dataclass_parameters(DistilConfig, arguments={"cache"}, required={"out"})
 
@@ -32,7 +32,8 @@ def register(app: typer.Typer) -> None:
         did, through the annotator's own candidate scoring, and to write its texts.
         Checkpoints as it goes; the same command again resumes. The student is a model folder: --model OUT."""
         from cli.options import config_from_options
-        from illm_tools.distil.run import DistilConfig, distil as run
+        from illm_tools.distil.config import DistilConfig
+        from illm_tools.distil.run import distil as run
 
         config = config_from_options(DistilConfig, options)
         with stop_on_signals("the step in progress, then a checkpoint") as stop, ExitStack() as bar:

@@ -4,13 +4,15 @@ so that every documented setting is settable and defaults live in one place.
 
 Hand-written on Typer because tyro would replace the Typer app (and its one-line errors, help
 layout and the other commands); Typer reads a command's `inspect.Signature`, so the generated
-parameters are given to it as one. A field may carry a short alias kept from the documented
-command line (`--frames` for `total_steps`); dict fields are repeatable `--x-option KEY=VALUE`
-options; bool fields are `--x/--no-x` flags; `arguments` are positional (a list field: several).
-A field whose type is itself a dataclass (a stage's `llm: LLMSpec`) is flattened: its fields are
-options of their own (`--model`, `--dtype`), gathered back into it by `config_from_options`; `names`
-gives such a field's parameter another name than its own (`{"llm.dtype": "model_dtype"}`), and
-`exclude` leaves out a nested field by its dotted name (`"llm.device"`).
+parameters are given to it as one. A field declares its documented flag
+where it is declared (`illm_tools.settings.setting(flag=...)`: `--frames` for `total_steps`, kept
+beside the field's own; a tuple replaces it); dict fields are repeatable
+`--x-option KEY=VALUE` options (their flag declared the same way); bool fields are `--x/--no-x`
+flags; `arguments` are positional (a list field: several). A field whose type is itself a dataclass
+(a stage's `llm: LLMSpec`, a run's `ppo: PPOConfig`) is flattened: its fields are options of their
+own (`--model`, `--dtype`), gathered back into it by `config_from_options`, with the defaults of the
+field's own default (a probe's `PromptSetup(history_len=0)`); `exclude` leaves out a nested field by
+its dotted name (`"llm.offline"`).
 """
 
 from __future__ import annotations
@@ -53,20 +55,21 @@ def _optional(hint: Any) -> tuple[Any, bool]:
     return hint, False
 
 
-def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]] | None = None,
-                         dict_flags: dict[str, str] | None = None, exclude: set[str] = frozenset(),
-                         defaults: dict[str, Any] | None = None, required: set[str] = frozenset(),
-                         extra_help: dict[str, str] | None = None, arguments: set[str] = frozenset(),
-                         names: dict[str, str] | None = None, _prefix: str = "") -> list[inspect.Parameter]:
+def dataclass_parameters(cls: type, *, exclude: set[str] = frozenset(), defaults: dict[str, Any] | None = None,
+                         required: set[str] = frozenset(), extra_help: dict[str, str] | None = None,
+                         arguments: set[str] = frozenset(), dict_fields: set[str] = frozenset(),
+                         names: dict[str, str] | None = None, _prefix: str = "",
+                         _instance: Any = None) -> list[inspect.Parameter]:
     """One keyword parameter per field of `cls` (minus `exclude`) with a `typer.Option` default.
 
-    aliases: field -> an extra flag kept from the documented CLI (a tuple: the only flags); dict_flags: dict field -> its
-    repeatable KEY=VALUE flag; defaults: CLI defaults that differ from the field's (e.g. None for
-    "take it from a preset"); required: fields the command needs; extra_help: appended to help;
-    arguments: positional fields (required); names: a nested field's parameter name by its dotted
-    name (the other arguments name it by its parameter name)."""
-    aliases, dict_flags, defaults, extra_help = aliases or {}, dict_flags or {}, defaults or {}, extra_help or {}
-    renamed = names or {}
+    defaults: CLI defaults that differ from the field's (e.g. None for "take it from a preset");
+    required: fields the command needs; extra_help: appended to help; arguments: positional fields
+    (required); dict_fields: dict fields taken as repeatable KEY=VALUE options (their flag
+    declared, `--x-option` by default); names: a nested field's parameter name by its dotted name
+    where the command has another setting of its own name (a run's `llm.device` is `llm_device`,
+    its flag `--llm-device`, beside the run's `--device`). All but `exclude` name a field by its
+    parameter name."""
+    defaults, extra_help, renamed = defaults or {}, extra_help or {}, names or {}
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     params = []
@@ -76,10 +79,16 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
             continue
         name = renamed.get(dotted, f.name)
         hint, nullable = _optional(hints[f.name])
+        own = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        if _instance is not None:
+            own = getattr(_instance, f.name)
         if dataclasses.is_dataclass(hint):  # a nested config: its fields are options of their own
-            params += dataclass_parameters(hint, aliases=aliases, dict_flags=dict_flags, exclude=exclude,
-                                           defaults=defaults, required=required, extra_help=extra_help,
-                                           names=renamed, _prefix=dotted + ".")
+            # with the defaults its field gives (a probe's history 0), not what its class resolves them to
+            given = own if f.default_factory not in (hint, dataclasses.MISSING) else None
+            params += dataclass_parameters(hint, exclude=exclude, defaults=defaults, required=required,
+                                           extra_help=extra_help, dict_fields=dict_fields, names=renamed,
+                                           _prefix=dotted + ".", _instance=given)
             continue
         help_text = " ".join(filter(None, [docs.get(f.name, ""), extra_help.get(name, "")]))
         if name in arguments:
@@ -87,17 +96,15 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
                                             annotation=list[Path] if typing.get_origin(hint) in (list, tuple) else hint,
                                             default=typer.Argument(..., help=help_text)))
             continue
-        if name in dict_flags:
-            decls, annotation, default = [dict_flags[name]], list[str], None
+        declared = f.metadata.get("flag")
+        if name in dict_fields:
+            decls, annotation, default = [declared or flag(name.removesuffix("s"))], list[str], None
             help_text += " Repeatable KEY=VALUE."
         else:
-            alias = aliases.get(name)
             # the documented one first; a tuple of flags replaces the field's own (its name means another thing)
-            names = list(alias) if isinstance(alias, tuple) else ([alias] if alias else []) + [flag(name)]
-            if hint is bool:
-                decls = [f"{names[0]}/--no-{names[0][2:]}"] + names[1:]
-            else:
-                decls = names
+            flags = list(declared) if isinstance(declared, tuple) else ([declared] if declared else []) + [flag(name)]
+            flags = list(dict.fromkeys(flags))  # a declared flag that is the field's own: once
+            decls = [f"{flags[0]}/--no-{flags[0][2:]}"] + flags[1:] if hint is bool else flags
             if typing.get_origin(hint) is list:  # a list: a repeatable option
                 pass
             elif typing.get_origin(hint) is tuple:  # a tuple of names: one comma-separated option
@@ -108,42 +115,55 @@ def dataclass_parameters(cls: type, *, aliases: dict[str, str | tuple[str, ...]]
             annotation = hint if not nullable else typing.Optional[hint]  # noqa: UP007 - Typer reads Optional
             if hint is bool and nullable:
                 annotation = typing.Optional[bool]  # noqa: UP007
-            default = ... if name in required else defaults.get(
-                name, f.default if f.default is not dataclasses.MISSING else None)
+            default = ... if name in required else defaults.get(name, own)
             if isinstance(default, Path):
                 default = str(default)
             elif isinstance(default, tuple):
-                default = ",".join(default)
+                default = ",".join(map(str, default))
         params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
                                         default=typer.Option(default, *decls, help=help_text,
                                                              show_default=default is not None)))
     return params
 
 
-def config_from_options(cls: type, options: dict, dict_flags: dict[str, str] | None = None):
+def config_from_options(cls: type, options: dict, dict_fields: set[str] = frozenset()):
     """The config `cls` from a generated command's options (`dataclass_parameters`): repeatable
-    KEY=VALUE options parsed into their dict fields, comma-separated ones into tuples; `cls`
-    validates the rest in its `__post_init__` (a bad value: one line)."""
+    KEY=VALUE options parsed into their dict fields, comma-separated ones into tuples, a nested
+    config's options gathered into it; `cls` validates the rest in its `__post_init__` (a bad
+    value: one line)."""
     from illm_tools.settings import parse_pairs
 
-    dict_flags = dict_flags or {}
     hints = typing.get_type_hints(cls)
     fields = dict(options)
+    out = {}
     for f in dataclasses.fields(cls):
         hint, _ = _optional(hints[f.name])
+        name = f.name
         if dataclasses.is_dataclass(hint) and f.name not in fields:  # a nested config from its own options
-            names = {g.name for g in dataclasses.fields(hint)}
-            fields[f.name] = config_from_options(hint, {k: fields.pop(k) for k in list(fields) if k in names},
-                                                 dict_flags)
-    for name, option in dict_flags.items():
-        if name in hints:
-            fields[name] = parse_pairs(fields.get(name), option)
-    for name, value in list(fields.items()):
-        hint, _ = _optional(hints.get(name))
-        if typing.get_origin(hint) is tuple and isinstance(value, str):
-            fields[name] = tuple(v.strip() for v in value.split(",") if v.strip())
+            names = {g.name for g in _all_fields(hint)}
+            out[f.name] = config_from_options(hint, {k: fields.pop(k) for k in list(fields) if k in names},
+                                              dict_fields)
+            continue
+        if name not in fields:
+            continue
+        value = fields.pop(name)
+        if name in dict_fields:
+            value = parse_pairs(value, f.metadata.get("flag") or flag(name.removesuffix("s")))
+        elif typing.get_origin(hint) is tuple and isinstance(value, str):
+            value = tuple(v.strip() for v in value.split(",") if v.strip())
         elif typing.get_origin(hint) is tuple and isinstance(value, list):  # a positional list
-            fields[name] = tuple(value)
+            value = tuple(value)
         elif typing.get_origin(hint) is list and value is None:  # a repeatable option not given: the field's default
-            del fields[name]
-    return cls(**fields)
+            continue
+        out[f.name] = value
+    return cls(**out, **fields)
+
+
+def _all_fields(cls: type) -> list[dataclasses.Field]:
+    """The fields of `cls` and of its nested configs, at any depth (the options they take)."""
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        hint, _ = _optional(hints[f.name])
+        out += _all_fields(hint) if dataclasses.is_dataclass(hint) else [f]
+    return out

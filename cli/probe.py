@@ -11,7 +11,6 @@ from cli.common import emit_json, progress
 from cli.errors import friendly
 
 
-ALIASES = {"env_id": "--env"}
 EXAMPLE = "Example: illm probe --env BabyAI-GoToLocal-v0 --model smollm2-135m --states 400"
 
 
@@ -21,7 +20,7 @@ def _parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.probe import ProbeConfig
 
-    params = dataclass_parameters(ProbeConfig, aliases=ALIASES)
+    params = dataclass_parameters(ProbeConfig, exclude={"setup.obs_mode", "setup.hop_seed", "setup.hop_beta"})
     extra = [("as_json", bool, typer.Option(False, "--json", help="Print the figures as JSON.")),
              ("out", Path, typer.Option(None, "--out", help="Also write the figures as JSON to this file."))]
     return params + [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=kind, default=default)
@@ -46,7 +45,7 @@ def register(app: typer.Typer) -> None:
         config = config_from_options(ProbeConfig, options)
         check_new_file(out, "--out")  # before the probe runs, not after
         model, env, backend, quant = config.llm.model, config.env_id, config.llm.backend, config.llm.quant
-        history, epsilon = config.history, config.epsilon
+        history, epsilon = config.setup.history_len, config.epsilon
         with progress(0, f"probe {model}", unit="states") as advance:
             done = [0]
 

@@ -18,7 +18,7 @@ def _parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.serve import ServeConfig
 
-    return dataclass_parameters(ServeConfig, aliases={"history_len": ("--history",)})
+    return dataclass_parameters(ServeConfig, exclude={"setup.obs_mode"})  # it answers text and hop states
 
 
 def register(app: typer.Typer) -> None:

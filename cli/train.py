@@ -10,14 +10,7 @@ import typer
 
 from cli.common import emit_json, progress, stop_on_signals
 from cli.errors import friendly
-from illm_tools.rl.names import FLAGS
-
-# flags kept from the documented command line beside each field's own (`--frames` = `--total-steps`); `--mode` alone
-DICT_FLAGS = {"bonus_options": "--bonus-option", "network_options": "--network-option", "env_options": "--env-option",
-              "task_weights": "--task-weight"}
-ALIASES = {**{k: v for k, v in FLAGS.items() if k not in DICT_FLAGS}, "obs_mode": ("--mode",)}
-NAMES = {"llm.dtype": "model_dtype"}  # the LLM's dtype keeps its flat name (illm_tools.rl.names), --dtype its flag
-NOT_OPTIONS = {"llm.device", "llm.offline", "llm.batch_tokens"}  # --llm-device; never downloads; default budget
+DICT_FIELDS = {"bonus_options", "network_options", "env_options", "task_weights"}  # repeatable KEY=VALUE options
 EXAMPLE = ("Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm --frames 200000 --seed 0 "
            "--out runs/gotolocal-illm")
 
@@ -40,9 +33,11 @@ def train_config(ctx: typer.Context, options: dict):
     from illm_tools.rl.build import run_config
     from illm_tools.settings import parse_pairs
 
+    from illm_tools.rl.config import flag_of
+
     settings = dict(options)
-    for name, option in DICT_FLAGS.items():
-        settings[name] = parse_pairs(options.get(name), option)
+    for name in DICT_FIELDS:
+        settings[name] = parse_pairs(options.get(name), flag_of(name))
     settings["bonus_options"] = get_method(options["method"]).typed_options(settings["bonus_options"])
     return run_config(settings, _given(ctx), say=lambda line: typer.echo(line, err=True))
 
@@ -68,12 +63,12 @@ def warn_empty_cache(cfg) -> None:
     come only from live annotation. (A cache holding annotations of another setup is refused by
     `illm_tools.tasks.setup.check_setup`; an empty one with --live-budget 0 by `make_provider`.) Not with
     --annotator: a fresh cache that the server fills is how a run with a server starts."""
-    if not cfg.needs_targets or cfg.cache is None or cfg.resume or cfg.live_budget == 0 or cfg.annotator:
+    if not cfg.needs_targets or cfg.targets.cache is None or cfg.resume or cfg.targets.live_budget == 0 or cfg.targets.annotator:
         return
-    held = cache_holds(cfg.cache)
+    held = cache_holds(cfg.targets.cache)
     if held in ("no folder", "no annotations"):
-        budget = "every missed state" if cfg.live_limit is None else f"{cfg.live_limit} states a rollout"
-        typer.echo(f"warning: --cache {cfg.cache} holds {held}: the run's targets come only from live annotation "
+        budget = "every missed state" if cfg.targets.live_limit is None else f"{cfg.targets.live_limit} states a rollout"
+        typer.echo(f"warning: --cache {cfg.targets.cache} holds {held}: the run's targets come only from live annotation "
                    f"({budget}); check the path if you meant a cache `illm annotate` wrote", err=True)
 
 
@@ -82,13 +77,13 @@ def no_target_line(cfg, coverage: list[float], live: float = 0.0) -> str | None:
     mistyped --cache, live answers that came too late): it names the cache and what it holds."""
     if not cfg.needs_targets or not coverage or max(coverage) > 0:
         return None
-    held = cache_holds(cfg.cache)
-    line = f"warning: no step had an LLM target, so the bonus paid nothing: --cache {cfg.cache} holds {held}"
+    held = cache_holds(cfg.targets.cache)
+    line = f"warning: no step had an LLM target, so the bonus paid nothing: --cache {cfg.targets.cache} holds {held}"
     if live:
         return (f"{line}; the {live:,.0f} states annotated live landed after the rollouts that asked for them (a longer "
                 "run uses them, --live-mode sync waits for them, `illm annotate` gives them ahead)")
     if held.startswith("no "):
-        return f"{line}; check the path, or annotate into it first (`illm annotate DATA --cache {cfg.cache}`)"
+        return f"{line}; check the path, or annotate into it first (`illm annotate DATA --cache {cfg.targets.cache}`)"
     return (f"{line}, none of them a state this run visited on {cfg.env_id}; annotate states of this level "
             f"(`illm collect --env {cfg.env_id}`, then `illm annotate`) or check --cache")
 
@@ -96,13 +91,13 @@ def no_target_line(cfg, coverage: list[float], live: float = 0.0) -> str | None:
 def _train_parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.intrinsic.registry import method_help  # light: names only, no torch
-    from illm_tools.rl.config import TrainConfig
+    from illm_tools.rl.config import NOT_SETTINGS, PART_NAMES, TrainConfig
     from illm_tools.rl.live_remote import AnnotatorAccess
     from illm_tools.rl.presets import BONUS_PRESETS, PRESET_FIELDS as WEIGHTS, preset_text
 
     params = dataclass_parameters(
-        TrainConfig, aliases=ALIASES, dict_flags=DICT_FLAGS, exclude=NOT_OPTIONS, required={"run_dir"},
-        names=NAMES, defaults={w: None for w in WEIGHTS},
+        TrainConfig, dict_fields=DICT_FIELDS, exclude={".".join(n) for n in NOT_SETTINGS}, required={"run_dir"},
+        names={".".join(k): v for k, v in PART_NAMES.items()}, defaults={w: None for w in WEIGHTS},
         extra_help={"method": "One of: " + method_help() + ".",
                     **{w: "Default: from --bonus-preset." for w in WEIGHTS},
                     "bonus_options": "See illm_tools.intrinsic.registry (e.g. rnd: update_proportion=0.5).",
@@ -149,7 +144,7 @@ def register(app: typer.Typer) -> None:
 
         token = options.pop("annotator_token")
         cfg = train_config(ctx, options)
-        use_token(token, cfg.annotator)
+        use_token(token, cfg.targets.annotator)
         out, method, env = cfg.run_dir, cfg.method, cfg.env_id
         from illm_tools.envs import suite_of
 
@@ -160,8 +155,8 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"--frames {cfg.total_steps:,} is not a whole number of rollouts ({cfg.num_envs} envs × "
                        f"{cfg.num_steps} steps = {cfg.batch_size:,} frames each): the run trains "
                        f"{cfg.num_updates * cfg.batch_size:,} frames", err=True)
-        if cfg.needs_targets and cfg.live_budget == "all" and (cfg.annotator or cfg.live_mode == "async"):
-            where = "the server's answers" if cfg.annotator else "the worker's answers (it first loads the model)"
+        if cfg.needs_targets and cfg.targets.live_budget == "all" and (cfg.targets.annotator or cfg.targets.live_mode == "async"):
+            where = "the server's answers" if cfg.targets.annotator else "the worker's answers (it first loads the model)"
             typer.echo(f"--live-budget all promises a target on every step only with --live-mode sync: {where} "
                        "land beside the rollouts, and later rollouts use them; pass --live-mode sync to wait "
                        "for every missed state", err=True)
@@ -191,7 +186,7 @@ def register(app: typer.Typer) -> None:
             targets += f" ({coverage[0]:.0%} in the first rollout, {coverage[-1]:.0%} in the last)"
         during, at_close = live_total[0], result.get("live_at_close", 0)  # at close: the worker's last chunk
         live_total[0] += at_close
-        live = f"; {live_total[0]:,.0f} states annotated live" if cfg.needs_targets and cfg.live_budget else ""
+        live = f"; {live_total[0]:,.0f} states annotated live" if cfg.needs_targets and cfg.targets.live_budget else ""
         if live and live_total[0]:
             live += f" ({during:,.0f} during the rollouts, {at_close:,} while the run shut down, kept in the cache)"
         none = no_target_line(cfg, coverage, live_total[0])
@@ -219,7 +214,7 @@ def register(app: typer.Typer) -> None:
         The score is the suite's (success rate, Crafter score, mean return); a markdown table, or with
         --json a list with one object per run."""
         from cli.options import config_from_options
-        from illm_tools.rl.config import EvalConfig
+        from illm_tools.rl.eval_config import EvalConfig
         from illm_tools.rl.run import evaluate as run
 
         as_json = options.pop("as_json")
@@ -274,7 +269,7 @@ def one_run_methods(results: list[dict]) -> str | None:
 
 def _eval_parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
-    from illm_tools.rl.config import EvalConfig
+    from illm_tools.rl.eval_config import EvalConfig
 
     as_json = inspect.Parameter("as_json", inspect.Parameter.KEYWORD_ONLY, annotation=bool,
                                 default=typer.Option(False, "--json", help="Print machine-readable JSON."))

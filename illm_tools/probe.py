@@ -29,6 +29,8 @@ import numpy as np
 
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
+from illm_tools.settings import setting
+from illm_tools.tasks.prompt_setup import PromptSetup
 from illm_tools.tasks.calibration import CALIBRATIONS, action_distribution, action_scores
 from illm_tools.tasks.state import StateRecord
 
@@ -158,29 +160,30 @@ def expert_states(env_id: str, count: int, *, history: int = 0, seed: int = 0, e
 class ProbeConfig:
     """An `illm probe` run: which level and annotator, and how many of the bot's states."""
 
-    env_id: str = "BabyAI-GoToLocal-v0"
+    env_id: str = setting("BabyAI-GoToLocal-v0", flag="--env")
     """A BabyAI level (the expert is minigrid's BabyAI bot)."""
     llm: LLMSpec = field(default_factory=LLMSpec)
     """The LLM probed (`illm_tools.llm.spec`)."""
     states: int = 400
     """States to probe, from the bot's episodes."""
-    history: int = 0
-    """Observation/action pairs of history in the prompt (as `illm annotate --history`)."""
+    setup: PromptSetup = field(default_factory=lambda: PromptSetup(history_len=0))
+    """How the states become prompts, as `illm annotate` (--history, default 0 here; --layout): text
+    states only."""
     seed: int = 0
     """Seed of the episodes and of the random actions."""
     epsilon: float = 0.25
     """Share of random actions in the bot's episodes (states off its path)."""
     action_space: str = "auto"
     """original | augmented | irrelevant | auto (as `illm collect`)."""
-    layout: str = "shared"
-    """Prompt templates, as `illm annotate --layout`."""
     batch_size: int = 8
     """States per LLM batch."""
 
     def __post_init__(self) -> None:
         from illm_tools.settings import check_numbers
 
-        check_numbers(self, positive=("states", "batch_size"), non_negative=("history", "seed"), unit=("epsilon",))
+        check_numbers(self, positive=("states", "batch_size"), non_negative=("seed",), unit=("epsilon",))
+        if self.setup.hop:
+            raise UsageError("illm probe scores text states: the bot's states have no hop form here (drop --mode hop)")
 
 
 @dataclass
@@ -262,14 +265,11 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
     the distinct states scored so far."""
     import dataclasses
 
-    from illm_tools.envs import renderer_of
-    from illm_tools.tasks.setup import AnnotationSetup
-
-    data = expert_states(cfg.env_id, cfg.states, history=cfg.history, seed=cfg.seed, epsilon=cfg.epsilon,
+    data = expert_states(cfg.env_id, cfg.states, history=cfg.setup.history_len, seed=cfg.seed, epsilon=cfg.epsilon,
                          action_space=cfg.action_space)
     if on_states is not None:
         on_states(data)
-    setup = AnnotationSetup(cfg.env_id, renderer_of(cfg.env_id), ("action",), cfg.history, cfg.layout)
+    setup = cfg.setup.of(cfg.env_id, ("action",))
     cfg.llm.check_use(setup.env_id, setup.renderer)
     llm = cfg.llm.placed()
     lm = llm.load()
@@ -279,7 +279,8 @@ def probe(cfg: ProbeConfig, *, on_states: Callable[[ExpertStates], None] | None 
     expert = data.expert
     freq = np.bincount(expert, minlength=len(data.actions)) / len(expert)
     result = ProbeResult(
-        config={**{k: v for k, v in cfg.__dict__.items() if k != "llm"}, **dataclasses.asdict(llm),  # as resolved
+        config={**{k: v for k, v in cfg.__dict__.items() if k not in ("llm", "setup")},  # as probe files name them
+                "history": cfg.setup.history_len, "layout": cfg.setup.layout, **dataclasses.asdict(llm),  # as resolved
                 "dtype": lm.fingerprint.get("dtype", llm.dtype)},
         actions=data.actions, states=len(expert),
         distinct_states=len(set(data.records)), episodes=data.episodes, skipped=data.skipped,

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Iterable
 from typing import Any
@@ -31,16 +32,35 @@ INT_LIMIT = 2**62
 """The largest whole number a setting may hold (counts, seeds): past it numpy and torch overflow."""
 
 
-def flag_of(name: str) -> str:
-    return "--" + name.replace("_", "-")
+def setting(default: Any = dataclasses.MISSING, *, flag: str | tuple[str, ...] | None = None,
+            factory: Any = dataclasses.MISSING, **field_options) -> Any:
+    """A config field that declares its command-line flag beside its default, so that every flag is
+    written once, where the setting is (`cli.options.dataclass_parameters` reads it): `flag` is the
+    documented flag when it is not `--` + the field's name (a string: kept beside the field's own
+    flag; a tuple: the only flags, as `--mode` for obs_mode, whose own name means another thing)."""
+    metadata = {} if flag is None else {"flag": flag}
+    return dataclasses.field(default=default, default_factory=factory, metadata=metadata, **field_options)
+
+
+def declared_flag(cls: Any, name: str) -> str | None:
+    """The flag the field `name` of the dataclass `cls` declares (`setting(flag=...)`), its first
+    where it declares several; None where it declares none."""
+    fields = getattr(cls, "__dataclass_fields__", {})
+    flag = fields[name].metadata.get("flag") if name in fields else None
+    return flag[0] if isinstance(flag, tuple) else flag
+
+
+def flag_of(name: str, cls: Any = None) -> str:
+    """The option that sets the field `name` (of the config class `cls`, when it declares one)."""
+    return (declared_flag(cls, name) if cls is not None else None) or "--" + name.replace("_", "-")
 
 
 def check_numbers(config: Any, *, positive: Iterable[str] = (), non_negative: Iterable[str] = (),
                   unit: Iterable[str] = (), flags: dict[str, str] | None = None) -> None:
     """Refuse in one line a setting of `config` (a dataclass) that is not a finite number in its
     range: `positive` (> 0), `non_negative` (>= 0), `unit` ([0, 1]); None is left alone (an unset
-    optional). Every whole number must also fit `INT_LIMIT`. `flags` names an option whose flag is
-    not the field's name (`{"total_steps": "--frames"}`)."""
+    optional). Every whole number must also fit `INT_LIMIT`. An option is named by the flag its field
+    declares (`setting(flag=...)`), or by `flags` (`{"total_steps": "--frames"}`)."""
     import math
 
     flags = flags or {}
@@ -49,7 +69,7 @@ def check_numbers(config: Any, *, positive: Iterable[str] = (), non_negative: It
             value = getattr(config, name)
             if value is None:
                 continue
-            flag = flags.get(name, flag_of(name))
+            flag = flags.get(name) or flag_of(name, type(config))
             if isinstance(value, bool) or not isinstance(value, (int, float)) or \
                     (isinstance(value, float) and not math.isfinite(value)):
                 raise UsageError(f"{flag} must be a finite number, got {value!r}")

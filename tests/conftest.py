@@ -153,7 +153,7 @@ def plain_scores(lm, context: str, candidates: list[str]) -> list[list[float]]:
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """For modules of tiny nets: one thread is as fast, and immune to a busy second core."""
-    from illm_tools.rl.run import torch_threads
+    from illm_tools.rl.threads import torch_threads
 
     with torch_threads(1):
         yield

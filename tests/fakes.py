@@ -43,8 +43,10 @@ class FakePool:
     """The EnvPool interface over a toy task: an episode ends after 3-9 steps; 'go forward'
     on the last step succeeds (reward 1). With `positions`, the agent of env i stands at (step, i)."""
 
-    def __init__(self, num_envs, seed=0, positions=False):
-        self.num_envs, self.action_names = num_envs, ACTIONS
+    def __init__(self, num_envs, seed=0, positions=False, env_id="BabyAI-GoToLocal-v0"):
+        from illm_tools.envs import suite_of
+
+        self.num_envs, self.action_names, self.suite = num_envs, ACTIONS, suite_of(env_id)
         self.rng = np.random.default_rng(seed)
         self.positions = positions
 
@@ -121,7 +123,7 @@ def make_trainer(tmp_path, mode="illm", updates=2, pool=None, **kw):
                                      tensorboard=False, update_epochs=2, num_minibatches=2, **kw))
     pool = pool or FakePool(cfg.num_envs)
     provider = FakeProvider(len(pool.action_names), cfg.embedding_dim) if mode != "ppo" else RefusingProvider()
-    return Trainer(cfg, pool, provider), provider
+    return Trainer(cfg.resolved(), pool, provider), provider
 
 
 def one_update_seen(trainer, monkeypatch) -> SimpleNamespace:
@@ -151,8 +153,8 @@ def one_update_seen(trainer, monkeypatch) -> SimpleNamespace:
         patch.setattr(trainer, "update", capture)
         logged = trainer.train_one_update()
     cfg, ro, nxt = trainer.cfg, seen["ro"], seen["next"]
-    kw = dict(gamma=cfg.gamma, int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
-              int_coef=cfg.int_coef, int_episodic=cfg.int_episodic)
+    kw = dict(gamma=cfg.ppo.gamma, int_gamma=cfg.bonus.int_gamma, lam=cfg.ppo.gae_lambda, ext_coef=cfg.bonus.ext_coef,
+              int_coef=cfg.bonus.int_coef, int_episodic=cfg.bonus.int_episodic)
     return SimpleNamespace(logged=logged, ro=ro, adv=seen["adv"], bonus=seen["bonus"].reward, next=nxt,
                            expected=two_stream_advantages(ro, seen["bonus"].reward, nxt.value_ext, nxt.value_int, **kw),
                            without=two_stream_advantages(ro, None, nxt.value_ext, nxt.value_int, **kw))
@@ -354,11 +356,10 @@ def trains_with_the_engine_stopped(ann, run, entries: int, env: str = "BabyAI-Go
     from typer.testing import CliRunner
 
     from cli.main import app
-    from illm_tools.llm import openai_engine
+    from illm_tools.llm import openai_wire
 
     runner = CliRunner()
-    openai_engine._FINGERPRINTS.clear()  # what this process asked the engine: a later command starts afresh
-    openai_engine._ENGINES.clear()
+    openai_wire.forget_engines()  # what this process asked the engine: a later command starts afresh
     info = runner.invoke(app, ["cache", "info", str(ann), "--json"])
     assert info.exit_code == 0, info.output
     setups = json.loads(info.output)["setups"]
@@ -431,7 +432,7 @@ def flip(path, rng: random.Random) -> None:
 def fake_run(path, seed, rows, mode="illm", env_id="BabyAI-GoToLocal-v0"):
     """A run folder `illm report` reads: config.json and metrics.csv of `rows` (global step, success
     rate, episodes[, mean length])."""
-    from illm_tools.rl.checkpoint import CSV_COLUMNS
+    from illm_tools.rl.metrics_log import CSV_COLUMNS
 
     path.mkdir()
     (path / "config.json").write_text(json.dumps({"mode": mode, "env_id": env_id, "seed": seed}))
@@ -457,6 +458,19 @@ class TinyBackend(StubBackend):
 
 
 TINY = "Tiny-Corridor-v0"
+EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
+"""The plug-in examples the docs tell a user to copy (test_docs_examples.py, test_example_*.py)."""
+
+
+def cli_ok(*args) -> str:
+    """`illm ARGS` (each turned into a string) through Typer's runner: its output, the exit code 0."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return result.output
 
 
 def _docs_example(name: str):
@@ -464,7 +478,7 @@ def _docs_example(name: str):
     installs it as `corridor_suite` still imports it afresh): the docs' corridor is the tests' corridor."""
     import importlib.util
 
-    path = Path(__file__).resolve().parents[1] / "docs" / "examples" / f"{name}.py"
+    path = EXAMPLES / f"{name}.py"
     spec = importlib.util.spec_from_file_location(f"illm_docs_example_{name}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -16,7 +16,7 @@ from illm_tools.errors import UsageError
 from illm_tools.intrinsic import BonusRewards, IntrinsicBonus, NoBonus
 from illm_tools.intrinsic.registry import METHODS, Method, get_method, register
 from illm_tools.rl import TrainConfig, Trainer, load_checkpoint
-from illm_tools.rl.config import MODES
+
 from illm_tools.rl.networks import GRID_CHANNEL_SIZES, GridMissionNet
 from fakes import FakePool, one_update_seen
 
@@ -80,14 +80,14 @@ def count_method():
 
 
 def trainer_for(tmp_path, mode, updates=2, **kw):
-    cfg = TrainConfig(run_dir=tmp_path / "run", method=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
-                      tensorboard=False, update_epochs=2, num_minibatches=2, **kw)
-    return Trainer(cfg, FakePool(cfg.num_envs))
+    cfg = TrainConfig.from_dict(dict(run_dir=tmp_path / "run", method=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
+                      tensorboard=False, update_epochs=2, num_minibatches=2, **kw))
+    return Trainer(cfg.resolved(), FakePool(cfg.num_envs))
 
 
 # --- the registry -----------------------------------------------------------------------------
 def test_methods_and_what_each_declares():
-    assert MODES is METHODS and list(METHODS)[:4] == ["illm", "illm-noreward", "ppo", "rnd"]
+    assert list(METHODS)[:4] == ["illm", "illm-noreward", "ppo", "rnd"]
     illm, noreward, ppo, rnd = (get_method(m) for m in ("illm", "illm-noreward", "ppo", "rnd"))
     assert illm.needs_targets and illm.policy_heads and illm.pays
     assert noreward.needs_targets and noreward.policy_heads and not noreward.pays

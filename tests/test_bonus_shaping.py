@@ -109,10 +109,10 @@ def test_each_knob_reaches_the_advantages_the_loss_uses_and_resumes(tmp_path, mo
     trainer.train_one_update()  # the second update: the schedule has moved
     cfg, ro, adv, nxt = trainer.cfg, seen["ro"], seen["adv"], seen["next"]
     weight = seen["weight"]
-    expected = two_stream_advantages(ro, bonuses[-1].reward, nxt.value_ext, nxt.value_int, gamma=cfg.gamma,
-                                     int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
-                                     int_coef=cfg.int_coef * weight, int_episodic=cfg.int_episodic,
-                                     streams=cfg.reward_streams, int_ext_cap=cfg.int_ext_cap)
+    expected = two_stream_advantages(ro, bonuses[-1].reward, nxt.value_ext, nxt.value_int, gamma=cfg.ppo.gamma,
+                                     int_gamma=cfg.bonus.int_gamma, lam=cfg.ppo.gae_lambda, ext_coef=cfg.bonus.ext_coef,
+                                     int_coef=cfg.bonus.int_coef * weight, int_episodic=cfg.bonus.int_episodic,
+                                     streams=cfg.bonus.reward_streams, int_ext_cap=cfg.bonus.int_ext_cap)
     assert torch.allclose(adv.advantages, expected.advantages, atol=1e-5)  # the loss saw the bonus as specified
     if knobs.get("bonus_schedule") == "anneal":
         assert weight == pytest.approx(1 - 1 / 3)
@@ -123,7 +123,7 @@ def test_each_knob_reaches_the_advantages_the_loss_uses_and_resumes(tmp_path, mo
     trainer.save()
     state = load_checkpoint(cfg.run_dir)
     assert state["bonus_schedule"]["success"] == trainer.schedule.success
-    resumed = Trainer(TrainConfig(**{**cfg.to_dict(), "resume": True}), FakePool(cfg.num_envs),
+    resumed = Trainer(TrainConfig.from_dict(dict(**{**cfg.to_dict(), "resume": True})).resolved(), FakePool(cfg.num_envs),
                       FakeProvider(6, cfg.embedding_dim))
     assert resumed.update_idx == 2 and resumed.schedule.success == trainer.schedule.success
     assert resumed.bonus_weight() == trainer.bonus_weight()
@@ -156,10 +156,10 @@ def test_a_run_logs_the_heads_agreement_the_weight_and_where_the_bonus_was_paid(
 
 def test_bad_knobs_are_refused_in_one_line(tmp_path):
     with pytest.raises(UsageError, match="reward-streams"):
-        TrainConfig(run_dir=tmp_path / "r", method="ppo", reward_streams=3)
+        TrainConfig.from_dict(dict(run_dir=tmp_path / "r", method="ppo", reward_streams=3))
     with pytest.raises(UsageError, match="bonus-schedule"):
-        TrainConfig(run_dir=tmp_path / "r", method="ppo", bonus_schedule="cosine")
+        TrainConfig.from_dict(dict(run_dir=tmp_path / "r", method="ppo", bonus_schedule="cosine"))
     with pytest.raises(UsageError, match="success rate"):
-        TrainConfig(run_dir=tmp_path / "r", method="rnd", env_id="ALE/Pong-v5", bonus_schedule="success")
+        TrainConfig.from_dict(dict(run_dir=tmp_path / "r", method="rnd", env_id="ALE/Pong-v5", bonus_schedule="success"))
     with pytest.raises(UsageError, match="int_ext_cap|int-ext-cap"):
-        TrainConfig(run_dir=tmp_path / "r", method="ppo", int_ext_cap=-1)
+        TrainConfig.from_dict(dict(run_dir=tmp_path / "r", method="ppo", int_ext_cap=-1))

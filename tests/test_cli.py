@@ -56,6 +56,21 @@ def test_collect_then_info(tmp_path):
     assert stats["rows"] == 300 and stats["env_ids"] == ["BabyAI-GoToLocal-v0"] and stats["schema_version"] == 1
 
 
+def test_a_short_random_collection_says_its_episodes_still_running_and_warns_its_score_leans_quick(tmp_path):
+    """300 random steps on GoToLocal over 8 envs: no episode has reached its time limit yet, so only the
+    quick successes finished; the closing line counts the running ones and a warning says the rate is
+    biased. 3,000 steps: most episodes finished, no warning."""
+    from illm_tools.collect import CollectConfig, collect
+
+    short = runner.invoke(app, ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", "300", "--num-envs", "8",
+                                "--out", str(tmp_path / "short"), "--seed", "0"])
+    assert short.exit_code == 0, short.output
+    assert "and 8 still running at the end" in short.output
+    assert "warning: only" in short.output and "leans toward them" in short.output
+    long = collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=tmp_path / "long", steps=3000, num_envs=8, seed=0))
+    assert long["episodes_running"] == 8 and long["episodes_finished"] > 16 and not long["biased"]
+
+
 def test_collect_refuses_existing_output_and_keeps_it(tmp_path):
     out = tmp_path / "traj"
     args = ["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", "40", "--num-envs", "2", "--out", str(out)]
@@ -167,12 +182,11 @@ def test_every_train_setting_is_an_option_named_as_its_field_with_its_default(tm
 
     import illm_tools.rl.run as run_module
     from illm_tools.rl.build import run_config
-    from illm_tools.rl.config import TrainConfig
-    from illm_tools.rl.names import flat_names
+    from illm_tools.rl.config import FLAT
 
     command = typer.main.get_command(app).commands["train"]
     opts = {o for p in command.params for o in p.opts}
-    fields = flat_names(TrainConfig)  # every setting by its flat name (the LLM's and iLLM's too)
+    fields = list(FLAT)  # every setting by its flat name (the LLM's and iLLM's too)
     dict_fields = {"bonus_options", "network_options", "env_options", "task_weights"}
     renamed = {"mode": "--method", "obs_mode": "--mode"}  # the method's field is "mode"; --mode is obs|hop
     assert all(renamed.get(f, "--" + f.replace("_", "-")) in opts for f in fields if f not in dict_fields)

@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 
 from conftest import collect_babyai
 from cli.main import app
+from illm_tools.tasks.prompt_setup import PromptSetup
 from illm_tools.tasks.setup import AnnotationSetup, check_setup
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
@@ -46,7 +47,7 @@ def trajectories(tmp_path_factory):
 
 
 def config(trajectories, cache, tiny_lm, **kw) -> AnnotateConfig:
-    return AnnotateConfig(data=trajectories, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), history=0,
+    return AnnotateConfig(data=trajectories, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), setup=PromptSetup(history_len=0),
                           batch_size=4, chunk=4, **kw)
 
 
@@ -255,7 +256,7 @@ def test_async_worker_rows_reach_a_later_rollout_and_a_killed_worker_leaves_the_
 def test_train_with_async_live_annotation_logs_its_queue(tmp_path, tiny_lm):
     traj, cache = tmp_path / "traj", tmp_path / "ann"
     collect(CollectConfig(env_id=ENV, out=traj, steps=64, num_envs=4, seed=1))
-    annotate_dataset(AnnotateConfig(data=traj, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), history=0,
+    annotate_dataset(AnnotateConfig(data=traj, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), setup=PromptSetup(history_len=0),
                                     limit=4, batch_size=4))
     out = runner.invoke(app, [str(a) for a in [
         "train", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype", "float32", "--history", 0,

@@ -68,12 +68,12 @@ def test_auto_is_recorded_resolved_and_a_run_may_resume_on_another_device(tmp_pa
 
     cfg = TrainConfig(run_dir=tmp_path / "run", method="rnd", num_envs=4, num_steps=32, total_steps=128,
                       tensorboard=False, device="auto")
-    trainer = Trainer(cfg, FakePool(4))
+    trainer = Trainer(cfg.resolved(), FakePool(4))
     trainer.train()
     recorded = json.loads((tmp_path / "run" / "config.json").read_text())
     assert recorded["device"] == ("cpu" if NO_GPU else "cuda")
     assert trainer.net.critic_ext[0].weight.device.type == recorded["device"]
-    resumed = Trainer(TrainConfig(**{**cfg.__dict__, "total_steps": 256, "resume": True, "device": "cpu"}),
+    resumed = Trainer(TrainConfig.from_dict(dict(**{**cfg.__dict__, "total_steps": 256, "resume": True, "device": "cpu"})).resolved(),
                       FakePool(4))
     assert resumed.global_step == 128 and resumed.train()["global_step"] == 256
 
@@ -82,11 +82,11 @@ def _short_run(tmp_path, name, method, device):
     from illm_tools.llm.spec import LLMSpec
     from illm_tools.rl import TrainConfig, Trainer
 
-    cfg = TrainConfig(run_dir=tmp_path / name, method=method, num_envs=4, num_steps=32, total_steps=256,
+    cfg = TrainConfig.from_dict(dict(run_dir=tmp_path / name, method=method, num_envs=4, num_steps=32, total_steps=256,
                       llm=LLMSpec("stub", "stub:8"), head_hidden=32, tensorboard=False, device=device,
-                      update_epochs=2, num_minibatches=2, heads_bf16=False)
+                      update_epochs=2, num_minibatches=2, heads_bf16=False))
     pool = FakePool(cfg.num_envs)
-    trainer = Trainer(cfg, pool, FakeProvider(len(pool.action_names), cfg.embedding_dim))
+    trainer = Trainer(cfg.resolved(), pool, FakeProvider(len(pool.action_names), cfg.embedding_dim))
     return trainer, trainer.train()
 
 

@@ -16,6 +16,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
+from illm_tools.tasks.prompt_setup import PromptSetup
 
 runner = CliRunner()
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -41,7 +42,7 @@ def oracle_cache(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("distil-data")
     collect(CollectConfig(env_id="BabyAI-UnlockLocal-v0", out=tmp / "traj", steps=400, num_envs=4, seed=1000,
                           policy="bot"))
-    annotate_dataset(AnnotateConfig(data=tmp / "traj", cache=tmp / "ann", llm=LLMSpec(backend="oracle"), history=0))
+    annotate_dataset(AnnotateConfig(data=tmp / "traj", cache=tmp / "ann", llm=LLMSpec(backend="oracle"), setup=PromptSetup(history_len=0)))
     return tmp / "ann"
 
 
@@ -51,7 +52,8 @@ def tiny_folder(tiny_lm):
 
 
 def _distil(cache, out, student, **options):
-    from illm_tools.distil.run import DistilConfig, distil
+    from illm_tools.distil.config import DistilConfig
+    from illm_tools.distil.run import distil
 
     return distil(DistilConfig(cache=cache, out=out, student=student, **{**SMALL, **options}))
 
@@ -159,7 +161,7 @@ def test_the_argmax_target_is_the_cross_entropy_of_the_teachers_top_action(tiny_
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.distil.lessons import COLUMNS, lessons_of, tokenise
     from illm_tools.distil.loss import _continuation_sums, lesson_loss
-    from illm_tools.distil.run import DistilConfig
+    from illm_tools.distil.config import DistilConfig
     from illm_tools.llm.loading import load_model
     from illm_tools.llm.scoring import extend
 
@@ -184,7 +186,8 @@ def test_the_argmax_target_is_the_cross_entropy_of_the_teachers_top_action(tiny_
 def test_an_interrupted_distillation_resumes_to_the_same_student(oracle_cache, tiny_folder, tmp_path):
     from safetensors.torch import load_file
 
-    from illm_tools.distil.run import DistilConfig, distil
+    from illm_tools.distil.config import DistilConfig
+    from illm_tools.distil.run import distil
 
     calls = []
 
@@ -215,7 +218,8 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(oracle_cache, t
 
 @pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_a_damaged_checkpoint_is_set_aside_and_an_older_one_resumes(oracle_cache, tiny_folder, tmp_path):
-    from illm_tools.distil.run import DistilConfig, distil
+    from illm_tools.distil.config import DistilConfig
+    from illm_tools.distil.run import distil
 
     calls = []
     config = DistilConfig(cache=oracle_cache, out=tmp_path / "s", student=tiny_folder, **{**SMALL, "save_every": 2})
@@ -335,7 +339,8 @@ def test_min_share_raises_the_rare_actions_and_keeps_the_common_ones_proportions
 
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.distil.lessons import balanced_quotas, floor_shares, lessons_from_plan, top_action, visit_balance
-    from illm_tools.distil.run import DistilConfig, _new_plan
+    from illm_tools.distil.config import DistilConfig
+    from illm_tools.distil.run import _new_plan
 
     shares = {"go forward": 0.57, "turn right": 0.21, "turn left": 0.19, "pick up": 0.025, "toggle": 0.005}
     floored = floor_shares(shares, 0.08)
@@ -372,7 +377,8 @@ def test_balance_teaches_the_rare_actions_more_often(oracle_cache, tiny_folder, 
 
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.distil.lessons import LessonPlan, lessons_from_plan, top_action
-    from illm_tools.distil.run import DistilConfig, _new_plan
+    from illm_tools.distil.config import DistilConfig
+    from illm_tools.distil.run import _new_plan
 
     cache = AnnotationCache(oracle_cache)
 
@@ -398,7 +404,8 @@ def test_visits_draw_the_lessons_as_often_as_an_agent_meets_their_states(oracle_
 
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.distil.lessons import COLUMNS, lessons_of, visits_of
-    from illm_tools.distil.run import DistilConfig, _new_plan
+    from illm_tools.distil.config import DistilConfig
+    from illm_tools.distil.run import _new_plan
 
     traj = oracle_cache.parent / "traj"
     cache = AnnotationCache(oracle_cache)
@@ -428,7 +435,8 @@ def test_balance_on_visits_evens_the_actions_shares_of_the_draws(oracle_cache, t
 
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.distil.lessons import lessons_from_plan, top_action, visit_balance, visits_of
-    from illm_tools.distil.run import DistilConfig, _new_plan
+    from illm_tools.distil.config import DistilConfig
+    from illm_tools.distil.run import _new_plan
 
     assert list(visit_balance(["a", "b", "a"], [1.0, 4.0, 3.0], 0.5)) == [0.5, 0.5, 0.5]  # a: 4 visits, b: 4
     assert list(visit_balance(["a", "b"], [1.0, 4.0], 1.0)) == [1.0, 0.25]
@@ -480,7 +488,7 @@ def test_bad_inputs_get_one_line(oracle_cache, tiny_folder, tmp_path):
     _refused([str(tmp_path), *student], out, "is not an annotation cache")
     collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=tmp_path / "traj", steps=40, num_envs=2))
     annotate_dataset(AnnotateConfig(data=tmp_path / "traj", cache=tmp_path / "summaries", llm=LLMSpec(backend="oracle"),
-                                    history=0, tasks=("summary",)))
+                                    setup=PromptSetup(history_len=0), tasks=("summary",)))
     _refused([str(tmp_path / "summaries"), *student], out, "holds no action rows", "--tasks action,summary")
     _refused([str(oracle_cache), "--student", str(tmp_path / "no-model")], out, "no-model")
     (tmp_path / "not-a-model").mkdir()

@@ -7,25 +7,14 @@ from __future__ import annotations
 
 import csv
 import json
-from pathlib import Path
 
 import pytest
-from typer.testing import CliRunner
 
-from cli.main import app
-from fakes import plugins_installed
+from fakes import EXAMPLES, cli_ok as ok, plugins_installed
 from illm_tools.rl.checkpoint import load_checkpoint
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "docs" / "examples"
 ENV = "Corridor-Walk-v0"
 SMALL = ["--num-envs", 2, "--num-steps", 16, "--frames", 32]
-runner = CliRunner()
-
-
-def ok(*args) -> str:
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 0, result.output
-    return result.output
 
 
 @pytest.fixture

@@ -29,7 +29,8 @@ from illm_tools.envs.captions import ACTION_NAMES, CAPTIONER_VERSION, NOTHING, c
 from illm_tools.intrinsic import BonusContext, Targets
 from illm_tools.intrinsic.ellm import ELLMBonus, ELLMConfig
 from illm_tools.intrinsic.registry import get_method
-from illm_tools.tasks.prompts import PromptBuilder, parse_goals
+from illm_tools.tasks.goals import parse_goals
+from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.registry import LANGUAGE_TASKS
 from illm_tools.tasks.state import StateRecord
 
@@ -290,10 +291,10 @@ def test_the_ellm_bonus_reaches_the_advantages(tmp_path):
     from illm_tools.rl import TrainConfig, Trainer
     from fakes import FakePool
 
-    cfg = TrainConfig(run_dir=tmp_path / "run", method="ellm", num_envs=4, num_steps=32, total_steps=4 * 32,
-                      tensorboard=False, update_epochs=1, num_minibatches=2, int_gamma=0.9)
+    cfg = TrainConfig.from_dict(dict(run_dir=tmp_path / "run", method="ellm", num_envs=4, num_steps=32, total_steps=4 * 32,
+                      tensorboard=False, update_epochs=1, num_minibatches=2, int_gamma=0.9))
     provider = FakeGoals(lambda k: ("turn left",) if k % 5 else None)
-    trainer = Trainer(cfg, FakePool(cfg.num_envs), provider)  # hands the bonus its provider
+    trainer = Trainer(cfg.resolved(), FakePool(cfg.num_envs), provider)  # hands the bonus its provider
     assert trainer.bonus.provider is provider
     trainer.bonus.embedder = FakeEmbedder()
     ro, records, _, next_values = trainer.collect_rollout()

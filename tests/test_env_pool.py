@@ -131,6 +131,6 @@ def test_a_seed_list_fixes_the_layouts_every_env_cycles_through():
     two.close()
     from illm_tools.rl.config import TrainConfig
 
-    assert TrainConfig(env_seeds="3, 5").env_seeds == (3, 5)
+    assert TrainConfig.from_dict(dict(env_seeds="3, 5")).env_seeds == (3, 5)
     with pytest.raises(UsageError, match="--env-seeds takes whole numbers"):
         TrainConfig(env_seeds="a")

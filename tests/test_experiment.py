@@ -139,7 +139,7 @@ method_settings:
                       "illm-num_dists=2-oracle_noise=0", "illm-num_dists=2-oracle_noise=0.5",
                       "ppo-num_dists=1", "ppo-num_dists=2"]
     noisy = [r.config for r in runs if r.label.endswith("oracle_noise=0.5")]
-    assert noisy and all(c.llm_model == "oracle:noise=0.5" and c.live_budget == "all" for c in noisy)
+    assert noisy and all(c.llm.model == "oracle:noise=0.5" and c.targets.live_budget == "all" for c in noisy)
     bad = write(tmp_path, TINY + "method_grid:\n  rnd: {lambda_a: [1]}\n", "bad.yaml")
     with pytest.raises(UsageError, match="line 14: method_grid names 'rnd', which is not among the spec's methods"):
         plan(load_spec(bad), tmp_path / "r2")
@@ -154,10 +154,10 @@ the paper's value of each in its `paper:` block, and says why where it differs."
 def _value(cfg, key: str):
     """A run's value of a paper setting: the model as served, an env option, or the field."""
     if key == "model":
-        return cfg.llm_model
+        return cfg.llm.model
     if key.startswith("env_options."):
         return cfg.env_options.get(key.split(".", 1)[1], 0.0)
-    value = getattr(cfg, key)
+    value = cfg.flat()[key]
     return "+".join(value) if key == "tasks" else value
 
 
@@ -246,9 +246,9 @@ def test_the_suite_specs_validate_with_a_dry_run(tmp_path, name):
                 "illm-setting=capped", "illm-setting=bulk-small", "ppo", "rnd", "illm-shuffled",
                 "illm-noreward"} == labels
         literal = next(r.config for r in runs if r.label == "illm-setting=paper-literal")
-        assert literal.reward_streams == 1 and literal.action_target == "argmax"
+        assert literal.bonus.reward_streams == 1 and literal.bonus.action_target == "argmax"
         bulk = next(r.config for r in runs if r.label == "illm-setting=bulk-small")
-        assert bulk.live_budget == 0 and bulk.cache.name == "ann-bulk"
+        assert bulk.targets.live_budget == 0 and bulk.targets.cache.name == "ann-bulk"
         assert {r.config.total_steps for r in runs} == {61440, 81920, 122880, 151552}
     if name == "suite-report":  # the claim: both halves, 5 seeds, the report half's eighth level by suite-tune's rule
         frames = {r.env_id: r.config.total_steps for r in runs}

@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 
 from illm_tools.collect import CollectConfig, collect
 from illm_tools.errors import UsageError
-from illm_tools.rl import Rollout, TrainConfig, Trainer, load_checkpoint, make_pool, two_stream_advantages
-from illm_tools.rl.config import bonus_weights
+from illm_tools.rl import Rollout, TrainConfig, load_checkpoint, two_stream_advantages
+from illm_tools.rl.presets import bonus_weights
 from illm_tools.rl.targets import CachedTargets
 from illm_tools.tasks.calibration import action_distribution, action_target
 from illm_tools.tasks.state import StateRecord
@@ -74,9 +74,9 @@ def test_cached_targets_serve_the_chosen_action_target():
 
 
 def test_action_target_is_validated_in_one_line():
-    assert TrainConfig().action_target == "distribution"
+    assert TrainConfig().bonus.action_target == "distribution"
     with pytest.raises(UsageError, match="--action-target") as err:
-        TrainConfig(action_target="top1")
+        TrainConfig.from_dict(dict(action_target="top1"))
     assert "\n" not in str(err.value)
 
 
@@ -96,16 +96,14 @@ def test_collect_records_the_resolved_action_space_and_append_keeps_it(tmp_path)
 
 
 def _ppo_config(run_dir, **kw):
-    return TrainConfig(env_id=ENV, run_dir=run_dir, method="ppo", num_envs=2, num_steps=16, num_minibatches=2,
-                       update_epochs=1, tensorboard=False, **kw)
+    return TrainConfig.from_dict(dict(env_id=ENV, run_dir=run_dir, method="ppo", num_envs=2, num_steps=16, num_minibatches=2,
+                       update_epochs=1, tensorboard=False, **kw))
 
 
 def _train(cfg):
-    pool = make_pool(cfg)
-    try:
-        return Trainer(cfg, pool).train()
-    finally:
-        pool.close()
+    from illm_tools.rl.run import train
+
+    return train(cfg)  # a resumed run's recorded choices (its action space) kept, as `illm train --resume`
 
 
 def test_train_records_the_resolved_action_space_and_resumes_it(tmp_path):
@@ -197,7 +195,7 @@ def test_train_cli_passes_preset_coefficients_and_action_target(tmp_path, monkey
                                       "--bonus-preset", "rnd", "--int-coef", "0.5", "--action-target", "argmax"])
     assert result.exit_code == 0, result.output
     cfg = seen[0]
-    assert (cfg.ext_coef, cfg.int_coef, cfg.illm.lambda_a, cfg.illm.beta_hc) == (2.0, 0.5, 0.8, 0.5)
-    assert cfg.action_target == "argmax" and cfg.action_space == "auto"
+    assert (cfg.bonus.ext_coef, cfg.bonus.int_coef, cfg.illm.lambda_a, cfg.illm.beta_hc) == (2.0, 0.5, 0.8, 0.5)
+    assert cfg.bonus.action_target == "argmax" and cfg.action_space == "auto"
     bad = CliRunner().invoke(app, ["train", "--method", "ppo", "--out", str(tmp_path / "r"), "--action-target", "x"])
     assert bad.exit_code == 1 and "--action-target" in bad.output

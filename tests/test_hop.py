@@ -11,7 +11,8 @@ import torch
 from typer.testing import CliRunner
 
 from cli.main import app
-from illm_tools.hop.context import HopContext, HopTracker, hop_records_from_table, hop_renderer
+from illm_tools.hop.context import HopContext, HopTracker, hop_records_from_table
+from illm_tools.tasks.setup import hop_renderer
 from illm_tools.hop.translate import FrozenHopfield
 from illm_tools.tasks.prompts import PromptBuilder
 

@@ -152,7 +152,7 @@ def test_device_and_quantisation_default_to_the_machine_and_the_alias():
     from illm_tools.rl.config import TrainConfig
 
     spec = LLMSpec()
-    assert spec.device == "auto" and spec.quant == "auto"
+    assert spec.device is None and spec.quant == "auto"
     placed = spec.placed()
     assert placed.device == "cpu" and placed.quant == "none"  # this machine has no CUDA device
     assert TrainConfig().device == "auto" and TrainConfig().llm.quant == "auto"

@@ -7,7 +7,8 @@ import torch
 from illm_tools.intrinsic import DiscountedReturnNormalizer, ILLMBonus, RunningMeanStd
 from illm_tools.tasks.state import HistoryTracker
 from illm_tools.intrinsic.illm import action_disagreement, summary_disagreement
-from illm_tools.rl.networks import GridMissionNet, MissionVocab
+from illm_tools.envs.encoding import MissionVocab
+from illm_tools.rl.networks import GridMissionNet
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

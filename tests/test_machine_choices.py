@@ -55,11 +55,11 @@ def test_the_resolved_dtype_is_in_the_keys_and_the_run_records_its_choices(traj,
     ok("train", "--env", "BabyAI-GoToLocal-v0", "--method", "illm", "--cache", tmp_path / "ann", "--backend", "stub",
        "--history", 0, "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-budget", 0, "--out", tmp_path / "run")
     config = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert config["llm"]["dtype"] == "float32" and config["heads_bf16"] is False  # resolved, never "auto"
+    assert config["llm"]["dtype"] == "float32" and config["bonus"]["heads_bf16"] is False  # resolved, never "auto"
     monkeypatch.setenv("ILLM_DTYPE_PROBE", "bfloat16")  # resumed on a machine that would choose otherwise
     ok("train", "--out", tmp_path / "run", "--frames", 64, "--resume")
     config = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert config["llm"]["dtype"] == "float32" and config["heads_bf16"] is False
+    assert config["llm"]["dtype"] == "float32" and config["bonus"]["heads_bf16"] is False
 
 
 def test_a_run_adopts_its_caches_setup_and_its_live_rows_land_in_it(traj, tmp_path, monkeypatch):
@@ -72,7 +72,7 @@ def test_a_run_adopts_its_caches_setup_and_its_live_rows_land_in_it(traj, tmp_pa
     assert "adopting the cache's setup: --backend stub --model stub --dtype bfloat16 --quant none --history 0 " \
            "--layout shared (4 states answered for every task" in said
     config = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert (config["llm"]["backend"], config["llm"]["dtype"], config["history_len"]) == ("stub", "bfloat16", 0)
+    assert (config["llm"]["backend"], config["llm"]["dtype"], config["setup"]["history_len"]) == ("stub", "bfloat16", 0)
     setups = AnnotationCache(tmp_path / "ann").setups()
     assert len({s["model_fingerprint"] for s in setups}) == 1 and sum(s["entries"] for s in setups) > 8  # live rows
 

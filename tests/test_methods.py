@@ -5,7 +5,11 @@ method that needs no LLM target trains end to end through `illm train --method M
 (its options in config.json, its own model trained and checkpointed, its loss logged) and `illm eval`
 reads the run. A method added to the registry is in both by default: `OWN` says what it logs and
 keeps, and its absence there fails the end-to-end case. ELLM pays only where a caption matches a
-goal the LLM suggested: test_ellm.py follows its reward into the loss with a goal provider."""
+goal the LLM suggested: test_ellm.py follows its reward into the loss with a goal provider.
+
+The two checks are plain functions (`bonus_reaches_the_advantages`, `trains_end_to_end`), so that a
+method registered only inside another test gets the same ones (test_example_bonus.py: the docs'
+example bonus)."""
 
 from __future__ import annotations
 
@@ -47,6 +51,17 @@ def without_targets() -> list:
 
 @pytest.mark.parametrize("method", paying())
 def test_the_bonus_reaches_the_advantages_the_loss_uses(tmp_path, monkeypatch, method):
+    bonus_reaches_the_advantages(tmp_path, monkeypatch, method, OWN[method][1])
+
+
+@pytest.mark.parametrize("method", without_targets())
+def test_a_method_without_llm_targets_trains_end_to_end(tmp_path, method):
+    trains_end_to_end(tmp_path, method, *OWN[method])
+
+
+def bonus_reaches_the_advantages(tmp_path, monkeypatch, method: str, logged_key: str) -> None:
+    """The registered `method`'s bonus reaches the advantages the loss uses (see the module
+    docstring); it logs `charts/intrinsic_reward` and `logged_key` (its loss), both positive."""
     trainer, _ = make_trainer(tmp_path, mode=method, int_gamma=0.9)
     assert trainer.cfg.pays_bonus and trainer.bonus is not None
     assert (trainer.provider is None) != get_method(method).needs_targets
@@ -70,15 +85,16 @@ def test_the_bonus_reaches_the_advantages_the_loss_uses(tmp_path, monkeypatch, m
     cfg, ro, adv, nxt, logged = trainer.cfg, seen.ro, seen.adv, seen.next, seen.logged
     assert torch.allclose(adv.advantages, seen.expected.advantages, atol=1e-5)  # the loss saw the bonus ...
     assert not torch.allclose(adv.advantages, seen.without.advantages)       # ... and it changed them
-    ext_only, _ = gae(ro.rewards, ro.values_ext, nxt.value_ext, ro.ends, cfg.gamma, cfg.gae_lambda)
+    ext_only, _ = gae(ro.rewards, ro.values_ext, nxt.value_ext, ro.ends, cfg.ppo.gamma, cfg.ppo.gae_lambda)
     assert not torch.allclose(adv.advantages, ext_only) and adv.returns_int.abs().sum() > 0
     assert logged["charts/intrinsic_reward"] > 0 and logged["charts/adv_int_abs"] > 0
-    assert logged[OWN[method][1]] > 0
+    assert logged[logged_key] > 0
 
 
-@pytest.mark.parametrize("method", without_targets())
-def test_a_method_without_llm_targets_trains_end_to_end(tmp_path, method):
-    option, loss, part = OWN[method]
+def trains_end_to_end(tmp_path, method: str, option: str, loss: str, part: str) -> None:
+    """The registered `method` trains through `illm train --bonus-option OPTION` (the option in
+    config.json, `loss` logged positive, `part` in its checkpointed bonus state) and `illm eval`
+    reads the run."""
     runner, run = CliRunner(), tmp_path / method
     result = runner.invoke(app, ["train", "--method", method, "--frames", "4096", "--bonus-option", option,
                                  "--out", str(run)])
@@ -88,7 +104,7 @@ def test_a_method_without_llm_targets_trains_end_to_end(tmp_path, method):
     key, value = option.split("=")
     assert cfg["method"] == method and cfg["bonus_options"] == {key: type(cfg["bonus_options"][key])(value)}
     if method == "rnd":  # RND's preset by default
-        assert (cfg["ext_coef"], cfg["int_coef"]) == (2.0, 1.0)
+        assert (cfg["bonus"]["ext_coef"], cfg["bonus"]["int_coef"]) == (2.0, 1.0)
     with open(run / "metrics.csv", newline="") as fh:
         assert [int(r["global_step"]) for r in csv.DictReader(fh)] == [2048, 4096]
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]

@@ -125,9 +125,9 @@ def test_apt_pays_nothing_for_a_batch_of_one_state_and_more_for_spread_states():
 
 # --- both, through the trainer --------------------------------------------------------------------
 def trainer_for(tmp_path, mode, updates=2, name="run", **kw):
-    cfg = TrainConfig(run_dir=tmp_path / name, method=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
-                      tensorboard=False, update_epochs=2, num_minibatches=2, **kw)
-    return Trainer(cfg, FakePool(cfg.num_envs))
+    cfg = TrainConfig.from_dict(dict(run_dir=tmp_path / name, method=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
+                      tensorboard=False, update_epochs=2, num_minibatches=2, **kw))
+    return Trainer(cfg.resolved(), FakePool(cfg.num_envs))
 
 
 def _comparable(metrics: dict) -> dict:
@@ -302,13 +302,13 @@ def test_illm_shuffled_is_illm_on_shuffled_targets_end_to_end(tmp_path, monkeypa
     common = dict(num_envs=4, num_steps=32, total_steps=128, tensorboard=False, update_epochs=1, num_minibatches=2,
                   head_hidden=32, cache=tmp_path / "ann", model=f"synthetic:{DIM}", backend="stub",
                   live_budget=0)
-    Trainer(TrainConfig.from_dict({"run_dir": tmp_path / "fill", "method": "illm", **common}), FakePool(4), plain).train()
+    Trainer(TrainConfig.from_dict({"run_dir": tmp_path / "fill", "method": "illm", **common}).resolved(), FakePool(4), plain).train()
 
     cfg = TrainConfig.from_dict({"run_dir": tmp_path / "shuffled", "method": "illm-shuffled", **common})
     provider = make_provider(cfg, len(ACTIONS))
     assert provider.shuffle is not None and provider.shuffle.seed == 0
     assert make_provider(TrainConfig.from_dict({"method": "illm", **common}), len(ACTIONS)).shuffle is None
-    trainer = Trainer(cfg, FakePool(4), provider)
+    trainer = Trainer(cfg.resolved(), FakePool(4), provider)
     assert isinstance(trainer.bonus, ILLMBonus) and trainer.net.has_heads
     looked_up, real_targets = [], provider.targets
     monkeypatch.setattr(provider, "targets", lambda records: looked_up.extend(records) or real_targets(records))

@@ -83,8 +83,8 @@ def test_a_minigrid_run_counts_visits_and_a_resume_keeps_counting(tmp_path):
     assert info["agent_pos"].shape == (2,) and tuple(info["grid_size"]) == (25, 25)
     common = dict(env_id="MiniGrid-MultiRoom-N6-v0", method="ppo", run_dir=tmp_path / "run", num_envs=2, num_steps=16,
                   tensorboard=False, num_minibatches=2)
-    train(TrainConfig(total_steps=32, **common))
+    train(TrainConfig.from_dict(dict(total_steps=32, **common)))
     first = np.load(tmp_path / "run" / FILE)
     assert first.sum() == 32 + 2  # every step's new state, and the first states
-    train(TrainConfig(total_steps=64, resume=True, **common))
+    train(TrainConfig.from_dict(dict(total_steps=64, resume=True, **common)))
     assert np.load(tmp_path / "run" / FILE).sum() == 64 + 2  # counting goes on from the checkpoint

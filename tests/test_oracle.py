@@ -260,7 +260,7 @@ def test_a_run_with_budget_all_has_a_target_on_every_step(tmp_path):
     assert len(rows) == 3 and all(float(r["target_coverage"]) == 1.0 for r in rows)
     assert float(rows[0]["live_annotations"]) > 0 and float(rows[0]["cache_hit_rate"]) == 0.0
     config = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert config["live_budget"] == "all" and config["llm"]["backend"] == "oracle"
+    assert config["targets"]["live_budget"] == "all" and config["llm"]["backend"] == "oracle"
     from illm_tools.rl.config import TrainConfig
 
     assert TrainConfig.from_dict(config).embedding_dim == 384  # derived: the oracle's sentence model's width

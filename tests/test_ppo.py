@@ -104,7 +104,7 @@ def test_config_is_validated():
     with pytest.raises(UsageError, match="unknown method 'curiosity'"):
         TrainConfig(method="curiosity")
     with pytest.raises(UsageError, match="divisible"):
-        TrainConfig(num_envs=3, num_steps=5, num_minibatches=4)
+        TrainConfig.from_dict(dict(num_envs=3, num_steps=5, num_minibatches=4))
     cfg = TrainConfig(num_envs=16, num_steps=128, total_steps=10_000)
     assert (cfg.batch_size, cfg.minibatch_size, cfg.num_updates) == (2048, 512, 4)
     assert TrainConfig.from_dict(cfg.to_dict()) == cfg
@@ -113,15 +113,15 @@ def test_config_is_validated():
 def test_illm_mode_needs_a_provider(tmp_path):
     cfg = TrainConfig(run_dir=tmp_path, num_envs=4, num_steps=32)
     with pytest.raises(UsageError, match="ppo"):
-        Trainer(cfg, FakePool(4), None)
+        Trainer(cfg.resolved(), FakePool(4), None)
 
 
 def test_real_babyai_pool_short_run_and_load_policy(tmp_path):
-    cfg = TrainConfig(env_id="BabyAI-GoToRedBallGrey-v0", run_dir=tmp_path / "run", num_envs=4, num_steps=32,
-                      total_steps=128, llm=LLMSpec("stub", "stub:8"), head_hidden=32, tensorboard=False)
+    cfg = TrainConfig.from_dict(dict(env_id="BabyAI-GoToRedBallGrey-v0", run_dir=tmp_path / "run", num_envs=4, num_steps=32,
+                      total_steps=128, llm=LLMSpec("stub", "stub:8"), head_hidden=32, tensorboard=False))
     pool = make_pool(cfg)
     provider = FakeProvider(len(pool.action_names), cfg.embedding_dim)
-    metrics = Trainer(cfg, pool, provider).train()
+    metrics = Trainer(cfg.resolved(), pool, provider).train()
     assert metrics["global_step"] == 128 and np.isfinite(metrics["losses/policy_loss"])
     assert all(r.observation for r in provider.records) and provider.records[0].mission.startswith("go to")
     policy = load_policy(cfg.run_dir, pool, seed=0)

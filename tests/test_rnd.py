@@ -76,13 +76,13 @@ def test_observations_are_normalised_from_the_first_rollout_then_merged_after_re
 def rnd_trainer(tmp_path, updates, **kw):
     cfg = run_config(dict(run_dir=tmp_path / "run", method="rnd", num_envs=4, num_steps=32,  # rnd's preset, as the CLI
                           total_steps=4 * 32 * updates, tensorboard=False, update_epochs=2, num_minibatches=2, **kw))
-    return Trainer(cfg, FakePool(cfg.num_envs))
+    return Trainer(cfg.resolved(), FakePool(cfg.num_envs))
 
 
 def test_rnd_trains_through_the_trainer_and_its_state_survives_a_resume(tmp_path):
     trainer = rnd_trainer(tmp_path, updates=2, checkpoint_every=1)
     assert isinstance(trainer.bonus, RNDBonus) and not trainer.net.has_heads and trainer.provider is None
-    assert (trainer.cfg.ext_coef, trainer.cfg.int_coef) == (2.0, 1.0)
+    assert (trainer.cfg.bonus.ext_coef, trainer.cfg.bonus.int_coef) == (2.0, 1.0)
     metrics = trainer.train()
     for key in ("charts/intrinsic_reward", "charts/rnd_error", "losses/rnd_predictor_loss", "charts/adv_int_abs",
                 "losses/value_loss_int"):

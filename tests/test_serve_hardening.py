@@ -73,8 +73,10 @@ def stats(url: str) -> dict:
 
 
 def make(tmp_path, lm=None, llm: LLMSpec = LLM, history_len: int = 0, **limits) -> AnnotationServer:
+    from illm_tools.tasks.prompt_setup import PromptSetup
+
     return AnnotationServer(lm or StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=llm,
-                            history_len=history_len, chunk=8, limits=ServeLimits(**limits))
+                            prompt=PromptSetup(history_len=history_len), chunk=8, limits=ServeLimits(**limits))
 
 
 def frame_json(array: np.ndarray) -> dict:

@@ -47,7 +47,7 @@ def test_a_suite_registered_from_a_test_file_runs_every_stage(tiny, tmp_path):
                           num_steps=16, tensorboard=False, env_options={"length": 4})
         pool = make_pool(cfg)
         try:
-            last = Trainer(cfg, pool).train()
+            last = Trainer(cfg.resolved(), pool).train()
         finally:
             pool.close()
         assert last["global_step"] == 64 and last["charts/score"] == 1.0  # every finished episode succeeded

@@ -12,11 +12,12 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from illm_tools.errors import UsageError
-from illm_tools.experiment.spec import load_spec, plan
+from illm_tools.experiment.plan import plan
+from illm_tools.experiment.spec import load_spec
 from illm_tools.rl.build import run_config
-from illm_tools.rl.checkpoint import check_resumable
+from illm_tools.rl.config import check_resumable
 from illm_tools.rl.config import TrainConfig
-from illm_tools.rl.names import DERIVED, NESTED, flat_settings
+from illm_tools.rl.config import DERIVED, FLAT, PARTS
 from illm_tools.rl.presets import BONUS_PRESETS
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
@@ -42,9 +43,9 @@ def test_an_old_run_folders_config_json_loads_and_resumes(tmp_path):
         (0.08, 0.05, ("action", "summary"), "cosine")
     assert cfg.embedding_dim == old["embedding_dim"] == 384  # recorded then, derived from the model now
     flat = cfg.flat()
-    kept = {k: v for k, v in old.items() if k not in NESTED and k not in DERIVED}
-    assert {k: flat[k] for k in kept} == kept  # every other setting as written
-    assert set(cfg.to_dict()) == set(kept) | {"llm", "illm"} and not set(NESTED) & set(cfg.to_dict())
+    kept = {k: v for k, v in old.items() if k not in DERIVED and k not in ("model", "oracle_noise")}
+    assert {k: flat[k] for k in kept} == kept  # every other setting as written, now in its part
+    assert set(cfg.to_dict()) == {k for k, (part, _) in FLAT.items() if part is None} | set(PARTS)  # composed
 
     run = tmp_path / "run"
     run.mkdir()
@@ -68,7 +69,7 @@ def test_the_python_api_and_the_command_line_share_one_default(tmp_path, monkeyp
     # another method's preset comes with it through the one builder, as on the command line
     out = runner.invoke(app, ["train", "--out", str(tmp_path / "r"), "--method", "rnd"])
     assert seen[1] == run_config({"run_dir": tmp_path / "r", "method": "rnd"})
-    assert (seen[1].ext_coef, seen[1].illm.lambda_a) == (2.0, 0.8)
+    assert (seen[1].bonus.ext_coef, seen[1].illm.lambda_a) == (2.0, 0.8)
 
 
 @pytest.fixture
@@ -107,8 +108,8 @@ method_settings: {{rnd: {{bonus_preset: paper, bonus_options: {{update_proportio
         assert out.exit_code == 0, out.output
         assert seen[-1] == run.config, run.label
     illm, rnd = (run.config for run in runs)
-    assert (illm.llm.backend, illm.history_len, illm.illm.lambda_a, illm.ext_coef) == ("stub", 0, 0.2, 1.0)  # adopted
-    assert (rnd.ext_coef, rnd.illm.beta_hc, rnd.bonus_options) == (1.0, 0.5, {"update_proportion": 0.5})
+    assert (illm.llm.backend, illm.setup.history_len, illm.illm.lambda_a, illm.bonus.ext_coef) == ("stub", 0, 0.2, 1.0)  # adopted
+    assert (rnd.bonus.ext_coef, rnd.illm.beta_hc, rnd.bonus_options) == (1.0, 0.5, {"update_proportion": 0.5})
 
 
 def test_every_shipped_spec_plans_the_runs_it_planned_before(tmp_path, monkeypatch):
@@ -122,7 +123,7 @@ def test_every_shipped_spec_plans_the_runs_it_planned_before(tmp_path, monkeypat
     now = {}
     for spec in sorted(SPECS.glob("*.yaml")):
         for run in plan(load_spec(spec), tmp_path / spec.stem):
-            settings = json.loads(json.dumps(flat_settings(run.config.to_dict()), default=str))
+            settings = json.loads(json.dumps(run.config.flat(), default=str))
             key = Path(settings.pop("run_dir")).relative_to(tmp_path).as_posix()
             now[key] = settings
     if os.environ.get("ILLM_UPDATE_SNAPSHOT"):

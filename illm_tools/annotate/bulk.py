@@ -9,7 +9,8 @@ from pathlib import Path
 from illm_tools.annotate.engine import Annotator, Stats
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
-from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS
+from illm_tools.tasks.prompt_setup import PromptSetup
+from illm_tools.tasks.prompts import DEFAULT_TASKS
 from illm_tools.tasks.registry import get_task, parse_tasks
 
 
@@ -34,10 +35,10 @@ class AnnotateConfig:
     """Language tasks (`illm_tools.tasks.registry`): action (next-action ranking), summary (64-token
     history compression), goal (suggested goals: ELLM's, and a head of iLLM's), plan (a 2-7 action
     plan); any combination."""
-    history: int = 3
-    """Observation/action pairs of history in the prompts (paper B.1 uses 3)."""
-    layout: str = "shared"
-    """Template layout: shared (history first, prefix computed once) or paper (as printed)."""
+    setup: PromptSetup = field(default_factory=PromptSetup)
+    """How states become prompts (`illm_tools.tasks.prompt_setup`): --history, --layout, and --mode hop
+    (the raw observations translated into the LLM's embedding space, iLLM(hop), `illm_tools.hop`; any
+    suite, Atari included) with the training run's --hop-seed and --hop-beta."""
     batch_size: int = 8
     """States per LLM batch."""
     limit: int | None = None
@@ -45,13 +46,6 @@ class AnnotateConfig:
     (None: all). The same limit again annotates nothing."""
     max_minutes: float | None = None
     """Stop after this many minutes, between chunks, with every finished chunk written."""
-    obs_mode: str = "obs"
-    """(`--mode`) obs: the states' text; hop: the raw observations translated into the LLM's embedding space
-    (iLLM(hop), `illm_tools.hop`; any suite, Atari included)."""
-    hop_seed: int = 0
-    """hop: seed of the translation's random projection (the training run's --hop-seed)."""
-    hop_beta: float = 100.0
-    """hop: inverse temperature of the Hopfield retrieval (the training run's --hop-beta)."""
     chunk: int | None = None
     """States per written shard: a killed run loses at most one chunk, and `max_minutes` is
     checked between chunks. None: the backend's (`chunk_states`: 32 for an LLM, about 20 s on 2
@@ -64,8 +58,7 @@ class AnnotateConfig:
         from illm_tools.settings import check_folder, check_numbers
 
         self.data, self.cache = Path(self.data), Path(self.cache)
-        check_numbers(self, positive=("batch_size", "chunk", "max_minutes", "hop_beta", "num_processes"),
-                      non_negative=("limit", "history", "hop_seed"))
+        check_numbers(self, positive=("batch_size", "chunk", "max_minutes", "num_processes"), non_negative=("limit",))
         if not self.data.is_dir():
             raise UsageError(f"no trajectory dataset at {self.data}: pass a folder `illm collect` wrote")
         from illm_tools.folders import owner
@@ -77,14 +70,10 @@ class AnnotateConfig:
                              f"pass the folder `illm collect --out` wrote as DATA{into}")
         check_folder(self.cache, "--cache")
         self.tasks = parse_tasks(self.tasks)
-        if self.layout not in LAYOUTS:
-            raise UsageError(f"unknown --layout {self.layout!r}: use {' or '.join(LAYOUTS)}")
         if self.num_processes > MAX_PROCESSES:
             raise UsageError(f"--num-processes must be between 1 and {MAX_PROCESSES:,}, got {self.num_processes}")
-        if self.obs_mode not in ("obs", "hop"):
-            raise UsageError(f"--mode must be obs or hop, got {self.obs_mode!r}")
         unfit = [t for t in self.tasks if not get_task(t).hop]
-        if self.obs_mode == "hop" and unfit:
+        if self.setup.hop and unfit:
             raise UsageError(f"the {', '.join(unfit)} task has no hop form: annotate hop data with other --tasks")
 
 
@@ -152,25 +141,25 @@ def annotate_dataset(config: AnnotateConfig, on_progress: Callable[[int, Stats],
     from illm_tools.data.trajectories import open_table, require_text
     from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
 
-    if config.obs_mode == "hop":
-        from illm_tools.hop.context import RAW_COLUMNS, hop_records_from_table, hop_renderer
+    history = config.setup.history_len
+    if config.setup.hop:
+        from illm_tools.hop.context import RAW_COLUMNS, hop_records_from_table
 
         table = open_table(config.data, columns=RAW_COLUMNS)
         cache = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
-        records, env_ids = hop_records_from_table(table, config.history)
-        renderers = [hop_renderer(config.hop_seed, config.hop_beta, config.history + 1)] * len(records)
+        records, env_ids = hop_records_from_table(table, history)
+        renderers = [config.setup.hop_renderer] * len(records)
     else:
         table = open_table(config.data, columns=TABLE_COLUMNS + ["renderer"])
         require_text(table, config.data)
         cache = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
-        records, env_ids = records_from_table(table, config.history)
+        records, env_ids = records_from_table(table, history)
         renderers = table.column("renderer").to_pylist()
     state = distributed_state()
     llm = config.llm.placed(state)  # under accelerate: this process's own device
     lm = llm.load()
-    annotator = Annotator(lm, cache, model=llm.model, tasks=config.tasks, history_len=config.history,
-                          layout=config.layout, batch_size=config.batch_size,
-                          chunk=config.chunk or getattr(lm, "chunk_states", DEFAULT_CHUNK))
+    annotator = Annotator.of_setup(lm, cache, llm, config.setup, tasks=config.tasks, batch_size=config.batch_size,
+                                   chunk=config.chunk or getattr(lm, "chunk_states", DEFAULT_CHUNK))
     visited = annotator.visited(records, env_ids, renderers)
     selected = visited.top(config.limit)
     stats = Stats()

@@ -107,11 +107,14 @@ class Annotator:
         self._said_too_long = False
 
     @classmethod
-    def of_setup(cls, lm, cache: AnnotationCache, llm, setup, **options) -> Annotator:
-        """The annotator of a loaded `llm` (its `LLMSpec`) for an `AnnotationSetup`'s tasks, history
-        and layout (`options`: batch_size, chunk)."""
-        return cls(lm, cache, model=llm.model, tasks=setup.tasks, history_len=setup.history_len, layout=setup.layout,
-                   **options)
+    def of_setup(cls, lm, cache: AnnotationCache | None, llm, setup, *, tasks: Sequence[str] | None = None,
+                 **options) -> Annotator:
+        """The annotator of a loaded `llm` (its `LLMSpec`) for a setup's history and layout: a stage's
+        `PromptSetup` with its `tasks`, or an `AnnotationSetup` (its own tasks); `options`:
+        batch_size, chunk. How every stage makes its annotator (annotate, serve, probe, the live
+        fallback)."""
+        return cls(lm, cache, model=llm.model, tasks=setup.tasks if tasks is None else tasks,
+                   history_len=setup.history_len, layout=setup.layout, **options)
 
     def builder(self, env_id: str, renderer: str) -> PromptBuilder:
         key = (env_id, renderer)
@@ -272,7 +275,8 @@ class Annotator:
 
     def hop_context(self, renderer: str, obs_dim: int, num_actions: int):
         """The `HopContext` (translation over this model's input embeddings) of a hop renderer."""
-        from illm_tools.hop.context import HopContext, parse_hop_renderer
+        from illm_tools.hop.context import HopContext
+        from illm_tools.tasks.setup import parse_hop_renderer
 
         settings = parse_hop_renderer(renderer)
         key = (obs_dim, num_actions, settings["seed"], settings["beta"])
@@ -285,7 +289,7 @@ class Annotator:
         spliced in as input embeddings where the written history would stand (B.2's prompts, D.7);
         the backend scores a ranking task's candidates after it and decodes a text task from it
         (one call per generation length: the ranking tasks ride with the first)."""
-        from illm_tools.llm.backend import SplicedPrompt
+        from illm_tools.llm.spliced import SplicedPrompt
 
         marker = "\x00HISTORY\x00"
         groups: dict[int, tuple[list[Job], list]] = {}  # max_new_tokens -> (jobs, prompts)

@@ -38,7 +38,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from illm_tools import durable
-from illm_tools.distil.config import DistilConfig, DistilResult  # re-exported: `illm_tools.distil.run.DistilConfig` stays
+from illm_tools.distil.config import DistilConfig, DistilResult
 from illm_tools.errors import UsageError
 
 log = logging.getLogger(__name__)

@@ -25,7 +25,6 @@ import numpy as np
 import torch
 
 from illm_tools.hop.translate import FrozenHopfield
-from illm_tools.tasks.setup import HOP_VERSION, hop_renderer, parse_hop_renderer  # noqa: F401  (re-exported)
 from illm_tools.tasks.state import StateRecord
 
 START = "start"

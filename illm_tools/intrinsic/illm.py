@@ -68,7 +68,7 @@ import torch
 import torch.nn.functional as F
 
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, IntrinsicBonus
-from illm_tools.intrinsic.illm_config import ILLMConfig  # noqa: F401  (re-exported: the bonus's config)
+from illm_tools.intrinsic.illm_config import ILLMConfig
 from illm_tools.intrinsic.normalize import DiscountedReturnNormalizer
 from illm_tools.tasks.registry import text_tasks
 

@@ -50,7 +50,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from illm_tools.llm.oracle_map import _STEP, HALF_VIEW, MOVES, UNREACHABLE, Map, _path, _successor
-from illm_tools.llm.oracle_reading import (COLOURS, GOAL, Desc, Instr, NotAScene, Scene, Thing, View,  # noqa: F401
+from illm_tools.llm.oracle_reading import (COLOURS, Desc, Instr, NotAScene, Scene, Thing, View,  # noqa: F401
                                            parse_mission, parse_prompt, parse_view)
 
 PLANNER_VERSION = 1

@@ -15,6 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from illm_tools.errors import UsageError
+from illm_tools.settings import setting
 
 
 @dataclass(frozen=True)
@@ -28,7 +29,7 @@ class LLMSpec:
     model: str | None = None
     """Alias (see `illm models`), hub id or local folder; default: the backend's (smollm2-135m for
     transformers, oracle for oracle)."""
-    dtype: str = "auto"
+    dtype: str = setting("auto", flag="--dtype")
     """Compute dtype: auto | bfloat16 | float32 | float16; auto: bfloat16 on CUDA, and on a CPU where a
     timed matmul says it is faster than float32, else float32 (measured once per machine). The resolved
     dtype is part of every cache key."""
@@ -36,9 +37,9 @@ class LLMSpec:
     """bitsandbytes quantisation: none | 4bit (NF4) | 8bit | auto (on a CUDA device what the model's alias
     says: 4bit for llama3 and llama2, as the paper ran its annotator; else none). The resolved value is
     part of every cache key."""
-    device: str = "auto"
+    device: str | None = None
     """Where the model runs: cpu | cuda | cuda:N | auto (a GPU where torch sees one, else the CPU; with
-    several processes each takes its own GPU)."""
+    several processes each takes its own GPU); unset: auto (a training run's: its --device)."""
     oracle_noise: float = 0.0
     """oracle: the share of states (fixed, keyed by the state) answered at random; 1 is an annotator
     that knows nothing (part of every key)."""
@@ -68,7 +69,8 @@ class LLMSpec:
             raise UsageError(f"--dtype must be one of {', '.join(CHOICES)}, got {self.dtype!r}")
         if self.quant not in (*QUANTS, "auto"):
             raise UsageError(f"--quant must be one of {', '.join(QUANTS)} or auto, got {self.quant!r}")
-        check_device(self.device)
+        if self.device is not None:
+            check_device(self.device)
         from illm_tools.settings import check_numbers
 
         check_numbers(self, positive=("batch_tokens",))
@@ -88,13 +90,13 @@ class LLMSpec:
         from illm_tools.devices import resolve_device
         from illm_tools.llm.backend import backend_dtype, backend_quant
 
-        device = resolve_device(self.device, state)
+        device = resolve_device(self.device or "auto", state)
         return dataclasses.replace(self, device=device, dtype=backend_dtype(self.backend, self.dtype, device),
                                    quant=backend_quant(self.backend, self.model, self.quant, device))
 
     def _concrete(self) -> LLMSpec:
         """Placed unless already placed (fingerprints and loads need the resolved values)."""
-        return self if "auto" not in (self.device, self.dtype, self.quant) else self.placed()
+        return self if not {"auto", None} & {self.device, self.dtype, self.quant} else self.placed()
 
     def _downloads(self):
         """No hub downloads under --offline (`illm_tools.llm.hub.no_downloads`)."""

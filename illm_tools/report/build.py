@@ -229,8 +229,9 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
     if probe_figures:
         from illm_tools.report.quality import quality
 
-        configs = {key: json.loads((Path(g["runs"][0]) / "config.json").read_text())
-                   for key, g in groups.items() if g["runs"]}
+        from illm_tools.rl.saved import read_run
+
+        configs = {key: read_run(Path(g["runs"][0])).settings for key, g in groups.items() if g["runs"]}
         quality_result = quality([r for r in rows if (r["env_id"], r["label"]) in configs], configs, probe_figures)
         if not quality_result["points"]:
             import logging

@@ -95,10 +95,10 @@ def in_window(steps: np.ndarray, end: int, every: int) -> np.ndarray:
 
 
 def load_curve(run_dir: Path, every: int) -> Curve:
-    from illm_tools.rl.checkpoint import read_config
     from illm_tools.rl.compare import comparable
+    from illm_tools.rl.saved import read_run
 
-    cfg, csv_path = comparable(read_config(run_dir)), run_dir / "metrics.csv"
+    cfg, csv_path = comparable(read_run(run_dir).settings), run_dir / "metrics.csv"
     if not csv_path.is_file():
         raise UsageError(f"{run_dir} is not a training run (no metrics.csv): pass folders of `illm train`")
     rows = read_metrics_csv(csv_path)

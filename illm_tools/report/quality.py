@@ -56,7 +56,7 @@ def run_identity(config: dict) -> tuple | None:
     cfg = TrainConfig.from_dict({**config, "resume": False})
     if not cfg.needs_targets:
         return None
-    return _identity(cfg.env_id, cfg.llm.backend, cfg.llm.model, cfg.history_len, cfg.layout)
+    return _identity(cfg.env_id, cfg.llm.backend, cfg.llm.model, cfg.setup.history_len, cfg.setup.layout)
 
 
 def quality(rows: list[dict], configs: dict[tuple, dict], probes: list[dict]) -> dict:

@@ -3,7 +3,7 @@ resumed run's own settings and adopts the cache's annotation setup. `illm train`
 and `illm experiment` (a spec's grid) both build their runs here, so that the same settings train
 the same thing whichever way they came.
 
-Settings are given under their flat names (`illm_tools.rl.names`: the options' names, as specs and
+Settings are given under their flat names (`TrainConfig.flat`: the options' names, as specs and
 older config.json files name them: model, model_dtype, lambda_a, ...), with `bonus_preset` for a
 preset, already typed (dict settings parsed, paths as paths or strings).
 """
@@ -15,8 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from illm_tools.errors import UsageError
-from illm_tools.rl.config import TrainConfig
-from illm_tools.rl.names import flag_of
+from illm_tools.rl.config import TrainConfig, flag_of
 from illm_tools.rl.presets import PRESET_FIELDS, bonus_weights
 
 AUTO_CHOICES = ("model_dtype", "quant", "action_space")
@@ -44,7 +43,7 @@ def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None
     preset = settings.pop("bonus_preset", None)
     if preset is not None:
         given |= set(PRESET_FIELDS)  # a preset stands for its settings
-    method = get_method(settings.get("method", TrainConfig.defaults(["method"])["method"]))
+    method = get_method(settings.get("method", TrainConfig.__dataclass_fields__["method"].default))
     weights = bonus_weights(preset or method.preset, **{w: settings.pop(w, None) for w in PRESET_FIELDS})
     settings.update(weights)
     if settings.get("resume"):
@@ -57,9 +56,10 @@ def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) 
     ones of `settings` applied where a resumed run may change them (RESUMABLE_CHANGES: --frames,
     --live-budget, threads, ...; the folder may have moved). Any other given setting that differs
     from the run's is refused in one line naming its option."""
-    from illm_tools.rl.checkpoint import RESUMABLE_CHANGES, read_config
+    from illm_tools.rl.config import RESUMABLE_CHANGES
+    from illm_tools.rl.saved import read_run
 
-    own = {**read_config(run_dir), "run_dir": str(run_dir), "resume": True}  # the folder may have moved
+    own = {**read_run(run_dir).settings, "run_dir": str(run_dir), "resume": True}  # the folder may have moved
     stored = TrainConfig.from_dict(own).flat()
     changes = {k: settings[k] for k in given if k in settings
                and not (k in AUTO_CHOICES and settings[k] in ("auto", None))}
@@ -81,13 +81,13 @@ def adopt_setup(cfg: TrainConfig, given: Collection[str], say: Callable[[str], N
     `say` hears which, in one line."""
     from illm_tools.tasks.setup import ADOPTED, adopt
 
-    if not cfg.needs_targets or cfg.cache is None or set(given) & set(ADOPTED) or \
-            not (cfg.cache / "manifest.json").is_file():
+    if not cfg.needs_targets or cfg.targets.cache is None or set(given) & set(ADOPTED) or \
+            not (cfg.targets.cache / "manifest.json").is_file():
         return cfg
     from illm_tools.cache.store import AnnotationCache
 
-    renderer = "hop@" if cfg.obs_mode == "hop" else cfg.renderer
-    setup = adopt(AnnotationCache(cfg.cache), cfg.target_tasks, renderer)
+    renderer = "hop@" if cfg.setup.hop else cfg.annotation_setup.renderer
+    setup = adopt(AnnotationCache(cfg.targets.cache), cfg.target_tasks, renderer)
     if setup is None:
         return cfg
     if say is not None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from illm_tools.rl.names import flat_settings, upgrade_config
+from illm_tools.rl.config import flat_settings, upgrade_config
 
 
 def comparable(data: Mapping) -> dict:
@@ -21,7 +21,7 @@ def comparable(data: Mapping) -> dict:
     try:
         cfg = TrainConfig.from_dict({k: v for k, v in upgrade_config(data).items()
                                      if k in TrainConfig.__dataclass_fields__} | {"resume": False})
-        out = {**flat_settings(data), **cfg.flat()}
+        out = flat_settings({**data, "resume": False})
         if cfg.llm.backend == "oracle":  # its noise as a setting of its own, as reports have always named it
             from illm_tools.llm.oracle import NAME, parse_spec
 
@@ -29,7 +29,7 @@ def comparable(data: Mapping) -> dict:
     except Exception:  # noqa: BLE001 - another version's run: compared as written
         return dict(data)
     drop = set()
-    if cfg.obs_mode == "obs":
+    if not cfg.setup.hop:
         drop |= {"hop_seed", "hop_beta"}
     if not cfg.uses_llm:
         drop |= {"model", "backend", "model_dtype", "quant", "oracle_noise", "history_len", "layout",

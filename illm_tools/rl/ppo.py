@@ -23,16 +23,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from illm_tools.envs import suite_of
 from illm_tools.errors import OutputExistsError, UsageError
 from illm_tools.folders import refuse_foreign
 from illm_tools.intrinsic.base import BonusContext, BonusRewards, TargetProvider
 from illm_tools.intrinsic.registry import get_method
 from illm_tools.rl.bonus_schedule import BonusSchedule
-from illm_tools.rl.checkpoint import (CHECKPOINT_NAME, MetricsLog, check_resumable, load_checkpoint, write_config,
-                                      save_checkpoint)
-from illm_tools.rl.config import TrainConfig
-from illm_tools.rl.networks import make_network
+from illm_tools.rl.checkpoint import CHECKPOINT_NAME, save_checkpoint
+from illm_tools.rl.config import TrainConfig, check_resumable
+from illm_tools.rl.metrics_log import Means, MetricsLog
+from illm_tools.rl.policy import policy_network
+from illm_tools.rl.saved import read_run, write_config
 from illm_tools.rl.states import make_observers, make_states
 from illm_tools.rl.storage import Advantages, Rollout, target_extras, two_stream_advantages
 from illm_tools.tasks.state import StateRecord
@@ -49,10 +49,11 @@ class Trainer:
                              "pass one or train with mode ppo")
         if pool.num_envs != cfg.num_envs:
             raise UsageError(f"the pool has {pool.num_envs} envs, the config asks for {cfg.num_envs}")
-        cfg = cfg.resolved()  # a config made by hand; the run's (`run.train`) comes resolved and stays as it is
+        if cfg.device == "auto":  # the run's (`run.train`) comes resolved; one made by hand: its choices made here
+            raise UsageError("a Trainer takes a resolved config (`cfg.resolved()`: the machine's device and dtypes)")
         self.cfg, self.pool, self.on_metrics = cfg, pool, on_metrics
         self.device = torch.device(cfg.device)
-        self.suite = suite_of(cfg.env_id)
+        self.suite = pool.suite
         self.provider = provider if method.needs_targets else None
         self.action_names = list(pool.action_names)
         self.vocab = self.suite.mission_vocab(cfg.mission_max_len)
@@ -65,29 +66,26 @@ class Trainer:
             self.image_shape = tuple(self.obs.images.shape[1:])
             self.image_dtype = torch.as_tensor(self.obs.images[:1]).dtype
             # what the run tracks beside the policy: each step's LLM state (and hop's Z_h), visit counts
+            self.observers = make_observers(self.obs)
             self.states = make_states(cfg, self.suite, self.image_shape, self.action_names,
                                       needs_records=self.provider is not None, device=self.device)
-            self.observers = make_observers(self.obs)
-            self.net = make_network(method, cfg.env_id, len(self.action_names), image_shape=self.image_shape,
-                                    vocab_size=len(self.vocab), network_options=cfg.network_options,
-                                    embedding_dim=cfg.embedding_dim if method.policy_heads else None,
-                                    head_hidden=cfg.head_hidden, heads_bf16=cfg.heads_bf16,
-                                    context_dim=self.states.context_dim,
-                                    tasks=cfg.tasks).to(self.device)  # initialised on the CPU: the same weights
+            self.net = policy_network(cfg, method, len(self.action_names), image_shape=self.image_shape,
+                                      vocab_size=len(self.vocab), context_dim=self.states.context_dim,
+                                      ).to(self.device)  # initialised on the CPU: the same weights on any device
         self.generator = torch.Generator().manual_seed(cfg.seed + 1)  # action sampling
         self.np_rng = np.random.default_rng(cfg.seed + 2)             # minibatch order
 
-        self.optimizer = torch.optim.AdamW(self.net.parameters(), lr=cfg.learning_rate, eps=1e-5)
+        self.optimizer = torch.optim.AdamW(self.net.parameters(), lr=cfg.ppo.learning_rate, eps=1e-5)
         ctx = BonusContext(num_envs=cfg.num_envs, num_steps=cfg.num_steps, image_shape=self.image_shape,
                            num_actions=len(self.action_names), feature_dim=self.net.feature_dim,
-                           int_gamma=cfg.int_gamma, seed=cfg.seed + 3,
+                           int_gamma=cfg.bonus.int_gamma, seed=cfg.seed + 3,
                            observation=self.suite.observation(cfg.env_id))
         with torch.random.fork_rng(devices=[]):  # the bonus's own models: their own seeded stream
             torch.manual_seed(ctx.seed)
-            self.bonus = method.build(vars(cfg), cfg.bonus_options, ctx).to(self.device)
+            self.bonus = method.build({"illm": cfg.illm}, cfg.bonus_options, ctx).to(self.device)
         if self.provider is not None:  # a bonus may read more of its provider than the stored targets (ELLM's goals)
             self.bonus.use_provider(self.provider)
-        self.schedule = BonusSchedule(cfg.bonus_schedule, cfg.num_updates)  # the intrinsic advantage's weight
+        self.schedule = BonusSchedule(cfg.bonus.bonus_schedule, cfg.num_updates)  # the intrinsic advantage's weight
         self.global_step, self.update_idx = 0, 0
         self._open_run_dir(checkpoint)
 
@@ -96,8 +94,8 @@ class Trainer:
         cfg, run_dir = self.cfg, self.cfg.run_dir
         refuse_foreign(run_dir, "training run", "--out")
         run_dir.mkdir(parents=True, exist_ok=True)
-        if cfg.resume:  # the checkpoint the run already read (`run.build_run`), or read here
-            self._restore(checkpoint if checkpoint is not None else load_checkpoint(run_dir))
+        if cfg.resume:  # the checkpoint the run already read (`run.train`), or read here (a trainer made by hand)
+            self._restore(checkpoint if checkpoint is not None else read_run(run_dir).checkpoint)
         elif (run_dir / CHECKPOINT_NAME).exists():
             raise OutputExistsError(f"{run_dir} already holds a run; pass --resume to continue it "
                                     "or choose another run dir")
@@ -236,88 +234,96 @@ class Trainer:
 
     # --- 4. advantages ----------------------------------------------------------------------
     def bonus_weight(self) -> float:
-        """This update's factor on int_coef (`cfg.bonus_schedule`)."""
+        """This update's factor on int_coef (`cfg.bonus.bonus_schedule`)."""
         return self.schedule.weight(max(self.update_idx, 1))
 
     def advantages(self, ro: Rollout, int_rewards: torch.Tensor | None,
                    next_values: tuple[torch.Tensor, torch.Tensor]) -> Advantages:
         cfg = self.cfg
-        return two_stream_advantages(ro, int_rewards, *next_values, gamma=cfg.gamma,
-                                     int_gamma=cfg.int_gamma, lam=cfg.gae_lambda, ext_coef=cfg.ext_coef,
-                                     int_coef=cfg.int_coef * self.bonus_weight(), int_episodic=cfg.int_episodic,
-                                     streams=cfg.reward_streams, int_ext_cap=cfg.int_ext_cap)
+        bonus = cfg.bonus
+        return two_stream_advantages(ro, int_rewards, *next_values, gamma=cfg.ppo.gamma, int_gamma=bonus.int_gamma,
+                                     lam=cfg.ppo.gae_lambda, ext_coef=bonus.ext_coef,
+                                     int_coef=bonus.int_coef * self.bonus_weight(), int_episodic=bonus.int_episodic,
+                                     streams=bonus.reward_streams, int_ext_cap=bonus.int_ext_cap)
 
     # --- 5. update --------------------------------------------------------------------------
     def _value_loss(self, new: torch.Tensor, old: torch.Tensor, ret: torch.Tensor) -> torch.Tensor:
-        if not self.cfg.clip_vloss:
+        if not self.cfg.ppo.clip_vloss:
             return 0.5 * (new - ret).pow(2).mean()
-        clipped = old + (new - old).clamp(-self.cfg.clip_coef, self.cfg.clip_coef)
+        clipped = old + (new - old).clamp(-self.cfg.ppo.clip_coef, self.cfg.ppo.clip_coef)
         return 0.5 * torch.max((new - ret).pow(2), (clipped - ret).pow(2)).mean()
 
+    def _ppo_loss(self, b: dict[str, torch.Tensor], mb: torch.Tensor, int_stream: bool):
+        """(the minibatch `mb`'s PPO loss: clipped surrogate, entropy bonus, both values' losses; the
+        network's outputs; its logs), as CleanRL's ppo.py computes them."""
+        ppo = self.cfg.ppo
+        out = self.net(b["images"][mb], b["missions"][mb], b["contexts"][mb] if "contexts" in b else None)
+        logp_all = out.logits.log_softmax(-1)
+        newlogprob = logp_all.gather(1, b["actions"][mb, None]).squeeze(1)
+        entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
+        logratio = newlogprob - b["logprobs"][mb]
+        ratio = logratio.exp()
+        with torch.no_grad():
+            approx_kl = ((ratio - 1) - logratio).mean()
+            clipfrac = ((ratio - 1.0).abs() > ppo.clip_coef).float().mean()
+        mb_adv = b["advantages"][mb]
+        if ppo.norm_adv:
+            mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
+        pg_loss = torch.max(-mb_adv * ratio, -mb_adv * ratio.clamp(1 - ppo.clip_coef, 1 + ppo.clip_coef)).mean()
+        v_loss = self._value_loss(out.value_ext, b["values_ext"][mb], b["returns_ext"][mb])
+        v_loss_int = (self._value_loss(out.value_int, b["values_int"][mb], b["returns_int"][mb])
+                      if int_stream else torch.zeros((), device=self.device))
+        loss = pg_loss - ppo.ent_coef * entropy + ppo.vf_coef * (v_loss + v_loss_int)
+        logs = {"policy_loss": pg_loss.detach(), "value_loss": v_loss.detach(), "value_loss_int": v_loss_int.detach(),
+                "entropy": entropy.detach(), "approx_kl": approx_kl, "clipfrac": clipfrac}
+        return loss, out, logs
+
     def update(self, ro: Rollout, adv: Advantages) -> dict:
+        """`update_epochs` passes over the rollout in shuffled minibatches: the PPO loss, plus the
+        bonus's auxiliary loss (iLLM: the heads' distillation) in the first `distill_epochs`, one
+        clipped optimiser step each; early stop on the approximate KL (`target_kl`). Returns the
+        losses' means over the minibatches and the extrinsic value's explained variance."""
         cfg = self.cfg
-        b_adv, b_ret_ext, b_ret_int = (x.reshape(-1) for x in (adv.advantages, adv.returns_ext, adv.returns_int))
-        b_images, b_missions = ro.flat("images"), ro.flat("missions")
-        b_contexts = ro.flat("contexts") if "contexts" in ro.extras else None
-        b_actions, b_logprobs = ro.flat("actions"), ro.flat("logprobs")
-        b_v_ext, b_v_int = ro.flat("values_ext"), ro.flat("values_int")
-        # the logs stay tensors until the update ends: on a GPU, one wait for the device per update
-        sums: dict[str, torch.Tensor | float] = {}
-        counts: dict[str, int] = {}
-        clipfracs: list[torch.Tensor] = []
+        # the rollout flattened: one row per (step, env)
+        b = {name: ro.flat(name) for name in ("images", "missions", "actions", "logprobs", "values_ext", "values_int")}
+        if "contexts" in ro.extras:
+            b["contexts"] = ro.flat("contexts")
+        b.update(advantages=adv.advantages.reshape(-1), returns_ext=adv.returns_ext.reshape(-1),
+                 returns_int=adv.returns_int.reshape(-1))
+        logged = Means()  # stays tensors until the update ends: on a GPU, one wait for the device per update
         inds = np.arange(cfg.batch_size)
-        for _epoch in range(cfg.update_epochs):
+        for epoch in range(cfg.ppo.update_epochs):
             self.np_rng.shuffle(inds)
             for start in range(0, cfg.batch_size, cfg.minibatch_size):
                 mb = torch.as_tensor(inds[start:start + cfg.minibatch_size]).to(self.device)
-                out = self.net(b_images[mb], b_missions[mb], b_contexts[mb] if b_contexts is not None else None)
-                logp_all = out.logits.log_softmax(-1)
-                newlogprob = logp_all.gather(1, b_actions[mb, None]).squeeze(1)
-                entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
-                logratio = newlogprob - b_logprobs[mb]
-                ratio = logratio.exp()
-                with torch.no_grad():
-                    approx_kl = ((ratio - 1) - logratio).mean()
-                    clipfracs.append(((ratio - 1.0).abs() > cfg.clip_coef).float().mean())
-                mb_adv = b_adv[mb]
-                if cfg.norm_adv:
-                    mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
-                pg_loss = torch.max(-mb_adv * ratio,
-                                    -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)).mean()
-                v_loss = self._value_loss(out.value_ext, b_v_ext[mb], b_ret_ext[mb])
-                v_loss_int = (self._value_loss(out.value_int, b_v_int[mb], b_ret_int[mb])
-                              if adv.int_stream else torch.zeros((), device=self.device))
-                loss = pg_loss - cfg.ent_coef * entropy + cfg.vf_coef * (v_loss + v_loss_int)
-                logs = {"policy_loss": pg_loss.detach(), "value_loss": v_loss.detach(),
-                        "value_loss_int": v_loss_int.detach(), "entropy": entropy.detach(), "approx_kl": approx_kl}
-                if self.bonus.uses_aux_loss and _epoch < cfg.distill_epochs:
+                loss, out, logs = self._ppo_loss(b, mb, adv.int_stream)
+                if self.bonus.uses_aux_loss and epoch < cfg.bonus.distill_epochs:  # the heads learn the targets
                     aux, aux_logs = self.bonus.aux_loss(self.bonus_batch(ro, mb, out.features))
-                    loss = loss + cfg.distill_coef * aux
+                    loss = loss + cfg.bonus.distill_coef * aux
                     logs.update(aux_logs)
+                # one step
                 self.optimizer.zero_grad()
                 loss.backward()
-                nn.utils.clip_grad_norm_(self.net.parameters(), cfg.max_grad_norm)
+                nn.utils.clip_grad_norm_(self.net.parameters(), cfg.ppo.max_grad_norm)
                 self.optimizer.step()
-                for k, v in logs.items():
-                    sums[k] = sums.get(k, 0.0) + v
-                    counts[k] = counts.get(k, 0) + 1
-            if cfg.target_kl is not None and float(approx_kl) > cfg.target_kl:
+                logged.add(logs)
+            if cfg.ppo.target_kl is not None and float(logs["approx_kl"]) > cfg.ppo.target_kl:
                 break
-        out = {f"losses/{k}": float(v) / counts[k] for k, v in sums.items()}
-        y_pred, y_true = b_v_ext.cpu().numpy(), b_ret_ext.cpu().numpy()
+        # bookkeeping: the means, and how much of the return the extrinsic value explains
+        result = {f"losses/{k}": v for k, v in logged.means().items()}
+        y_pred, y_true = b["values_ext"].cpu().numpy(), b["returns_ext"].cpu().numpy()
         var_y = np.var(y_true)
-        out["losses/clipfrac"] = float(torch.stack(clipfracs).mean())
         if var_y > 0:  # undefined for a constant return (e.g. no reward yet); left out then
-            out["losses/explained_variance"] = float(1 - np.var(y_true - y_pred) / var_y)
-        return out
+            result["losses/explained_variance"] = float(1 - np.var(y_true - y_pred) / var_y)
+        return result
 
     # --- the loop ---------------------------------------------------------------------------
     def train_one_update(self) -> dict:
         cfg = self.cfg
         self.update_idx += 1
-        if cfg.anneal_lr:
+        if cfg.ppo.anneal_lr:
             frac = 1.0 - (self.update_idx - 1.0) / cfg.num_updates
-            self.optimizer.param_groups[0]["lr"] = max(frac, 0.0) * cfg.learning_rate
+            self.optimizer.param_groups[0]["lr"] = max(frac, 0.0) * cfg.ppo.learning_rate
         t0 = time.perf_counter()
         ro, records, episodes, next_values = self.collect_rollout()
         t1 = time.perf_counter()
@@ -327,7 +333,7 @@ class Trainer:
             batch = self.bonus_batch(ro)
         bonus = self.intrinsic_rewards(ro, batch)
         adv = self.advantages(ro, bonus.reward if self.bonus.pays_reward else None, next_values)
-        paid = (bonus.reward * (self.cfg.int_coef * self.bonus_weight())).cpu().numpy() \
+        paid = (bonus.reward * (self.cfg.bonus.int_coef * self.bonus_weight())).cpu().numpy() \
             if self.bonus.pays_reward and self.observers else None
         for observer in self.observers:  # where the bonus was paid (the weighted reward, as it entered)
             observer.paid(paid)

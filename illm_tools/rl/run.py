@@ -11,29 +11,22 @@ import numpy as np
 
 from illm_tools.errors import CacheError, IllmError, UsageError
 from illm_tools.rl.config import TrainConfig
-from illm_tools.rl.threads import torch_threads  # noqa: F401  (re-exported: where callers found it)
+from illm_tools.rl.threads import torch_threads
 
 EVAL_SEED_OFFSET = 2**40
 """Evaluation episodes use seeds from here on: training seeds (seed + steps) never get this far."""
 
 
-def make_pool(cfg: TrainConfig, start_step: int | None = None):
+def make_pool(cfg: TrainConfig, start_step: int = 0):
     """The env pool a run trains on. Text is rendered only when LLM targets need it. A run resumed
-    at `start_step` frames (None: its checkpoint's) starts its episodes past every seed it can have
-    used so far (the pool's episode k of env i has seed `seed + i + k * num_envs`, so
-    `seed + start_step + num_envs` is unused); an `auto` action space is the run's own
-    (`resolved_action_space`)."""
+    at `start_step` frames (its checkpoint's) starts its episodes past every seed it can have used
+    so far (the pool's episode k of env i has seed `seed + i + k * num_envs`, so
+    `seed + start_step + num_envs` is unused)."""
     from illm_tools.envs.pool import EnvPool
 
-    seed = cfg.seed
-    if cfg.resume:
-        if start_step is None:
-            from illm_tools.rl.checkpoint import load_checkpoint
-
-            start_step = int(load_checkpoint(cfg.run_dir)["global_step"])
-        seed += start_step + cfg.num_envs
-    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets and cfg.obs_mode == "obs",
-                   action_space=cfg.resolved_action_space(), episode_seeds=cfg.env_seeds,
+    seed = cfg.seed + (start_step + cfg.num_envs if cfg.resume else 0)
+    return EnvPool(cfg.env_id, cfg.num_envs, seed, render=cfg.needs_targets and not cfg.setup.hop,
+                   action_space=cfg.action_space, episode_seeds=cfg.env_seeds,
                    num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
 
 
@@ -45,27 +38,34 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     device and dtype are this machine's)."""
     if not cfg.needs_targets:
         return None
-    if cfg.cache is None:
+    if cfg.targets.cache is None:
         raise UsageError(f"--method {cfg.method} reads LLM targets: pass --cache DIR (an annotation cache, "
                          "see `illm annotate`), or use --method ppo")
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.rl.providers import provider_class
-    from illm_tools.tasks.setup import check_setup
     from illm_tools.tasks.registry import get_task
+    from illm_tools.tasks.setup import check_setup, model_identity
 
     method = get_method(cfg.method)
-    cache = AnnotationCache(cfg.cache)
+    cache = AnnotationCache(cfg.targets.cache)
     llm, setup = cfg.llm, cfg.annotation_setup  # resolved: the machine's device and dtype
     llm.check_use(setup.env_id, setup.renderer)
-    fingerprint, answers = run_identity(cfg)
+    fingerprint, unreachable = model_identity(llm, cache)
+    answers = unreachable is None
+    if unreachable and cfg.targets.live_budget != 0 and cfg.targets.annotator is None:
+        import logging
+
+        logging.getLogger(__name__).warning(
+            "%s: this run trains from the cache's targets alone, its missed states are not annotated (start the "
+            "engine for the live fallback, or pass --live-budget 0)", unreachable)
     if answers and any(get_task(t).kind == "ranking" for t in setup.tasks):
         llm.check_ranking()  # before the run starts: an engine that cannot rank (openai backend)
     builder = setup.builder(llm.model, fingerprint)
-    if len(cache) == 0 and cfg.live_budget == 0:
-        raise CacheError(f"the cache {cfg.cache} is empty and --live-budget is 0: nothing would give targets; "
+    if len(cache) == 0 and cfg.targets.live_budget == 0:
+        raise CacheError(f"the cache {cfg.targets.cache} is empty and --live-budget is 0: nothing would give targets; "
                          "run `illm annotate` first or allow a live budget")
-    if len(cache) and not cfg.new_setup:
+    if len(cache) and not cfg.targets.new_setup:
         check_setup(cache, builder, llm=llm, tasks=setup.tasks)
     provider = provider_class(method.bonus_class).for_run(cfg, cache, builder, num_actions=num_actions,
                                                           live=make_live(cfg, llm, setup, cache) if answers else None,
@@ -73,67 +73,29 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     return provider
 
 
-def run_identity(cfg: TrainConfig) -> tuple[str, bool]:
-    """(the fingerprint hash of the run's model, whether its engine answers). Asked of the backend
-    (no weights loaded); where only an engine can tell (openai) and none answers, read from the
-    cache's rows of the same served model (`cached_identity`): a run trains from the cache with the
-    engine stopped, under any address it was annotated at. With a live budget it says in one line
-    that the run goes on with the cache's targets alone."""
-    import logging
-
-    from illm_tools.llm.openai_engine import EngineUnreachableError
-    from illm_tools.tasks.setup import cached_identity
-
-    try:
-        return cfg.llm.fingerprint(), True
-    except EngineUnreachableError as e:
-        unreachable = str(e).split(" (")[0]  # "no OpenAI-compatible server answers at URL"
-    found = cached_identity(cfg.cache, cfg.llm.backend, cfg.llm.model)
-    if found is None:
-        raise UsageError(f"{unreachable}: start it, or train from a cache that holds this model's annotations "
-                         f"({cfg.cache} holds none)")
-    if cfg.live_budget != 0 and cfg.annotator is None:
-        logging.getLogger(__name__).warning(
-            "%s: this run trains from the cache's targets alone, its missed states are not annotated (start the "
-            "engine for the live fallback, or pass --live-budget 0)", unreachable)
-    return found[0], False
-
-
 def make_live(cfg: TrainConfig, llm, setup, cache):
     """The live annotator of a run (`illm_tools.rl.live`) for its LLM (placed) and annotation setup,
     or None with no live budget; sync writes through `cache`, the object the targets are read from."""
-    if cfg.live_budget == 0:
+    if cfg.targets.live_budget == 0:
         return None
     from illm_tools.rl.live import AsyncLive, SyncLive, WorkerSpec
     from illm_tools.rl.live_remote import SYNC_WAIT, RemoteLive
 
-    if cfg.annotator is not None:
-        return RemoteLive(cfg.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
-                          budget=cfg.live_limit, wait=SYNC_WAIT if cfg.live_mode == "sync" else 0.0)
-    if cfg.live_mode == "async":
-        spec = WorkerSpec(cache=str(cfg.cache), llm=llm, setup=setup, threads=cfg.live_threads)
-        return AsyncLive(spec, budget=cfg.live_limit)
+    if cfg.targets.annotator is not None:
+        return RemoteLive(cfg.targets.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
+                          budget=cfg.targets.live_limit, wait=SYNC_WAIT if cfg.targets.live_mode == "sync" else 0.0)
+    if cfg.targets.live_mode == "async":
+        spec = WorkerSpec(cache=str(cfg.targets.cache), llm=llm, setup=setup, threads=cfg.targets.live_threads(cfg.threads))
+        return AsyncLive(spec, budget=cfg.targets.live_limit)
     from illm_tools.annotate.engine import Annotator
 
     # one shard per rollout: a budget of "all" hands over a rollout's every missed state at once
     annotator = Annotator.of_setup(llm.load(), cache, llm, setup, chunk=4096)
-    return SyncLive(annotator, setup, cfg.live_limit, threads=cfg.live_threads)
+    return SyncLive(annotator, setup, cfg.targets.live_limit, threads=cfg.targets.live_threads(cfg.threads))
 
 
 RUN_LOCK = ".lock"
 """flock'ed in a run's folder while a process trains it (`durable.exclusive`)."""
-
-
-def _only_trainer(run_dir: Path):
-    """Hold the run folder's lock for the whole run: a second `illm train` of the same folder (a
-    re-submitted cluster job, a second terminal) stops at once instead of interleaving checkpoints."""
-    from illm_tools import durable
-    from illm_tools.folders import refuse_foreign
-
-    refuse_foreign(run_dir, "training run", "--out")  # before the lock file lands in someone else's folder
-    run_dir.mkdir(parents=True, exist_ok=True)
-    return durable.exclusive(run_dir / RUN_LOCK, busy=f"{run_dir} is being trained by another process; wait "
-                             "for it to end (or stop it), then pass --resume to continue the run")
 
 
 def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
@@ -141,17 +103,25 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
     """Build and run a training run to cfg.total_steps; returns the last update's metrics
     (`Trainer.train`: `should_stop` ends it early with a checkpoint), with `resumed_at` (the frames of
     the checkpoint a resumed run started from) and `live_at_close`. The run resolves its config
-    here, once, and reads its checkpoint once, under the run folder's lock."""
+    here, once (a resumed run's recorded choices kept: `with_recorded_choices`), and reads its saved
+    run once, its checkpoint under the run folder's lock (a second `illm train` of the same folder, a
+    re-submitted cluster job or a second terminal, stops at once instead of interleaving checkpoints)."""
+    from illm_tools import durable
+    from illm_tools.folders import refuse_foreign
+    from illm_tools.rl.saved import read_run, with_recorded_choices
+
     with torch_threads(cfg.threads):
+        saved = read_run(cfg.run_dir) if cfg.resume else None
         # devices resolved (a GPU this machine lacks: one line before anything lands on disk) and auto
         # dtypes measured with the run's own thread count, as config.json records them
-        cfg = cfg.resolved()
+        cfg = with_recorded_choices(cfg, saved).resolved()
         made = not cfg.run_dir.exists()
+        refuse_foreign(cfg.run_dir, "training run", "--out")  # before the lock file lands in someone else's folder
+        cfg.run_dir.mkdir(parents=True, exist_ok=True)
         try:
-            with _only_trainer(cfg.run_dir):
-                from illm_tools.rl.checkpoint import load_checkpoint
-
-                checkpoint = load_checkpoint(cfg.run_dir) if cfg.resume else None
+            with durable.exclusive(cfg.run_dir / RUN_LOCK, busy=f"{cfg.run_dir} is being trained by another process; "
+                                   "wait for it to end (or stop it), then pass --resume to continue the run"):
+                checkpoint = saved.checkpoint if saved is not None else None
                 with build_run(cfg, on_metrics, checkpoint) as trainer:
                     result = trainer.train(should_stop)
             # what the live annotator wrote while the run shut down (its worker's last chunk), counted once closed
@@ -167,17 +137,13 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
 @contextmanager
 def build_run(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
               checkpoint: dict | None = None) -> Iterator:
-    """The whole run assembled from its config (resolved here: `TrainConfig.resolved`, a no-op on a resolved one),
-    in one place: the env pool (`make_pool`), the method's target provider with its live annotator
-    (`make_provider`), then the trainer, which builds the network, the bonus and the state sources
-    and restores `checkpoint` on --resume (read here when not given). Yields the `Trainer`; closes
-    the pool and the provider (its live worker) on the way out, also when a later piece is refused."""
-    from illm_tools.rl.checkpoint import load_checkpoint
+    """The whole run assembled from its resolved config (`TrainConfig.resolved`), in one place: the
+    env pool (`make_pool`), the method's target provider with its live annotator (`make_provider`),
+    then the trainer, which builds the network, the bonus and the state sources and restores
+    `checkpoint` (a resumed run's, read by `train`). Yields the `Trainer`; closes the pool and the
+    provider (its live worker) on the way out, also when a later piece is refused."""
     from illm_tools.rl.ppo import Trainer
 
-    cfg = cfg.resolved()  # a resolved config comes back as it is, nothing measured again
-    if cfg.resume and checkpoint is None:
-        checkpoint = load_checkpoint(cfg.run_dir)
     pool, provider = make_pool(cfg, int(checkpoint["global_step"]) if checkpoint is not None else 0), None
     try:
         provider = make_provider(cfg, len(pool.action_names))
@@ -192,19 +158,19 @@ def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy:
              num_envs: int = 8) -> dict:
     """Success rate and mean return of a run's policy over `episodes` fresh episodes."""
     from illm_tools.envs.pool import EnvPool
-    from illm_tools.rl.checkpoint import load_policy
-
-    from illm_tools.rl.checkpoint import read_config
+    from illm_tools.rl.policy import load_policy
+    from illm_tools.rl.saved import read_run
 
     run_dir = Path(run_dir)
     if episodes <= 0:
         raise UsageError(f"--episodes must be positive, got {episodes}")
-    cfg = TrainConfig.from_dict(read_config(run_dir))
+    saved = read_run(run_dir)
+    cfg = saved.config
     num_envs = min(num_envs, episodes)
     pool = EnvPool(cfg.env_id, num_envs, EVAL_SEED_OFFSET + seed, render=False, action_space=cfg.action_space,
                    episode_seeds=cfg.env_seeds,  # a fixed-layout run is evaluated on its layouts
                    num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
-    policy = load_policy(run_dir, pool, greedy=greedy, seed=seed)
+    policy = load_policy(saved, pool, greedy=greedy, seed=seed)
     finished = []
     counted = np.zeros(num_envs, dtype=np.int64)  # episodes taken from each env: equal shares, no bias to short ones
     quota = [episodes // num_envs + (i < episodes % num_envs) for i in range(num_envs)]

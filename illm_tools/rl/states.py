@@ -71,8 +71,8 @@ class HopStates:
         lm = cfg.llm.load()
         self.suite, self.device = suite, device
         raw = np.asarray(suite.hop_input(np.zeros(image_shape, dtype=np.uint8)))
-        self.tracker = HopTracker(num_envs or cfg.num_envs, cfg.history_len, list(action_names))
-        self.hop = HopContext(lm, raw.size, len(action_names), seed=cfg.hop_seed, beta=cfg.hop_beta)
+        self.tracker = HopTracker(num_envs or cfg.num_envs, cfg.setup.history_len, list(action_names))
+        self.hop = HopContext(lm, raw.size, len(action_names), seed=cfg.setup.hop_seed, beta=cfg.setup.hop_beta)
         self.context_dim = self.hop.hidden_size
         self._now: tuple[list, torch.Tensor] | None = None
 
@@ -92,10 +92,10 @@ def make_states(cfg: TrainConfig, suite, image_shape: tuple[int, ...], action_na
                 needs_records: bool, device: torch.device | str = "cpu", num_envs: int | None = None) -> StateSource:
     """The run's state source: hop windows for `--mode hop` (their Z_h feeds the network whatever the
     method), the text history when the method reads LLM targets, else none."""
-    if cfg.obs_mode == "hop":
+    if cfg.setup.obs_mode == "hop":
         return HopStates(cfg, suite, image_shape, action_names, device, num_envs)
     if needs_records:
-        return TextStates(num_envs or cfg.num_envs, cfg.history_len, action_names)
+        return TextStates(num_envs or cfg.num_envs, cfg.setup.history_len, action_names)
     return NoStates()
 
 

@@ -159,8 +159,8 @@ class CachedTargets:
                 shuffle_seed: int | None = None) -> CachedTargets:
         """The provider of a training run (its `TrainConfig`): the run's target tasks, calibration,
         action target and embedding width (the model's hidden size, set by the run's assembly)."""
-        return cls(cache, builder, calibration=cfg.action_score, num_actions=num_actions,
-                   embedding_dim=cfg.embedding_dim, action_target=cfg.action_target, tasks=cfg.target_tasks,
+        return cls(cache, builder, calibration=cfg.targets.action_score, num_actions=num_actions,
+                   embedding_dim=cfg.embedding_dim, action_target=cfg.bonus.action_target, tasks=cfg.target_tasks,
                    live=live, shuffle_seed=shuffle_seed)
 
     def close(self) -> None:

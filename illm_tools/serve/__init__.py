@@ -37,12 +37,11 @@ Endpoints (JSON):
 
 from __future__ import annotations
 
-from illm_tools.annotate.wire import record_to_json  # noqa: F401  (the request format: re-exported)
-from illm_tools.serve.config import (MIN_TOKEN_BITS, ServeConfig, ServeLimits, check_token_strength,  # noqa: F401
-                                     is_loopback, token_bits)
-from illm_tools.serve.http import make_app, serve  # noqa: F401
-from illm_tools.serve.protocol import RequestError, ServerSetup, read_json  # noqa: F401
-from illm_tools.serve.scheduler import MAX_RETRY_AFTER, AnnotationServer, Pending  # noqa: F401
+from illm_tools.annotate.wire import record_to_json  # noqa: F401  (the request format)
+from illm_tools.serve.config import ServeConfig, ServeLimits, token_bits  # noqa: F401
+from illm_tools.serve.http import serve  # noqa: F401
+from illm_tools.serve.protocol import RequestError, ServerSetup  # noqa: F401
+from illm_tools.serve.scheduler import AnnotationServer  # noqa: F401
 
 MAX_REQUEST_BYTES = ServeLimits().max_request_bytes
 """The default largest request body (413 above; `--max-request-mb`)."""

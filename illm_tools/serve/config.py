@@ -12,6 +12,7 @@ from pathlib import Path
 from illm_tools.annotate.wire import TOKEN_ENV, check_token
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
+from illm_tools.tasks.prompt_setup import PromptSetup
 
 MIN_TOKEN_BITS = 128
 """Least entropy a server's token must carry (`token_bits`)."""
@@ -162,17 +163,12 @@ class ServeConfig:
     """Annotation cache the answers go to (the trainers' --cache)."""
     llm: LLMSpec = field(default_factory=LLMSpec)
     """The LLM that answers; none of its options given: the cache's one model setup (`adopt_model`)."""
-    history_len: int = 3
-    """Observation/action pairs of history in the prompts: the trainers' --history (a request declaring
-    another is refused, naming the difference). Every row the server writes carries its setup."""
-    layout: str = "shared"
-    """Template layout of the prompts (shared or paper): the trainers' --layout."""
+    setup: PromptSetup = field(default_factory=PromptSetup)
+    """How states become prompts: the trainers' --history, --layout and, for hop trainers, --hop-seed
+    and --hop-beta (a request declaring another is refused, naming the difference; the server answers
+    text and hop states alike, so it takes no --mode). Every row the server writes carries its setup."""
     tasks: tuple[str, ...] = ("action", "summary")
     """The language tasks annotated for every state; a trainer may read any of them."""
-    hop_seed: int = 0
-    """hop trainers: the seed of the translation's projection (the trainers' --hop-seed)."""
-    hop_beta: float = 100.0
-    """hop trainers: the Hopfield inverse temperature (the trainers' --hop-beta)."""
     port: int = 8765
     """TCP port (0: any free one, printed when ready)."""
     host: str = "127.0.0.1"
@@ -193,16 +189,12 @@ class ServeConfig:
 
     def __post_init__(self) -> None:
         from illm_tools.settings import check_folder, check_numbers
-        from illm_tools.tasks.prompts import LAYOUTS
         from illm_tools.tasks.registry import parse_tasks
 
         self.cache = Path(self.cache)
-        check_numbers(self, positive=("batch_size", "chunk", "hop_beta"),
-                      non_negative=("threads", "port", "history_len", "hop_seed"), flags={"history_len": "--history"})
+        check_numbers(self, positive=("batch_size", "chunk"), non_negative=("threads", "port"))
         if self.port >= 65536:
             raise UsageError(f"--port must be in 0..65535, got {self.port}")
-        if self.layout not in LAYOUTS:
-            raise UsageError(f"--layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}")
         self.tasks = parse_tasks(self.tasks)
         if self.token is None:
             self.token = os.environ.get(TOKEN_ENV) or None

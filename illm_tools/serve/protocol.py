@@ -16,7 +16,8 @@ import numpy as np
 
 from illm_tools.errors import IllmError
 from illm_tools.serve.config import ServeLimits
-from illm_tools.tasks.setup import AnnotationSetup, hop_renderer
+from illm_tools.tasks.prompt_setup import PromptSetup
+from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 MAX_ID_CHARS = 256
@@ -89,10 +90,9 @@ class ServerSetup:
     """The setup a server annotates under (its model's options, history, layout, tasks, hop
     settings) and the request checks that follow from it and from its limits."""
 
-    def __init__(self, llm, *, history_len: int, layout: str, tasks: tuple[str, ...], hop_seed: int,
-                 hop_beta: float, limits: ServeLimits):
-        self.llm, self.history_len, self.layout, self.tasks = llm, history_len, layout, tuple(tasks)
-        self.hop_seed, self.hop_beta, self.limits = hop_seed, hop_beta, limits
+    def __init__(self, llm, *, prompt: PromptSetup, tasks: tuple[str, ...], limits: ServeLimits):
+        self.llm, self.prompt, self.tasks, self.limits = llm, prompt, tuple(tasks), limits
+        self.history_len, self.layout = prompt.history_len, prompt.layout
         self._envs: dict[tuple[str, bool], tuple[AnnotationSetup, tuple | None]] = {}  # one per known env and mode
 
     def options(self) -> str:
@@ -100,7 +100,7 @@ class ServerSetup:
 
     def describe(self) -> dict:
         return {"history_len": self.history_len, "layout": self.layout, "tasks": list(self.tasks),
-                "hop_seed": self.hop_seed, "hop_beta": self.hop_beta}
+                "hop_seed": self.prompt.hop_seed, "hop_beta": self.prompt.hop_beta}
 
     def of_request(self, body: dict) -> AnnotationSetup:
         """The server's setup for the env the request names, once what the request declares has been
@@ -137,7 +137,7 @@ class ServerSetup:
         found = self._envs.get((env_id, hop))
         if found is not None:
             return found
-        from illm_tools.envs import renderer_of, suite_of
+        from illm_tools.envs import suite_of
         from illm_tools.tasks.registry import get_task
 
         try:
@@ -151,11 +151,8 @@ class ServerSetup:
                 spec = suite.obs_spec(env_id)
                 blank = np.asarray(suite.hop_input(np.zeros(spec.shape, dtype=np.dtype(spec.dtype))))
                 frame = (tuple(int(d) for d in blank.shape), blank.dtype)
-                renderer = hop_renderer(self.hop_seed, self.hop_beta, self.history_len + 1)
-            else:
-                renderer = renderer_of(env_id)
-            self.llm.check_use(env_id, renderer)  # the backend refuses what it cannot read (hop, a suite)
-            setup = AnnotationSetup(env_id, renderer, self.tasks, self.history_len, self.layout)
+            setup = self.prompt.of(env_id, self.tasks, hop=hop)
+            self.llm.check_use(env_id, setup.renderer)  # the backend refuses what it cannot read (hop, a suite)
         except IllmError as e:
             raise RequestError(400, str(e).splitlines()[0]) from None
         self._envs[(env_id, hop)] = found = (setup, frame)  # bounded: the envs illm knows, two modes each

@@ -38,6 +38,7 @@ from illm_tools.serve.config import ServeConfig, ServeLimits
 from illm_tools.serve.batch import annotate_batch, in_thread, one_line, take_turns
 from illm_tools.serve.memory import resident_mb
 from illm_tools.serve.protocol import MAX_ID_CHARS, RequestError, ServerSetup, requested_wait, text, trainer_of
+from illm_tools.tasks.prompt_setup import PromptSetup
 from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
@@ -62,10 +63,8 @@ class Pending:
 class AnnotationServer:
     """The queue, the scheduler and the model behind `illm serve` (module docstring)."""
 
-    def __init__(self, lm, cache, *, llm: LLMSpec, history_len: int = ServeConfig.history_len,
-                 layout: str = ServeConfig.layout, tasks: Sequence[str] = ("action", "summary"),
-                 hop_seed: int = ServeConfig.hop_seed, hop_beta: float = ServeConfig.hop_beta,
-                 batch_size: int = ServeConfig.batch_size, chunk: int = ServeConfig.chunk,
+    def __init__(self, lm, cache, *, llm: LLMSpec, prompt: PromptSetup | None = None,
+                 tasks: Sequence[str] = ("action", "summary"), batch_size: int = ServeConfig.batch_size, chunk: int = ServeConfig.chunk,
                  limits: ServeLimits | None = None):
         from illm_tools.annotate.engine import Annotator
         from illm_tools.llm.backend import as_backend
@@ -75,13 +74,12 @@ class AnnotationServer:
         self.llm = llm  # the model as it was loaded (placed: its device and dtype resolved)
         self.model = llm.model
         self.limits = limits or ServeLimits()
-        self.setup = ServerSetup(llm, history_len=history_len, layout=layout, tasks=tuple(tasks), hop_seed=hop_seed,
-                                 hop_beta=hop_beta, limits=self.limits)
+        self.setup = ServerSetup(llm, prompt=prompt or PromptSetup(), tasks=tuple(tasks), limits=self.limits)
         """The setup every row this server writes carries, and the request checks."""
         self.batch_size, self.chunk = batch_size, chunk
         # one annotator: the server's tasks, history and layout (the backend's ranking check runs here, at start)
-        self.annotator = Annotator(self.lm, cache, model=llm.model, tasks=self.setup.tasks, history_len=history_len,
-                                   layout=layout, batch_size=batch_size, chunk=chunk)
+        self.annotator = Annotator.of_setup(self.lm, cache, llm, self.setup.prompt, tasks=self.setup.tasks,
+                                            batch_size=batch_size, chunk=chunk)
         self.annotating = 0
         """States in the batch being annotated now (0: idle)."""
         self.connections = 0  # open now (kept by the HTTP side's gate)
@@ -108,8 +106,7 @@ class AnnotationServer:
     @classmethod
     def of_config(cls, lm, cache, llm: LLMSpec, config: ServeConfig) -> AnnotationServer:
         """The server of a `ServeConfig` (its setup, batching and limits) with a loaded model."""
-        return cls(lm, cache, llm=llm, history_len=config.history_len, layout=config.layout, tasks=config.tasks,
-                   hop_seed=config.hop_seed, hop_beta=config.hop_beta, batch_size=config.batch_size,
+        return cls(lm, cache, llm=llm, prompt=config.setup, tasks=config.tasks, batch_size=config.batch_size,
                    chunk=config.chunk, limits=config.limits)
 
     @property

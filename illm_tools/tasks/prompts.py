@@ -26,8 +26,7 @@ from pathlib import Path
 
 from illm_tools.keys import canonical_json, make_key
 from illm_tools.errors import UsageError
-from illm_tools.tasks.goals import parse_goals  # noqa: F401  (re-exported: where the goal task's parser was)
-from illm_tools.tasks.registry import DEFAULT_TASKS, LANGUAGE_TASKS, NEUTRAL_VERSION, get_task  # noqa: F401
+from illm_tools.tasks.registry import DEFAULT_TASKS, LANGUAGE_TASKS, get_task  # noqa: F401
 from illm_tools.tasks.state import StateRecord
 
 TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"

@@ -211,7 +211,7 @@ def listed_setups(cache) -> list[dict]:
 
 def _addresses(specs: Sequence[str]) -> list[str]:
     """The engine URLs of served model specs (openai's "NAME@URL"), in order; [] for other models."""
-    from illm_tools.llm.openai_engine import describe_offline, parse_spec
+    from illm_tools.llm.openai_wire import describe_offline, parse_spec
 
     return [parse_spec(m)[1] for m in specs if describe_offline(m) is not None]
 
@@ -297,19 +297,21 @@ def adopt_model(cache) -> dict | None:
 
 def cached_identity(cache, backend: str, model: str) -> tuple[str, int | None] | None:
     """For a model only its engine can fingerprint (openai): the fingerprint hash and embedding width
-    the cache's rows carry for the same served model at any address (`openai_engine.served_as`),
+    the cache's rows carry for the same served model at any address (`openai_wire.served_as`),
     when they carry one; None when they carry none; several are refused in one line. A run that
     cannot reach the engine reads its keys from these, so training from the cache asks it nothing."""
     from illm_tools.cache.store import AnnotationCache
 
-    if backend != "openai" or cache is None or not (Path(cache) / "manifest.json").is_file():
+    root = cache.root if isinstance(cache, AnnotationCache) else cache
+    if backend != "openai" or root is None or not (Path(root) / "manifest.json").is_file():
         return None
-    from illm_tools.llm.openai_engine import served_as
+    from illm_tools.llm.openai_wire import served_as
 
-    want = served_as(model)
     cache = cache if isinstance(cache, AnnotationCache) else AnnotationCache(cache)
+    rows = cache.setups()
+    want = served_as(model)
     found: dict[str, set] = {}
-    for row in cache.setups():
+    for row in rows:
         try:
             same = served_as(row["model"]) == want
         except UsageError:  # a row of another backend
@@ -327,6 +329,24 @@ def cached_identity(cache, backend: str, model: str) -> tuple[str, int | None] |
     dims = {d for f, d in zip(table.column("model_fingerprint").to_pylist(), table.column("embedding_dim").to_pylist())
             if f == fingerprint and d is not None}
     return fingerprint, (dims.pop() if len(dims) == 1 else None)
+
+
+def model_identity(llm, cache) -> tuple[str, str | None]:
+    """(the fingerprint hash of an `LLMSpec`'s model, None or why its engine does not answer). Asked
+    of the backend (no weights loaded); where only an engine can tell (openai) and none answers, read
+    from the rows of the same served model in `cache` (`cached_identity`): a run trains from the
+    cache with the engine stopped, under any address it was annotated at. Neither: one line."""
+    from illm_tools.llm.openai_wire import EngineUnreachableError
+
+    try:
+        return llm.fingerprint(), None
+    except EngineUnreachableError as e:
+        unreachable = str(e).split(" (")[0]  # "no OpenAI-compatible server answers at URL"
+    found = cached_identity(cache, llm.backend, llm.model)
+    if found is None:
+        raise UsageError(f"{unreachable}: start it, or train from a cache that holds this model's annotations "
+                         f"({cache.root} holds none)")
+    return found[0], unreachable
 
 
 _FLAGS = {"history_len": "--history", "layout": "--layout", "renderer": "renderer", "template_version": "template version",
