@@ -9,7 +9,6 @@ import typer
 from cli.common import progress, stop_on_signals
 from cli.errors import friendly
 
-ALIASES = {"obs_mode": ("--mode",)}
 EXAMPLE = "Example: illm annotate data/traj/gotolocal --cache data/ann --model smollm2-135m --tasks action,summary"
 
 
@@ -18,7 +17,7 @@ def _parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.annotate.bulk import AnnotateConfig
 
-    return dataclass_parameters(AnnotateConfig, aliases=ALIASES, arguments={"data"},
+    return dataclass_parameters(AnnotateConfig, arguments={"data"},
                                 extra_help={"tasks": "(paper Table 2; goal is also ELLM's)."})
 
 
@@ -86,20 +85,20 @@ def annotate_and_report(config) -> None:
         typer.echo(f"the {result.selected_states:,} most visited states cover {result.selected_step_share:.0%} "
                    f"of the {result.dataset_steps:,} steps")
     typer.echo(f"the cache now answers {result.covered_states:,} of the {result.dataset_states:,} distinct states "
-               f"(history {config.history}), covering {result.covered_step_share:.0%} of the "
+               f"(history {config.setup.history_len}), covering {result.covered_step_share:.0%} of the "
                f"{result.dataset_steps:,} steps -> {cache}")
     left = result.dataset_states - result.covered_states
     if left:
         typer.echo(f"left to annotate in this dataset: {left:,} states ({1 - result.covered_step_share:.0%} of its "
                    f"steps); {'run again to go on' if stats.stopped_early else 'a larger --limit takes the next ones'}")
-    if config.obs_mode == "obs":
+    if not config.setup.hop:
         from illm_tools.llm.spec import LLMSpec
 
         model = "" if config.llm == LLMSpec(device=config.llm.device) else f" {config.llm.options()}"
-        layout = ("" if config.layout == "shared" else f" --layout {config.layout}") + \
+        layout = ("" if config.setup.layout == "shared" else f" --layout {config.setup.layout}") + \
             ("" if config.tasks == ("action", "summary") else f" --tasks {','.join(config.tasks)}")
         typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
-                   f"{config.data} --cache {cache} --history {config.history}{model}{layout}` estimates how many")
+                   f"{config.data} --cache {cache} --history {config.setup.history_len}{model}{layout}` estimates how many")
     if stop.requested and stats.stopped_early:
         raise typer.Exit(stop.exit_code)
 
