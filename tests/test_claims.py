@@ -24,6 +24,16 @@ def _render():
 render = _render()
 
 
+def _numbers():
+    spec = importlib.util.spec_from_file_location("docs_numbers", ROOT / "docs" / "numbers.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+numbers = _numbers()
+
+
 def test_readme_table_is_rendered():
     text = (ROOT / "README.md").read_text()
     assert render.splice(text, render.render()) == text, "run `python docs/render.py`"
@@ -58,3 +68,26 @@ def test_above_and_clear_are_two_counts():
 def test_splice_without_markers_is_one_line():
     with pytest.raises(SystemExit, match="lacks the markers"):
         render.splice("no markers here", "block")
+
+
+def test_every_result_on_the_result_pages_is_in_a_results_file_the_page_links():
+    """README, docs/index.md and docs/experiments/*.md: each `0.901 [0.767, 0.953]` is held by a
+    results.json the page links, or sits in a paragraph marked `<!-- computed: ... -->`."""
+    found = [line for page in numbers.pages() for line in numbers.problems(page)]
+    assert not found, "\n".join(found[:5])
+    assert numbers.main() == 0
+
+
+@pytest.mark.parametrize("page, estimate", [
+    ("README.md", "0.857 [0.765, 0.940]"),                   # the front page (its table also: rendered)
+    ("docs/index.md", "0.974 [0.736, 0.994]"),               # the site's front page
+    ("docs/experiments/paper-literal.md", "0.716 [0.619, 0.804]"),  # an experiment's page
+])
+def test_a_result_edited_by_hand_fails_on_each_kind_of_page(page, estimate):
+    path = ROOT / page
+    text = path.read_text()
+    assert estimate in text and not numbers.problems(path, text)
+    value, rest = estimate.split(" ", 1)
+    edited = text.replace(estimate, f"{float(value) + 0.01:.3f} {rest}", 1)
+    (line,) = numbers.problems(path, edited)
+    assert page in line and "is in none of the results the page links" in line
