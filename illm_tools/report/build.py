@@ -162,7 +162,10 @@ def _row(env_id: str, label: str, group: dict, every: int, final_points: int, re
     used = group["frames"][-final_points:]
     final.update(points=used, frames=used[-1] if used else None,
                  per_seed=[{"seed": c.seed, "run": c.run, "score": s} for c, s in zip(curves, finals.tolist())],
-                 no_score=[c.run for c, s in zip(curves, finals) if np.isnan(s)])
+                 no_score=[c.run for c, s in zip(curves, finals) if np.isnan(s)],
+                 split=stats.seeds_split(finals, score_name(env_id)))
+    if final["split"]:  # its seeds drawn one by one (`plots.seeds_png`): the mean describes none of them
+        final["seed_curves"] = [{"seed": c.seed, "points": row} for c, row in zip(curves, table.tolist())]
     trained = {c.run: c.last_step for c in curves} | dict(group["short_runs"])
     return {"env_id": env_id, "label": label, "method": group["method"], "settings": group["settings"],
             "score_name": score_name(env_id),
@@ -270,6 +273,12 @@ def _figures(out: Path, envs: list[str], rows: list[dict], quality_result: dict 
 
         quality_file = "quality.png"
         quality_png(quality_result, {env: score_name(env) for env in envs}, out / quality_file)
+    seed_files = {}
+    for row in rows:
+        if row["final"].get("seed_curves"):
+            name = f"seeds-{slug(row['env_id'])}-{slug(row['label'])}.png"
+            plots.seeds_png(row, out / name)
+            seed_files[f"{row['env_id']} / {row['label']}"] = name
     diagnostics_files = {}
     for env in envs:
         shown = [r for r in rows if r["env_id"] == env and r.get("diagnostics")]
@@ -277,7 +286,7 @@ def _figures(out: Path, envs: list[str], rows: list[dict], quality_result: dict 
             diagnostics_files[env] = f"diagnostics-{slug(env)}.png"
             diagnostics_png(env, shown, out / diagnostics_files[env], colour)
     return {"report": "report.md", "curves": curve_files, "final": final_file, "quality": quality_file,
-            "diagnostics": diagnostics_files,
+            "diagnostics": diagnostics_files, "seeds": seed_files,
             "visitation": {f"{r['env_id']} / {r['label']}": r["visitation"]["png"] for r in rows if r["visitation"]}}
 
 

@@ -69,6 +69,7 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
                   [[r["label"], iqm_cell(r["final"]), mean_cell(r["final"]), str(r["final"]["n"]),
                     _frames(r["final"]["frames"])]
                    + ["-" if r.get("coverage") is None else f"{r['coverage']:.0%}"] * covered for r in rows])
+    out += split_section(rows, settings)
     out += length_section(rows, k)
     split = [_split(r["label"]) for r in rows]
     from illm_tools.report.plots import setting_order
@@ -100,6 +101,26 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
         out += ["", "Where the bonus was paid (the bonus paid per visit of each cell, seeds summed):", ""]
         out += [f"- {_esc(r['label'])}: ![bonus, {_esc(r['label'])}]({r['bonus_map']['png']})" for r in paid]
     return out + diagnostics_section(rows, diagnostics_png) + [""]
+
+
+def split_section(rows: list[dict], settings: dict) -> list[str]:
+    """The configurations whose seeds split (`stats.seeds_split`: some near 0, others solving the
+    level), each with its seeds' finals and its per-seed figure: the interval above hides them."""
+    from illm_tools.report.stats import SPLIT_HIGH, SPLIT_LOW, seeds_split
+
+    split = [r for r in rows if r["final"].get("split", seeds_split([s["score"] for s in r["final"].get("per_seed", [])],
+                                                                     r["score_name"]))]
+    if not split:
+        return []
+    out = ["", f"**Seeds that split** (some end at or below {SPLIT_LOW:g}, others at or above {SPLIT_HIGH:g}): "
+           "an IQM and its interval over such seeds describe none of them; read the seeds.", ""]
+    figures = settings.get("seed_figures", {})
+    for r in split:
+        finals = ", ".join("-" if s["score"] is None else f"{s['score']:.2f}" for s in r["final"]["per_seed"])
+        png = figures.get(f"{r['env_id']} / {r['label']}")
+        out.append(f"- {_esc(r['label'])}: seeds' finals {finals}"
+                   + (f"; each seed's curve: ![seeds, {_esc(r['label'])}]({png})" if png else ""))
+    return out
 
 
 def length_section(rows: list[dict], final_points: int) -> list[str]:
@@ -276,7 +297,8 @@ def render(results: dict) -> str:
              f"{settings['every']:,} frames. Numbers: results.json; figures: PNG files beside this one.", ""]
     lines += _provenance(settings, rows)
     for env in results["envs"]:
-        lines += _env_section(env, [r for r in rows if r["env_id"] == env], settings,
+        lines += _env_section(env, [r for r in rows if r["env_id"] == env],
+                              {**settings, "seed_figures": results["files"].get("seeds", {})},
                               results["files"]["curves"].get(env), results["files"].get("diagnostics", {}).get(env))
     if len(results["envs"]) > 1:
         lines += _wide(results)

@@ -131,6 +131,26 @@ def curves_png(env_id: str, score_name: str, rows: list[dict], path: Path, colou
     return save_figure(fig, path)
 
 
+def seeds_png(row: dict, path: Path) -> Path:
+    """One configuration's seeds as separate curves (its `final["seed_curves"]`: each seed's points
+    against the row's frames), drawn where its seeds split (`stats.seeds_split`)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=100)
+    frames = np.array(row["frames"], dtype=float)
+    for seed in row["final"]["seed_curves"]:
+        ax.plot(frames, _nan(seed["points"]), marker="o" if len(frames) < 3 else None, markersize=3,
+                label=f"seed {seed['seed']}")
+    ax.plot(frames, _nan(row["mean"]), color="black", linestyle="--", linewidth=1, label="mean over seeds")
+    if row["score_name"] == "success rate":
+        ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("frames")
+    ax.set_ylabel(f"{row['score_name']}, one line per seed", fontsize=8)
+    ax.set_title(f"{row['env_id']}: {row['label']}, seeds that split", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=7, frameon=False)
+    return save_figure(fig, path)
+
+
 FINAL_PANELS_PER_ROW = 3
 """Panels of final.png side by side before it wraps to the next row."""
 

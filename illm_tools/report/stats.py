@@ -112,3 +112,18 @@ def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> t
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
     return float(max(0.0, centre - half)), float(min(1.0, centre + half))
+
+
+SPLIT_LOW, SPLIT_HIGH = 0.1, 0.5
+"""A configuration's seeds split when, on a success rate, some end at or below SPLIT_LOW (near 0) while
+others end at or above SPLIT_HIGH (they solve the level): an IQM and its interval over the seeds then
+describe no seed (finals 0.70, 0.73, 0.28, 0.02, 0.00: IQM 0.333 [0.007, 0.720], tests/test_report_seeds.py)."""
+
+
+def seeds_split(scores, score_name: str) -> bool:
+    """Whether one configuration's per-seed final scores split (`SPLIT_LOW`, `SPLIT_HIGH`); only a
+    success rate has the fixed range the rule needs."""
+    scores = np.asarray([s for s in scores if s is not None], dtype=float)
+    scores = scores[~np.isnan(scores)]
+    return bool(score_name == "success rate" and len(scores) >= 2 and
+                scores.min() <= SPLIT_LOW and scores.max() >= SPLIT_HIGH)
