@@ -77,3 +77,49 @@ def test_two_processes_give_the_one_process_cache(tmp_path, tiny_lm):
                 assert row["text"] == ref["text"]
                 assert np.allclose(row["embedding"], ref["embedding"], atol=1e-4)
     assert len(AnnotationCache(tmp_path / "two")) == 24
+
+
+LEAVE = """
+import os, sys, time
+
+def gloo_threads():
+    names = []
+    for t in os.listdir("/proc/self/task"):
+        try:
+            names.append(open(f"/proc/self/task/{t}/comm").read().strip())
+        except OSError:  # ended meanwhile
+            pass
+    return sorted(n for n in names if "gloo" in n)
+
+from accelerate.utils import gather_object
+from illm_tools.annotate.bulk import distributed_state
+
+state = distributed_state()
+import torch.distributed.fsdp  # what transformers imports when it loads a model, the group made
+with state.split_between_processes(list(range(12))) as mine:
+    list(mine)
+gather_object([state.process_index])
+state.wait_for_everyone()
+assert gloo_threads(), "no gloo thread by these names: the check below would see nothing"
+state.destroy_process_group()
+deadline = time.monotonic() + 60  # a joined thread leaves /proc/self/task a moment after its join
+while gloo_threads() and time.monotonic() < deadline:
+    time.sleep(0.05)
+print(f"rank {os.environ['RANK']}: gloo threads left after destroy_process_group: {gloo_threads()}", flush=True)
+sys.exit(1 if gloo_threads() else 0)
+"""
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="reads thread names from /proc (Linux)")
+def test_destroyed_group_leaves_no_gloo_threads(tmp_path):
+    """A process leaves with its gloo group gone, threads and all: a group something still holds
+    (torch.distributed.nn binds it into its functions' defaults when imported after the group is
+    made, as transformers does) keeps its worker threads into interpreter shutdown, where one can
+    abort the process (`terminate called without an active exception`, SIGABRT) after its work is done."""
+    script = tmp_path / "leave.py"
+    script.write_text(LEAVE)
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           str(script)], capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + told(done)
+    assert done.stdout.count("gloo threads left after destroy_process_group: []") == 2, done.stdout

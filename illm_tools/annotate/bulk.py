@@ -105,6 +105,14 @@ def distributed_state():
     if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
         return None
     import torch
+    # Before the group exists: `torch.distributed.nn.functional` binds `group.WORLD` into its functions'
+    # defaults when imported, and transformers imports it (through torch.distributed.fsdp) when the
+    # model loads. Imported after the group is made, it pins the group: `destroy_process_group` then
+    # leaves its gloo worker threads running into interpreter shutdown, where a thread still
+    # releasing the last collective's tensors takes the GIL and is killed mid-C++ frame ("terminate
+    # called without an active exception", SIGABRT; 5 runs in 40 of a 2-process gloo script on a loaded
+    # 2-core machine, none with this import first). Imported now, those defaults are None.
+    import torch.distributed.nn  # noqa: F401
     from accelerate import PartialState
 
     cpu = not torch.cuda.is_available() or os.environ.get("ACCELERATE_USE_CPU", "").lower() in ("1", "true")
