@@ -108,10 +108,11 @@ def distributed_state():
     # Before the group exists: `torch.distributed.nn.functional` binds `group.WORLD` into its functions'
     # defaults when imported, and transformers imports it (through torch.distributed.fsdp) when the
     # model loads. Imported after the group is made, it pins the group: `destroy_process_group` then
-    # leaves its gloo worker threads running into interpreter shutdown, where a thread still
-    # releasing the last collective's tensors takes the GIL and is killed mid-C++ frame ("terminate
-    # called without an active exception", SIGABRT; 5 runs in 40 of a 2-process gloo script on a loaded
-    # 2-core machine, none with this import first). Imported now, those defaults are None.
+    # leaves its gloo worker threads running into interpreter shutdown, where they can abort the
+    # process after its work is done (pytorch PR 179291: "terminate called without an active
+    # exception", SIGABRT; 7 runs in 40 of this module's collectives, 2 processes on a loaded 2-core
+    # machine; 0 in 40 with this import first). Imported now, those defaults are None and
+    # `destroy_process_group` joins the threads (tests/test_annotate_processes.py checks it).
     import torch.distributed.nn  # noqa: F401
     from accelerate import PartialState
 
