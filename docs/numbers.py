@@ -22,6 +22,8 @@ import sys
 from functools import cache
 from pathlib import Path
 
+from illm_tools.report.markdown import num
+
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
 ESTIMATE = re.compile(r"(?<![\d.])(\d+\.\d{3}) \[(\d+\.\d{3}), (\d+\.\d{3})\]")
@@ -38,10 +40,6 @@ def pages() -> list[Path]:
     return [ROOT / "README.md", ROOT / "docs" / "index.md", *sorted((ROOT / "docs" / "experiments").glob("*.md"))]
 
 
-def _printed(value: float) -> str:
-    return f"{value:.3f}"
-
-
 @cache
 def estimates(name: str) -> frozenset[tuple[str, str, str]]:
     """Every (estimate, low, high) a results folder's results.json holds, as printed."""
@@ -51,7 +49,7 @@ def estimates(name: str) -> frozenset[tuple[str, str, str]]:
         if isinstance(node, dict):
             for keys in KEYS:
                 if all(isinstance(node.get(k), (int, float)) and not isinstance(node.get(k), bool) for k in keys):
-                    found.add(tuple(_printed(node[k]) for k in keys))
+                    found.add(tuple(num(node[k]) for k in keys))
             for value in node.values():
                 walk(value)
         elif isinstance(node, list):

@@ -14,24 +14,15 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _render():
-    spec = importlib.util.spec_from_file_location("docs_render", ROOT / "docs" / "render.py")
+def _docs_module(name: str):
+    """docs/NAME.py loaded from its file (docs/ is no package)."""
+    spec = importlib.util.spec_from_file_location(f"docs_{name}", ROOT / "docs" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
 
 
-render = _render()
-
-
-def _numbers():
-    spec = importlib.util.spec_from_file_location("docs_numbers", ROOT / "docs" / "numbers.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-numbers = _numbers()
+render, numbers = _docs_module("render"), _docs_module("numbers")
 
 
 def test_readme_table_is_rendered():
