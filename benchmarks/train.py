@@ -1,29 +1,40 @@
 """Training throughput of `--method illm` against `--method ppo`, same env and settings, in the
-same run, in two cases, each printed as a ratio of steps/s:
-- every LLM target cached (target >= 0.8);
-- async live annotation (target >= 0.7): the cache starts empty, so every rollout misses and the
+same run, in two cases, each as the median (and range) of three paired runs' ratio of steps/s:
+- every LLM target cached (target >= 0.85);
+- async live annotation (target >= 0.75): the cache starts empty, so every rollout misses and the
   worker process annotates with the real embedded model (SmolLM2-135M, one thread) beside the
-  rollouts (one thread) on this machine's cores, as `illm train --live-mode async` does.
+  rollouts (one thread) on this machine's cores, as `illm train --live-mode async` does; the
+  worker is started before the env pool and the network, as a run starts it, and the time to its
+  first answer in the cache is printed.
+Each run is 40,960 frames by default (20 updates of 16 x 128), long enough that a pair's ratio is
+stable to a few hundredths; the pairs alternate which method runs first. Each method's mean cost
+per update (rollout, target look-up, update) is printed beside its rate.
 
 "Every target cached" is made exact without an LLM in the loop: a first illm pass fills an
 empty cache through the live-fallback path, with rows of deterministic pseudo-random scores and
 embeddings (the trainer's speed does not depend on what the LLM said); training is deterministic
-given the seed, so a second pass with the same seed meets exactly the same states and finds
-every one of them in the cache (its cache hit rate is printed). Only that second pass is timed.
+given the seed, so every later pass with the same seed meets exactly the same states and finds
+every one of them in the cache (its cache hit rate is printed).
+
+`--profile` prints instead where a cached illm update and a ppo update spend their time (cProfile's
+top entries by own time, one run of each), the figures behind docs/measured.md's reading.
 
 With `--mode hop` (iLLM(hop), `illm_tools.hop`) it measures instead what the hop mode costs per
 step, in the same run: ppo on the observation alone, ppo reading Z_h (the embedded SmolLM2-135M
 run over every env's translated window at every step), and illm in hop mode with every target
 cached (as above; the trainer's LLM computes Z_h, the targets are synthetic).
 
-    .venv/bin/python benchmarks/train.py [--env BabyAI-GoToLocal-v0] [--frames 20480]
+    .venv/bin/python benchmarks/train.py [--env BabyAI-GoToLocal-v0] [--frames 40960] [--pairs 3]
+    .venv/bin/python benchmarks/train.py --profile
     .venv/bin/python benchmarks/train.py --mode hop --env MiniGrid-MultiRoom-N6-v0 --frames 2048 --num-steps 32
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import os
+import platform
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -35,9 +46,7 @@ from illm_tools.cache.store import AnnotationCache
 from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.live import SyncLive
 from illm_tools.rl.ppo import Trainer
-from illm_tools.rl.run import make_pool
-from illm_tools.llm.spec import LLMSpec
-from illm_tools.rl.run import make_provider
+from illm_tools.rl.run import early_live, make_pool, make_provider
 from illm_tools.rl.threads import torch_threads
 from illm_tools.rl.targets import CachedTargets
 
@@ -45,24 +54,29 @@ DIM = 576  # SmolLM2-135M's hidden size: the f^hc head is as large as with the e
 
 
 def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> tuple[float, dict]:
-    pool = make_pool(cfg)
-    provider = None
-    if live_async:
+    """One training run: (steps/s over its updates, its last metrics with `phases`: the mean cost
+    per update of each phase, in seconds)."""
+    if live_async:  # assembled as `illm_tools.rl.run.build_run` does: the worker started first
         cfg = cfg.resolved()
-        provider = make_provider(cfg, len(pool.action_names))
-    elif cfg.uses_heads:
+        live = early_live(cfg)
+        pool = make_pool(cfg)
+        provider = make_provider(cfg, len(pool.action_names), started=live)
+    else:
+        pool = make_pool(cfg)
+        provider = None
+    if not live_async and cfg.uses_heads:
         cache = AnnotationCache(cache_dir)
         annotator = Annotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", history_len=cfg.setup.history_len,
-                                       chunk=10_000)
+                              chunk=10_000)
         builder = annotator.builder(cfg.env_id, cfg.annotation_setup.renderer)
         live = SyncLive(annotator, cfg.annotation_setup, cfg.targets.live_budget) if cfg.targets.live_budget else None
         provider = CachedTargets(cache, builder, calibration="sum", num_actions=len(pool.action_names),
                                  embedding_dim=DIM, live=live)
-    phases: dict[str, float] = {}
+    phases = {k: 0.0 for k in PHASES}
 
     def on_metrics(m: dict) -> None:
-        for k in ("time/rollout_s", "time/targets_s", "time/update_s"):
-            phases[k] = phases.get(k, 0.0) + m[k] / cfg.num_updates
+        for k in PHASES:
+            phases[k] += m[f"time/{k}_s"] / cfg.num_updates
 
     trainer = Trainer(cfg.resolved(), pool, provider, on_metrics=on_metrics)
     start = time.perf_counter()
@@ -70,73 +84,143 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
         last = trainer.train()
         trained = time.perf_counter() - start  # the training's rate; the worker's shutdown is timed apart
     finally:
+        pool.close()
+        closing = time.perf_counter()
         if live_async:
-            closing = time.perf_counter()
             provider.close()
-            last_close = time.perf_counter() - closing
-    last["phases"] = "  ".join(f"{k[5:-2]} {v:.3f}s" for k, v in phases.items())
-    if live_async:
-        last["phases"] += f"  (worker shutdown after the run: {last_close:.1f}s)"
+    last.update(phases=phases, close_s=time.perf_counter() - closing)
     return cfg.num_updates * cfg.batch_size / trained, last
+
+
+PHASES = ("rollout", "targets", "update")
+
+
+def phase_text(runs: list[dict]) -> str:
+    """Each phase's median cost per update over `runs`."""
+    return "  ".join(f"{k} {statistics.median(r['phases'][k] for r in runs):.3f}s" for k in PHASES)
+
+
+def cpu_name() -> str:
+    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else ():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or "unknown CPU"
+
+
+def pairs(args, config, cached: Path | None, label: str) -> list[dict]:
+    """`args.pairs` paired runs of ppo and illm (cached when `cached` names the filled cache; else
+    async live annotation into an empty cache each), alternating which runs first."""
+    out = []
+    for k in range(args.pairs):
+        pair = {}
+        for method in ("illm", "ppo") if k % 2 == 0 else ("ppo", "illm"):
+            if method == "ppo":
+                pair["ppo"] = run(config("ppo", f"{label}-ppo-{k}", 0), None)
+            elif cached is not None:
+                pair["illm"] = run(config("illm", f"{label}-illm-{k}", 0), cached)
+            else:
+                cfg = config("illm", f"{label}-illm-{k}", 16, cache=cached_dir(args, k), live_mode="async", history_len=0)
+                pair["illm"] = run(cfg, None, live_async=True)
+        ratio = pair["illm"][0] / pair["ppo"][0]
+        extra = ""
+        if cached is None:
+            last = pair["illm"][1]
+            first = last.get("charts/live_first_answer_s")
+            extra = (f"; worker ready {last.get('charts/live_worker_startup_s', float('nan')):.1f}s, first answer "
+                     f"{'none during the run' if first is None else f'{first:.1f}s'} after its start, targets on "
+                     f"{last['charts/target_coverage']:.3f} of the last rollout's steps, shutdown after the run "
+                     f"{last['close_s']:.1f}s")
+        else:
+            extra = f"; cache hit rate {pair['illm'][1]['charts/cache_hit_rate']:.3f}"
+        print(f"  pair {k + 1}: ppo {pair['ppo'][0]:7,.0f} steps/s, illm {pair['illm'][0]:7,.0f}: ratio {ratio:.3f}{extra}",
+              flush=True)
+        out.append({"ratio": ratio, "ppo": pair["ppo"][1], "illm": pair["illm"][1]})
+    ratios = [p["ratio"] for p in out]
+    print(f"  per update, median over the pairs: ppo {phase_text([p['ppo'] for p in out])}")
+    print(f"                                     illm {phase_text([p['illm'] for p in out])}")
+    print(f"  illm/ppo ratio, median of {len(ratios)} pairs: {statistics.median(ratios):.3f} "
+          f"(range {min(ratios):.3f}-{max(ratios):.3f})", flush=True)
+    return out
+
+
+def cached_dir(args, k: int) -> Path:
+    return Path(args.tmp) / f"live-ann-{k}"
+
+
+def profile(config, cached: Path, top: int) -> None:
+    """cProfile's top entries by own time of one cached illm run and one ppo run."""
+    import cProfile
+    import io
+    import pstats
+
+    for method in ("illm", "ppo"):
+        profiler = cProfile.Profile()
+        profiler.enable()
+        sps, last = run(config(method, f"profile-{method}", 0), cached if method == "illm" else None)
+        profiler.disable()
+        text = io.StringIO()
+        pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(top)
+        body = text.getvalue()
+        print(f"--- {method}: {sps:,.0f} steps/s under the profiler; per update "
+              f"{phase_text([last])}")
+        print(body[body.index("ncalls"):].rstrip())
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="BabyAI-GoToLocal-v0")
-    parser.add_argument("--frames", type=int, default=20_480)
+    parser.add_argument("--frames", type=int, default=40_960)
+    parser.add_argument("--pairs", type=int, default=3, help="Paired ppo/illm runs of each case.")
     parser.add_argument("--num-envs", type=int, default=16)
     parser.add_argument("--num-steps", type=int, default=128)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--device", default="cpu", help="The policy's device (cuda: on a GPU).")
+    parser.add_argument("--only", choices=("cached", "async"), help="Run one case only.")
+    parser.add_argument("--profile", action="store_true", help="Where the time goes instead (cProfile).")
     parser.add_argument("--mode", choices=("obs", "hop"), default="obs", help="hop: the cost of iLLM(hop) instead.")
     parser.add_argument("--history", type=int, default=3, help="hop: steps of history (the window is one more).")
     parser.add_argument("--dtype", default="bfloat16", help="hop: the LLM's compute dtype (float32 is faster on some CPUs).")
-    parser.add_argument("--async-frames", type=int, default=40_960,
-                        help="Frames of the async case (long enough that the worker's start-up is a small part).")
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
-        def config(mode: str, name: str, live_budget: int) -> TrainConfig:
-            return TrainConfig.from_dict(dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
-                               num_envs=args.num_envs, num_steps=args.num_steps,  # SmolLM2's width: DIM
-                               live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads))
+        args.tmp = tmp
 
+        def config(mode: str, name: str, live_budget: int, **settings) -> TrainConfig:
+            """A run's config; `settings` by their flat names (`illm_tools.rl.config.FLAT`)."""
+            return TrainConfig.from_dict(dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
+                               num_envs=args.num_envs, num_steps=args.num_steps, device=args.device,
+                               live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads,
+                               **settings))
+
+        print(f"env {args.env}, {args.frames:,} frames a run, {args.num_envs} envs x {args.num_steps} steps, "
+              f"{args.threads} thread(s), policy on {args.device}; CPU: {cpu_name()}, {os.cpu_count()} cores", flush=True)
         if args.mode == "hop":
-            hop = {"obs_mode": "hop", "history_len": args.history, "llm": LLMSpec(dtype=args.dtype)}
+            hop = {"obs_mode": "hop", "history_len": args.history, "model_dtype": args.dtype}
             sps_ppo, last_ppo = run(config("ppo", "ppo", 0), None)
-            sps_ppo_hop, last_ppo_hop = run(dataclasses.replace(config("ppo", "ppo-hop", 0), **hop), None)
-            run(dataclasses.replace(config("illm", "fill", 10**9), **hop), Path(tmp) / "ann")  # fills the cache
-            sps_illm, last = run(dataclasses.replace(config("illm", "illm", 0), **hop), Path(tmp) / "ann")
-            print(f"env {args.env}, {args.frames} frames, {args.num_envs} envs x {args.num_steps} steps, "
-                  f"{args.threads} thread(s), hop window {args.history + 1}, SmolLM2-135M {args.dtype}")
-            print(f"ppo               {sps_ppo:8,.0f} steps/s  per update: {last_ppo['phases']}")
-            print(f"ppo, hop (Z_h)    {sps_ppo_hop:8,.0f} steps/s  per update: {last_ppo_hop['phases']}")
-            print(f"illm, hop (cached){sps_illm:8,.0f} steps/s  per update: {last['phases']}  "
+            sps_ppo_hop, last_ppo_hop = run(config("ppo", "ppo-hop", 0, **hop), None)
+            run(config("illm", "fill", 10**9, **hop), Path(tmp) / "ann")  # fills the cache
+            sps_illm, last = run(config("illm", "illm", 0, **hop), Path(tmp) / "ann")
+            print(f"hop window {args.history + 1}, SmolLM2-135M {args.dtype}")
+            print(f"ppo               {sps_ppo:8,.0f} steps/s  per update: {phase_text([last_ppo])}")
+            print(f"ppo, hop (Z_h)    {sps_ppo_hop:8,.0f} steps/s  per update: {phase_text([last_ppo_hop])}")
+            print(f"illm, hop (cached){sps_illm:8,.0f} steps/s  per update: {phase_text([last])}  "
                   f"(cache hit rate {last['charts/cache_hit_rate']:.3f})")
             print(f"hop cost per step: {1e3 / sps_ppo_hop - 1e3 / sps_ppo:.2f} ms (ppo hop/ppo ratio "
                   f"{sps_ppo_hop / sps_ppo:.3f}); illm hop/ppo ratio {sps_illm / sps_ppo:.3f}")
             return
-        run(config("illm", "fill", 10**9), Path(tmp) / "ann")  # pass 1: fills the cache
-        sps_illm, last = run(config("illm", "illm", 0), Path(tmp) / "ann")
-        sps_ppo, last_ppo = run(config("ppo", "ppo", 0), None)
-        frames = args.frames
-        args.frames = args.async_frames
-        live = dataclasses.replace(config("illm", "async", 16), cache=Path(tmp) / "live-ann", live_mode="async",
-                                   history_len=0)
-        sps_async, last_async = run(live, None, live_async=True)
-        sps_ppo_long, _ = run(config("ppo", "ppo-long", 0), None)
-        args.frames = frames
-    print(f"env {args.env}, {args.frames} frames, {args.num_envs} envs x {args.num_steps} steps, {args.threads} thread(s)")
-    print(f"ppo               {sps_ppo:8,.0f} steps/s  per update: {last_ppo['phases']}")
-    print(f"illm (all cached) {sps_illm:8,.0f} steps/s  per update: {last['phases']}  "
-          f"(cache hit rate {last['charts/cache_hit_rate']:.3f})")
-    print(f"illm/ppo ratio    {sps_illm / sps_ppo:8.2f}  (target >= 0.8)")
-    print(f"async live annotation, {args.async_frames} frames, history 0, SmolLM2-135M worker "
-          f"({live.live_threads} thread(s)) beside the trainer ({args.threads}):")
-    print(f"ppo               {sps_ppo_long:8,.0f} steps/s")
-    print(f"illm (async live) {sps_async:8,.0f} steps/s  per update: {last_async['phases']}  "
-          f"(last rollout: targets on {last_async['charts/target_coverage']:.3f} of steps, "
-          f"live queue {last_async.get('charts/live_queue', 0):.0f})")
-    print(f"illm/ppo ratio    {sps_async / sps_ppo_long:8.2f}  (target >= 0.7)")
+        cached = Path(tmp) / "ann"
+        if args.only != "async" or args.profile:
+            run(config("illm", "fill", 10**9), cached)  # pass 1: fills the cache
+        if args.profile:
+            profile(config, cached, 20)
+            return
+        if args.only != "async":
+            print("every target cached (target: median >= 0.85)", flush=True)
+            pairs(args, config, cached, "cached")
+        if args.only != "cached":
+            print("async live annotation: history 0, an empty cache each run, the SmolLM2-135M worker (1 thread) "
+                  "beside the trainer (target: median >= 0.75)", flush=True)
+            pairs(args, config, None, "async")
 
 
 if __name__ == "__main__":

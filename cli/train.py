@@ -189,6 +189,8 @@ def register(app: typer.Typer) -> None:
         live = f"; {live_total[0]:,.0f} states annotated live" if cfg.needs_targets and cfg.targets.live_budget else ""
         if live and live_total[0]:
             live += f" ({during:,.0f} during the rollouts, {at_close:,} while the run shut down, kept in the cache)"
+        if live and during and last.get("charts/live_first_answer_s") is not None:  # the async worker's
+            live += f"; the first landed {last['charts/live_first_answer_s']:.1f} s after the run started"
         none = no_target_line(cfg, coverage, live_total[0])
         if result.get("stopped"):
             typer.echo(f"stopped at {result['global_step']:,} frames{targets}; resume with "

@@ -130,3 +130,21 @@ def test_fingerprint_hash_takes_only_a_dict_and_differs_from_make_key():
 def test_make_key_needs_inputs():
     with pytest.raises(TypeError):
         make_key()
+
+
+@pytest.mark.parametrize("text", ["plain", "", "é ünïcode 中文 \U0001f600", 'quote " backslash \\ slash /',
+                                  "controls \n\t\r\x00\x1f\x7f \u2028\u2029", "lone surrogate \ud800"])
+def test_a_state_keys_direct_json_is_byte_for_byte_json_dumps(text):
+    """The keys of every step (setup digest, prompt, candidates) are written without json.dumps
+    (keys.py `_flat_json`); what they hash must be exactly what json.dumps writes, or the trainer's
+    keys would miss every row `illm annotate` wrote."""
+    import json
+
+    for value in ({"setup": "a" * 64, "prompt": text, "candidates": [" " + text, "go forward", ""]},
+                  {"setup": text, "prompt": text, "candidates": None}, {text: [], "b": text}, {}):
+        expected = json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+        assert canonical_json(value) == expected
+    with pytest.raises(TypeError):  # not plain data: still refused, by the general path
+        canonical_json({"prompt": text, "candidates": ("a", "b")})
+    with pytest.raises(TypeError):
+        canonical_json({1: text, "b": text})

@@ -236,7 +236,9 @@ def test_async_worker_rows_reach_a_later_rollout_and_a_killed_worker_leaves_the_
         later = targets.targets(rollout)  # a later rollout reads what the worker wrote to the shared cache
         assert later.mask.all() and np.isfinite(later.embeddings).all()
         assert targets.stats()["live_annotations"] == 6 and targets.stats()["live_queue"] == 0
-        assert 0 < targets.stats()["live_worker_startup_s"] < 120  # spawn, imports, the model loaded
+        stats = targets.stats()
+        assert 0 < stats["live_worker_startup_s"] < 120  # spawn, imports, the model loaded
+        assert stats["live_worker_startup_s"] <= stats["live_first_answer_s"]  # its first shard, then on
 
         targets.targets([state(k) for k in range(10, 40)])  # more work; then the worker dies mid-run
         # Kill it as soon as it holds the work (the tiny model may finish 6 states between two polls, so

@@ -35,14 +35,16 @@ def test_report_refuses_an_out_folder_holding_files_unless_overwrite(tmp_path):
     assert (out / "report.md").read_text() != "my own notes" and (out / "results.json").is_file()
 
 
-def fake_training(monkeypatch, coverage: float, live: float = 0.0, at_close: int = 0):
+def fake_training(monkeypatch, coverage: float, live: float = 0.0, at_close: int = 0, first: float | None = None):
     """`illm train`'s CLI around a stand-in run: one update with `coverage` of steps given a target,
-    `live` states landed during it and `at_close` written by the worker while the run shut down."""
+    `live` states landed during it (the first `first` seconds after the run's start) and `at_close`
+    written by the worker while the run shut down."""
     import illm_tools.rl.run as run_module
 
     def train(cfg, on_metrics=None, should_stop=None):
         on_metrics({"global_step": cfg.batch_size, "charts/target_coverage": coverage,
-                    "charts/live_annotations": live, "charts/score": 0.0})
+                    "charts/live_annotations": live, "charts/score": 0.0,
+                    **({"charts/live_first_answer_s": first} if first is not None else {})})
         return {"global_step": cfg.batch_size, "live_at_close": at_close}
 
     monkeypatch.setattr(run_module, "train", train)
@@ -113,10 +115,11 @@ def test_the_live_count_includes_what_the_worker_writes_while_shutting_down(tmp_
     targets.close()
     assert targets.landed_at_close == 3 + 8
 
-    fake_training(monkeypatch, coverage=0.5, live=2.0, at_close=8)  # the CLI adds them to the run's count
+    fake_training(monkeypatch, coverage=0.5, live=2.0, at_close=8, first=4.25)  # the CLI adds them to the run's count
     out = invoke(*train_args(tmp_path, tmp_path / "ann"))
     assert out.exit_code == 0 and "10 states annotated live" in out.output, out.output
-    assert "(2 during the rollouts, 8 while the run shut down, kept in the cache)" in out.output, out.output
+    assert "(2 during the rollouts, 8 while the run shut down, kept in the cache); the first landed 4.2 s after the " \
+        "run started" in out.output, out.output
 
 
 def test_train_says_how_the_target_share_moved_from_the_first_rollout_to_the_last(tmp_path, monkeypatch):

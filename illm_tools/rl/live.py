@@ -15,10 +15,15 @@ counted over the run so far, `illm_tools.rl.targets`) and write their answers th
   rollout. A worker that dies is restarted (at most `max_restarts` times, each logged as one
   line); after that the run goes on with the targets the cache has. The worker is a spawned
   process (not forked: a forked torch with live OpenMP threads can hang) with its own torch
-  thread count, one core of a 2-core machine by default. Its start-up (spawn, imports, the model
-  loaded) is logged as `live_worker_startup_s`: no answer lands before it, so a run shorter than a
-  few rollouts gets few live targets in this mode (`--live-budget all` promises every step only
-  with sync; `illm train` says so before such a run starts).
+  thread count, one core of a 2-core machine by default. A run starts it first, before its env
+  pool and its network (`illm_tools.rl.run.build_run`), so its start-up (spawn, imports, the model
+  loaded from the de-quantised safetensors, memory-mapped) runs beside theirs; it is logged as
+  `live_worker_startup_s`. Its first shards are small (1 state, then 2, 4, ... up to `chunk`), so
+  the first answer lands about one state's annotation after the model is loaded, logged as
+  `live_first_answer_s` (from the worker's spawn, the run's first step). Still, no answer lands
+  before the model is loaded, so a run of a few rollouts gets few live targets in this mode
+  (`--live-budget all` promises every step only with sync; `illm train` says so before such a run
+  starts).
 """
 
 from __future__ import annotations
@@ -86,26 +91,35 @@ class WorkerSpec:
     threads: int
     batch_size: int = 8
     chunk: int = 8
-    """States per written shard: small, so answers reach the trainer soon after they exist."""
+    """States per written shard, at most: small, so answers reach the trainer soon after they exist
+    (the first shards smaller still: 1 state, then 2, 4, ..., `first_chunks`)."""
     model_cache_dir: str | None = None
 
 
-def _worker_main(spec: WorkerSpec, inbox, stop, queued, done, errors, ready) -> None:  # pragma: no cover - child
+def first_chunks(chunk: int, written: int) -> int:
+    """States in the worker's next shard after `written` shards: 1, 2, 4, ... up to `chunk`, so
+    the first answer lands one state's annotation after the model is loaded, and the later shards
+    are as few as `chunk` makes them."""
+    return max(1, min(chunk, 1 << min(written, 30)))
+
+
+def _worker_main(spec: WorkerSpec, inbox, stop, queued, done, errors, ready, first) -> None:  # pragma: no cover
     """The worker process. Ctrl-C reaches the whole process group: the worker ignores it and
     stops when the trainer sets `stop`. An error goes back to the trainer as one line."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        _work(spec, inbox, stop, queued, done, ready)
+        _work(spec, inbox, stop, queued, done, ready, first)
     except Exception as e:  # noqa: BLE001 - reported to the trainer, which logs it as one line
         errors.put(f"{type(e).__name__}: {e}")
         raise SystemExit(1) from None
 
 
-def _work(spec: WorkerSpec, inbox, stop, queued, done, ready) -> None:  # pragma: no cover - runs in the child
+def _work(spec: WorkerSpec, inbox, stop, queued, done, ready, first) -> None:  # pragma: no cover - runs in the child
     """Newest priority list in, shards out, until `stop` is set; `ready` gets the wall time at which
-    the model is loaded and the worker takes its first list."""
+    the model is loaded and the worker takes its first list, `first` the time its first answer is
+    in the cache (unless an earlier start of the worker set it)."""
     import time
 
     import torch
@@ -119,6 +133,7 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done, ready) -> None:  # pragma
                                    chunk=spec.chunk)
     ready.value = time.time()
     pending: list[StateRecord] = []
+    written = 0
     while not stop.is_set():
         try:  # the newest list replaces the old one; wait for one when idle
             message = inbox.get(timeout=0.5) if not pending else inbox.get_nowait()
@@ -130,11 +145,15 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done, ready) -> None:  # pragma
         queued.value = len(pending)
         if not pending:
             continue
-        head, pending = pending[: spec.chunk], pending[spec.chunk:]
+        size = first_chunks(spec.chunk, written)
+        head, pending = pending[:size], pending[size:]
         annotator.cache.refresh()
         stats = annotator.annotate_states(head, spec.setup.env_id, spec.setup.renderer, should_stop=stop.is_set)
+        written += 1
         with done.get_lock():
             done.value += stats.annotated_states
+        if stats.annotated_states and not first.value:
+            first.value = time.time()
         queued.value = len(pending)
 
 
@@ -149,10 +168,13 @@ class AsyncLive:
         self._queued = self._ctx.Value("l", 0)
         self._done = self._ctx.Value("l", 0)
         self._ready = self._ctx.Value("d", 0.0)
+        self._first = self._ctx.Value("d", 0.0)
         self._reported = 0
         self.restarts = 0
         self.failed = False
         self._start()
+        self.opened_at = self.started_at
+        """When the first worker was spawned (the run's start: `build_run` starts it first)."""
 
     def _start(self) -> None:
         import time
@@ -164,7 +186,7 @@ class AsyncLive:
         self._stop = self._ctx.Event()
         self.process = self._ctx.Process(target=_worker_main, name="illm-live-annotation", daemon=True,
                                          args=(self.spec, self._inbox, self._stop, self._queued, self._done,
-                                               self._errors, self._ready))
+                                               self._errors, self._ready, self._first))
         self.process.start()
 
     def _check(self) -> bool:
@@ -204,9 +226,10 @@ class AsyncLive:
     def stats(self) -> dict[str, float]:
         if not hasattr(self, "_queued"):  # closed
             return self._last_stats
-        ready = self._ready.value
+        ready, first = self._ready.value, self._first.value
         return {"live_queue": float(self._queued.value), "live_worker_restarts": float(self.restarts),
-                **({"live_worker_startup_s": ready - self.started_at} if ready else {})}
+                **({"live_worker_startup_s": ready - self.started_at} if ready else {}),
+                **({"live_first_answer_s": first - self.opened_at} if first else {})}
 
     def close(self, timeout: float = 30.0) -> None:
         """Ask the worker to stop after its current chunk (written whole or not at all); end it
@@ -225,7 +248,7 @@ class AsyncLive:
         # run after the resource tracker's check, which then warns about "leaked semaphore objects".
         self._last_stats = self.stats()
         self._final_done = self._done.value  # the worker's last chunk, written while it stopped, is counted
-        for name in ("_inbox", "_errors", "_stop", "_queued", "_done", "_ready"):
+        for name in ("_inbox", "_errors", "_stop", "_queued", "_done", "_ready", "_first"):
             delattr(self, name)
         import gc
 

@@ -30,12 +30,12 @@ def make_pool(cfg: TrainConfig, start_step: int = 0):
                    num_dists=cfg.num_dists, vector=cfg.vector, **cfg.env_options)
 
 
-def make_provider(cfg: TrainConfig, num_actions: int):
+def make_provider(cfg: TrainConfig, num_actions: int, started=None):
     """The target provider of a run whose bonus needs LLM targets, or None: the class registered for
     the kind of targets its bonus reads (`target_kind`, `illm_tools.rl.providers`: `CachedTargets`,
     the rows of iLLM's language tasks; ELLM's `GoalTargets`, its suggested goals), reading the cache under the run's `LLMSpec` and `AnnotationSetup`, with the live
-    annotator (`make_live`). `cfg` is the run's resolved config (`TrainConfig.resolved`: the LLM's
-    device and dtype are this machine's)."""
+    annotator (`make_live`; `started`: the async worker `early_live` started, taken over). `cfg` is
+    the run's resolved config (`TrainConfig.resolved`: the LLM's device and dtype are this machine's)."""
     if not cfg.needs_targets:
         return None
     if cfg.targets.cache is None:
@@ -68,25 +68,45 @@ def make_provider(cfg: TrainConfig, num_actions: int):
     if len(cache) and not cfg.targets.new_setup:
         check_setup(cache, builder, llm=llm, tasks=setup.tasks)
     provider = provider_class(method.bonus_class).for_run(cfg, cache, builder, num_actions=num_actions,
-                                                          live=make_live(cfg, llm, setup, cache) if answers else None,
+                                                          live=make_live(cfg, llm, setup, cache, started) if answers else None,
                                                           shuffle_seed=method.target_shuffle)  # illm-shuffled
     return provider
 
 
-def make_live(cfg: TrainConfig, llm, setup, cache):
+def early_live(cfg: TrainConfig):
+    """The async live worker of a run that has one, started now, or None: `build_run` starts it
+    before anything else, so that its start-up (spawn, imports, the model loaded) runs beside the
+    env pool's, the provider's checks and the network's, and `make_provider` takes it over (or it
+    is closed with the run). Not for an engine's model (`--backend openai`): the run first checks
+    that the engine answers (`model_identity`), and a worker for an engine starts in no time."""
+    t = cfg.targets
+    if not cfg.needs_targets or t.live_budget == 0 or t.annotator is not None or t.live_mode != "async" \
+            or t.cache is None or cfg.llm.endpoint is not None:
+        return None
+    return _async_live(cfg, cfg.llm, cfg.annotation_setup)
+
+
+def _async_live(cfg: TrainConfig, llm, setup):
+    from illm_tools.rl.live import AsyncLive, WorkerSpec
+
+    spec = WorkerSpec(cache=str(cfg.targets.cache), llm=llm, setup=setup, threads=cfg.targets.live_threads(cfg.threads))
+    return AsyncLive(spec, budget=cfg.targets.live_limit)
+
+
+def make_live(cfg: TrainConfig, llm, setup, cache, started=None):
     """The live annotator of a run (`illm_tools.rl.live`) for its LLM (placed) and annotation setup,
-    or None with no live budget; sync writes through `cache`, the object the targets are read from."""
+    or None with no live budget; sync writes through `cache`, the object the targets are read from;
+    async is `started` (`early_live`'s worker) where the run started it."""
     if cfg.targets.live_budget == 0:
         return None
-    from illm_tools.rl.live import AsyncLive, SyncLive, WorkerSpec
+    from illm_tools.rl.live import SyncLive
     from illm_tools.rl.live_remote import SYNC_WAIT, RemoteLive
 
     if cfg.targets.annotator is not None:
         return RemoteLive(cfg.targets.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
                           budget=cfg.targets.live_limit, wait=SYNC_WAIT if cfg.targets.live_mode == "sync" else 0.0)
     if cfg.targets.live_mode == "async":
-        spec = WorkerSpec(cache=str(cfg.targets.cache), llm=llm, setup=setup, threads=cfg.targets.live_threads(cfg.threads))
-        return AsyncLive(spec, budget=cfg.targets.live_limit)
+        return started if started is not None else _async_live(cfg, llm, setup)
     from illm_tools.annotate.engine import Annotator
 
     # one shard per rollout: a budget of "all" hands over a rollout's every missed state at once
@@ -140,18 +160,23 @@ def build_run(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None
     """The whole run assembled from its resolved config (`TrainConfig.resolved`), in one place: the
     env pool (`make_pool`), the method's target provider with its live annotator (`make_provider`),
     then the trainer, which builds the network, the bonus and the state sources and restores
-    `checkpoint` (a resumed run's, read by `train`). Yields the `Trainer`; closes the pool and the
-    provider (its live worker) on the way out, also when a later piece is refused."""
+    `checkpoint` (a resumed run's, read by `train`). An async live worker is started before all of
+    them (`early_live`). Yields the `Trainer`; closes the pool and the provider (its live worker)
+    on the way out, also when a later piece is refused."""
     from illm_tools.rl.ppo import Trainer
 
-    pool, provider = make_pool(cfg, int(checkpoint["global_step"]) if checkpoint is not None else 0), None
+    live, pool, provider = early_live(cfg), None, None
     try:
-        provider = make_provider(cfg, len(pool.action_names))
+        pool = make_pool(cfg, int(checkpoint["global_step"]) if checkpoint is not None else 0)
+        provider = make_provider(cfg, len(pool.action_names), started=live)
         yield Trainer(cfg, pool, provider, on_metrics=on_metrics, checkpoint=checkpoint)
     finally:
-        pool.close()
+        if pool is not None:
+            pool.close()
         if provider is not None:
             provider.close()
+        if live is not None and getattr(provider, "live", None) is not live:  # refused before the provider took it
+            live.close()
 
 
 def evaluate(run_dir: str | Path, *, episodes: int = 100, seed: int = 0, greedy: bool = False,
