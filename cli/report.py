@@ -12,7 +12,7 @@ from cli.errors import friendly
 
 def _parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
-    from illm_tools.report.build import ReportConfig
+    from illm_tools.report.config import ReportConfig
 
     as_json = inspect.Parameter("as_json", inspect.Parameter.KEYWORD_ONLY, annotation=bool,
                                 default=typer.Option(False, "--json", help="Print machine-readable JSON."))
@@ -31,7 +31,7 @@ def register(app: typer.Typer) -> None:
         bands, visitation heatmaps where runs saved visitation.npy, and results.json."""
         from cli.options import config_from_options
         from illm_tools.envs import suite_of
-        from illm_tools.report.build import ReportConfig
+        from illm_tools.report.config import ReportConfig
         from illm_tools.report.curves import summarise
 
         as_json = options.pop("as_json")

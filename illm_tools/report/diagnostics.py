@@ -6,7 +6,9 @@ and the success rate beside them, so a bonus that goes on paying after the level
 Each series is windowed as the learning curves are (the mean of the updates whose frame falls in
 (F - every, F]), then averaged over seeds (NaN where no seed logged it). `diagnostics_png` draws one
 panel per series; the report's table gives each series' first and last window and the bonus paid
-per step in the windows where the success rate was at least `SOLVED`.
+per step in the windows where the success rate was at least `SOLVED`. For a configuration whose seeds
+split (`stats.seeds_split`), each seed's series are kept too and `seeds_diagnostics_png` draws them one
+line per seed: the mean over seeds would hide whether the seeds that failed were paid another bonus.
 """
 
 from __future__ import annotations
@@ -67,6 +69,8 @@ def row_diagnostics(row: dict, every: int) -> dict | None:
             out[name] = np.nanmean(np.array([r[name] for r in per_run], dtype=float), axis=0).tolist()
     if all(np.all(np.isnan(out[n])) for n in ("head_agreement", "bonus_paid")):  # no bonus, no heads (ppo)
         return None
+    if row["final"].get("split"):  # drawn seed by seed (`seeds_diagnostics_png`), as its curves are
+        out["per_seed"] = [{"seed": s["seed"], **series} for s, series in zip(row["final"]["per_seed"], per_run)]
     solved = np.array(out["success"]) >= SOLVED
     paid = np.array(out["bonus_paid"], dtype=float)
     with warnings.catch_warnings():
@@ -78,6 +82,21 @@ def row_diagnostics(row: dict, every: int) -> dict | None:
 
 def diagnostics_png(env_id: str, rows: list[dict], path: Path, colour: dict[str, tuple]) -> Path:
     """One panel per series, a line per row with diagnostics (its label's colour)."""
+    return _panels([(row["label"], row["diagnostics"], {"color": colour.get(row["label"])}) for row in rows],
+                   env_id, path)
+
+
+def seeds_diagnostics_png(row: dict, path: Path) -> Path:
+    """One panel per series of a configuration whose seeds split, a line per seed (its `per_seed`
+    series, in the colours of its seeds' curves, `plots.seeds_png`) and the mean over seeds dashed."""
+    d = row["diagnostics"]
+    seeds = [(f"seed {s['seed']}", {**s, "frames": d["frames"]}, {}) for s in d["per_seed"]]
+    mean = ("mean over seeds", d, {"color": "black", "linestyle": "--", "linewidth": 1})
+    return _panels(seeds + [mean], f"{row['env_id']}: {row['label']}, seeds that split, one line per seed", path)
+
+
+def _panels(lines: list[tuple[str, dict, dict]], title: str, path: Path) -> Path:
+    """One panel per series, a line per (label, diagnostics with their frames, matplotlib's line style)."""
     from matplotlib.ticker import MaxNLocator
 
     from illm_tools.report.plots import _pyplot, save_figure
@@ -86,10 +105,9 @@ def diagnostics_png(env_id: str, rows: list[dict], path: Path, colour: dict[str,
     names = list(SERIES)
     fig, axes = plt.subplots(1, len(names), figsize=(4.0 * len(names), 3.4), dpi=100)
     for ax, name in zip(axes, names):
-        for row in rows:
-            d = row["diagnostics"]
+        for label, d, style in lines:
             values = [np.nan if v is None or (name == "adv_ratio" and v <= 0) else v for v in d[name]]
-            ax.plot(d["frames"], values, label=row["label"], color=colour.get(row["label"]))
+            ax.plot(d["frames"], values, label=label, **style)
         ax.set_title(SERIES[name][1], fontsize=9)
         ax.set_xlabel("frames")
         ax.xaxis.set_major_locator(MaxNLocator(4))  # four panels abreast: six-digit ticks would run together
@@ -99,5 +117,5 @@ def diagnostics_png(env_id: str, rows: list[dict], path: Path, colour: dict[str,
         if name == "success":
             ax.axhline(SOLVED, color="grey", lw=0.8, ls=":")
     axes[-1].legend(fontsize=7, loc="best")
-    fig.suptitle(env_id, fontsize=10)
+    fig.suptitle(title, fontsize=10)
     return save_figure(fig, path)

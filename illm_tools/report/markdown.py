@@ -105,7 +105,8 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
 
 def split_section(rows: list[dict], settings: dict) -> list[str]:
     """The configurations whose seeds split (`stats.seeds_split`: some near 0, others solving the
-    level), each with its seeds' finals and its per-seed figure: the interval above hides them."""
+    level), each with its seeds' finals, its per-seed figure and, where it logged them, its diagnostics
+    seed by seed: the interval above hides them."""
     from illm_tools.report.stats import SPLIT_HIGH, SPLIT_LOW, seeds_split
 
     split = [r for r in rows if r["final"].get("split", seeds_split([s["score"] for s in r["final"].get("per_seed", [])],
@@ -114,12 +115,18 @@ def split_section(rows: list[dict], settings: dict) -> list[str]:
         return []
     out = ["", f"**Seeds that split** (some end at or below {SPLIT_LOW:g}, others at or above {SPLIT_HIGH:g}): "
            "an IQM and its interval over such seeds describe none of them; read the seeds.", ""]
-    figures = settings.get("seed_figures", {})
-    for r in split:
+    figures, diagnosed = settings.get("seed_figures", {}), settings.get("seed_diagnostics_figures", {})
+    keys = [f"{r['env_id']} / {r['label']}" for r in split]
+    for r, key in zip(split, keys):
         finals = ", ".join("-" if s["score"] is None else f"{s['score']:.2f}" for s in r["final"]["per_seed"])
-        png = figures.get(f"{r['env_id']} / {r['label']}")
         out.append(f"- {_esc(r['label'])}: seeds' finals {finals}"
-                   + (f"; each seed's curve: ![seeds, {_esc(r['label'])}]({png})" if png else ""))
+                   + (f"; each seed's curve: ![seeds, {_esc(r['label'])}]({figures[key]})" if key in figures else ""))
+    if any(key in diagnosed for key in keys):
+        out += ["", "Their diagnostics seed by seed (one line per seed, in its curve's colour, the mean over seeds "
+                "dashed: |A_int| / |A_ext|, f^a's agreement, the bonus paid per step and the success rate), to read "
+                "whether the seeds that failed were paid another bonus than those that solved the level:", ""]
+        out += [f"- {_esc(r['label'])}: ![diagnostics per seed, {_esc(r['label'])}]({diagnosed[key]})"
+                for r, key in zip(split, keys) if key in diagnosed]
     return out
 
 
@@ -298,7 +305,8 @@ def render(results: dict) -> str:
     lines += _provenance(settings, rows)
     for env in results["envs"]:
         lines += _env_section(env, [r for r in rows if r["env_id"] == env],
-                              {**settings, "seed_figures": results["files"].get("seeds", {})},
+                              {**settings, "seed_figures": results["files"].get("seeds", {}),
+                               "seed_diagnostics_figures": results["files"].get("seeds_diagnostics", {})},
                               results["files"]["curves"].get(env), results["files"].get("diagnostics", {}).get(env))
     if len(results["envs"]) > 1:
         lines += _wide(results)
