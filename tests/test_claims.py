@@ -82,3 +82,24 @@ def test_a_result_edited_by_hand_fails_on_each_kind_of_page(page, estimate):
     edited = text.replace(estimate, f"{float(value) + 0.01:.3f} {rest}", 1)
     (line,) = numbers.problems(path, edited)
     assert page in line and "is in none of the results the page links" in line
+
+
+@pytest.mark.parametrize("page, single, edited", [
+    ("docs/index.md", "SmolLM2 at 0.195", "SmolLM2 at 0.215"),  # a probe's agreement beside its report's link
+    ("docs/experiments/paper-literal.md", "paper-literal 0.025 against", "paper-literal 0.215 against"),
+])
+def test_a_single_number_edited_by_hand_fails(page, single, edited):
+    """A number with 2-3 decimals in a paragraph that links a results file is one that file holds."""
+    path = ROOT / page
+    text = path.read_text()
+    assert single in text and not numbers.problems(path, text)
+    (line,) = numbers.problems(path, text.replace(single, edited, 1))
+    assert page in line and f"{numbers.SINGLE.search(edited)[1]} is in none of the results files the page links" in line
+
+
+def test_a_number_under_a_computed_marker_is_not_read(tmp_path):
+    page = ROOT / "docs" / "experiments" / "distil.md"
+    text = page.read_text()
+    assert "0.782 on GoToLocal" in text and not numbers.problems(page, text)
+    unmarked = "\n".join(line for line in text.splitlines() if not line.startswith("<!-- computed:"))
+    assert any("0.782 is in none" in line for line in numbers.problems(page, unmarked))
