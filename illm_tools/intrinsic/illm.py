@@ -93,7 +93,7 @@ def _clean(batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tenso
     mask = batch["target_mask"].bool()
     m = mask.unsqueeze(-1)
     probs, emb = batch["target_probs"], batch["target_emb"]
-    return mask, torch.where(m, probs, torch.zeros_like(probs)), torch.where(m, emb, torch.zeros_like(emb))
+    return mask, torch.where(m, probs, 0.0), torch.where(m, emb, 0.0)
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -171,7 +171,7 @@ class ILLMBonus(IntrinsicBonus):
             raw["action"] = action_disagreement(batch["action_logits"], probs, self.action_similarity)
         for task, (pred, target) in self._text_blocks(batch["summary"], emb).items():
             raw[task] = summary_disagreement(pred, target)
-        raw = {task: torch.where(mask, r, torch.zeros_like(r)) for task, r in raw.items()}
+        raw = {task: torch.where(mask, r, 0.0) for task, r in raw.items()}
         logs = {f"intrinsic_reward_{_suffix(t)}": float(_masked_mean(r, mask)) for t, r in raw.items()}
         logs.update(target_coverage=float(mask.float().mean()), no_target_steps=float((~mask).sum()))
         if "action" in self.tasks:  # how much of the annotator f^a has learned: its best action = the annotator's
@@ -197,7 +197,7 @@ class ILLMBonus(IntrinsicBonus):
                 losses[task] = 1.0 - F.cosine_similarity(pred, goal, dim=-1, eps=1e-8)
             else:
                 losses[task] = (pred - goal).pow(2).mean(-1)
-        means = {t: _masked_mean(torch.where(mask, x, torch.zeros_like(x)), mask) for t, x in losses.items()}
+        means = {t: _masked_mean(torch.where(mask, x, 0.0), mask) for t, x in losses.items()}
         # the logs stay tensors (the trainer syncs once per update, not per minibatch)
         return sum(means.values()), {f"distill_{t}": v.detach() for t, v in means.items()}
 
