@@ -55,7 +55,6 @@ class AnnotationCache:
         self._starts: list[int] = []  # global row id of each shard's first row
         self._checked: set[tuple] = set()  # (name, inode, size, mtime_ns) of shards seen valid
         self._open: dict[int, tuple[tuple, pa.Table]] = {}  # every shard read so far, memory-mapped, with its stamp
-        self._columns: dict[str, tuple[int, pa.ChunkedArray]] = {}  # a column of the first n shards, chunked
 
     # ---- reading -------------------------------------------------------------------------
 
@@ -115,37 +114,47 @@ class AnnotationCache:
         opened = self._open.get(shard)
         stamp = self._stamp(self.root / entry["name"], entry["name"])
         if opened is None or opened[0] != stamp:
-            if opened is not None:  # the file changed: no column may keep its old chunks
-                self._columns.clear()
             opened = self._open[shard] = (stamp, self._read(entry))
         return opened[1]
 
-    def _column(self, name: str) -> pa.ChunkedArray:
-        """Column `name` of every listed shard as one chunked array (zero copy), in global row order;
-        extended with the shards added since it was built."""
-        built, column = self._columns.get(name, (0, None))
-        if built < len(self._shards) or column is None:
-            chunks = [] if column is None else list(column.chunks)
-            for s in range(built, len(self._shards)):
-                chunks += self._table(s).column(name).chunks
-            column = pa.chunked_array(chunks, type=self.schema.field(name).type)
-            self._columns[name] = (len(self._shards), column)
-        return column
-
     def _gather(self, rows: np.ndarray, columns: Sequence[str]) -> pa.Table:
-        """The given global rows (all >= 0), in that order, with the given columns: one vectorised
-        take per column over every shard's chunks, not a take per shard (the trainer's look-ups meet
-        hundreds of small shards in a cache that live annotation writes a few states at a time: with a
-        take per shard and 64 shards mapped at a time, a rollout's look-up took 51x a one-shard cache's
-        at 600 shards; this way 3.6x, `benchmarks/cache_lookup.py`)."""
+        """The given global rows (all >= 0), in that order, with the given columns. A large shard
+        (`OWN_TAKE` rows or more) gives its rows by a take on its own column; the small shards the
+        rows fall in give theirs by one take over their chunks together; the pieces are joined and
+        put in the rows' order by one last take. Hand-written because pyarrow's take over a chunked
+        array joins every chunk first: for the embeddings (576 floats a row) over a run's 20 shards
+        of 2,048 states, 58 ms a take against 2.6 ms on one chunk (pyarrow 26), a cost that grows
+        with the cache, not with the rows asked for; and a take per shard costs about 0.1 ms each,
+        too much for the hundreds of few-state shards that live annotation writes
+        (`benchmarks/cache_lookup.py`). Each shard the rows fall in is read and checked once."""
         if not len(rows):
             return self.schema.empty_table().select(list(columns))
         starts = np.asarray(self._starts, np.int64)
-        for s in np.unique(np.searchsorted(starts, rows, "right") - 1):
-            self._table(int(s))  # a shard whose file changed is re-read and re-checked (and the columns rebuilt)
-        index = pa.array(rows, pa.int64())
-        return pa.table({name: self._column(name).take(index) for name in columns},
-                        schema=pa.schema([self.schema.field(name) for name in columns]))
+        shard_of = np.searchsorted(starts, rows, "right") - 1
+        order = np.argsort(shard_of, kind="stable")
+        shards, first = np.unique(shard_of[order], return_index=True)
+        bounds = np.append(first, len(order))
+        local = rows - starts[shard_of]
+        tables = [self._table(int(s)) for s in shards]  # a shard whose file changed is re-read and re-checked
+        large = [i for i, s in enumerate(shards) if self._shards[s]["rows"] >= OWN_TAKE]
+        small = [i for i, s in enumerate(shards) if self._shards[s]["rows"] < OWN_TAKE]
+        picks = [order[bounds[i]:bounds[i + 1]] for i in large]  # positions in `rows`, piece by piece
+        if small:
+            offsets = np.cumsum([0] + [tables[i].num_rows for i in small])
+            picks.append(np.concatenate([order[bounds[i]:bounds[i + 1]] for i in small]))
+            small_index = np.concatenate([local[order[bounds[i]:bounds[i + 1]]] + offsets[k] for k, i in enumerate(small)])
+        positions = np.concatenate(picks)
+        back = None if np.array_equal(positions, np.arange(len(rows))) else np.argsort(positions)
+        out = {}
+        for name in columns:
+            pieces = [_contiguous(tables[i].column(name)).take(pa.array(local[p])) for i, p in zip(large, picks)]
+            if small:
+                chunks = [c for i in small for c in tables[i].column(name).chunks]
+                pieces.append(pa.chunked_array(chunks, self.schema.field(name).type).take(pa.array(small_index))
+                              .combine_chunks())
+            joined = pa.concat_arrays(pieces) if len(pieces) > 1 else pieces[0]
+            out[name] = joined if back is None else joined.take(pa.array(back))
+        return pa.table(out, schema=pa.schema([self.schema.field(name) for name in columns]))
 
     def _found(self, keys, task: str | None) -> tuple[np.ndarray, np.ndarray]:
         rows = self._index.locate(keys)
@@ -330,3 +339,12 @@ def _embeddings(column: pa.ChunkedArray, hit: np.ndarray, n: int) -> np.ndarray:
         values = pc.list_flatten(arr.filter(pa.array(present))).to_numpy().astype(np.float32)
         out[hit[present]] = values.reshape(-1, d)
     return out
+
+
+OWN_TAKE = 1024
+"""Rows from which a shard's rows are taken from it alone (`AnnotationCache._gather`)."""
+
+
+def _contiguous(column: pa.ChunkedArray) -> pa.Array:
+    """A shard's column as one array (a shard is written as one record batch: no copy then)."""
+    return column.chunk(0) if column.num_chunks == 1 else column.combine_chunks()
