@@ -46,7 +46,7 @@ from illm_tools.cache.store import AnnotationCache
 from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.live import SyncLive
 from illm_tools.rl.ppo import Trainer
-from illm_tools.rl.run import early_live, make_pool, make_provider
+from illm_tools.rl.run import build_run, make_pool
 from illm_tools.rl.threads import torch_threads
 from illm_tools.rl.targets import CachedTargets
 
@@ -55,16 +55,25 @@ DIM = 576  # SmolLM2-135M's hidden size: the f^hc head is as large as with the e
 
 def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> tuple[float, dict]:
     """One training run: (steps/s over its updates, its last metrics with `phases`: the mean cost
-    per update of each phase, in seconds)."""
-    if live_async:  # assembled as `illm_tools.rl.run.build_run` does: the worker started first
+    per update of each phase, in seconds; and `close_s`, the time its shutdown took after training).
+    Async live annotation runs as `illm train` assembles it (`build_run`: the worker started first);
+    the cached case reads a synthetic cache through `CachedTargets` (see the module docstring)."""
+    phases = {k: 0.0 for k in PHASES}
+
+    def on_metrics(m: dict) -> None:
+        for k in PHASES:
+            phases[k] += m[f"time/{k}_s"] / cfg.num_updates
+
+    if live_async:
         cfg = cfg.resolved()
-        live = early_live(cfg)
-        pool = make_pool(cfg)
-        provider = make_provider(cfg, len(pool.action_names), started=live)
-    else:
-        pool = make_pool(cfg)
-        provider = None
-    if not live_async and cfg.uses_heads:
+        with build_run(cfg, on_metrics) as trainer:
+            start = time.perf_counter()
+            last = trainer.train()
+            trained = closing = time.perf_counter()  # the training's rate; the worker's shutdown is timed apart
+        last.update(phases=phases, close_s=time.perf_counter() - closing)
+        return cfg.num_updates * cfg.batch_size / (trained - start), last
+    pool, provider = make_pool(cfg), None
+    if cfg.uses_heads:
         cache = AnnotationCache(cache_dir)
         annotator = Annotator(StubBackend(f"synthetic-benchmark:{DIM}"), cache, model="synthetic", history_len=cfg.setup.history_len,
                               chunk=10_000)
@@ -72,23 +81,14 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
         live = SyncLive(annotator, cfg.annotation_setup, cfg.targets.live_budget) if cfg.targets.live_budget else None
         provider = CachedTargets(cache, builder, calibration="sum", num_actions=len(pool.action_names),
                                  embedding_dim=DIM, live=live)
-    phases = {k: 0.0 for k in PHASES}
-
-    def on_metrics(m: dict) -> None:
-        for k in PHASES:
-            phases[k] += m[f"time/{k}_s"] / cfg.num_updates
-
     trainer = Trainer(cfg.resolved(), pool, provider, on_metrics=on_metrics)
     start = time.perf_counter()
     try:
         last = trainer.train()
-        trained = time.perf_counter() - start  # the training's rate; the worker's shutdown is timed apart
+        trained = time.perf_counter() - start
     finally:
         pool.close()
-        closing = time.perf_counter()
-        if live_async:
-            provider.close()
-    last.update(phases=phases, close_s=time.perf_counter() - closing)
+    last.update(phases=phases, close_s=0.0)
     return cfg.num_updates * cfg.batch_size / trained, last
 
 
@@ -107,9 +107,9 @@ def cpu_name() -> str:
     return platform.processor() or "unknown CPU"
 
 
-def pairs(args, config, cached: Path | None, label: str) -> list[dict]:
+def pairs(args, config, cached: Path | None, label: str, tmp: Path) -> list[dict]:
     """`args.pairs` paired runs of ppo and illm (cached when `cached` names the filled cache; else
-    async live annotation into an empty cache each), alternating which runs first."""
+    async live annotation into an empty cache each, under `tmp`), alternating which runs first."""
     out = []
     for k in range(args.pairs):
         pair = {}
@@ -119,15 +119,14 @@ def pairs(args, config, cached: Path | None, label: str) -> list[dict]:
             elif cached is not None:
                 pair["illm"] = run(config("illm", f"{label}-illm-{k}", 0), cached)
             else:
-                cfg = config("illm", f"{label}-illm-{k}", 16, cache=cached_dir(args, k), live_mode="async", history_len=0)
+                cfg = config("illm", f"{label}-illm-{k}", 16, cache=tmp / f"live-ann-{k}", live_mode="async", history_len=0)
                 pair["illm"] = run(cfg, None, live_async=True)
         ratio = pair["illm"][0] / pair["ppo"][0]
-        extra = ""
         if cached is None:
             last = pair["illm"][1]
-            first = last.get("charts/live_first_answer_s")
-            extra = (f"; worker ready {last.get('charts/live_worker_startup_s', float('nan')):.1f}s, first answer "
-                     f"{'none during the run' if first is None else f'{first:.1f}s'} after its start, targets on "
+            ready, first = last.get("charts/live_worker_startup_s"), last.get("charts/live_first_answer_s")
+            extra = (f"; worker {'not ready during the run' if ready is None else f'ready {ready:.1f}s'}, first answer "
+                     f"{'none during the run' if first is None else f'{first:.1f}s after its start'}, targets on "
                      f"{last['charts/target_coverage']:.3f} of the last rollout's steps, shutdown after the run "
                      f"{last['close_s']:.1f}s")
         else:
@@ -141,10 +140,6 @@ def pairs(args, config, cached: Path | None, label: str) -> list[dict]:
     print(f"  illm/ppo ratio, median of {len(ratios)} pairs: {statistics.median(ratios):.3f} "
           f"(range {min(ratios):.3f}-{max(ratios):.3f})", flush=True)
     return out
-
-
-def cached_dir(args, k: int) -> Path:
-    return Path(args.tmp) / f"live-ann-{k}"
 
 
 def profile(config, cached: Path, top: int) -> None:
@@ -183,8 +178,6 @@ def main() -> None:
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
-        args.tmp = tmp
-
         def config(mode: str, name: str, live_budget: int, **settings) -> TrainConfig:
             """A run's config; `settings` by their flat names (`illm_tools.rl.config.FLAT`)."""
             return TrainConfig.from_dict(dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
@@ -216,11 +209,11 @@ def main() -> None:
             return
         if args.only != "async":
             print("every target cached (target: median >= 0.85)", flush=True)
-            pairs(args, config, cached, "cached")
+            pairs(args, config, cached, "cached", Path(tmp))
         if args.only != "cached":
             print("async live annotation: history 0, an empty cache each run, the SmolLM2-135M worker (1 thread) "
                   "beside the trainer (target: median >= 0.75)", flush=True)
-            pairs(args, config, None, "async")
+            pairs(args, config, None, "async", Path(tmp))
 
 
 if __name__ == "__main__":

@@ -122,11 +122,12 @@ class AnnotationCache:
         (`OWN_TAKE` rows or more) gives its rows by a take on its own column; the small shards the
         rows fall in give theirs by one take over their chunks together; the pieces are joined and
         put in the rows' order by one last take. Hand-written because pyarrow's take over a chunked
-        array joins every chunk first: for the embeddings (576 floats a row) over a run's 20 shards
-        of 2,048 states, 58 ms a take against 2.6 ms on one chunk (pyarrow 26), a cost that grows
-        with the cache, not with the rows asked for; and a take per shard costs about 0.1 ms each,
-        too much for the hundreds of few-state shards that live annotation writes
-        (`benchmarks/cache_lookup.py`). Each shard the rows fall in is read and checked once."""
+        list column joins every chunk first, a cost that grows with the cache, not with the rows
+        asked for (2,048 states' look-up in a 409,600-row cache of 576-wide embeddings: 201 ms that
+        way, 22 ms this way, pyarrow 26, docs/results/measured/trainer-pace.txt); and a take per
+        shard costs about 0.1 ms each, too much for the hundreds of few-state shards that live
+        annotation writes (`benchmarks/cache_lookup.py`). Each shard the rows fall in is read and
+        checked once."""
         if not len(rows):
             return self.schema.empty_table().select(list(columns))
         starts = np.asarray(self._starts, np.int64)

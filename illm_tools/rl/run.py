@@ -79,11 +79,20 @@ def early_live(cfg: TrainConfig):
     env pool's, the provider's checks and the network's, and `make_provider` takes it over (or it
     is closed with the run). Not for an engine's model (`--backend openai`): the run first checks
     that the engine answers (`model_identity`), and a worker for an engine starts in no time."""
-    t = cfg.targets
-    if not cfg.needs_targets or t.live_budget == 0 or t.annotator is not None or t.live_mode != "async" \
-            or t.cache is None or cfg.llm.endpoint is not None:
+    if not cfg.needs_targets or cfg.targets.cache is None or cfg.llm.endpoint is not None or live_kind(cfg) != "async":
         return None
     return _async_live(cfg, cfg.llm, cfg.annotation_setup)
+
+
+def live_kind(cfg: TrainConfig) -> str | None:
+    """Which live annotator the run's settings ask for: None (no live budget), "remote" (an `illm
+    serve` server, `--annotator`), "async" (a worker process) or "sync" (in the trainer's process)."""
+    t = cfg.targets
+    if t.live_budget == 0:
+        return None
+    if t.annotator is not None:
+        return "remote"
+    return "async" if t.live_mode == "async" else "sync"
 
 
 def _async_live(cfg: TrainConfig, llm, setup):
@@ -97,15 +106,16 @@ def make_live(cfg: TrainConfig, llm, setup, cache, started=None):
     """The live annotator of a run (`illm_tools.rl.live`) for its LLM (placed) and annotation setup,
     or None with no live budget; sync writes through `cache`, the object the targets are read from;
     async is `started` (`early_live`'s worker) where the run started it."""
-    if cfg.targets.live_budget == 0:
+    kind = live_kind(cfg)
+    if kind is None:
         return None
     from illm_tools.rl.live import SyncLive
     from illm_tools.rl.live_remote import SYNC_WAIT, RemoteLive
 
-    if cfg.targets.annotator is not None:
+    if kind == "remote":
         return RemoteLive(cfg.targets.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
                           budget=cfg.targets.live_limit, wait=SYNC_WAIT if cfg.targets.live_mode == "sync" else 0.0)
-    if cfg.targets.live_mode == "async":
+    if kind == "async":
         return started if started is not None else _async_live(cfg, llm, setup)
     from illm_tools.annotate.engine import Annotator
 
