@@ -41,6 +41,7 @@ from pathlib import Path
 
 
 from illm_tools.annotate.engine import Annotator
+from illm_tools.llm.spec import LLMSpec
 from illm_tools.llm.stub import StubBackend
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.rl.config import TrainConfig
@@ -105,6 +106,15 @@ def cpu_name() -> str:
         if line.startswith("model name"):
             return line.split(":", 1)[1].strip()
     return platform.processor() or "unknown CPU"
+
+
+def gpu_name(device: str) -> str:
+    """' (the GPU's name)' where the policy runs on CUDA, else ''."""
+    if not device.startswith("cuda"):
+        return ""
+    import torch
+
+    return f" ({torch.cuda.get_device_name(torch.device(device))}, torch {torch.__version__})"
 
 
 def pairs(args, config, cached: Path | None, label: str, tmp: Path) -> list[dict]:
@@ -179,14 +189,19 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         def config(mode: str, name: str, live_budget: int, **settings) -> TrainConfig:
-            """A run's config; `settings` by their flat names (`illm_tools.rl.config.FLAT`)."""
+            """A run's config; `settings` by their flat names (`illm_tools.rl.config.FLAT`). Unless the
+            run annotates live or reads Z_h (hop), its LLM is a stub of SmolLM2-135M's width: the heads' size without the
+            model's package (the cache's rows come from the synthetic annotator either way)."""
+            if settings.get("live_mode") != "async" and settings.get("obs_mode") != "hop":
+                settings.setdefault("llm", LLMSpec("stub", f"stub:{DIM}"))
             return TrainConfig.from_dict(dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
                                num_envs=args.num_envs, num_steps=args.num_steps, device=args.device,
                                live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads,
                                **settings))
 
         print(f"env {args.env}, {args.frames:,} frames a run, {args.num_envs} envs x {args.num_steps} steps, "
-              f"{args.threads} thread(s), policy on {args.device}; CPU: {cpu_name()}, {os.cpu_count()} cores", flush=True)
+              f"{args.threads} thread(s), policy on {args.device}{gpu_name(args.device)}; CPU: {cpu_name()}, "
+              f"{os.cpu_count()} cores", flush=True)
         if args.mode == "hop":
             hop = {"obs_mode": "hop", "history_len": args.history, "model_dtype": args.dtype}
             sps_ppo, last_ppo = run(config("ppo", "ppo", 0), None)
