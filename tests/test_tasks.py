@@ -107,6 +107,27 @@ def test_keys_are_stable_and_sensitive():
     assert len({b.key(p), *changed}) == len(changed) + 1
 
 
+AWKWARD = ["", "  ", "plain", 'a "quoted" word', "back\\slash", "tab\there", "two\nlines\r\nthree", "é ü 中文 🙂",
+           "\x00\x01\x1f ctl", "\u2028 sep", "{history} {task}", "\x00illm-history\x00"]
+
+
+@pytest.mark.parametrize("layout", ["shared", "paper"])
+def test_state_keys_are_the_rendered_prompts_keys_on_awkward_texts(layout):
+    """`state_keys` (computed without rendering, `illm_tools.tasks.state_keys`) equals the key of
+    each task's rendered prompt: every layout and task, histories of every length, texts with
+    quotes, escapes, control characters, newlines, unicode and the template's own field names."""
+    import itertools
+
+    tasks = ("action", "summary", "goal", "plan")
+    for k, (mission, obs, act) in enumerate(itertools.product(AWKWARD[::3] + ["go to the red ball"], AWKWARD, ACTIONS[:2])):
+        b = builder(layout=layout, history_len=k % 4)
+        history = [(AWKWARD[(k + i) % len(AWKWARD)], act) for i in range(k % 4)]
+        rec = StateRecord(mission, tuple(history), obs, ACTIONS if k % 2 else (act, 'say "hi"'))
+        for _ in range(2):  # the second time from its memos
+            assert b.state_keys(rec, tasks) == tuple(b.key(b.render(t, rec)) for t in tasks), (mission, obs, history)
+        assert all(frame is not None for frame in b._state_keys._frames.values()) or "\x00" in mission  # the fast path ran
+
+
 def test_bad_layout_is_refused():
     with pytest.raises(UsageError, match="layout"):
         builder(layout="fancy")
