@@ -3,7 +3,7 @@ one-shard cache of the same rows, in the same run.
 
 Live annotation writes a few states per shard (the async worker: 8), so a cache a run annotates as
 it goes holds hundreds of small shards; each rollout looks up its 2,048 states' action and summary
-rows (`CachedTargets`: two `get_columns` calls, each with its task filter), the summaries'
+rows (`CachedTargets`: two `get_matrices` calls, each with its task filter), the summaries'
 embeddings `--dim` wide. Target: the 600-shard look-up within 10x the one-shard one. Measured on
 a 2-core Xeon (AVX512-BF16, AMX) under a busy grid, 4-wide embeddings: 3.6x (26 ms against 7);
 before the vectorised gather 51x (246 ms against 5). docs/measured.md has the figures since.
@@ -48,8 +48,8 @@ def lookup_ms(rows: int, shards: int, keys: int = 2048, repeats: int = 5, dim: i
         start = time.perf_counter()
         for _ in range(repeats):
             cache.refresh()
-            cache.get_columns(wanted, ACTION, task="action")
-            cache.get_columns(wanted, ["embedding"], task="summary")
+            cache.get_matrices(wanted, ACTION, task="action")
+            cache.get_matrices(wanted, ["embedding"], task="summary")
         return (time.perf_counter() - start) / repeats * 1e3
 
 

@@ -60,6 +60,47 @@ def test_lookup_spans_many_shards_in_query_order(tmp_path):
     assert got == [rows[i]["prompt"] for i in order]
 
 
+def test_matrices_are_the_columns_as_float_arrays_across_shards_nulls_and_misses(tmp_path):
+    """`get_matrices` (the trainer's look-up, read from each shard's values) holds what `get_columns`
+    gives, as float32 [n, d] with NaN rows where a key is absent, its task is another or its value
+    null; in the keys' order across shards of several sizes; a second width is refused."""
+    cache = AnnotationCache(tmp_path)
+    for lo, hi in ((0, 3), (3, 40), (40, 41), (41, 60)):
+        cache.write(make_rows(lo, hi))
+    rows = make_rows(0, 60)
+    order = np.random.default_rng(1).permutation(60)
+    query = [rows[i]["key"] for i in order] + ["0" * 64, "bad"]
+    for task in (None, "action", "summary"):
+        lists = cache.get_columns(query, ["embedding", "cand_logprob_sum", "cand_token_count"], task=task)
+        mats = cache.get_matrices(query, ["embedding", "cand_logprob_sum", "cand_token_count"], task=task)
+        assert mats["found"].tolist() == lists["found"].tolist()
+        assert np.array_equal(mats["embedding"], lists["embedding"], equal_nan=True)
+        for name in ("cand_logprob_sum", "cand_token_count"):
+            m = mats[name]
+            assert m.dtype == np.float32 and m.shape[0] == len(query)
+            for got, want in zip(m, lists[name]):
+                assert np.isnan(got).all() if want is None else got.tolist() == want
+    assert mats["found"][:60].sum() == 30 and np.isnan(mats["cand_logprob_sum"]).all()  # summary: no scores
+    wide = make_rows(60, 62)
+    for row in wide:
+        row["embedding"] = None if row["embedding"] is None else row["embedding"] * 2
+        row["embedding_dim"] = None if row["embedding"] is None else len(row["embedding"])
+    cache.write(wide)
+    with pytest.raises(CacheError, match="embedding values of different sizes"):
+        cache.get_matrices(keys_of(make_rows(0, 62)), ["embedding"])
+
+
+def test_a_matrix_is_read_from_values_not_aligned_on_its_width():
+    """A null entry that still spans values (Arrow allows it) leaves the rows after it off the
+    width's grid: those are read value by value."""
+    from illm_tools.cache.matrices import gather_matrix
+
+    column = pa.ListArray.from_arrays(pa.array([0, 1, 3, 5], pa.int32()), pa.array([9.0, 1, 2, 3, 4], pa.float32()),
+                                      mask=pa.array([True, False, False]))
+    out = gather_matrix(lambda shard: column, np.array([0]), np.array([2, 0, 1]), np.array([0, 2, 3]), 4, "x")
+    assert out[0].tolist() == [3.0, 4.0] and out[3].tolist() == [1.0, 2.0] and np.isnan(out[[1, 2]]).all()
+
+
 def test_duplicate_keys_are_dropped(tmp_path):
     cache = AnnotationCache(tmp_path)
     rows = make_rows(0, 6)

@@ -47,12 +47,13 @@ class _Cache:
     def refresh(self):
         pass
 
-    def get_columns(self, keys, columns, *, task):
+    def get_matrices(self, keys, columns, *, task):
         found = np.array([k[1:] != "2" for k in keys])
         if task == "summary":
             return {"found": found, "embedding": np.ones((len(keys), 4), np.float32)}
-        return {"found": found, "cand_logprob_sum": [SUMS[0]] * len(keys),
-                "cand_token_count": [COUNTS[0]] * len(keys), "neutral_logprob_sum": [NEUTRAL[0]] * len(keys)}
+        return {"found": found, **{name: np.tile(np.asarray(value, np.float32), (len(keys), 1)) for name, value in
+                                   (("cand_logprob_sum", SUMS[0]), ("cand_token_count", COUNTS[0]),
+                                    ("neutral_logprob_sum", NEUTRAL[0]))}}
 
 
 class _Builder:

@@ -89,8 +89,8 @@ class CachedTargets:
         if self.shuffle is not None:
             own = np.logical_and.reduce([self.cache.contains(k) for k in keys.values()])
             keys = {task: self.shuffle.partners(task, k) for task, k in keys.items()}
-        columns = {task: self.cache.get_columns(k, ACTION_COLUMNS if get_task(task).kind == "ranking" else ["embedding"],
-                                                task=task) for task, k in keys.items()}
+        columns = {task: self.cache.get_matrices(k, ACTION_COLUMNS if get_task(task).kind == "ranking" else ["embedding"],
+                                                 task=task) for task, k in keys.items()}
         found = np.logical_and.reduce([c["found"] for c in columns.values()])
         return columns, found if own is None else found & own
 
@@ -141,7 +141,8 @@ class CachedTargets:
         if idx.size:
             if "action" in columns:
                 a = columns["action"]
-                scores = [np.asarray([a[c][i] for i in idx], dtype=np.float64) for c in ACTION_COLUMNS]
+                scores = [a[c][idx].astype(np.float64) if a[c].shape[1] else np.full((idx.size, self.num_actions), np.nan)
+                          for c in ACTION_COLUMNS]  # a column null in every row (no neutral scores): NaN, as absent
                 probs[idx] = action_target(*scores, self.calibration, self.action_target)
             for j, task in enumerate(self.text):
                 emb[idx, j * d:(j + 1) * d] = columns[task]["embedding"][idx]
