@@ -265,7 +265,7 @@ def test_a_full_disk_midway_leaves_the_cache_and_the_run_folder_readable(tmp_pat
     from cli.errors import report
     from illm_tools import durable
     from illm_tools.cache.verify import verify
-    from illm_tools.rl.checkpoint import load_checkpoint, save_checkpoint
+    from illm_tools.rl.checkpoint import CheckpointWriter, load_checkpoint, save_checkpoint
 
     root = _cache(tmp_path)
     before = sorted(p.name for p in root.iterdir())
@@ -292,6 +292,13 @@ def test_a_full_disk_midway_leaves_the_cache_and_the_run_folder_readable(tmp_pat
     monkeypatch.setattr(torch, "save", lambda obj, f: real_save(obj, f) if isinstance(f, io.BytesIO) else full(obj, f))
     with pytest.raises(OSError):
         save_checkpoint(tmp_path, {"update": 3})
+    writer = CheckpointWriter(tmp_path)  # the trainer's: the write goes on beside the training, its error comes after
+    writer.save({"update": 4}, wait=False)
+    with pytest.raises(OSError):
+        writer.wait()
     monkeypatch.undo()
     assert load_checkpoint(tmp_path)["update"] == 2 and not list(tmp_path.glob(".checkpoint.pt.tmp"))
+    writer.save({"update": 5}, wait=False)
+    writer.wait()
+    assert load_checkpoint(tmp_path)["update"] == 5
 

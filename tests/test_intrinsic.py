@@ -6,7 +6,7 @@ import torch
 
 from illm_tools.intrinsic import DiscountedReturnNormalizer, ILLMBonus, RunningMeanStd
 from illm_tools.tasks.state import HistoryTracker
-from illm_tools.intrinsic.illm import action_disagreement, summary_disagreement
+from illm_tools.intrinsic.illm import action_disagreement, cosine, summary_disagreement
 from illm_tools.envs.encoding import MissionVocab
 from illm_tools.rl.networks import GridMissionNet
 
@@ -74,6 +74,19 @@ def test_disagreements_are_zero_at_a_match_and_bounded():
     v = torch.randn(5, 8)
     assert torch.allclose(summary_disagreement(v, 3 * v), torch.zeros(5), atol=1e-6)
     assert torch.allclose(summary_disagreement(v, -v), torch.ones(5))  # 1 - cos = 2, clipped to 1
+
+
+def test_the_cosine_is_torchs_in_value_and_gradient_zero_rows_included():
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(0)
+    pred, target = torch.randn(64, 576, generator=g, dtype=torch.float64), torch.randn(64, 576, generator=g, dtype=torch.float64)
+    pred[3], target[5] = 0.0, 0.0  # a zero vector: the eps clamp, as torch's
+    mine, ref = pred.clone().requires_grad_(), pred.clone().requires_grad_()
+    ours, theirs = cosine(mine, target), F.cosine_similarity(ref, target, dim=-1, eps=1e-8)
+    (ours * torch.arange(64.0, dtype=torch.float64)).sum().backward()
+    (theirs * torch.arange(64.0, dtype=torch.float64)).sum().backward()
+    assert torch.allclose(ours, theirs, atol=1e-12) and torch.allclose(mine.grad, ref.grad, atol=1e-12)
 
 
 def test_steps_without_target_get_zero_reward_and_are_counted():

@@ -174,6 +174,9 @@ class IntrinsicBonus(ABC):
     too). The bonus names no provider: whoever assembles the run builds the one registered for this
     kind (`illm_tools.rl.providers.TARGET_PROVIDERS`) and the trainer hands it to the bonus
     (`use_provider`); a plug-in declares a kind of its own and registers its provider there."""
+    reads: ClassVar[tuple[str, ...] | None] = None
+    """The rollout fields its batches need (of BONUS_FIELDS and the extras, illm_tools.rl.storage);
+    None: all of them. The trainer gathers only these for each minibatch."""
     pays_reward: bool = True
     """Whether the rewards reach the advantages; False trains the bonus's models and pays nothing
     (e.g. `illm-noreward`, paper Table 3). Set by the registry entry, read by the trainer."""

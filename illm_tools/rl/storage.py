@@ -19,7 +19,7 @@ copies).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -98,10 +98,10 @@ class Rollout:
         x = getattr(self, name)
         return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])  # explicit: a field may be empty ([T, N, 0])
 
-    def bonus_batch(self, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """What a bonus reads: `BONUS_FIELDS` and the extras, [T, N, ...] views, or the flat rows
-        `rows` ([B, ...]) when given."""
-        names = BONUS_FIELDS + tuple(self.extras)
+    def bonus_batch(self, rows: torch.Tensor | None = None, names: Sequence[str] | None = None) -> dict[str, torch.Tensor]:
+        """What a bonus reads: `names` (None: `BONUS_FIELDS` and the extras), [T, N, ...] views, or
+        the flat rows `rows` ([B, ...]) when given."""
+        names = BONUS_FIELDS + tuple(self.extras) if names is None else names
         if rows is None:
             return {name: getattr(self, name) for name in names}
         return {name: self.flat(name)[rows] for name in names}
