@@ -14,7 +14,8 @@ per update (rollout, target look-up, update) is printed beside its rate.
 empty cache through the live-fallback path, with rows of deterministic pseudo-random scores and
 embeddings (the trainer's speed does not depend on what the LLM said); training is deterministic
 given the seed, so every later pass with the same seed meets exactly the same states and finds
-every one of them in the cache (its cache hit rate is printed).
+every one of them in the cache (its cache hit rate is printed). On CUDA (`--device cuda`) that
+takes torch's deterministic algorithms, which are on for both methods there.
 
 `--profile` prints instead where a cached illm update and a ppo update spend their time (cProfile's
 top entries by own time, one run of each), the figures behind docs/measured.md's reading.
@@ -108,6 +109,19 @@ def cpu_name() -> str:
     return platform.processor() or "unknown CPU"
 
 
+def deterministic_cuda() -> None:
+    """torch's deterministic algorithms on CUDA (cuBLAS's fixed workspace, cuDNN's deterministic
+    kernels): the cached case's later passes must meet the fill pass's states, and CUDA's atomic
+    adds otherwise make each run's weights, and so its trajectories, drift apart (a cache hit rate
+    of 0.07 without this on an H100). Both methods pay what it costs."""
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    import torch
+
+    torch.backends.cudnn.benchmark = False
+    torch.backends.cudnn.deterministic = True
+    torch.use_deterministic_algorithms(True)
+
+
 def gpu_name(device: str) -> str:
     """' (the GPU's name)' where the policy runs on CUDA, else ''."""
     if not device.startswith("cuda"):
@@ -186,6 +200,8 @@ def main() -> None:
     parser.add_argument("--history", type=int, default=3, help="hop: steps of history (the window is one more).")
     parser.add_argument("--dtype", default="bfloat16", help="hop: the LLM's compute dtype (float32 is faster on some CPUs).")
     args = parser.parse_args()
+    if args.device.startswith("cuda"):
+        deterministic_cuda()
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
         def config(mode: str, name: str, live_budget: int, **settings) -> TrainConfig:
