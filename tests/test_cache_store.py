@@ -60,10 +60,15 @@ def test_lookup_spans_many_shards_in_query_order(tmp_path):
     assert got == [rows[i]["prompt"] for i in order]
 
 
-def test_matrices_are_the_columns_as_float_arrays_across_shards_nulls_and_misses(tmp_path):
-    """`get_matrices` (the trainer's look-up, read from each shard's values) holds what `get_columns`
-    gives, as float32 [n, d] with NaN rows where a key is absent, its task is another or its value
-    null; in the keys' order across shards of several sizes; a second width is refused."""
+@pytest.mark.parametrize("own_take", [1024, 10, 1])  # every shard small, some large (read from their values), all large
+def test_matrices_are_the_columns_as_float_arrays_across_shards_nulls_and_misses(tmp_path, monkeypatch, own_take):
+    """`get_matrices` (the trainer's look-up: read from each large shard's values, taken from the
+    small ones together) holds what `get_columns` gives, as float32 [n, d] with NaN rows where a key
+    is absent, its task is another or its value null; in the keys' order across shards of several
+    sizes; a second width is refused."""
+    from illm_tools.cache import store
+
+    monkeypatch.setattr(store, "OWN_TAKE", own_take)
     cache = AnnotationCache(tmp_path)
     for lo, hi in ((0, 3), (3, 40), (40, 41), (41, 60)):
         cache.write(make_rows(lo, hi))
@@ -97,7 +102,7 @@ def test_a_matrix_is_read_from_values_not_aligned_on_its_width():
 
     column = pa.ListArray.from_arrays(pa.array([0, 1, 3, 5], pa.int32()), pa.array([9.0, 1, 2, 3, 4], pa.float32()),
                                       mask=pa.array([True, False, False]))
-    out = gather_matrix(lambda shard: column, np.array([0]), np.array([2, 0, 1]), np.array([0, 2, 3]), 4, "x")
+    out = gather_matrix(lambda shard: column, [(0, np.array([2, 0, 1]), np.array([0, 2, 3]))], 4, "x")
     assert out[0].tolist() == [3.0, 4.0] and out[3].tolist() == [1.0, 2.0] and np.isnan(out[[1, 2]]).all()
 
 

@@ -1,14 +1,16 @@
 """List-of-number columns (embeddings, the candidates' scores) read as float32 matrices.
 
-`stacked` turns a gathered column into [n, d]; `gather_matrix` reads the rows the trainer asks for
-straight from each shard's memory-mapped values into one [n, d] array, without a take, a join and
-a conversion in between. Hand-written because the look-up runs every rollout: 2,048 states' 576-wide
-embeddings from a 20-shard cache took 10 ms through pyarrow's take (copies of the values at each
-step), 2 ms this way (docs/measured.md, the trainer's pace)."""
+`stacked` turns a gathered column into [n, d]; `gather_matrix` reads rows straight from each
+large shard's memory-mapped values into one [n, d] array, without a take, a join and a conversion
+in between. Hand-written because the look-up runs every rollout: 2,048 states' scores and 576-wide
+embeddings from the train benchmark's 20-shard cache took 13 ms through pyarrow's take and Python
+lists, 4.5 ms this way (docs/results/measured/trainer-pace.txt). Rows in small shards (live
+annotation's few-state shards) are still taken through pyarrow, by one take over those shards
+together (`AnnotationCache._gather`): a read per shard would cost more there."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -33,34 +35,40 @@ def stacked(column: pa.ChunkedArray | pa.Array, hit: np.ndarray, n: int, name: s
     return out
 
 
-def gather_matrix(column_of: Callable[[int], pa.Array], starts: np.ndarray, rows: np.ndarray, hit: np.ndarray,
+def gather_matrix(column_of: Callable[[int], pa.Array], groups: Sequence[tuple[int, np.ndarray, np.ndarray]],
                   n: int, name: str) -> np.ndarray:
-    """float32 [n, d] with row `hit[i]` holding global row `rows[i]`'s list of column `name` and NaN
-    rows elsewhere (absent, or null); `column_of(shard)` is a shard's column as one array, `starts`
-    each shard's first global row. One d for all rows read."""
-    if not len(rows):
-        return stacked(pa.array([], pa.list_(pa.float32())), hit, n, name)
-    shard_of = np.searchsorted(starts, rows, "right") - 1
-    local = rows - starts[shard_of]
+    """float32 [n, d] holding, for each (shard, local rows, out rows) of `groups`, the shard's list
+    values of column `name` at its local rows in those out rows, and NaN rows elsewhere (absent,
+    or null); `column_of(shard)` is a shard's column as one array. One d for all rows read."""
     parts, widths = [], set()
-    for shard in np.unique(shard_of).tolist():
-        sel = np.flatnonzero(shard_of == shard)
+    for shard, at, to in groups:
         arr = column_of(shard)
-        at = local[sel]
         offsets = arr.offsets.to_numpy()
         start, length = offsets[at], offsets[at + 1] - offsets[at]
         present = ~arr.is_null().to_numpy(zero_copy_only=False)[at] if arr.null_count else np.ones(len(at), bool)
         widths.update(np.unique(length[present]).tolist())
-        parts.append((sel[present], start[present], arr.values))
+        parts.append((to[present], start[present], arr.values))
     if len(widths) > 1:
         raise CacheError(f"{name} values of different sizes {sorted(widths)}; select one model's keys")
     d = widths.pop() if widths else 0
     out = np.full((n, d), np.nan, np.float32)
-    for sel, start, values in parts:
-        if d and len(sel):
+    for to, start, values in parts:
+        if d and len(to):
             flat = values.to_numpy(zero_copy_only=False)
             if len(flat) % d == 0 and not (start % d).any():  # rows aligned on d: one row copy each
-                out[hit[sel]] = flat.reshape(-1, d)[start // d]
+                out[to] = flat.reshape(-1, d)[start // d]
             else:
-                out[hit[sel]] = flat[start[:, None] + np.arange(d)]
+                out[to] = flat[start[:, None] + np.arange(d)]
     return out
+
+
+def merged(a: np.ndarray, b: np.ndarray, rows_b: np.ndarray, name: str) -> np.ndarray:
+    """`a` with `b`'s rows `rows_b` put in (the large shards' matrix and the small shards')."""
+    if not len(rows_b) or not b.shape[1]:
+        return a
+    if not a.shape[1]:  # no value among the large shards' rows
+        return b
+    if a.shape[1] != b.shape[1]:
+        raise CacheError(f"{name} values of different sizes {sorted({a.shape[1], b.shape[1]})}; select one model's keys")
+    a[rows_b] = b[rows_b]
+    return a

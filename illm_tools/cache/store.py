@@ -22,7 +22,7 @@ import pyarrow.compute as pc
 
 from illm_tools.cache import layout
 from illm_tools.cache.index import InvalidKeyError, KeyIndex, parse_keys
-from illm_tools.cache.matrices import gather_matrix, stacked
+from illm_tools.cache.matrices import gather_matrix, merged, stacked
 from illm_tools.errors import CacheError, SchemaError
 
 SETUP_COLUMNS = ("task", "template_version", "renderer", "model", "model_fingerprint", "decoding", "history_len")
@@ -207,9 +207,21 @@ class AnnotationCache:
         self._known(columns)
         rows, found = self._found(keys, task)
         hit = np.flatnonzero(found)
+        rows = rows[hit]
         starts = np.asarray(self._starts, np.int64)
-        return {"found": found, **{name: gather_matrix(lambda shard: _contiguous(self._table(shard).column(name)),
-                                                       starts, rows[hit], hit, len(found), name) for name in columns}}
+        shard_of = np.searchsorted(starts, rows, "right") - 1
+        large = np.asarray([s["rows"] >= OWN_TAKE for s in self._shards], bool)[shard_of] if len(rows) else np.zeros(0, bool)
+        order = np.argsort(shard_of[large], kind="stable")
+        at, to = (rows[large] - starts[shard_of[large]])[order], hit[large][order]
+        shards, first = np.unique(shard_of[large][order], return_index=True)
+        bounds = np.append(first, len(order))
+        groups = [(int(s), at[bounds[i]:bounds[i + 1]], to[bounds[i]:bounds[i + 1]]) for i, s in enumerate(shards)]
+        small = self._gather(rows[~large], columns)  # few-state shards: one take over them together
+        out: dict[str, Any] = {"found": found}
+        for name in columns:
+            big = gather_matrix(lambda shard: _contiguous(self._table(shard).column(name)), groups, len(found), name)
+            out[name] = merged(big, stacked(small.column(name), hit[~large], len(found), name), hit[~large], name)
+        return out
 
     def _known(self, columns: Sequence[str]) -> None:
         unknown = sorted(set(columns) - set(self.schema.names))
