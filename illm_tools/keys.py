@@ -80,12 +80,13 @@ def canonical_json(value: Any) -> str:
     )
 
 
+def key_text(value: Any) -> str:
+    """What a key hashes: the format tag, a newline, the canonical JSON of `value`."""
+    return f"{KEY_FORMAT}\n{canonical_json(value)}"
+
+
 def _digest(value: Any) -> str:
-    h = hashlib.sha256()
-    h.update(KEY_FORMAT.encode())
-    h.update(b"\n")
-    h.update(canonical_json(value).encode("utf-8"))
-    return h.hexdigest()
+    return hashlib.sha256(key_text(value).encode("utf-8")).hexdigest()
 
 
 def make_key(**named_inputs: Any) -> str:

@@ -19,7 +19,7 @@ import pyarrow.compute as pc
 from illm_tools.errors import CacheError
 
 
-def stacked(column: pa.ChunkedArray | pa.Array, hit: np.ndarray, n: int, name: str) -> np.ndarray:
+def stacked(column: pa.ChunkedArray, hit: np.ndarray, n: int, name: str) -> np.ndarray:
     """Stack a list<number> column's values (one per `hit` row) into float32 [n, d], NaN where
     absent or null; one d for all rows."""
     lengths = pc.unique(pc.list_value_length(column).drop_null()).to_pylist()
@@ -27,7 +27,7 @@ def stacked(column: pa.ChunkedArray | pa.Array, hit: np.ndarray, n: int, name: s
         raise CacheError(f"{name} values of different sizes {sorted(lengths)}; select one model's keys")
     d = lengths[0] if lengths else 0
     out = np.full((n, d), np.nan, np.float32)
-    arr = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    arr = column.combine_chunks()
     present = ~arr.is_null().to_numpy(zero_copy_only=False)
     if d and present.any():
         values = pc.list_flatten(arr.filter(pa.array(present))).to_numpy().astype(np.float32)

@@ -131,32 +131,38 @@ class AnnotationCache:
         checked once."""
         if not len(rows):
             return self.schema.empty_table().select(list(columns))
+        groups = self._by_shard(rows)
+        tables = {s: self._table(s) for s, _, _ in groups}  # a shard whose file changed is re-read and re-checked
+        large = [g for g in groups if self._shards[g[0]]["rows"] >= OWN_TAKE]
+        small = [g for g in groups if self._shards[g[0]]["rows"] < OWN_TAKE]
+        picks = [positions for _, positions, _ in large]  # positions in `rows`, piece by piece
+        if small:
+            offsets = np.cumsum([0] + [tables[s].num_rows for s, _, _ in small])
+            picks.append(np.concatenate([positions for _, positions, _ in small]))
+            small_index = np.concatenate([local + offsets[k] for k, (_, _, local) in enumerate(small)])
+        positions = np.concatenate(picks)
+        back = None if np.array_equal(positions, np.arange(len(rows))) else np.argsort(positions)
+        out = {}
+        for name in columns:
+            pieces = [_contiguous(tables[s].column(name)).take(pa.array(local)) for s, _, local in large]
+            if small:
+                chunks = [c for s, _, _ in small for c in tables[s].column(name).chunks]
+                pieces.append(pa.chunked_array(chunks, self.schema.field(name).type).take(pa.array(small_index))
+                              .combine_chunks())
+            joined = pa.concat_arrays(pieces) if len(pieces) > 1 else pieces[0]
+            out[name] = joined if back is None else joined.take(pa.array(back))
+        return pa.table(out, schema=pa.schema([self.schema.field(name) for name in columns]))
+
+    def _by_shard(self, rows: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """Global rows (all >= 0) grouped by the shard they fall in, in shard order: (shard, their
+        positions in `rows`, their rows within the shard)."""
         starts = np.asarray(self._starts, np.int64)
         shard_of = np.searchsorted(starts, rows, "right") - 1
         order = np.argsort(shard_of, kind="stable")
         shards, first = np.unique(shard_of[order], return_index=True)
         bounds = np.append(first, len(order))
         local = rows - starts[shard_of]
-        tables = [self._table(int(s)) for s in shards]  # a shard whose file changed is re-read and re-checked
-        large = [i for i, s in enumerate(shards) if self._shards[s]["rows"] >= OWN_TAKE]
-        small = [i for i, s in enumerate(shards) if self._shards[s]["rows"] < OWN_TAKE]
-        picks = [order[bounds[i]:bounds[i + 1]] for i in large]  # positions in `rows`, piece by piece
-        if small:
-            offsets = np.cumsum([0] + [tables[i].num_rows for i in small])
-            picks.append(np.concatenate([order[bounds[i]:bounds[i + 1]] for i in small]))
-            small_index = np.concatenate([local[order[bounds[i]:bounds[i + 1]]] + offsets[k] for k, i in enumerate(small)])
-        positions = np.concatenate(picks)
-        back = None if np.array_equal(positions, np.arange(len(rows))) else np.argsort(positions)
-        out = {}
-        for name in columns:
-            pieces = [_contiguous(tables[i].column(name)).take(pa.array(local[p])) for i, p in zip(large, picks)]
-            if small:
-                chunks = [c for i in small for c in tables[i].column(name).chunks]
-                pieces.append(pa.chunked_array(chunks, self.schema.field(name).type).take(pa.array(small_index))
-                              .combine_chunks())
-            joined = pa.concat_arrays(pieces) if len(pieces) > 1 else pieces[0]
-            out[name] = joined if back is None else joined.take(pa.array(back))
-        return pa.table(out, schema=pa.schema([self.schema.field(name) for name in columns]))
+        return [(int(s), order[bounds[i]:bounds[i + 1]], local[order[bounds[i]:bounds[i + 1]]]) for i, s in enumerate(shards)]
 
     def _found(self, keys, task: str | None) -> tuple[np.ndarray, np.ndarray]:
         rows = self._index.locate(keys)
@@ -207,20 +213,14 @@ class AnnotationCache:
         self._known(columns)
         rows, found = self._found(keys, task)
         hit = np.flatnonzero(found)
-        rows = rows[hit]
-        starts = np.asarray(self._starts, np.int64)
-        shard_of = np.searchsorted(starts, rows, "right") - 1
-        large = np.asarray([s["rows"] >= OWN_TAKE for s in self._shards], bool)[shard_of] if len(rows) else np.zeros(0, bool)
-        order = np.argsort(shard_of[large], kind="stable")
-        at, to = (rows[large] - starts[shard_of[large]])[order], hit[large][order]
-        shards, first = np.unique(shard_of[large][order], return_index=True)
-        bounds = np.append(first, len(order))
-        groups = [(int(s), at[bounds[i]:bounds[i + 1]], to[bounds[i]:bounds[i + 1]]) for i, s in enumerate(shards)]
-        small = self._gather(rows[~large], columns)  # few-state shards: one take over them together
+        groups = self._by_shard(rows[hit])
+        large = [(s, local, hit[at]) for s, at, local in groups if self._shards[s]["rows"] >= OWN_TAKE]
+        few = np.concatenate([at for s, at, _ in groups if self._shards[s]["rows"] < OWN_TAKE] or [np.zeros(0, np.int64)])
+        small = self._gather(rows[hit[few]], columns)  # few-state shards: one take over them together
         out: dict[str, Any] = {"found": found}
         for name in columns:
-            big = gather_matrix(lambda shard: _contiguous(self._table(shard).column(name)), groups, len(found), name)
-            out[name] = merged(big, stacked(small.column(name), hit[~large], len(found), name), hit[~large], name)
+            big = gather_matrix(lambda shard: _contiguous(self._table(shard).column(name)), large, len(found), name)
+            out[name] = merged(big, stacked(small.column(name), hit[few], len(found), name), hit[few], name)
         return out
 
     def _known(self, columns: Sequence[str]) -> None:

@@ -224,10 +224,7 @@ class Trainer:
         with `features` (the minibatch's, with gradient) in place of the stored ones; the LLM
         targets are among the rollout's extras when the run has them, and the bonus adds what it
         reads of the policy network (`policy_outputs`: iLLM's heads)."""
-        names = self.bonus.reads
-        if features is not None and names is not None:  # the minibatch's own: the stored ones not gathered
-            names = tuple(n for n in names if n != "features")
-        batch = ro.bonus_batch(rows, names)
+        batch = ro.bonus_batch(rows, self.bonus.reads)
         if features is not None:
             batch["features"] = features
         batch.update(self.bonus.policy_outputs(self.net, batch["features"]))

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from pathlib import Path
 
-from illm_tools.keys import KEY_FORMAT, canonical_json, make_key
+from illm_tools.keys import canonical_json, key_text, make_key
 from illm_tools.errors import UsageError
 from illm_tools.tasks.registry import DEFAULT_TASKS, LANGUAGE_TASKS, get_task  # noqa: F401
 from illm_tools.tasks.state import StateRecord
@@ -193,7 +193,7 @@ def neutral_prompt() -> str:
 # --- the keys of a state, without rendering its prompts -------------------------------------
 
 _SENTINEL = "\x00illm-history\x00"
-_KEY_MEMO_LIMIT = 200_000
+_FRAME_LIMIT = 200_000
 
 
 def _escaped(text: str) -> str:
@@ -201,81 +201,38 @@ def _escaped(text: str) -> str:
     return encode_basestring(text)[1:-1]
 
 
-class _Frame:
-    """One (task, mission, valid actions)'s prompt around its history, ready to hash: the hash
-    state through the first escaped piece, the escaped pieces after each history, and the key's tail."""
-
-    __slots__ = ("head", "pieces")
-
-    def __init__(self, head, pieces: list[bytes]):
-        self.head = head
-        self.pieces = pieces
-
-
 class StateKeys:
     """`keys(record, tasks)`: the cache keys of a state's tasks, as `PromptBuilder.state_keys` returns
-    them, computed without rendering its prompts; memoises its frames and escaped observations.
+    them, computed without rendering its prompts; memoises its frames.
 
     Hand-written for speed: the trainer keys every task of every step of every rollout (two keys a
     step by default), and rendering both prompts, writing their canonical JSON and hashing it was
-    most of a cached illm update's target look-up: 20.0 us a state that way, 4.85 this way, on a
-    2-core EPYC (benchmarks/keys.py, docs/results/measured/trainer-pace.txt).
-    The key is `make_key(setup=..., prompt=..., candidates=...)`: sha256 over the key format tag and
-    the canonical JSON `{"candidates":C,"prompt":P,"setup":S}`. Here
-
-    - each (task, mission, valid actions) renders its template once with a sentinel in place of the
-      history; the text around it, JSON-escaped, and the hash state up to the first history are
-      kept (`_Frame`);
-    - each observation text is escaped once (JSON escaping works character by character, so the
-      escape of a concatenation is the concatenation of the escapes), and a state's escaped history
-      is joined from its steps' pieces;
-    - a state's key copies its frame's hash state and feeds it the history and the text after it.
-
-    The result is byte for byte `PromptBuilder.key(PromptBuilder.render(task, record))` (the tests
-    compare them on awkward texts); a template whose history field this cannot place (none, or a
-    sentinel clash) takes that generic path.
+    most of a cached illm update's target look-up (benchmarks/keys.py; the figures are in
+    docs/results/measured/trainer-pace.txt). A key hashes `key_text` of (setup, prompt,
+    candidates). Here each (task, mission, valid actions) makes that text once with a sentinel for
+    the history (its frame: the hash state up to the first history, the escaped text after each
+    one), and a state's key copies the frame's hash and feeds it the state's escaped history (JSON
+    escaping works character by character, so the escape of the prompt is the escapes of its pieces
+    joined). The result is byte for byte `PromptBuilder.key(PromptBuilder.render(task, record))` (the
+    tests compare them on awkward texts); a prompt whose history this cannot place (a sentinel in
+    the mission, say) takes that generic path.
     """
 
     def __init__(self, builder):
         self.builder = builder
-        self._frames: dict[tuple, _Frame | None] = {}
-        self._texts: dict[str, str] = {}
+        self._frames: dict[tuple, tuple | None] = {}
 
-    def _frame(self, task: str, record: StateRecord) -> _Frame | None:
-        """The frame of the record's task, mission and actions; None where the template's history
-        cannot be placed (the caller renders the prompt instead)."""
+    def _frame(self, task: str, record: StateRecord) -> tuple | None:
+        """(hash state through the text before the first history, [escaped text after each history])
+        of the record's task, mission and actions; None where the history cannot be placed."""
         b = self.builder
-        spec = get_task(task)
-        template = template_text(b.template(task)[0], spec.template_dir)
-        fields = {"task": b.task_line(record), "history": _SENTINEL, "actions": ", ".join(record.valid_actions)}
-        text = template.format(**fields)
-        parts = text.split(_SENTINEL)
-        if len(parts) < 2 or template.count("{history}") != len(parts) - 1:
-            return None
-        candidates = ("[" + ",".join(encode_basestring(" " + a) for a in record.valid_actions) + "]"
-                      if spec.kind == "ranking" else "null")
-        head = hashlib.sha256(f'{KEY_FORMAT}\n{{"candidates":{candidates},"prompt":"{_escaped(parts[0])}'.encode())
-        tail = f'","setup":{encode_basestring(b.setup_key(task))}}}'
-        pieces = [_escaped(p).encode() for p in parts[1:]]
-        pieces[-1] += tail.encode()
-        return _Frame(head, pieces)
-
-    def _history(self, record: StateRecord) -> bytes:
-        """The escaped `format_history(record)`, joined from each text's escape (memoised)."""
-        texts = self._texts
-        if len(texts) > _KEY_MEMO_LIMIT:
-            texts.clear()
-        out = []
-        for i, (obs, act) in enumerate(record.history):
-            e = texts.get(obs)
-            if e is None:
-                e = texts[obs] = _escaped(one_line(obs))
-            out.append(f"\\nObservation {i}: {e}\\nAction {i}: {_escaped(act)}")
-        e = texts.get(record.observation)
-        if e is None:
-            e = texts[record.observation] = _escaped(one_line(record.observation))
-        out.append(f"\\nObservation {len(record.history)}: {e}")
-        return "".join(out).encode()
+        prompt = b.render(task, record, history=_SENTINEL)
+        text = key_text({"setup": b.setup_key(task), "prompt": prompt.text,
+                         "candidates": list(prompt.candidates) if prompt.candidates is not None else None})
+        parts = text.split(_escaped(_SENTINEL))
+        if len(parts) < 2 or len(parts) - 1 != template_text(b.template(task)[0], get_task(task).template_dir).count("{history}"):
+            return None  # no history field, or the sentinel elsewhere too
+        return hashlib.sha256(parts[0].encode()), [p.encode() for p in parts[1:]]
 
     def keys(self, record: StateRecord, tasks: Sequence[str]) -> tuple[str, ...]:
         history = None
@@ -284,16 +241,16 @@ class StateKeys:
             slot = (task, record.mission, record.valid_actions)
             frame = self._frames.get(slot, False)
             if frame is False:
-                if len(self._frames) > _KEY_MEMO_LIMIT:
+                if len(self._frames) > _FRAME_LIMIT:
                     self._frames.clear()
                 frame = self._frames[slot] = self._frame(task, record)
             if frame is None:
                 out.append(self.builder.task_key(task, record))
                 continue
             if history is None:
-                history = self._history(record)
-            h = frame.head.copy()
-            for piece in frame.pieces:
+                history = _escaped(format_history(record)).encode()
+            h = frame[0].copy()
+            for piece in frame[1]:
                 h.update(history)
                 h.update(piece)
             out.append(h.hexdigest())
