@@ -140,9 +140,19 @@ def register(app: typer.Typer) -> None:
 
         iLLM pays its bonus where those heads still disagree with the targets. Every setting of a run is
         an option named as its field; --resume reads them from the run folder."""
-        from illm_tools.rl.run import train as run
+        from illm_tools.rl.run import early_live_of_settings
 
         token = options.pop("annotator_token")
+        live = early_live_of_settings(options)  # before the config is built, which imports torch
+        try:
+            _train(ctx, options, token, live)
+        finally:
+            if live is not None:  # closed with the run, or here where the run never started
+                live.close()
+
+    def _train(ctx: typer.Context, options: dict, token: str | None, live) -> None:
+        from illm_tools.rl.run import train as run
+
         cfg = train_config(ctx, options)
         use_token(token, cfg.targets.annotator)
         out, method, env = cfg.run_dir, cfg.method, cfg.env_id
@@ -176,7 +186,7 @@ def register(app: typer.Typer) -> None:
                         fields["live_queue"] = f"{m['charts/live_queue']:.0f}"
                 advance(cfg.batch_size, m.get("charts/sps"), **fields)
 
-            result = run(cfg, on_metrics, should_stop=lambda: stop.requested)
+            result = run(cfg, on_metrics, should_stop=lambda: stop.requested, started=live)
         if result.get("already_done"):
             typer.echo(f"{out} is already at {result['global_step']:,} frames (--frames {cfg.total_steps:,}): nothing "
                        "to do; pass a larger --frames with --resume to train on")

@@ -172,7 +172,7 @@ def test_the_docs_model_table_and_illm_models_list_the_same_aliases():
 def test_frames_rounded_to_whole_rollouts_is_said(tmp_path, monkeypatch):
     import illm_tools.rl.run as run_module
 
-    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None: {"global_step": 0})
+    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None, started=None: {"global_step": 0})
     out = runner.invoke(app, ["train", "--method", "ppo", "--frames", "1000", "--out", str(tmp_path / "r")])
     assert "--frames 1,000 is not a whole number of rollouts" in out.output and "the run trains 2,048 frames" in out.output
 
@@ -194,7 +194,7 @@ def test_every_train_setting_is_an_option_named_as_its_field_with_its_default(tm
     assert wrong.exit_code == 1 and "the method is --method" in wrong.output
     assert {"--frames", "--out", "--method", "--env", "--history", "--dtype", "--bonus-option"} <= opts
     seen = []
-    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None: seen.append(cfg) or {})
+    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None, started=None: seen.append(cfg) or {})
     out = runner.invoke(app, ["train", "--out", str(tmp_path / "r"), "--method", "ppo", "--no-anneal-lr",
                               "--clip-coef", "0.1", "--env-option", "num_dists=4", "--target-kl", "0.02"])
     assert out.exit_code == 0, out.output

@@ -255,6 +255,28 @@ def test_async_worker_rows_reach_a_later_rollout_and_a_killed_worker_leaves_the_
 
 
 @pytest.mark.slow
+def test_a_worker_started_before_its_spec_answers_once_configured_and_one_never_configured_closes(tmp_path, tiny_lm):
+    """`illm train` starts its worker before the run is configured: it preloads, then takes its spec."""
+    llm = LLMSpec(model=tiny_lm.spec.path, dtype="float32")
+    idle = AsyncLive(budget=4, early=llm)  # a run refused before it was configured: closed at once
+    idle.close()
+    idle.close()  # twice does nothing
+    assert idle.exitcode is not None and idle.stats()["live_queue"] == 0
+    cache = AnnotationCache(tmp_path / "ann")
+    live = AsyncLive(budget=4, early=llm)
+    live.configure(WorkerSpec(cache=str(cache.root), llm=llm, setup=AnnotationSetup(ENV, "babyai-text@1", history_len=0),
+                              threads=1, batch_size=4, chunk=2), budget=3)
+    try:
+        live.submit([state(k) for k in range(1, 7)])  # the budget the run configured: 3 of them
+        assert _wait(lambda: AnnotationCache(cache.root).__len__() >= 6)  # two tasks a state
+        assert _wait(lambda: live._queued.value == 0 and live._done.value == 3, 30)
+        assert 0 < live.stats()["live_worker_startup_s"] <= live.stats()["live_first_answer_s"]
+    finally:
+        live.close()
+    assert live.landed() == 3 and verify(cache.root).ok
+
+
+@pytest.mark.slow
 def test_train_with_async_live_annotation_logs_its_queue(tmp_path, tiny_lm):
     traj, cache = tmp_path / "traj", tmp_path / "ann"
     collect(CollectConfig(env_id=ENV, out=traj, steps=64, num_envs=4, seed=1))

@@ -191,7 +191,7 @@ def test_train_cli_passes_preset_coefficients_and_action_target(tmp_path, monkey
     from cli.main import app
 
     seen = []
-    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None: seen.append(cfg) or {})
+    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None, started=None: seen.append(cfg) or {})
     result = CliRunner().invoke(app, ["train", "--method", "ppo", "--out", str(tmp_path / "r"), "--frames", "64",
                                       "--bonus-preset", "rnd", "--int-coef", "0.5", "--action-target", "argmax"])
     assert result.exit_code == 0, result.output

@@ -41,13 +41,14 @@ def fake_training(monkeypatch, coverage: float, live: float = 0.0, at_close: int
     written by the worker while the run shut down."""
     import illm_tools.rl.run as run_module
 
-    def train(cfg, on_metrics=None, should_stop=None):
+    def train(cfg, on_metrics=None, should_stop=None, started=None):
         on_metrics({"global_step": cfg.batch_size, "charts/target_coverage": coverage,
                     "charts/live_annotations": live, "charts/score": 0.0,
                     **({"charts/live_first_answer_s": first} if first is not None else {})})
         return {"global_step": cfg.batch_size, "live_at_close": at_close}
 
     monkeypatch.setattr(run_module, "train", train)
+    monkeypatch.setattr(run_module, "early_live_of_settings", lambda settings: None)  # no worker for a stand-in run
 
 
 def train_args(tmp_path, cache):
@@ -104,12 +105,12 @@ def test_the_live_count_includes_what_the_worker_writes_while_shutting_down(tmp_
             pass
 
     class Worker(AsyncLive):
-        def _start(self):
+        def _start(self, early=None):
             self.started_at = 0.0
             self._inbox, self._errors, self._stop = self._ctx.Queue(), self._ctx.Queue(), self._ctx.Event()
             self.process = Stopping(self._done)
 
-    live = Worker(spec=None, budget=4)
+    live = Worker(spec="the run's", budget=4)  # started with its spec: closing waits for its last chunk
     live._done.value = 3  # landed during the run's last rollout, after its count
     targets = CachedTargets(None, None, calibration="sum", num_actions=3, embedding_dim=0, live=live)
     targets.close()
@@ -125,13 +126,14 @@ def test_the_live_count_includes_what_the_worker_writes_while_shutting_down(tmp_
 def test_train_says_how_the_target_share_moved_from_the_first_rollout_to_the_last(tmp_path, monkeypatch):
     import illm_tools.rl.run as run_module
 
-    def train(cfg, on_metrics=None, should_stop=None):
+    def train(cfg, on_metrics=None, should_stop=None, started=None):
         for update, share in enumerate((0.25, 0.5), 1):  # the live fallback's answers land between rollouts
             on_metrics({"global_step": update * cfg.batch_size, "charts/target_coverage": share,
                         "charts/live_annotations": 3.0, "charts/score": 0.0})
         return {"global_step": 2 * cfg.batch_size, "live_at_close": 0}
 
     monkeypatch.setattr(run_module, "train", train)
+    monkeypatch.setattr(run_module, "early_live_of_settings", lambda settings: None)  # no worker for a stand-in run
     args = train_args(tmp_path, tmp_path / "ann")
     args[args.index("--frames") + 1] = 128
     out = invoke(*args)

@@ -1,7 +1,8 @@
-"""The async live worker starts first: before the env pool, the provider's checks and the network
-(`illm_tools.rl.run.build_run`), so its start-up runs beside theirs; a run refused after it started
-leaves no worker behind; and its first shards are small, so the first answer lands soon after the
-model is loaded."""
+"""The async live worker starts first: `illm train` starts it from its options before the config is
+built (which imports torch), `build_run` before the env pool, the provider's checks and the network,
+so its start-up runs beside theirs; it gets its spec once the run is configured; a run refused after
+it started, or whose config turns out not to want it, leaves no worker behind; and its first shards
+are small, so the first answer lands soon after the model is loaded."""
 
 from __future__ import annotations
 
@@ -21,14 +22,18 @@ def _config(tmp_path, **settings) -> TrainConfig:
 
 
 class Worker:
-    """Stands in for `AsyncLive`: records when it starts and whether it is closed."""
+    """Stands in for `AsyncLive`: records when it starts, its spec and whether it is closed."""
 
     made: list = []
 
-    def __init__(self, spec, *, budget, max_restarts=3):
-        self.spec, self.budget, self.closed = spec, budget, False
+    def __init__(self, spec=None, *, budget, max_restarts=3, early=None):
+        self.spec, self.budget, self.early, self.closed = spec, budget, early, False
         Worker.made.append(self)
         EVENTS.append("worker")
+
+    def configure(self, spec, *, budget):
+        assert self.spec is None and not self.closed
+        self.spec, self.budget = spec, budget
 
     def landed(self):
         return 0
@@ -86,3 +91,58 @@ def test_the_workers_shards_grow_from_one_state_to_its_chunk():
     assert [first_chunks(8, k) for k in range(6)] == [1, 2, 4, 8, 8, 8]
     assert [first_chunks(1, k) for k in range(3)] == [1, 1, 1]
     assert first_chunks(8, 10**6) == 8
+
+
+def _settings(tmp_path, **given) -> dict:
+    """`illm train`'s options as typed (flat names; None: not given)."""
+    return {"env_id": ENV, "run_dir": str(tmp_path / "run"), "method": "illm", "cache": str(tmp_path / "ann"),
+            "live_mode": "async", "live_budget": "8", "annotator": None, "backend": None, "model": None,
+            "resume": False, **given}
+
+
+def test_illm_train_starts_the_worker_from_its_options_with_the_model_it_preloads(tmp_path, fake_worker):
+    from illm_tools.rl.run import early_live_of_settings
+
+    worker = early_live_of_settings(_settings(tmp_path))
+    assert worker is fake_worker.made[0] and worker.spec is None  # its spec comes once the run is configured
+    assert worker.early.model == "smollm2-135m" and worker.budget == 8
+
+
+@pytest.mark.parametrize("given", [dict(resume=True), dict(live_budget="0"), dict(live_mode="sync"),
+                                   dict(method="ppo"), dict(cache=None), dict(backend="oracle"),
+                                   dict(annotator="http://127.0.0.1:1"), dict(live_mode="later")])
+def test_no_worker_from_options_that_do_not_ask_for_one(tmp_path, fake_worker, given):
+    from illm_tools.rl.run import early_live_of_settings
+
+    assert early_live_of_settings(_settings(tmp_path, **given)) is None and not fake_worker.made
+
+
+def test_a_worker_the_config_does_not_want_is_closed_and_a_wanted_one_configured(tmp_path, fake_worker):
+    from illm_tools.rl.run import build_run, early_live_of_settings
+
+    unwanted = early_live_of_settings(_settings(tmp_path, method="rnd"))  # rnd reads no LLM targets
+    with build_run(_config(tmp_path, method="rnd"), started=unwanted) as trainer:
+        assert unwanted.closed and trainer.provider is None
+    wanted = early_live_of_settings(_settings(tmp_path))
+    with build_run(_config(tmp_path), started=wanted) as trainer:
+        assert trainer.provider.live is wanted and wanted.spec.setup.history_len == 0 and wanted.budget == 8
+    assert wanted.closed and len(fake_worker.made) == 2
+
+
+def test_nothing_before_the_workers_start_imports_torch():
+    """What `illm train` runs before it starts the worker imports no torch (0.9 s of this
+    process's start the worker's own imports run beside)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "import cli.main\n"
+            "from illm_tools.rl.run import early_live_of_settings\n"
+            "made = []\n"
+            "import illm_tools.rl.live as live\n"
+            "live.AsyncLive = lambda **kw: made.append(kw) or 'worker'\n"
+            "assert early_live_of_settings(dict(method='illm', cache='ann', live_mode='async', live_budget='8')) == 'worker'\n"
+            "assert 'torch' not in sys.modules, 'torch imported'\n"
+            "assert made[0]['early'].model == 'smollm2-135m'\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -30,7 +30,8 @@ def _captured(monkeypatch) -> list:
     import illm_tools.rl.run as run_module
 
     seen = []
-    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None: seen.append(cfg) or {})
+    monkeypatch.setattr(run_module, "train", lambda cfg, on_metrics=None, should_stop=None, started=None: seen.append(cfg) or {})
+    monkeypatch.setattr(run_module, "early_live_of_settings", lambda settings: None)  # no worker for a stand-in run
     return seen
 
 

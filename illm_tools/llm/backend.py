@@ -21,9 +21,10 @@ benchmarks of everything around the LLM; `oracle` (`illm_tools.llm.oracle`) answ
 MiniGrid prompts as a player who knows the game, the positive control. Another backend is one new
 file plus one entry here.
 
-Optional, on a backend class: `default_model` (the model when none is named: `resolve_model`) and
+Optional, on a backend class: `default_model` (the model when none is named: `resolve_model`),
 `check_use(env_id, renderer)` (refuse, in one line, envs or hop states it cannot read:
-`check_backend_use`).
+`check_backend_use`) and `preload(model, cache_dir=)` (import what its `load` will, reading no
+weights: `preload_backend`, for a live worker started before its run is configured).
 """
 from __future__ import annotations
 
@@ -226,6 +227,14 @@ def load_backend(name: str, model: str, *, dtype: str = "auto", quant: str = "no
     engine = {"batch_tokens": batch_tokens} if batch_tokens is not None else {}
     return backend_class(name).load(model, dtype=backend_dtype(name, dtype, device), quant=quant, device=device,
                                     cache_dir=cache_dir, **engine)
+
+
+def preload_backend(name: str, model: str, *, cache_dir: str | None = None) -> None:
+    """Import what `load_backend(name, model)` will, reading no weights (the backend's optional
+    `preload`; a backend without one has nothing worth doing ahead)."""
+    preload = getattr(backend_class(name), "preload", None)
+    if preload is not None:
+        preload(model, cache_dir=cache_dir)
 
 
 def backend_fingerprint(name: str, model: str, *, dtype: str = "auto", quant: str = "none") -> dict:

@@ -131,6 +131,14 @@ class LLMSpec:
             return load_backend(spec.backend, spec.model, dtype=spec.dtype, quant=spec.quant, device=spec.device,
                                 cache_dir=cache_dir, batch_tokens=self.batch_tokens)
 
+    def preload(self, cache_dir: str | None = None) -> None:
+        """Import what `load` will, reading no weights and measuring nothing (the device and dtype
+        need not be placed yet: `illm_tools.llm.backend.preload_backend`)."""
+        from illm_tools.llm.backend import preload_backend
+
+        with self._downloads():
+            preload_backend(self.backend, self.model, cache_dir=cache_dir)
+
     def check_use(self, env_id: str, renderer: str) -> None:
         """Refuse in one line an env (or hop states) the backend cannot read (the oracle: hop)."""
         from illm_tools.llm.backend import check_backend_use

@@ -36,6 +36,12 @@ class TransformersBackend:
                               batch_tokens=batch_tokens))
 
     @staticmethod
+    def preload(model: str, *, cache_dir: str | os.PathLike | None = None) -> None:
+        from illm_tools.llm.loading import preload
+
+        preload(model, cache_dir=cache_dir)
+
+    @staticmethod
     def model_fingerprint(model: str, *, dtype: str = "bfloat16", quant: str = "none") -> dict:
         from illm_tools.llm import loading
 

@@ -15,12 +15,15 @@ counted over the run so far, `illm_tools.rl.targets`) and write their answers th
   rollout. A worker that dies is restarted (at most `max_restarts` times, each logged as one
   line); after that the run goes on with the targets the cache has. The worker is a spawned
   process (not forked: a forked torch with live OpenMP threads can hang) with its own torch
-  thread count, one core of a 2-core machine by default. A run starts it first, before its env
-  pool and its network (`illm_tools.rl.run.build_run`), so its start-up (spawn, imports, the model
-  loaded from the de-quantised safetensors, memory-mapped) runs beside theirs; it is logged as
-  `live_worker_startup_s`. Its first shards are small (1 state, then 2, 4, ... up to `chunk`), so
-  the first answer lands about one state's annotation after the model is loaded, logged as
-  `live_first_answer_s` (from the worker's spawn, the run's first step). Still, no answer lands
+  thread count, one core of a 2-core machine by default. `illm train` starts it first, from its
+  options, before this process imports torch (`illm_tools.rl.run.early_live_of_settings`): it
+  imports torch and transformers' loading code while the trainer builds its config, env pool and
+  network, takes its spec once the run is configured, then loads the model from the de-quantised
+  safetensors, memory-mapped; its start-up is logged as `live_worker_startup_s`. Its first shards
+  are small (1 state, then 2, 4, ... up to `chunk`), so the first answer lands about one state's
+  annotation after the model is loaded, logged as `live_first_answer_s` (from the worker's spawn,
+  a third of a second into `illm train`). On 2 CPU cores with SmolLM2 that is about 4.5 s: an
+  8,192-frame run of the demo's level gets 2 states in its last two rollouts. No answer lands
   before the model is loaded, so a run of a few rollouts gets few live targets in this mode
   (`--live-budget all` promises every step only with sync; `illm train` says so before such a run
   starts).
@@ -103,17 +106,33 @@ def first_chunks(chunk: int, written: int) -> int:
     return max(1, min(chunk, 1 << min(written, 30)))
 
 
-def _worker_main(spec: WorkerSpec, inbox, stop, queued, done, errors, ready, first) -> None:  # pragma: no cover
+def _worker_main(spec: WorkerSpec | None, early, setup, inbox, stop, queued, done, errors, ready,
+                 first) -> None:  # pragma: no cover - runs in the child
     """The worker process. Ctrl-C reaches the whole process group: the worker ignores it and
     stops when the trainer sets `stop`. An error goes back to the trainer as one line."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
+        if spec is None:  # started before the run was configured: its imports first, then its spec
+            early.preload()
+            spec = _configured(setup, stop)
+            if spec is None:
+                return
         _work(spec, inbox, stop, queued, done, ready, first)
     except Exception as e:  # noqa: BLE001 - reported to the trainer, which logs it as one line
         errors.put(f"{type(e).__name__}: {e}")
         raise SystemExit(1) from None
+
+
+def _configured(setup, stop) -> WorkerSpec | None:  # pragma: no cover - runs in the child
+    """The spec `AsyncLive.configure` sends, or None when the trainer stops the worker first."""
+    while not stop.is_set():
+        try:
+            return setup.get(timeout=0.2)
+        except queue.Empty:
+            continue
+    return None
 
 
 def _work(spec: WorkerSpec, inbox, stop, queued, done, ready, first) -> None:  # pragma: no cover - runs in the child
@@ -158,25 +177,42 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done, ready, first) -> None:  #
 
 
 class AsyncLive:
-    """A worker process that annotates the trainer's missed states while the rollouts go on."""
+    """A worker process that annotates the trainer's missed states while the rollouts go on.
+
+    Made with its `spec`, the worker starts loading at once. Made with `early` (the run's LLM, not
+    yet placed) instead, it starts before the run is configured: it imports what loading the model
+    will (`LLMSpec.preload`), then waits for `configure(spec)` (`illm_tools.rl.run.train` starts it
+    before the trainer imports torch)."""
 
     waits = False
 
-    def __init__(self, spec: WorkerSpec, *, budget: int | None, max_restarts: int = 3):
+    def __init__(self, spec: WorkerSpec | None = None, *, budget: int | None, max_restarts: int = 3,
+                 early: LLMSpec | None = None):
+        if (spec is None) == (early is None):
+            raise ValueError("AsyncLive takes its spec, or the LLM it preloads until `configure` sends the spec")
         self.spec, self.budget, self.max_restarts = spec, budget, max_restarts
         self._ctx = mp.get_context("spawn")
         self._queued = self._ctx.Value("l", 0)
         self._done = self._ctx.Value("l", 0)
         self._ready = self._ctx.Value("d", 0.0)
         self._first = self._ctx.Value("d", 0.0)
+        self._setup = self._ctx.Queue()
         self._reported = 0
         self.restarts = 0
         self.failed = False
-        self._start()
+        self._start(early)
         self.opened_at = self.started_at
-        """When the first worker was spawned (the run's start: `build_run` starts it first)."""
+        """When the first worker was spawned (the run's start: `train` starts it first)."""
 
-    def _start(self) -> None:
+    def configure(self, spec: WorkerSpec, *, budget: int | None) -> None:
+        """Send an early-started worker its spec (it loads the model once its imports are done) and
+        set the run's budget."""
+        if self.spec is not None:
+            raise ValueError("this live worker was started with its spec already")
+        self.spec, self.budget = spec, budget
+        self._setup.put(spec)
+
+    def _start(self, early: LLMSpec | None = None) -> None:
         import time
 
         self.started_at = time.time()
@@ -185,7 +221,8 @@ class AsyncLive:
         self._errors = self._ctx.Queue()
         self._stop = self._ctx.Event()
         self.process = self._ctx.Process(target=_worker_main, name="illm-live-annotation", daemon=True,
-                                         args=(self.spec, self._inbox, self._stop, self._queued, self._done,
+                                         args=(self.spec if early is None else None, early, self._setup,
+                                               self._inbox, self._stop, self._queued, self._done,
                                                self._errors, self._ready, self._first))
         self.process.start()
 
@@ -233,13 +270,16 @@ class AsyncLive:
 
     def close(self, timeout: float = 30.0) -> None:
         """Ask the worker to stop after its current chunk (written whole or not at all); end it
-        if it does not within `timeout` seconds. Every shard it wrote stays valid."""
+        if it does not within `timeout` seconds (at once if it never got its spec: it has written
+        nothing). Every shard it wrote stays valid. Closing twice does nothing."""
+        if not hasattr(self, "_stop"):
+            return
         self._stop.set()
-        self.process.join(timeout)
+        self.process.join(timeout if self.spec is not None else 0.0)
         if self.process.is_alive():
             self.process.terminate()
             self.process.join(5.0)
-        for q in (self._inbox, self._errors):
+        for q in (self._inbox, self._errors, self._setup):
             q.close()
             q.cancel_join_thread()  # a worker gone without reading leaves data in the pipe: do not wait for it
         self.exitcode = self.process.exitcode  # the process object is closed below: what it ended with stays
@@ -248,7 +288,7 @@ class AsyncLive:
         # run after the resource tracker's check, which then warns about "leaked semaphore objects".
         self._last_stats = self.stats()
         self._final_done = self._done.value  # the worker's last chunk, written while it stopped, is counted
-        for name in ("_inbox", "_errors", "_stop", "_queued", "_done", "_ready", "_first"):
+        for name in ("_inbox", "_errors", "_setup", "_stop", "_queued", "_done", "_ready", "_first"):
             delattr(self, name)
         import gc
 

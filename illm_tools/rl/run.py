@@ -3,9 +3,10 @@ live model when a budget is given), and the trainer; plus evaluation of a finish
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -74,20 +75,64 @@ def make_provider(cfg: TrainConfig, num_actions: int, started=None):
 
 
 def early_live(cfg: TrainConfig):
-    """The async live worker of a run that has one, started now, or None: `build_run` starts it
-    before anything else, so that its start-up (spawn, imports, the model loaded) runs beside the
-    env pool's, the provider's checks and the network's, and `make_provider` takes it over (or it
-    is closed with the run). Not for an engine's model (`--backend openai`): the run first checks
-    that the engine answers (`model_identity`), and a worker for an engine starts in no time."""
-    if not cfg.needs_targets or cfg.targets.cache is None or cfg.llm.endpoint is not None or live_kind(cfg) != "async":
+    """The async live worker of a run that has one (`wants_worker`), started now, or None:
+    `build_run` starts it before the env pool, the provider's checks and the network, unless
+    `early_live_of_settings` started it sooner still. It imports what loading the model will
+    (`LLMSpec.preload`) until `build_run` sends it its spec (the LLM placed, `configure`); then
+    `make_provider` takes it over, or it is closed with the run."""
+    if not wants_worker(cfg):
         return None
-    return _async_live(cfg, cfg.llm, cfg.annotation_setup)
+    from illm_tools.rl.live import AsyncLive
+
+    return AsyncLive(budget=cfg.targets.live_limit, early=cfg.llm)
 
 
-def live_kind(cfg: TrainConfig) -> str | None:
-    """Which live annotator the run's settings ask for: None (no live budget), "remote" (an `illm
-    serve` server, `--annotator`), "async" (a worker process) or "sync" (in the trainer's process)."""
-    t = cfg.targets
+def early_live_of_settings(settings: Mapping[str, Any]):
+    """`early_live` before the run's config exists, from its flat settings as typed (`illm train`'s
+    options): building the config imports the method's bonus and with it torch (0.9 s on 2 cores),
+    which the worker's own imports can run beside. A guess from what the settings say: a resumed run
+    (its settings are in its folder) or settings that do not parse get none here (`build_run` starts
+    one where the config wants it), and a worker the config turns out not to want (a method that
+    reads no LLM targets) is closed by `build_run` at once, having only imported. The model it
+    preloads is the one typed; a cache's adopted setup (`adopt_setup`) reaches it with its spec."""
+    from illm_tools.intrinsic.registry import get_method
+    from illm_tools.llm.spec import LLMSpec
+    from illm_tools.rl.run_parts import TargetsConfig
+
+    if settings.get("resume"):
+        return None
+    given = {k: v for k, v in settings.items() if v is not None}
+    try:
+        targets = TargetsConfig(**{k: given[k] for k in ("cache", "live_budget", "live_mode", "annotator") if k in given})
+        llm = LLMSpec(**{k: given[k] for k in ("backend", "model") if k in given})
+        bonus = get_method(given.get("method", TrainConfig.__dataclass_fields__["method"].default)).entry_point
+    except IllmError:  # the config's own checks say what is wrong
+        return None
+    if not _wanted(bonus is not None, targets, llm.backend):
+        return None
+    from illm_tools.rl.live import AsyncLive
+
+    return AsyncLive(budget=targets.live_limit, early=llm)
+
+
+def wants_worker(cfg: TrainConfig) -> bool:
+    """Whether the run's live annotator is an async worker worth starting early (`_wanted`)."""
+    return _wanted(cfg.needs_targets, cfg.targets, cfg.llm.backend)
+
+
+def _wanted(needs_targets: bool, targets, backend: str) -> bool:
+    """An async worker (`live_kind`) of a run that reads targets from a cache, whose backend computes
+    here (not the oracle, nor an engine's model: their workers start in no time, and an engine is
+    first checked, `model_identity`)."""
+    from illm_tools.llm.backend import backend_class
+
+    return (needs_targets and targets.cache is not None and live_kind(targets) == "async"
+            and getattr(backend_class(backend), "computes", True))
+
+
+def live_kind(t) -> str | None:
+    """Which live annotator a run's `TargetsConfig` asks for: None (no live budget), "remote" (an
+    `illm serve` server, `--annotator`), "async" (a worker process) or "sync" (in the trainer's process)."""
     if t.live_budget == 0:
         return None
     if t.annotator is not None:
@@ -95,18 +140,24 @@ def live_kind(cfg: TrainConfig) -> str | None:
     return "async" if t.live_mode == "async" else "sync"
 
 
-def _async_live(cfg: TrainConfig, llm, setup):
-    from illm_tools.rl.live import AsyncLive, WorkerSpec
+def worker_spec(cfg: TrainConfig, llm, setup):
+    """What the run's async worker needs: its cache, LLM (placed), annotation setup and threads."""
+    from illm_tools.rl.live import WorkerSpec
 
-    spec = WorkerSpec(cache=str(cfg.targets.cache), llm=llm, setup=setup, threads=cfg.targets.live_threads(cfg.threads))
-    return AsyncLive(spec, budget=cfg.targets.live_limit)
+    return WorkerSpec(cache=str(cfg.targets.cache), llm=llm, setup=setup, threads=cfg.targets.live_threads(cfg.threads))
+
+
+def _async_live(cfg: TrainConfig, llm, setup):
+    from illm_tools.rl.live import AsyncLive
+
+    return AsyncLive(worker_spec(cfg, llm, setup), budget=cfg.targets.live_limit)
 
 
 def make_live(cfg: TrainConfig, llm, setup, cache, started=None):
     """The live annotator of a run (`illm_tools.rl.live`) for its LLM (placed) and annotation setup,
     or None with no live budget; sync writes through `cache`, the object the targets are read from;
     async is `started` (`early_live`'s worker) where the run started it."""
-    kind = live_kind(cfg)
+    kind = live_kind(cfg.targets)
     if kind is None:
         return None
     from illm_tools.rl.live import SyncLive
@@ -129,13 +180,24 @@ RUN_LOCK = ".lock"
 
 
 def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
-          should_stop: Callable[[], bool] | None = None) -> dict:
+          should_stop: Callable[[], bool] | None = None, started=None) -> dict:
     """Build and run a training run to cfg.total_steps; returns the last update's metrics
     (`Trainer.train`: `should_stop` ends it early with a checkpoint), with `resumed_at` (the frames of
     the checkpoint a resumed run started from) and `live_at_close`. The run resolves its config
     here, once (a resumed run's recorded choices kept: `with_recorded_choices`), and reads its saved
     run once, its checkpoint under the run folder's lock (a second `illm train` of the same folder, a
-    re-submitted cluster job or a second terminal, stops at once instead of interleaving checkpoints)."""
+    re-submitted cluster job or a second terminal, stops at once instead of interleaving checkpoints).
+    An async live worker is started first of all (`early_live`), unless the caller started it
+    (`started`: `early_live_of_settings`); it is closed with the run either way."""
+    live = started if started is not None else early_live(cfg)  # its imports run beside this process's
+    try:
+        return _train(cfg, on_metrics, should_stop, live)
+    finally:
+        if live is not None:  # a run refused before its provider took the worker (closing twice does nothing)
+            live.close()
+
+
+def _train(cfg: TrainConfig, on_metrics, should_stop, live) -> dict:
     from illm_tools import durable
     from illm_tools.folders import refuse_foreign
     from illm_tools.rl.saved import read_run, with_recorded_choices
@@ -152,7 +214,7 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
             with durable.exclusive(cfg.run_dir / RUN_LOCK, busy=f"{cfg.run_dir} is being trained by another process; "
                                    "wait for it to end (or stop it), then pass --resume to continue the run"):
                 checkpoint = saved.checkpoint if saved is not None else None
-                with build_run(cfg, on_metrics, checkpoint) as trainer:
+                with build_run(cfg, on_metrics, checkpoint, started=live) as trainer:
                     result = trainer.train(should_stop)
             # what the live annotator wrote while the run shut down (its worker's last chunk), counted once closed
             return {**result, "live_at_close": int(getattr(trainer.provider, "landed_at_close", 0)),
@@ -166,17 +228,22 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
 
 @contextmanager
 def build_run(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
-              checkpoint: dict | None = None) -> Iterator:
+              checkpoint: dict | None = None, started=None) -> Iterator:
     """The whole run assembled from its resolved config (`TrainConfig.resolved`), in one place: the
     env pool (`make_pool`), the method's target provider with its live annotator (`make_provider`),
     then the trainer, which builds the network, the bonus and the state sources and restores
     `checkpoint` (a resumed run's, read by `train`). An async live worker is started before all of
-    them (`early_live`). Yields the `Trainer`; closes the pool and the provider (its live worker)
+    them (`early_live`), unless `train` already started it (`started`); here it is configured. Yields the `Trainer`; closes the pool and the provider (its live worker)
     on the way out, also when a later piece is refused."""
     from illm_tools.rl.ppo import Trainer
 
-    live, pool, provider = early_live(cfg), None, None
+    live, pool, provider = started if started is not None else early_live(cfg), None, None
     try:
+        if live is not None and not wants_worker(cfg):  # started from settings the resolved config changed
+            live.close()
+            live = None
+        if live is not None:
+            live.configure(worker_spec(cfg, cfg.llm, cfg.annotation_setup), budget=cfg.targets.live_limit)
         pool = make_pool(cfg, int(checkpoint["global_step"]) if checkpoint is not None else 0)
         provider = make_provider(cfg, len(pool.action_names), started=live)
         yield Trainer(cfg, pool, provider, on_metrics=on_metrics, checkpoint=checkpoint)

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 
-import torch
-
 
 @contextmanager
 def torch_threads(n: int):
-    """Run the block with `n` torch threads, then restore the count."""
+    """Run the block with `n` torch threads, then restore the count. Torch is imported here, not
+    with the module: a run starts its live worker before this process imports torch
+    (`illm_tools.rl.run.train`)."""
+    import torch
+
     before = torch.get_num_threads()
     torch.set_num_threads(n)
     try:
