@@ -146,3 +146,20 @@ def test_nothing_before_the_workers_start_imports_torch():
             "assert made[0]['early'].model == 'smollm2-135m'\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_a_preload_imports_the_models_own_code_and_leaves_a_missing_model_to_the_load(tiny_lm_gpt2):
+    """What an early worker does before its spec: the model's modeling module imported (read from
+    its config); a model not here is left to `load`, which says what is wrong (`LLMSpec.preload`
+    downloads nothing, whatever the run's download settings)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "from illm_tools.llm.spec import LLMSpec\n"
+            "LLMSpec(model='illm-tests/no-such-model').preload()\n"
+            "assert 'transformers.models.gpt2.modeling_gpt2' not in sys.modules\n"
+            f"LLMSpec(model={str(tiny_lm_gpt2.spec.path)!r}, dtype='float32').preload()\n"
+            "assert 'transformers.models.gpt2.modeling_gpt2' in sys.modules\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]

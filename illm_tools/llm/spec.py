@@ -132,11 +132,13 @@ class LLMSpec:
                                 cache_dir=cache_dir, batch_tokens=self.batch_tokens)
 
     def preload(self, cache_dir: str | None = None) -> None:
-        """Import what `load` will, reading no weights and measuring nothing (the device and dtype
-        need not be placed yet: `illm_tools.llm.backend.preload_backend`)."""
+        """Import what `load` will, reading no weights, downloading nothing and measuring nothing
+        (the device and dtype need not be placed yet: `illm_tools.llm.backend.preload_backend`); a
+        hub model not here yet is left to `load`, under the run's own download settings."""
+        from illm_tools.llm import hub
         from illm_tools.llm.backend import preload_backend
 
-        with self._downloads():
+        with hub.no_downloads("a preload downloads nothing"):
             preload_backend(self.backend, self.model, cache_dir=cache_dir)
 
     def check_use(self, env_id: str, renderer: str) -> None:
