@@ -163,3 +163,42 @@ def test_a_preload_imports_the_models_own_code_and_leaves_a_missing_model_to_the
             "assert 'transformers.models.gpt2.modeling_gpt2' in sys.modules\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+def _running(pid: int) -> bool:
+    """Whether process `pid` still runs (a zombie nobody reaped has ended)."""
+    from pathlib import Path
+
+    status = Path(f"/proc/{pid}/status")
+    try:
+        return "\nState:\tZ" not in status.read_text()
+    except OSError:
+        return False
+
+
+def test_a_worker_whose_trainer_is_killed_ends_too(tiny_lm_gpt2):
+    """A trainer killed without closing its worker (SIGKILL, the OOM killer) leaves no worker
+    holding a core: the worker sees its parent gone, here while it waits for its spec."""
+    import subprocess
+    import sys
+    import time
+
+    code = ("import time\n"
+            "from illm_tools.llm.spec import LLMSpec\n"
+            "from illm_tools.rl.live import AsyncLive\n"
+            f"live = AsyncLive(budget=1, early=LLMSpec(model={str(tiny_lm_gpt2.spec.path)!r}, dtype='float32'))\n"
+            "print(live.process.pid, flush=True)\n"
+            "time.sleep(600)\n")
+    trainer = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:  # (its stderr: the resource tracker of a killed process warns about the semaphores it left)
+        line = trainer.stdout.readline()
+        assert line.strip().isdigit(), trainer.stderr.read()[-2000:] if trainer.poll() is not None else line
+        worker = int(line)
+        assert _running(worker)
+    finally:
+        trainer.kill()
+        trainer.wait()
+    end = time.monotonic() + 120
+    while _running(worker) and time.monotonic() < end:  # a generous bound: the worker's imports come first
+        time.sleep(0.2)
+    assert not _running(worker)

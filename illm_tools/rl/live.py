@@ -125,9 +125,16 @@ def _worker_main(spec: WorkerSpec | None, early, setup, inbox, stop, queued, don
         raise SystemExit(1) from None
 
 
+def _stopping(stop) -> bool:  # pragma: no cover - runs in the child
+    """Whether the worker should stop: the trainer set `stop`, or the trainer is gone without
+    setting it (killed: a worker left behind would hold its core and memory)."""
+    parent = mp.parent_process()
+    return stop.is_set() or (parent is not None and not parent.is_alive())
+
+
 def _configured(setup, stop) -> WorkerSpec | None:  # pragma: no cover - runs in the child
     """The spec `AsyncLive.configure` sends, or None when the trainer stops the worker first."""
-    while not stop.is_set():
+    while not _stopping(stop):
         try:
             return setup.get(timeout=0.2)
         except queue.Empty:
@@ -136,7 +143,7 @@ def _configured(setup, stop) -> WorkerSpec | None:  # pragma: no cover - runs in
 
 
 def _work(spec: WorkerSpec, inbox, stop, queued, done, ready, first) -> None:  # pragma: no cover - runs in the child
-    """Newest priority list in, shards out, until `stop` is set; `ready` gets the wall time at which
+    """Newest priority list in, shards out, until `stop` is set (or the trainer is gone); `ready` gets the wall time at which
     the model is loaded and the worker takes its first list, `first` the time its first answer is
     in the cache (unless an earlier start of the worker set it)."""
     import time
@@ -153,7 +160,7 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done, ready, first) -> None:  #
     ready.value = time.time()
     pending: list[StateRecord] = []
     written = 0
-    while not stop.is_set():
+    while not _stopping(stop):
         try:  # the newest list replaces the old one; wait for one when idle
             message = inbox.get(timeout=0.5) if not pending else inbox.get_nowait()
             while True:
@@ -167,7 +174,8 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done, ready, first) -> None:  #
         size = first_chunks(spec.chunk, written)
         head, pending = pending[:size], pending[size:]
         annotator.cache.refresh()
-        stats = annotator.annotate_states(head, spec.setup.env_id, spec.setup.renderer, should_stop=stop.is_set)
+        stats = annotator.annotate_states(head, spec.setup.env_id, spec.setup.renderer,
+                                          should_stop=lambda: _stopping(stop))
         written += 1
         with done.get_lock():
             done.value += stats.annotated_states
