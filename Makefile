@@ -88,9 +88,9 @@ test-fast: install
 # a run meets (GoToLocal's 2,000 steps hold 1% of a new episode's steps: its run would find almost no
 # targets; docs/measured.md); annotate the 24 most visited; train a short illm run, whose closing line says the share of its steps
 # that had a target and the states the live fallback annotated during it (--live-mode sync: the run waits for
-# 4 missed states a rollout and uses them at once; the default async worker first loads the model, which a
-# run of a few seconds outlasts only on a quiet machine); a ppo run; evaluate both with 95% intervals, and say
-# what one seed of a short run cannot show. Re-runs start afresh.
+# 4 missed states a rollout and uses them at once; the default async worker first loads the model, about 4.5 s
+# into the run on 2 cores, so this run's last two rollouts would get 2 states in all); a ppo run; evaluate both
+# with 95% intervals, and say what one seed of a short run cannot show. Re-runs start afresh.
 demo: install
 	rm -rf $(DEMO)
 	$(BIN)/illm collect --env BabyAI-GoToRedBallNoDists-v0 --steps 2000 --num-envs 8 --seed 0 --out $(DEMO)/traj
