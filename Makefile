@@ -116,6 +116,7 @@ bench: install
 	$(BIN)/python benchmarks/collect.py
 	$(BIN)/python benchmarks/annotate.py
 	$(BIN)/python benchmarks/train.py
+	$(BIN)/python benchmarks/live_start.py
 	$(BIN)/python benchmarks/bonus.py
 	$(BIN)/python benchmarks/serve.py
 	$(BIN)/python benchmarks/oracle.py
