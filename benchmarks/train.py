@@ -14,7 +14,9 @@ per update (rollout, target look-up, update) is printed beside its rate.
 empty cache through the live-fallback path, with rows of deterministic pseudo-random scores and
 embeddings (the trainer's speed does not depend on what the LLM said); training is deterministic
 given the seed, so every later pass with the same seed meets exactly the same states and finds
-every one of them in the cache (its cache hit rate is printed). On CUDA (`--device cuda`) that
+every one of them in the cache (its cache hit rate is printed). Each run starts with an empty memo
+of rendered views, as a run in its own process does (a memo the fill pass had filled made illm's
+text free in the later passes: about 10 ms an update of a 20-update run). On CUDA (`--device cuda`) that
 takes torch's deterministic algorithms, which are on for both methods there.
 
 `--profile` prints instead where a cached illm update and a ppo update spend their time (cProfile's
@@ -45,6 +47,7 @@ from illm_tools.annotate.engine import Annotator
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.llm.stub import StubBackend
 from illm_tools.cache.store import AnnotationCache
+from illm_tools.envs.babyai import forget_rendered
 from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.live import SyncLive
 from illm_tools.rl.ppo import Trainer
@@ -61,6 +64,7 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
     Async live annotation runs as `illm train` assembles it (`build_run`: the worker started first);
     the cached case reads a synthetic cache through `CachedTargets` (see the module docstring)."""
     phases = {k: 0.0 for k in PHASES}
+    forget_rendered()  # each run renders its views' text from scratch, as a run in its own process does
 
     def on_metrics(m: dict) -> None:
         for k in PHASES:

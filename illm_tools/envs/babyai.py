@@ -143,6 +143,12 @@ def _render(data: bytes, shape: tuple[int, ...]) -> str:
     return ", ".join(describe(np.frombuffer(data, dtype=np.uint8).reshape(shape)))
 
 
+def forget_rendered() -> None:
+    """Empty the memo of rendered views (it lives as long as the process): runs timed one after
+    another in one process each start as a fresh process would (`benchmarks/train.py`)."""
+    _render.cache_clear()
+
+
 def _check_done_is_noop(action_space: str) -> None:
     # With BABYAI_DONE_ACTIONS set, BabyAI's verifier ends the episode on `done`; the irrelevant
     # actions would then no longer be irrelevant. minigrid reads the flag once, at import.
