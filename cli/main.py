@@ -160,6 +160,10 @@ _register()
 
 
 def main() -> None:
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # the start-up's quiet exit ends here (cli/__init__.py)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     app()
 
 

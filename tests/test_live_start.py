@@ -202,3 +202,41 @@ def test_a_worker_whose_trainer_is_killed_ends_too(tiny_lm_gpt2):
     while _running(worker) and time.monotonic() < end:  # a generous bound: the worker's imports come first
         time.sleep(0.2)
     assert not _running(worker)
+
+
+def test_ctrl_c_at_any_moment_of_the_start_ends_in_one_line_and_leaves_no_worker(tmp_path):
+    """A Ctrl-C (SIGINT to the process group, as a terminal sends it) while `illm train` imports its
+    commands, parses its options, starts its worker or builds its run: no traceback (from the
+    command or from the worker's own start), the interrupt's exit code, and no worker left. Where
+    each signal lands depends on the machine's speed; what is asserted holds wherever it lands."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    illm = Path(sys.executable).with_name("illm")
+    for k, delay in enumerate((0.05, 0.2, 0.35, 0.6, 1.0)):
+        (tmp_path / f"ann{k}").mkdir()
+        command = [str(illm), "train", "--env", ENV, "--cache", str(tmp_path / f"ann{k}"), "--method", "illm",
+                   "--history", "0", "--frames", "8192", "--out", str(tmp_path / f"run{k}")]
+        run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        time.sleep(delay)
+        os.killpg(run.pid, signal.SIGINT)
+        out, err = run.communicate(timeout=300)
+        assert "Traceback" not in out + err, err[-2000:]
+        assert run.returncode in (130, -signal.SIGINT), (run.returncode, err[-2000:])  # -2: before Python started
+        assert len(err.strip().splitlines()) <= 2, err  # "interrupted", or the graceful stop's two lines
+        deadline = time.monotonic() + 30  # the run's own group: its worker, had one been left behind
+        while _group_has_a_worker(run.pid) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not _group_has_a_worker(run.pid)
+
+
+def _group_has_a_worker(group: int) -> bool:
+    """Whether a live (not zombie) multiprocessing child runs in process group `group`."""
+    import subprocess
+
+    pids = subprocess.run(["pgrep", "-g", str(group), "-f", "spawn_main"], capture_output=True, text=True).stdout.split()
+    return any(_running(int(pid)) for pid in pids)

@@ -35,6 +35,7 @@ import logging
 import multiprocessing as mp
 import queue
 from collections.abc import Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from illm_tools.llm.spec import LLMSpec
@@ -184,6 +185,33 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done, ready, first) -> None:  #
         queued.value = len(pending)
 
 
+@contextmanager
+def _ctrl_c_deferred():
+    """Ctrl-C put off while the worker is spawned. A Ctrl-C reaches the whole process group: one
+    landing while the worker's interpreter starts (before `_worker_main` ignores it) would end in
+    its traceback, and one raised here in the middle of the spawn would leave the worker half
+    started. So SIGINT is blocked (the worker inherits the block; the trainer stops it itself,
+    `stop`) and this process's handler waits: a Ctrl-C that came meanwhile reaches it once the
+    worker has started, none is lost. Only the main thread may set handlers; elsewhere only the
+    block applies."""
+    import signal
+    import threading
+
+    came: list[int] = []
+    handler = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
+    if handler is not None:
+        signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        if handler is not None:
+            signal.signal(signal.SIGINT, handler)
+            if came and callable(handler):
+                handler(signal.SIGINT, None)
+
+
 class AsyncLive:
     """A worker process that annotates the trainer's missed states while the rollouts go on.
 
@@ -232,7 +260,8 @@ class AsyncLive:
                                          args=(self.spec if early is None else None, early, self._setup,
                                                self._inbox, self._stop, self._queued, self._done,
                                                self._errors, self._ready, self._first))
-        self.process.start()
+        with _ctrl_c_deferred():
+            self.process.start()
 
     def _check(self) -> bool:
         """True while a worker runs; restarts a dead one while restarts remain."""
