@@ -240,3 +240,24 @@ def _group_has_a_worker(group: int) -> bool:
 
     pids = subprocess.run(["pgrep", "-g", str(group), "-f", "spawn_main"], capture_output=True, text=True).stdout.split()
     return any(_running(int(pid)) for pid in pids)
+
+
+def test_a_ctrl_c_during_the_spawn_reaches_the_trainer_once_the_worker_has_started():
+    import os
+    import signal
+
+    from illm_tools.rl.live import _ctrl_c_deferred
+
+    before, got = signal.getsignal(signal.SIGINT), []
+    try:
+        signal.signal(signal.SIGINT, lambda signum, frame: got.append(signum))
+        with _ctrl_c_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            assert not got  # held back, not lost
+        assert got == [signal.SIGINT]  # then handled by the trainer's own handler, once
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        with pytest.raises(KeyboardInterrupt):
+            with _ctrl_c_deferred():
+                os.kill(os.getpid(), signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, before)

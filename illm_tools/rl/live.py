@@ -210,6 +210,8 @@ def _ctrl_c_deferred():
             signal.signal(signal.SIGINT, handler)
             if came and callable(handler):
                 handler(signal.SIGINT, None)
+            elif came and handler == signal.SIG_DFL:
+                signal.raise_signal(signal.SIGINT)
 
 
 class AsyncLive:
