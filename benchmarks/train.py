@@ -14,10 +14,10 @@ per update (rollout, target look-up, update) is printed beside its rate.
 empty cache through the live-fallback path, with rows of deterministic pseudo-random scores and
 embeddings (the trainer's speed does not depend on what the LLM said); training is deterministic
 given the seed, so every later pass with the same seed meets exactly the same states and finds
-every one of them in the cache (its cache hit rate is printed). Each run starts with an empty memo
-of rendered views, as a run in its own process does (a memo the fill pass had filled made illm's
-text free in the later passes: about 10 ms an update of a 20-update run). On CUDA (`--device cuda`) that
-takes torch's deterministic algorithms, which are on for both methods there.
+every one of them in the cache (its cache hit rate is printed). On CUDA (`--device cuda`) that
+takes torch's deterministic algorithms, which are on for both methods there. Each run starts with
+an empty memo of rendered views, as a run in its own process does (a memo the fill pass had filled
+made illm's text free in the later passes: about 10 ms an update of a 20-update run).
 
 `--profile` prints instead where a cached illm update and a ppo update spend their time (cProfile's
 top entries by own time, one run of each), the figures behind docs/measured.md's reading.

@@ -269,7 +269,7 @@ def test_a_worker_started_before_its_spec_answers_once_configured_and_one_never_
     try:
         live.submit([state(k) for k in range(1, 7)])  # the budget the run configured: 3 of them
         assert _wait(lambda: AnnotationCache(cache.root).__len__() >= 6)  # two tasks a state
-        assert _wait(lambda: live._queued.value == 0 and live._done.value == 3, 30)
+        assert _wait(lambda: live._queued.value == 0 and live._done.value == 3)
         assert 0 < live.stats()["live_worker_startup_s"] <= live.stats()["live_first_answer_s"]
     finally:
         live.close()

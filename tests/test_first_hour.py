@@ -105,12 +105,14 @@ def test_the_live_count_includes_what_the_worker_writes_while_shutting_down(tmp_
             pass
 
     class Worker(AsyncLive):
-        def _start(self, early=None):
+        def _start(self):
             self.started_at = 0.0
             self._inbox, self._errors, self._stop = self._ctx.Queue(), self._ctx.Queue(), self._ctx.Event()
+            self._setup = self._ctx.Queue()
             self.process = Stopping(self._done)
 
-    live = Worker(spec="the run's", budget=4)  # started with its spec: closing waits for its last chunk
+    live = Worker(early="the run's LLM", budget=4)
+    live.configure("the run's spec", budget=4)  # configured: closing waits for its last chunk
     live._done.value = 3  # landed during the run's last rollout, after its count
     targets = CachedTargets(None, None, calibration="sum", num_actions=3, embedding_dim=0, live=live)
     targets.close()

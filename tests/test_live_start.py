@@ -221,7 +221,8 @@ def test_ctrl_c_at_any_moment_of_the_start_ends_in_one_line_and_leaves_no_worker
         (tmp_path / f"ann{k}").mkdir()
         command = [str(illm), "train", "--env", ENV, "--cache", str(tmp_path / f"ann{k}"), "--method", "illm",
                    "--history", "0", "--frames", "8192", "--out", str(tmp_path / f"run{k}")]
-        run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               env={**os.environ, "ILLM_CACHE_DIR": str(tmp_path / "illm-cache")})  # nothing of the user's
         time.sleep(delay)
         os.killpg(run.pid, signal.SIGINT)
         out, err = run.communicate(timeout=300)

@@ -290,13 +290,12 @@ def model_hidden_size(name: str, *, cache_dir: str | os.PathLike | None = None) 
     return int(AutoConfig.from_pretrained(folder).get_text_config().hidden_size)
 
 
-
 def preload(name: str, *, cache_dir: str | os.PathLike | None = None) -> None:
     """Import what `load_model` will: torch, transformers' loading code and the model's own
-    modeling module (read from its config), but no weights. Most of a small model's load is these
-    imports (2.1 of 2.7 s for smollm2-135m on 2 CPU cores, torch's own 0.9 s besides), so a live
-    worker started before its run is configured (`illm_tools.rl.live`) pays them beside the
-    trainer's start. A model that cannot be found or read is left to `load_model`, which says what
+    modeling module (read from its config), reading no weights and hashing or de-quantising
+    nothing. Most of a small model's load is these imports (2.1 of 2.7 s for smollm2-135m on 2
+    CPU cores, torch's own 0.9 s besides), so a live worker started before its run is configured
+    (`illm_tools.rl.live`) pays them beside the trainer's start. A model that cannot be found or read is left to `load_model`, which says what
     is wrong in its own words."""
     import torch  # noqa: F401
     import transformers.modeling_utils  # noqa: F401
@@ -306,10 +305,17 @@ def preload(name: str, *, cache_dir: str | os.PathLike | None = None) -> None:
     from illm_tools.errors import IllmError
 
     try:
-        folder, _ = _folder_and_fingerprint(resolve(name), "float32", "none", cache_root(cache_dir))
-        MODEL_FOR_CAUSAL_LM_MAPPING[type(AutoConfig.from_pretrained(folder))]  # imports the model's module
+        spec = resolve(name)
+        if spec.source == "gguf-package":  # its de-quantised folder, if one is built: nothing is hashed or built here
+            found = sorted((cache_root(cache_dir) / "models").glob(f"{spec.alias}-*/config.json"))
+            folder = found[0].parent if found else None
+        else:
+            folder = locate(spec)
+        if folder is not None:
+            MODEL_FOR_CAUSAL_LM_MAPPING[type(AutoConfig.from_pretrained(folder))]  # imports the model's module
     except (IllmError, OSError, ValueError, KeyError):
         return
+
 
 @contextmanager
 def _quiet_transformers() -> Iterator[None]:

@@ -54,7 +54,7 @@ def _write(run_dir: Path, payload: bytes) -> Path:
 class CheckpointWriter:
     """A run's checkpoints, written beside the training: `save(state, wait=False)` serialises the
     state at once (the tensors go on changing) and leaves the digest, the write, its fsync and the
-    renames to one worker thread, which releases the GIL for them; the next `save` and `wait` wait
+    renames to a thread of its own, which releases the GIL for them; the next `save` and `wait` wait
     for it and raise what it raised. Hand-written around one thread because an illm run's checkpoint
     (the heads and their AdamW moments, 19 MB) took 107-132 ms a save written in line on a 2-core
     EPYC, most of it the write and fsync, 9 ms this way: in a 20-update run its first and last saves
@@ -62,12 +62,13 @@ class CheckpointWriter:
 
     def __init__(self, run_dir: Path):
         self.run_dir = Path(run_dir)
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="illm-checkpoint")
         self._pending: Future | None = None
 
     def save(self, state: dict, *, wait: bool = True) -> None:
         self.wait()
-        self._pending = self._pool.submit(_write, self.run_dir, _serialise(state))
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="illm-checkpoint")
+        self._pending = pool.submit(_write, self.run_dir, _serialise(state))
+        pool.shutdown(wait=False)  # its thread ends with this write: no idle thread outlives a run
         if wait:
             self.wait()
 

@@ -107,20 +107,20 @@ def first_chunks(chunk: int, written: int) -> int:
     return max(1, min(chunk, 1 << min(written, 30)))
 
 
-def _worker_main(spec: WorkerSpec | None, early, setup, inbox, stop, queued, done, errors, ready,
+def _worker_main(llm: LLMSpec, setup, inbox, stop, queued, done, errors, ready,
                  first) -> None:  # pragma: no cover - runs in the child
-    """The worker process. Ctrl-C reaches the whole process group: the worker ignores it and
-    stops when the trainer sets `stop`. An error goes back to the trainer as one line."""
+    """The worker process: what loading `llm` will import first (`LLMSpec.preload`), then its spec
+    from `setup` (sent once the run is configured), then the work. Ctrl-C reaches the whole process
+    group: the worker ignores it and stops when the trainer sets `stop`. An error goes back to the
+    trainer as one line."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        if spec is None:  # started before the run was configured: its imports first, then its spec
-            early.preload()
-            spec = _configured(setup, stop)
-            if spec is None:
-                return
-        _work(spec, inbox, stop, queued, done, ready, first)
+        llm.preload()
+        spec = _configured(setup, stop)
+        if spec is not None:
+            _work(spec, inbox, stop, queued, done, ready, first)
     except Exception as e:  # noqa: BLE001 - reported to the trainer, which logs it as one line
         errors.put(f"{type(e).__name__}: {e}")
         raise SystemExit(1) from None
@@ -217,10 +217,10 @@ def _ctrl_c_deferred():
 class AsyncLive:
     """A worker process that annotates the trainer's missed states while the rollouts go on.
 
-    Made with its `spec`, the worker starts loading at once. Made with `early` (the run's LLM, not
-    yet placed) instead, it starts before the run is configured: it imports what loading the model
-    will (`LLMSpec.preload`), then waits for `configure(spec)` (`illm_tools.rl.run.train` starts it
-    before the trainer imports torch)."""
+    The worker first imports what loading the model will (`LLMSpec.preload`), then takes its spec.
+    Made with its `spec`, it has it at once. Made with `early` (the run's LLM, not yet placed)
+    instead, it starts before the run is configured and waits for `configure(spec)`
+    (`illm_tools.rl.run.train` starts it before the trainer imports torch)."""
 
     waits = False
 
@@ -228,42 +228,47 @@ class AsyncLive:
                  early: LLMSpec | None = None):
         if (spec is None) == (early is None):
             raise ValueError("AsyncLive takes its spec, or the LLM it preloads until `configure` sends the spec")
-        self.spec, self.budget, self.max_restarts = spec, budget, max_restarts
+        self.spec, self.budget, self.max_restarts = None, budget, max_restarts
+        self.llm = early if early is not None else spec.llm
         self._ctx = mp.get_context("spawn")
         self._queued = self._ctx.Value("l", 0)
         self._done = self._ctx.Value("l", 0)
         self._ready = self._ctx.Value("d", 0.0)
         self._first = self._ctx.Value("d", 0.0)
-        self._setup = self._ctx.Queue()
         self._reported = 0
         self.restarts = 0
         self.failed = False
-        self._start(early)
+        self._start()
         self.opened_at = self.started_at
         """When the first worker was spawned (the run's start: `train` starts it first)."""
+        if spec is not None:
+            self.configure(spec, budget=budget)
 
     def configure(self, spec: WorkerSpec, *, budget: int | None) -> None:
-        """Send an early-started worker its spec (it loads the model once its imports are done) and
-        set the run's budget."""
+        """Send the worker its spec (it loads the model once its imports are done) and set the
+        run's budget."""
         if self.spec is not None:
-            raise ValueError("this live worker was started with its spec already")
+            raise ValueError("this live worker has its spec already")
         self.spec, self.budget = spec, budget
         self._setup.put(spec)
 
-    def _start(self, early: LLMSpec | None = None) -> None:
+    def _start(self) -> None:
+        """Spawn a worker: a restarted one gets the spec at once."""
         import time
 
         self.started_at = time.time()
         self._ready.value = 0.0
+        self._setup = self._ctx.Queue()
         self._inbox = self._ctx.Queue()
         self._errors = self._ctx.Queue()
         self._stop = self._ctx.Event()
         self.process = self._ctx.Process(target=_worker_main, name="illm-live-annotation", daemon=True,
-                                         args=(self.spec if early is None else None, early, self._setup,
-                                               self._inbox, self._stop, self._queued, self._done,
-                                               self._errors, self._ready, self._first))
+                                         args=(self.llm, self._setup, self._inbox, self._stop, self._queued,
+                                               self._done, self._errors, self._ready, self._first))
         with _ctrl_c_deferred():
             self.process.start()
+        if self.spec is not None:
+            self._setup.put(self.spec)
 
     def _check(self) -> bool:
         """True while a worker runs; restarts a dead one while restarts remain."""
