@@ -3,8 +3,8 @@
 Importing the commands takes a third of a second or more (Typer, every command's options). A
 Ctrl-C in that time would end in Python's traceback from inside the import, before any command's
 one-line error handling exists; so the `illm` script, and only it, ends such an interrupt as every
-other: one line, exit code 130 (nothing has been written yet). `cli.main.main` puts Python's own
-handler back before the command runs.
+other: one line, exit code 130 (nothing has been written yet). `handled_from_here` puts Python's
+own handler back once the command line's error handling is in place (`cli.main._OneLineErrors`).
 """
 
 import os
@@ -20,3 +20,10 @@ def _interrupted_while_starting(signum, frame) -> None:
 if os.path.basename(sys.argv[0] if sys.argv else "") == "illm" \
         and signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where SIGINT is ignored
     signal.signal(signal.SIGINT, _interrupted_while_starting)
+
+
+def handled_from_here() -> None:
+    """Put Python's own Ctrl-C handler back where the start-up's quiet exit is still in place: from
+    here on an interrupt is the command's one-line error (or Typer's quiet exit 130 while it parses)."""
+    if signal.getsignal(signal.SIGINT) is _interrupted_while_starting:
+        signal.signal(signal.SIGINT, signal.default_int_handler)

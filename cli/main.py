@@ -20,8 +20,10 @@ class _OneLineErrors(typer.core.TyperGroup):
     def main(self, *args, standalone_mode: bool = True, **kwargs):
         from typer import _click as click
 
+        from cli import handled_from_here
         from cli.errors import report, usage_line
 
+        handled_from_here()  # the start-up's quiet exit ends here (cli/__init__.py)
         if not standalone_mode:
             return super().main(*args, standalone_mode=False, **kwargs)
         try:
@@ -30,7 +32,7 @@ class _OneLineErrors(typer.core.TyperGroup):
             return super().main(*args, standalone_mode=True, **kwargs)  # the help, as Typer shows it
         except click.exceptions.ClickException as exc:
             raise SystemExit(report(usage_line(exc))) from None
-        except typer.Abort:
+        except (typer.Abort, KeyboardInterrupt):  # KeyboardInterrupt: one landing before Typer's own handling
             raise SystemExit(report(KeyboardInterrupt())) from None
         raise SystemExit(result if isinstance(result, int) else 0)
 
@@ -160,10 +162,6 @@ _register()
 
 
 def main() -> None:
-    import signal
-
-    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # the start-up's quiet exit ends here (cli/__init__.py)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
     app()
 
 

@@ -217,7 +217,7 @@ def test_ctrl_c_at_any_moment_of_the_start_ends_in_one_line_and_leaves_no_worker
     from pathlib import Path
 
     illm = Path(sys.executable).with_name("illm")
-    for k, delay in enumerate((0.05, 0.2, 0.35, 0.6, 1.0)):
+    for k, delay in enumerate((0.05, 0.15, 0.25, 0.35, 0.5, 0.7, 1.0)):
         (tmp_path / f"ann{k}").mkdir()
         command = [str(illm), "train", "--env", ENV, "--cache", str(tmp_path / f"ann{k}"), "--method", "illm",
                    "--history", "0", "--frames", "8192", "--out", str(tmp_path / f"run{k}")]
