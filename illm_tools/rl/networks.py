@@ -145,15 +145,50 @@ class GridMissionNet(nn.Module):
         side [B, K * D] in task order (f^hc's alone by default) or None without text tasks)."""
         if not self.head_tasks:
             raise RuntimeError("this network was built without iLLM heads (mode ppo)")
+        # on a CPU the heads run once per distinct row: a rollout repeats many states (an action that
+        # changes nothing, a turn back), so this is about half the bonus pass's rows and a quarter of a
+        # minibatch's in BabyAI; the outputs are the same, and so are the gradients (a repeated row's
+        # terms reach the torso through one copy of identical features). On CUDA the FLOPs are cheap
+        # and the distinct rows' count would wait for the device
+        distinct = distinct_rows(features) if features.device.type == "cpu" else None
+        x = features if distinct is None else features[distinct[0]]
         # the heads are most of the iLLM update's FLOPs: bf16 matmuls run several times faster on CPUs
         # with AMX (a Sapphire Rapids Xeon here) and ~30x slower on AVX2-only ones (an AMD EPYC here);
         # `heads_bf16=None` lets `bf16_is_faster` decide (the run records the answer). Parameters,
         # gradients and outputs stay float32
         with torch.autocast(features.device.type, dtype=torch.bfloat16,
                             enabled=self.heads_bf16 and features.device.type == "cpu"):
-            action = self.f_a(features).float() if self.f_a is not None else None
-            texts = [getattr(self, head)(features).float() for head in self.text_heads]
-        return action, (texts[0] if len(texts) == 1 else torch.cat(texts, dim=-1)) if texts else None
+            action = self.f_a(x).float() if self.f_a is not None else None
+            texts = [getattr(self, head)(x).float() for head in self.text_heads]
+        text = (texts[0] if len(texts) == 1 else torch.cat(texts, dim=-1)) if texts else None
+        if distinct is not None:
+            action, text = (None if out is None else out[distinct[1]] for out in (action, text))
+        return action, text
+
+
+def distinct_rows(x: torch.Tensor, multiple: int = 64) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(row indices `first`, one per distinct row of the 2-D `x` and then repeats of the first up to a
+    multiple of `multiple`; each row's place in `first`) so that `x[first][inverse]` equals `x` bit
+    for bit; None when that would keep (nearly) every row. The padding keeps the matmuls' shapes to a
+    few that recur: oneDNN builds a kernel for every new shape, which cost more than the rows saved.
+    Rows are told apart by a hash of their bits, checked: a collision falls back to
+    `torch.unique(dim=0)`, exact but 3x slower here (it sorts whole rows)."""
+    n = x.shape[0]
+    if n < 2 * multiple:
+        return None
+    bits = x.detach().contiguous()
+    words = bits.view(torch.int32) if bits.element_size() == 4 else bits.view(torch.int16)
+    # the hash: the bits as numbers times fixed random weights (one BLAS call); equal rows hash alike
+    weights = torch.randn(words.shape[1], dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    _, inverse, counts = torch.unique(words.double() @ weights.to(x.device), return_inverse=True, return_counts=True)
+    if -(-len(counts) // multiple) * multiple >= n:
+        return None
+    first = torch.argsort(inverse, stable=True)[torch.cumsum(counts, 0) - counts]
+    if not torch.equal(words[first][inverse], words):  # two distinct rows hashed alike
+        _, inverse, counts = torch.unique(words, dim=0, return_inverse=True, return_counts=True)
+        first = torch.argsort(inverse, stable=True)[torch.cumsum(counts, 0) - counts]
+    padded = -(-len(first) // multiple) * multiple
+    return (None if padded >= n else (torch.cat([first, first[:1].expand(padded - len(first))]), inverse))
 
 
 class FrameNet(GridMissionNet):
