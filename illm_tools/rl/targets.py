@@ -139,13 +139,14 @@ class CachedTargets:
         emb = np.zeros((b, d * len(self.text)), np.float32)
         idx = np.flatnonzero(found)
         if idx.size:
+            rows = slice(None) if idx.size == b else idx  # every state found (a cached run): copies, no gathers
             if "action" in columns:
                 a = columns["action"]
-                scores = [a[c][idx].astype(np.float64) if a[c].shape[1] else np.full((idx.size, self.num_actions), np.nan)
+                scores = [a[c][rows].astype(np.float64) if a[c].shape[1] else np.full((idx.size, self.num_actions), np.nan)
                           for c in ACTION_COLUMNS]  # a column null in every row (no neutral scores): NaN, as absent
-                probs[idx] = action_target(*scores, self.calibration, self.action_target)
+                probs[rows] = action_target(*scores, self.calibration, self.action_target)
             for j, task in enumerate(self.text):
-                emb[idx, j * d:(j + 1) * d] = columns[task]["embedding"][idx]
+                emb[rows, j * d:(j + 1) * d] = columns[task]["embedding"][rows]
         self._record(b, idx.size, hits, live)
         return Targets(probs, emb, found)
 

@@ -221,6 +221,30 @@ class StateKeys:
     def __init__(self, builder):
         self.builder = builder
         self._frames: dict[tuple, tuple | None] = {}
+        self._lines: dict[str, bytes] = {}  # an observation's escaped line, as `format_history` writes it
+        self._labels: list[tuple[bytes, bytes]] = []  # the escaped "\nObservation i: ", "\nAction i: "
+
+    def _history(self, record: StateRecord) -> bytes:
+        """`_escaped(format_history(record)).encode()`, put together from each observation's escaped
+        line, memoised (a state's window repeats the lines of the states before it)."""
+        lines = self._lines
+        if len(lines) > _FRAME_LIMIT:
+            lines.clear()
+        history = record.history
+        while len(self._labels) <= len(history):
+            i = len(self._labels)
+            self._labels.append((_escaped(f"\nObservation {i}: ").encode(), _escaped(f"\nAction {i}: ").encode()))
+        parts = []
+        for (obs_label, act_label), (obs, act) in zip(self._labels, history):
+            line = lines.get(obs)
+            if line is None:
+                line = lines[obs] = _escaped(one_line(obs)).encode()
+            parts += (obs_label, line, act_label, _escaped(act).encode())
+        line = lines.get(record.observation)
+        if line is None:
+            line = lines[record.observation] = _escaped(one_line(record.observation)).encode()
+        parts += (self._labels[len(history)][0], line)
+        return b"".join(parts)
 
     def _frame(self, task: str, record: StateRecord) -> tuple | None:
         """(hash state through the text before the first history, [escaped text after each history])
@@ -248,7 +272,7 @@ class StateKeys:
                 out.append(self.builder.task_key(task, record))
                 continue
             if history is None:
-                history = _escaped(format_history(record)).encode()
+                history = self._history(record)
             h = frame[0].copy()
             for piece in frame[1]:
                 h.update(history)
