@@ -35,6 +35,7 @@ from illm_tools.rl.policy import policy_network
 from illm_tools.rl.saved import read_run, write_config
 from illm_tools.rl.states import make_observers, make_states
 from illm_tools.rl.storage import Advantages, Rollout, target_extras, two_stream_advantages
+from illm_tools.rl.threads import frozen_heap
 from illm_tools.tasks.state import StateRecord
 
 
@@ -306,7 +307,6 @@ class Trainer:
                     aux, aux_logs = self.bonus.aux_loss(self.bonus_batch(ro, mb, out.features))
                     loss = loss + cfg.bonus.distill_coef * aux
                     logs.update(aux_logs)
-                # one step
                 self.optimizer.zero_grad()
                 loss.backward()
                 nn.utils.clip_grad_norm_(self.net.parameters(), cfg.ppo.max_grad_norm)
@@ -372,27 +372,28 @@ class Trainer:
             self.log.close()
             return {"global_step": self.global_step, "already_done": True}
         saved_at = time.monotonic()
-        try:
-            while self.update_idx < cfg.num_updates:
-                if should_stop is not None and should_stop():
-                    if self.update_idx:
-                        self.save()
-                    metrics = {**metrics, "stopped": True, "global_step": self.global_step}
-                    break
-                metrics = self.train_one_update()
-                metrics["charts/sps"] = (self.global_step - start_step) / (time.perf_counter() - start_time)
-                self.log.write(metrics)
-                if self.on_metrics is not None:
-                    self.on_metrics(metrics)
-                last = self.update_idx == cfg.num_updates
-                due = (cfg.checkpoint_every and self.update_idx % cfg.checkpoint_every == 0) or \
-                    time.monotonic() - saved_at >= 60 * cfg.checkpoint_minutes
-                if last or due or self.update_idx == 1:  # the first too: a run killed early can resume
-                    self.save(wait=False)
-                    saved_at = time.monotonic()
-        finally:
+        with frozen_heap():  # the objects the run was built with: out of the collector's passes
             try:
-                self.checkpoints.wait()
+                while self.update_idx < cfg.num_updates:
+                    if should_stop is not None and should_stop():
+                        if self.update_idx:
+                            self.save()
+                        metrics = {**metrics, "stopped": True, "global_step": self.global_step}
+                        break
+                    metrics = self.train_one_update()
+                    metrics["charts/sps"] = (self.global_step - start_step) / (time.perf_counter() - start_time)
+                    self.log.write(metrics)
+                    if self.on_metrics is not None:
+                        self.on_metrics(metrics)
+                    last = self.update_idx == cfg.num_updates
+                    due = (cfg.checkpoint_every and self.update_idx % cfg.checkpoint_every == 0) or \
+                        time.monotonic() - saved_at >= 60 * cfg.checkpoint_minutes
+                    if last or due or self.update_idx == 1:  # the first too: a run killed early can resume
+                        self.save(wait=False)
+                        saved_at = time.monotonic()
             finally:
-                self.log.close()
+                try:
+                    self.checkpoints.wait()
+                finally:
+                    self.log.close()
         return metrics
