@@ -168,3 +168,56 @@ def test_history_tracker_keeps_last_k_and_restarts_at_episode_end():
     assert r1.history == (("q1", "left"),)
     assert r0.valid_actions == ("left", "right", "forward")
     assert HistoryTracker(1, 0, ["a"]).records(["m"], ["o"])[0].history == ()
+
+
+def _heads_and_grads(net, images, missions):
+    """The heads' outputs on the observations' features, and the gradients of a loss over them
+    with respect to every parameter (the torso's too)."""
+    a, s = net.heads(net.features(images, missions))
+    weights = torch.linspace(-1, 1, a.shape[0])[:, None]  # each row's terms count differently
+    ((a * weights).sum() + (s.square() * weights).sum()).backward()
+    grads = {name: p.grad.clone() for name, p in net.named_parameters() if p.grad is not None}
+    net.zero_grad()
+    return a.detach(), s.detach(), grads
+
+
+def test_heads_run_once_per_distinct_row_with_the_same_outputs_and_gradients(monkeypatch):
+    """On a CPU the heads run on the distinct rows only (`distinct_rows`); the outputs, and the
+    gradients reaching the heads and the torso, are those of running them on every row (a repeated
+    row's terms reach the torso through one copy of identical features)."""
+    import illm_tools.rl.networks as networks
+
+    torch.manual_seed(0)
+    vocab = MissionVocab()
+    net = GridMissionNet(6, vocab_size=len(vocab), embedding_dim=16, head_hidden=64, heads_bf16=False)
+    pick = torch.randint(0, 50, (300,), generator=torch.Generator().manual_seed(1))
+    images = torch.randint(0, 6, (50, 7, 7, 3), dtype=torch.uint8)[pick]
+    missions = torch.as_tensor(vocab.encode(["go to the red ball", "pick up a key"] * 25))[pick]
+    first, inverse = networks.distinct_rows(net.features(images, missions))
+    assert len(first) == 64 and int(inverse.max()) < 50
+    deduplicated = _heads_and_grads(net, images, missions)
+    monkeypatch.setattr(networks, "distinct_rows", lambda x: None)
+    every_row = _heads_and_grads(net, images, missions)
+    assert torch.allclose(deduplicated[0], every_row[0], atol=1e-6)
+    assert torch.allclose(deduplicated[1], every_row[1], atol=1e-6)
+    assert deduplicated[2].keys() == every_row[2].keys() and "image_conv.0.weight" in every_row[2]
+    for name, grad in every_row[2].items():
+        assert torch.allclose(deduplicated[2][name], grad, rtol=1e-4, atol=1e-5), name
+
+
+def test_distinct_rows_is_exact_when_rows_hash_alike(monkeypatch):
+    """A hash collision (here: every row hashes alike) falls back to comparing whole rows."""
+    import illm_tools.rl.networks as networks
+
+    x = torch.randn(40, 8)[torch.arange(200) % 40]
+    monkeypatch.setattr(networks, "row_hash", lambda words: torch.zeros(len(words), dtype=torch.float64))
+    first, inverse = networks.distinct_rows(x)
+    assert len(first) == 64 and len(torch.unique(inverse)) == 40 and torch.equal(x[first][inverse], x)
+
+
+def test_distinct_rows_keeps_every_row_when_deduplication_would_not_pay():
+    from illm_tools.rl.networks import distinct_rows
+
+    assert distinct_rows(torch.randn(100, 8).repeat(2, 1)[:127]) is None  # too few rows
+    assert distinct_rows(torch.randn(200, 8)) is None                     # all distinct
+    assert distinct_rows(torch.randn(150, 8)[torch.arange(160) % 150]) is None  # 150 -> 192 rows: no saving

@@ -100,6 +100,32 @@ def test_short_run_writes_metrics_and_checkpoint_and_resumes(tmp_path):
     assert [r["update"] for r in rows] == [1, 2, 3] and load_checkpoint(run)["global_step"] == 384
 
 
+def test_training_freezes_what_the_run_was_built_with_and_puts_it_back(tmp_path):
+    """While a run trains, the objects it was built with are out of the collector's passes
+    (`frozen_heap`); after it (or a failure) they are back; a process's own freeze is left alone."""
+    import gc
+
+    from illm_tools.rl.threads import frozen_heap
+
+    trainer, _ = make_trainer(tmp_path, updates=2)
+    during = []
+    trainer.on_metrics = lambda m: during.append(gc.get_freeze_count())
+    assert gc.get_freeze_count() == 0
+    trainer.train()
+    assert len(during) == 2 and min(during) > 0 and gc.get_freeze_count() == 0
+    with pytest.raises(RuntimeError), frozen_heap():
+        raise RuntimeError
+    assert gc.get_freeze_count() == 0
+    gc.freeze()
+    try:
+        host = gc.get_freeze_count()
+        with frozen_heap():
+            assert gc.get_freeze_count() == host
+        assert gc.get_freeze_count() == host
+    finally:
+        gc.unfreeze()
+
+
 def test_config_is_validated():
     with pytest.raises(UsageError, match="unknown method 'curiosity'"):
         TrainConfig(method="curiosity")

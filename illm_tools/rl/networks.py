@@ -166,6 +166,13 @@ class GridMissionNet(nn.Module):
         return action, text
 
 
+def row_hash(words: torch.Tensor) -> torch.Tensor:
+    """float64 [B] of the integer rows `words` [B, W]: the numbers times fixed random weights (one
+    BLAS call). Equal rows hash alike; distinct rows almost never do (`distinct_rows` checks)."""
+    weights = torch.randn(words.shape[1], dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    return words.double() @ weights.to(words.device)
+
+
 def distinct_rows(x: torch.Tensor, multiple: int = 64) -> tuple[torch.Tensor, torch.Tensor] | None:
     """(row indices `first`, one per distinct row of the 2-D `x` and then repeats of the first up to a
     multiple of `multiple`; each row's place in `first`) so that `x[first][inverse]` equals `x` bit
@@ -178,9 +185,7 @@ def distinct_rows(x: torch.Tensor, multiple: int = 64) -> tuple[torch.Tensor, to
         return None
     bits = x.detach().contiguous()
     words = bits.view(torch.int32) if bits.element_size() == 4 else bits.view(torch.int16)
-    # the hash: the bits as numbers times fixed random weights (one BLAS call); equal rows hash alike
-    weights = torch.randn(words.shape[1], dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    _, inverse, counts = torch.unique(words.double() @ weights.to(x.device), return_inverse=True, return_counts=True)
+    _, inverse, counts = torch.unique(row_hash(words), return_inverse=True, return_counts=True)
     if -(-len(counts) // multiple) * multiple >= n:
         return None
     first = torch.argsort(inverse, stable=True)[torch.cumsum(counts, 0) - counts]

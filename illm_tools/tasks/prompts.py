@@ -55,12 +55,17 @@ def game_of(env_id: str) -> str:
 
 def format_history(record: StateRecord) -> str:
     """Paper B.1: numbered observation/action pairs, oldest first, then the current observation."""
-    lines = []
+    return "".join(history_pieces(record))
+
+
+def history_pieces(record: StateRecord) -> list[str]:
+    """`format_history`'s text in pieces, in order: each line's label, then its observation (one line)
+    or action. The keys escape it piece by piece, each distinct piece once (`StateKeys`)."""
+    pieces = []
     for i, (obs, act) in enumerate(record.history):
-        lines.append(f"Observation {i}: {one_line(obs)}")
-        lines.append(f"Action {i}: {act}")
-    lines.append(f"Observation {len(record.history)}: {one_line(record.observation)}")
-    return "\n" + "\n".join(lines)
+        pieces += (f"\nObservation {i}: ", one_line(obs), f"\nAction {i}: ", act)
+    pieces += (f"\nObservation {len(record.history)}: ", one_line(record.observation))
+    return pieces
 
 
 def one_line(text: str) -> str:
@@ -221,30 +226,21 @@ class StateKeys:
     def __init__(self, builder):
         self.builder = builder
         self._frames: dict[tuple, tuple | None] = {}
-        self._lines: dict[str, bytes] = {}  # an observation's escaped line, as `format_history` writes it
-        self._labels: list[tuple[bytes, bytes]] = []  # the escaped "\nObservation i: ", "\nAction i: "
+        self._escapes: dict[str, bytes] = {}  # a piece of a history, escaped and encoded
 
     def _history(self, record: StateRecord) -> bytes:
-        """`_escaped(format_history(record)).encode()`, put together from each observation's escaped
-        line, memoised (a state's window repeats the lines of the states before it)."""
-        lines = self._lines
-        if len(lines) > _FRAME_LIMIT:
-            lines.clear()
-        history = record.history
-        while len(self._labels) <= len(history):
-            i = len(self._labels)
-            self._labels.append((_escaped(f"\nObservation {i}: ").encode(), _escaped(f"\nAction {i}: ").encode()))
-        parts = []
-        for (obs_label, act_label), (obs, act) in zip(self._labels, history):
-            line = lines.get(obs)
-            if line is None:
-                line = lines[obs] = _escaped(one_line(obs)).encode()
-            parts += (obs_label, line, act_label, _escaped(act).encode())
-        line = lines.get(record.observation)
-        if line is None:
-            line = lines[record.observation] = _escaped(one_line(record.observation)).encode()
-        parts += (self._labels[len(history)][0], line)
-        return b"".join(parts)
+        """`_escaped(format_history(record)).encode()`, put together from its pieces' escapes, each
+        distinct piece escaped once (a state's window repeats the lines of the states before it)."""
+        escapes = self._escapes
+        if len(escapes) > _FRAME_LIMIT:
+            escapes.clear()
+        out = []
+        for piece in history_pieces(record):
+            escaped = escapes.get(piece)
+            if escaped is None:
+                escaped = escapes[piece] = _escaped(piece).encode()
+            out.append(escaped)
+        return b"".join(out)
 
     def _frame(self, task: str, record: StateRecord) -> tuple | None:
         """(hash state through the text before the first history, [escaped text after each history])
