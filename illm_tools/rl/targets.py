@@ -37,6 +37,23 @@ ACTION_COLUMNS = ["cand_logprob_sum", "cand_token_count", "neutral_logprob_sum"]
 _MEMO_LIMIT = 500_000
 
 
+def _recent(owner, memo: str, records: Sequence[StateRecord], compute) -> list:
+    """`compute(record)` of each record, computed once per distinct record of this call, reusing the
+    last call's (`owner.<memo>`, a dict replaced by this call's). Only the last call's are kept: a
+    run-long memo reused few more (BabyAI, 81,920 frames: 35,168 keys computed against 36,714 at
+    history 0, 73,610 against 73,749 at history 3) and grew by a rollout's states every update,
+    whose objects the garbage collector's full passes then read again and again."""
+    last, current, out = getattr(owner, memo), {}, []
+    for r in records:
+        value = current.get(r)
+        if value is None:
+            value = last.get(r)
+            current[r] = value = compute(r) if value is None else value
+        out.append(value)
+    setattr(owner, memo, current)
+    return out
+
+
 class CachedTargets:
     """`TargetProvider` over an `AnnotationCache` for the language tasks `tasks` (iLLM's: action and
     summary by default; any combination of the registered tasks, `illm_tools.tasks.registry`); `live`
@@ -71,15 +88,9 @@ class CachedTargets:
         """States the live annotator put in the cache after the last rollout counted them (set by close)."""
 
     def keys(self, records: Sequence[StateRecord]) -> dict[str, list[str]]:
-        """Each task's keys of the records, memoised per distinct record."""
-        if len(self._keys) > _MEMO_LIMIT:
-            self._keys.clear()
-        rows = []
-        for r in records:
-            keys = self._keys.get(r)
-            if keys is None:
-                keys = self._keys[r] = self.builder.state_keys(r, self.tasks)
-            rows.append(keys)
+        """Each task's keys of the records, computed once per distinct record of this call or the
+        last (`_recent`)."""
+        rows = _recent(self, "_keys", records, lambda r: self.builder.state_keys(r, self.tasks))
         return {task: [keys[i] for keys in rows] for i, task in enumerate(self.tasks)}
 
     def _lookup(self, keys: dict[str, list[str]]) -> tuple[dict[str, dict], np.ndarray]:
@@ -202,16 +213,8 @@ class GoalTargets(CachedTargets):
         return cls(cache, builder, num_actions=num_actions, live=live)
 
     def goal_keys(self, records: Sequence[StateRecord]) -> list[str]:
-        """The `goal` keys of the records, memoised per distinct record."""
-        if len(self._goal_keys) > _MEMO_LIMIT:
-            self._goal_keys.clear()
-        out = []
-        for r in records:
-            key = self._goal_keys.get(r)
-            if key is None:
-                key = self._goal_keys[r] = self.builder.task_key("goal", r)
-            out.append(key)
-        return out
+        """The `goal` keys of the records, computed once per distinct record of this call or the last."""
+        return _recent(self, "_goal_keys", records, lambda r: self.builder.task_key("goal", r))
 
     def targets(self, records: Sequence[StateRecord]) -> Targets:
         keys = self.goal_keys(records)
