@@ -22,27 +22,8 @@ if os.path.basename(sys.argv[0] if sys.argv else "") == "illm" \
     signal.signal(signal.SIGINT, _interrupted_while_starting)
 
 
-_interrupts: list[int] = []
-
-
-def _noted_interrupt(signum, frame) -> None:
-    """Python's own Ctrl-C (a KeyboardInterrupt), noted first: where a library's bare `except:`
-    swallows the KeyboardInterrupt (the command's imports run a second or more on a loaded machine),
-    the interrupt is not lost with it: `interrupted_before` says so, and `cli.common.stop_on_signals`
-    ends the command where its work would begin (a CI run once saw `illm train` go on to the end
-    after a Ctrl-C in its start-up)."""
-    _interrupts.append(signum)
-    signal.default_int_handler(signum, frame)
-
-
 def handled_from_here() -> None:
-    """Put Python's own Ctrl-C handler back, noted (`_noted_interrupt`), where the start-up's quiet
-    exit is still in place: from here on an interrupt is the command's one-line error (or Typer's
-    quiet exit 130 while it parses)."""
+    """Put Python's own Ctrl-C handler back where the start-up's quiet exit is still in place: from
+    here on an interrupt is the command's one-line error (or Typer's quiet exit 130 while it parses)."""
     if signal.getsignal(signal.SIGINT) is _interrupted_while_starting:
-        signal.signal(signal.SIGINT, _noted_interrupt)
-
-
-def interrupted_before() -> bool:
-    """Whether a Ctrl-C reached this process since `handled_from_here` (even one swallowed)."""
-    return bool(_interrupts)
+        signal.signal(signal.SIGINT, signal.default_int_handler)

@@ -100,10 +100,6 @@ def stop_on_signals(what: str) -> Iterator[Stop]:
     """The first SIGINT or SIGTERM asks the work to stop at its next safe point (`what` it finishes,
     said in one line); a second one stops at once (KeyboardInterrupt, or exit 143 for SIGTERM:
     the files stay consistent because every write is atomic). Handlers are restored on exit."""
-    from cli import interrupted_before
-
-    if interrupted_before():  # a Ctrl-C before the work began that a library swallowed (`cli._noted_interrupt`)
-        raise KeyboardInterrupt
     stop = Stop()
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
 

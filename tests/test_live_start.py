@@ -274,31 +274,3 @@ def test_a_ctrl_c_during_the_spawn_reaches_the_trainer_once_the_worker_has_start
                 os.kill(os.getpid(), signal.SIGINT)
     finally:
         signal.signal(signal.SIGINT, before)
-
-
-def test_a_ctrl_c_a_library_swallows_in_the_start_up_still_ends_the_command(monkeypatch):
-    """From `handled_from_here` on, a Ctrl-C is noted before it is raised: one whose KeyboardInterrupt
-    a library's bare `except:` swallows still stops the command where its work would begin."""
-    import os
-    import signal
-
-    import cli
-    from cli.common import stop_on_signals
-
-    before = signal.getsignal(signal.SIGINT)
-    monkeypatch.setattr(cli, "_interrupts", [])
-    try:
-        signal.signal(signal.SIGINT, cli._interrupted_while_starting)  # as the `illm` script starts
-        cli.handled_from_here()
-        with stop_on_signals("nothing"):  # no Ctrl-C yet: the work begins
-            pass
-        try:  # a library's bare except around an import
-            os.kill(os.getpid(), signal.SIGINT)
-            sum(range(1000))  # the handler runs at the next bytecode
-        except:  # noqa: E722
-            pass
-        assert cli.interrupted_before()
-        with pytest.raises(KeyboardInterrupt), stop_on_signals("the work"):
-            raise AssertionError("the work began after a Ctrl-C")
-    finally:
-        signal.signal(signal.SIGINT, before)
