@@ -169,15 +169,18 @@ def _remove_stale_tmp(models: Path) -> None:
             continue
 
 
-def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
-    """The safetensors folder of a GGUF model and the GGUF's sha256, de-quantising once.
+def _built(spec: ModelSpec, root: Path, digest: str) -> Path:
+    """A GGUF model's de-quantised folder, named by its alias and `digest` (12 hex of its sha256, or "*")."""
+    return root / "models" / f"{spec.alias}-{digest}"
 
-    The folder is built in a temporary sibling and renamed into place, so it is complete or absent.
-    """
+
+def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
+    """The safetensors folder of a GGUF model and the GGUF's sha256, de-quantising once. The folder
+    is built in a temporary sibling and renamed into place, so it is complete or absent."""
     package_folder = locate(spec)
     sha = _gguf_sha256(spec, package_folder, root)
-    models = root / "models"
-    target = models / f"{spec.alias}-{sha[:12]}"
+    target = _built(spec, root, sha[:12])
+    models = target.parent
     if (target / "config.json").is_file():
         return target, sha
     import torch
@@ -295,8 +298,8 @@ def preload(name: str, *, cache_dir: str | os.PathLike | None = None) -> None:
     modeling module (read from its config), reading no weights and hashing or de-quantising
     nothing. Most of a small model's load is these imports (2.1 of 2.7 s for smollm2-135m on 2
     CPU cores, torch's own 0.9 s besides), so a live worker started before its run is configured
-    (`illm_tools.rl.live`) pays them beside the trainer's start. A model that cannot be found or read is left to `load_model`, which says what
-    is wrong in its own words."""
+    (`illm_tools.rl.live`) pays them beside the trainer's start. A model that cannot be found or
+    read is left to `load_model`, which says what is wrong in its own words."""
     import torch  # noqa: F401
     import transformers.modeling_utils  # noqa: F401
     from transformers import AutoConfig, AutoTokenizer  # noqa: F401
@@ -307,8 +310,8 @@ def preload(name: str, *, cache_dir: str | os.PathLike | None = None) -> None:
     try:
         spec = resolve(name)
         if spec.source == "gguf-package":  # its de-quantised folder, if one is built: nothing is hashed or built here
-            found = sorted((cache_root(cache_dir) / "models").glob(f"{spec.alias}-*/config.json"))
-            folder = found[0].parent if found else None
+            pattern = _built(spec, cache_root(cache_dir), "*")
+            folder = next((c.parent for c in sorted(pattern.parent.glob(f"{pattern.name}/config.json"))), None)
         else:
             folder = locate(spec)
         if folder is not None:

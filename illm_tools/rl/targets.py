@@ -37,21 +37,26 @@ ACTION_COLUMNS = ["cand_logprob_sum", "cand_token_count", "neutral_logprob_sum"]
 _MEMO_LIMIT = 500_000
 
 
-def _recent(owner, memo: str, records: Sequence[StateRecord], compute) -> list:
-    """`compute(record)` of each record, computed once per distinct record of this call, reusing the
-    last call's (`owner.<memo>`, a dict replaced by this call's). Only the last call's are kept: a
-    run-long memo reused few more (BabyAI, 81,920 frames: 35,168 keys computed against 36,714 at
-    history 0, 73,610 against 73,749 at history 3) and grew by a rollout's states every update,
-    whose objects the garbage collector's full passes then read again and again."""
-    last, current, out = getattr(owner, memo), {}, []
-    for r in records:
-        value = current.get(r)
-        if value is None:
-            value = last.get(r)
-            current[r] = value = compute(r) if value is None else value
-        out.append(value)
-    setattr(owner, memo, current)
-    return out
+class RecentMemo:
+    """`values(records, compute)`: `compute(record)` of each record, once per distinct record of this
+    call, reusing the last call's. Only the last call's are kept: a run-long memo reused few more
+    (BabyAI, 81,920 frames: 35,168 keys computed against 36,714 at history 0, 73,610 against 73,749
+    at history 3) and grew by a rollout's states every update, whose objects the garbage
+    collector's full passes then read again and again."""
+
+    def __init__(self) -> None:
+        self._last: dict = {}
+
+    def values(self, records: Sequence[StateRecord], compute) -> list:
+        last, current, out = self._last, {}, []
+        for r in records:
+            value = current.get(r)
+            if value is None:
+                value = last.get(r)
+                current[r] = value = compute(r) if value is None else value
+            out.append(value)
+        self._last = current
+        return out
 
 
 class CachedTargets:
@@ -81,7 +86,7 @@ class CachedTargets:
         self.text = text_tasks(self.tasks)
         self.live = live
         self.shuffle = ShuffledKeys(cache, builder, shuffle_seed, self.tasks) if shuffle_seed is not None else None
-        self._keys: dict[StateRecord, tuple[str, ...]] = {}
+        self._keys = RecentMemo()  # each state's keys, per task
         self._visits: Counter[StateRecord] = Counter()
         self._last: dict[str, float] = {"cache_hit_rate": 0.0, "target_coverage": 0.0, "live_annotations": 0.0}
         self.landed_at_close = 0
@@ -89,8 +94,8 @@ class CachedTargets:
 
     def keys(self, records: Sequence[StateRecord]) -> dict[str, list[str]]:
         """Each task's keys of the records, computed once per distinct record of this call or the
-        last (`_recent`)."""
-        rows = _recent(self, "_keys", records, lambda r: self.builder.state_keys(r, self.tasks))
+        last (`RecentMemo`)."""
+        rows = self._keys.values(records, lambda r: self.builder.state_keys(r, self.tasks))
         return {task: [keys[i] for keys in rows] for i, task in enumerate(self.tasks)}
 
     def _lookup(self, keys: dict[str, list[str]]) -> tuple[dict[str, dict], np.ndarray]:
@@ -198,7 +203,7 @@ class GoalTargets(CachedTargets):
     def __init__(self, cache: AnnotationCache, builder: PromptBuilder, *, num_actions: int, live=None):
         super().__init__(cache, builder, calibration="sum", num_actions=num_actions, embedding_dim=0, live=live,
                          tasks=("goal",))
-        self._goal_keys: dict[StateRecord, str] = {}
+        self._goal_keys = RecentMemo()
         self.goals: list[tuple[str, ...] | None] = []
         """Per record of the last `targets` call: the state's goals (possibly none), or None."""
 
@@ -214,7 +219,7 @@ class GoalTargets(CachedTargets):
 
     def goal_keys(self, records: Sequence[StateRecord]) -> list[str]:
         """The `goal` keys of the records, computed once per distinct record of this call or the last."""
-        return _recent(self, "_goal_keys", records, lambda r: self.builder.task_key("goal", r))
+        return self._goal_keys.values(records, lambda r: self.builder.task_key("goal", r))
 
     def targets(self, records: Sequence[StateRecord]) -> Targets:
         keys = self.goal_keys(records)
