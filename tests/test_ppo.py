@@ -36,6 +36,19 @@ def test_gae_matches_a_direct_computation():
     assert torch.allclose(ret, adv + values)
 
 
+def test_gae_of_stacked_streams_is_each_streams_own_bit_for_bit():
+    """Two streams in one loop (the trainer's extrinsic and intrinsic advantages) give exactly what a
+    call per stream gives, each with its own gamma."""
+    g = torch.Generator().manual_seed(0)
+    rewards, values = torch.randn(64, 8, 2, generator=g), torch.randn(64, 8, 2, generator=g)
+    ends = (torch.rand(64, 8, 2, generator=g) < 0.1).float()
+    next_value = torch.randn(8, 2, generator=g)
+    adv, ret = gae(rewards, values, next_value, ends, (0.99, 0.999), 0.95)
+    for s, gamma in enumerate((0.99, 0.999)):
+        own = gae(rewards[..., s], values[..., s], next_value[:, s], ends[..., s], gamma, 0.95)
+        assert torch.equal(adv[..., s], own[0]) and torch.equal(ret[..., s], own[1])
+
+
 def test_ppo_mode_has_no_intrinsic_reward_and_no_head_loss(tmp_path):
     trainer, _ = make_trainer(tmp_path, mode="ppo", updates=1)
     assert not trainer.net.has_heads
