@@ -221,3 +221,30 @@ def test_distinct_rows_keeps_every_row_when_deduplication_would_not_pay():
     assert distinct_rows(torch.randn(100, 8).repeat(2, 1)[:127]) is None  # too few rows
     assert distinct_rows(torch.randn(200, 8)) is None                     # all distinct
     assert distinct_rows(torch.randn(150, 8)[torch.arange(160) % 150]) is None  # 150 -> 192 rows: no saving
+
+
+@pytest.mark.parametrize("collide", [False, True])
+def test_missions_go_through_the_gru_once_each_with_the_result_of_every_row(monkeypatch, collide):
+    """`encode_mission` runs the GRU on the distinct missions (`distinct`, hashed, or by whole rows
+    where two hash alike); each row's encoding, and the GRU's gradients, are those of every row
+    through the GRU on its own."""
+    import illm_tools.rl.networks as networks
+
+    torch.manual_seed(0)
+    vocab = MissionVocab()
+    net = GridMissionNet(6, vocab_size=len(vocab), embedding_dim=None)
+    texts = ["go to the red ball", "pick up a key", "open the door", "go to the red ball then pick up a key"]
+    missions = torch.as_tensor(vocab.encode([texts[i % 4] for i in (0, 3, 1, 1, 2, 0, 3, 3, 2, 0)]))
+    if collide:
+        monkeypatch.setattr(networks, "row_hash", lambda words: torch.zeros(len(words), dtype=torch.float64))
+    first, inverse, counts = networks.distinct(missions)
+    assert len(first) == 4 and torch.equal(missions[first][inverse], missions) and counts.sum() == len(missions)
+    encoded = net.encode_mission(missions)
+    encoded.square().sum().backward()
+    grads = {n: p.grad.clone() for n, p in net.text_rnn.named_parameters()}
+    net.zero_grad()
+    one_by_one = torch.cat([net.encode_mission(missions[i:i + 1]) for i in range(len(missions))])
+    one_by_one.square().sum().backward()
+    assert torch.allclose(encoded, one_by_one, atol=1e-6)
+    for name, p in net.text_rnn.named_parameters():
+        assert torch.allclose(grads[name], p.grad, rtol=1e-4, atol=1e-6), name
