@@ -63,12 +63,13 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
     per update of each phase, in seconds; and `close_s`, the time its shutdown took after training).
     Async live annotation runs as `illm train` assembles it (`build_run`: the worker started first);
     the cached case reads a synthetic cache through `CachedTargets` (see the module docstring)."""
-    phases = {k: 0.0 for k in PHASES}
+    phases = {k: 0.0 for k in (*PHASES, "episodes")}  # episodes: their resets are part of the rollout's cost
     forget_rendered()  # each run renders its views' text from scratch, as a run in its own process does
 
     def on_metrics(m: dict) -> None:
         for k in PHASES:
             phases[k] += m[f"time/{k}_s"] / cfg.num_updates
+        phases["episodes"] += m["charts/episodes"] / cfg.num_updates
 
     if live_async:
         cfg = cfg.resolved()
@@ -102,8 +103,11 @@ PHASES = ("rollout", "targets", "update")
 
 
 def phase_text(runs: list[dict]) -> str:
-    """Each phase's median cost per update over `runs`."""
-    return "  ".join(f"{k} {statistics.median(r['phases'][k] for r in runs):.3f}s" for k in PHASES)
+    """Each phase's median cost per update over `runs`, and the episodes that ended in an update (an
+    agent that ends more of them resets more: BabyAI generates a level at each reset, which the
+    rollout pays)."""
+    return "  ".join([f"{k} {statistics.median(r['phases'][k] for r in runs):.3f}s" for k in PHASES]
+                     + [f"({statistics.median(r['phases']['episodes'] for r in runs):.0f} episodes ended)"])
 
 
 def cpu_name() -> str:
