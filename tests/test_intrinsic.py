@@ -248,3 +248,46 @@ def test_missions_go_through_the_gru_once_each_with_the_result_of_every_row(monk
     assert torch.allclose(encoded, one_by_one, atol=1e-6)
     for name, p in net.text_rnn.named_parameters():
         assert torch.allclose(grads[name], p.grad, rtol=1e-4, atol=1e-6), name
+
+
+@pytest.mark.parametrize("covered", [0, 37, 300])
+def test_the_heads_run_where_a_step_has_a_target_with_the_bonus_loss_and_gradients_of_every_row(covered):
+    """On a CPU the heads run only on the steps with a target (`ILLMBonus.policy_outputs`): the
+    rewards, the logs, the distillation loss and every parameter's gradient are those of the heads
+    run on every row; with no target at all the heads still get (zero) gradients, so the optimiser
+    steps them as before."""
+    torch.manual_seed(0)
+    vocab = MissionVocab()
+    net = GridMissionNet(6, vocab_size=len(vocab), embedding_dim=16, head_hidden=64, heads_bf16=False)
+    g = torch.Generator().manual_seed(1)
+    images = torch.randint(0, 6, (300, 7, 7, 3), dtype=torch.uint8, generator=g)
+    missions = torch.as_tensor(vocab.encode(["go to the red ball", "pick up a key"] * 150))
+    mask = torch.zeros(300, dtype=torch.bool)
+    mask[torch.randperm(300, generator=g)[:covered]] = True
+    targets = {"target_probs": torch.softmax(torch.randn(300, 6, generator=g), -1),
+               "target_emb": torch.randn(300, 16, generator=g), "target_mask": mask}
+
+    def run(heads_on_every_row: bool):
+        features = net.features(images, missions)
+        batch = {"features": features, **targets}
+        if heads_on_every_row:
+            batch["action_logits"], batch["summary"] = net.heads(features)
+        else:
+            batch.update(ILLMBonus(10).policy_outputs(net, batch))
+        loss, logs = ILLMBonus(10).aux_loss(batch)
+        loss.backward()
+        grads = {name: p.grad.clone() for name, p in net.named_parameters() if p.grad is not None}
+        net.zero_grad()
+        shaped = {k: v.detach().reshape(30, 10, *v.shape[1:]) for k, v in batch.items()}
+        rewards = ILLMBonus(10).compute_rewards(shaped)
+        return loss.detach(), grads, rewards
+
+    selected, every_row = run(False), run(True)
+    assert torch.allclose(selected[0], every_row[0], atol=1e-6)
+    assert selected[1].keys() == every_row[1].keys() and "f_hc.0.weight" in selected[1]
+    for name, grad in every_row[1].items():
+        assert torch.allclose(selected[1][name], grad, rtol=1e-4, atol=1e-6), name
+    assert torch.allclose(selected[2].reward, every_row[2].reward, atol=1e-6)
+    assert selected[2].logs == pytest.approx(every_row[2].logs, abs=1e-6)
+    if not covered:
+        assert not selected[1]["f_a.0.weight"].any() and not selected[2].reward.any()

@@ -44,6 +44,7 @@ and, when the bonus's class declares them:
   action_logits  float [.., A]        f^a's logits on `features` (with the action task)
   summary        float [.., K*D]      the text heads' predicted embeddings on `features` (f^hc's
                                       first with the summary task), blocks as in target_emb
+  (both where `target_mask` is True; other rows hold anything: the heads need not run there)
 
 The leading axes `..` are [N] for `observe` (one env step), [T, N] for `compute_rewards` and
 `update` (one rollout, t-major), and [B] for `aux_loss` (one PPO minibatch of flat rows).
@@ -204,10 +205,11 @@ class IntrinsicBonus(ABC):
         `illm_tools.rl.run`), for a bonus that reads more of the provider than the targets the
         trainer stores (ELLM: each step's goals). Default: nothing."""
 
-    def policy_outputs(self, net, features: torch.Tensor) -> dict[str, torch.Tensor]:
-        """What the bonus reads of the policy network beyond its features, for `features` [..., F]
-        (the minibatch's, with gradient, during the update): entries added to its batches. Default:
-        nothing; iLLM's: its heads' outputs (`action_logits`, `summary`)."""
+    def policy_outputs(self, net, batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """What the bonus reads of the policy network beyond its features, for the batch's
+        `features` [..., F] (the minibatch's, with gradient, during the update) and the rest of what
+        it reads (`target_mask`, say): entries added to its batches. Default: nothing; iLLM's: its
+        heads' outputs (`action_logits`, `summary`)."""
         return {}
 
     def observe(self, step: Mapping[str, torch.Tensor]) -> None:

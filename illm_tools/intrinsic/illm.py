@@ -161,16 +161,25 @@ class ILLMBonus(IntrinsicBonus):
         d = emb.shape[-1] // len(self.text)
         return {task: (pred[..., i * d:(i + 1) * d], emb[..., i * d:(i + 1) * d]) for i, task in enumerate(self.text)}
 
-    def policy_outputs(self, net, features: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The heads' outputs on `features` [..., F]: `action_logits` (f^a) and `summary` (f^hc and the
-        other text tasks' heads, side by side), shaped as the features' leading dimensions."""
-        action_logits, summary = net.heads(features.reshape(-1, features.shape[-1]))
-        out = {}
-        if action_logits is not None:
-            out["action_logits"] = action_logits.reshape(*features.shape[:-1], -1)
-        if summary is not None:
-            out["summary"] = summary.reshape(*features.shape[:-1], -1)
-        return out
+    def policy_outputs(self, net, batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The heads' outputs on `batch["features"]` [..., F]: `action_logits` (f^a) and `summary` (f^hc
+        and the other text tasks' heads, side by side), shaped as the features' leading dimensions.
+        A step without a target takes no part in the bonus or the loss, so on a CPU the heads run on
+        the steps with one only, and the others hold zeros (an async run's first rollouts: about 1% of
+        the steps have one, and the heads on the rest were most of the update). Every row has one
+        with a full cache, and on CUDA (where picking the rows would wait for the device) the heads
+        run on every row."""
+        features = batch["features"]
+        flat = features.reshape(-1, features.shape[-1])
+        mask = batch["target_mask"].reshape(-1)
+        if flat.device.type == "cpu" and not bool(mask.all()):
+            rows = mask.nonzero().squeeze(1)
+            outputs = [None if out is None else out.new_zeros(len(flat), out.shape[1]).index_copy(0, rows, out)
+                       for out in net.heads(flat[rows])]  # none: the heads still get (zero) gradients, as before
+        else:
+            outputs = net.heads(flat)
+        return {name: out.reshape(*features.shape[:-1], -1)
+                for name, out in zip(("action_logits", "summary"), outputs) if out is not None}
 
     @torch.no_grad()
     def compute_rewards(self, batch: Mapping[str, torch.Tensor]) -> BonusRewards:

@@ -228,7 +228,7 @@ class Trainer:
         batch = ro.bonus_batch(rows, self.bonus.reads)
         if features is not None:
             batch["features"] = features
-        batch.update(self.bonus.policy_outputs(self.net, batch["features"]))
+        batch.update(self.bonus.policy_outputs(self.net, batch))
         return batch
 
     @torch.no_grad()
