@@ -29,6 +29,7 @@ cached (as above; the trainer's LLM computes Z_h, the targets are synthetic).
 
     .venv/bin/python benchmarks/train.py [--env BabyAI-GoToLocal-v0] [--frames 40960] [--pairs 3]
     .venv/bin/python benchmarks/train.py --profile
+    .venv/bin/python benchmarks/train.py --only cached --head-hidden 512   (what narrower heads would cost)
     .venv/bin/python benchmarks/train.py --mode hop --env MiniGrid-MultiRoom-N6-v0 --frames 2048 --num-steps 32
 """
 
@@ -207,6 +208,8 @@ def main() -> None:
     parser.add_argument("--mode", choices=("obs", "hop"), default="obs", help="hop: the cost of iLLM(hop) instead.")
     parser.add_argument("--history", type=int, default=3, help="hop: steps of history (the window is one more).")
     parser.add_argument("--dtype", default="bfloat16", help="hop: the LLM's compute dtype (float32 is faster on some CPUs).")
+    parser.add_argument("--head-hidden", type=int, help="iLLM's heads' width (default: the run's, the paper's 1,024): "
+                        "what another width would cost, for the choice of it.")
     args = parser.parse_args()
     if args.device.startswith("cuda"):
         deterministic_cuda()
@@ -218,12 +221,15 @@ def main() -> None:
             model's package (the cache's rows come from the synthetic annotator either way)."""
             if settings.get("live_mode") != "async" and settings.get("obs_mode") != "hop":
                 settings.setdefault("llm", LLMSpec("stub", f"stub:{DIM}"))
+            if args.head_hidden:
+                settings["head_hidden"] = args.head_hidden
             return TrainConfig.from_dict(dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
                                num_envs=args.num_envs, num_steps=args.num_steps, device=args.device,
                                live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads,
                                **settings))
 
         print(f"env {args.env}, {args.frames:,} frames a run, {args.num_envs} envs x {args.num_steps} steps, "
+              f"{'' if not args.head_hidden else f'heads of {args.head_hidden} units, '}"
               f"{args.threads} thread(s), policy on {args.device}{gpu_name(args.device)}; CPU: {cpu_name()}, "
               f"{os.cpu_count()} cores", flush=True)
         if args.mode == "hop":
