@@ -114,26 +114,29 @@ def test_short_run_writes_metrics_and_checkpoint_and_resumes(tmp_path):
 
 
 def test_training_freezes_what_the_run_was_built_with_and_puts_it_back(tmp_path):
-    """While a run trains, the objects it was built with are out of the collector's passes
-    (`frozen_heap`); after it (or a failure) they are back; a process's own freeze is left alone."""
+    """While a run trains, the objects it was built with are out of the collector's passes and its
+    young generation is larger (`frozen_heap`); after it (or a failure) both are back; a process's
+    own freeze, and its thresholds, are left alone."""
     import gc
 
-    from illm_tools.rl.threads import frozen_heap
+    from illm_tools.rl.threads import YOUNG_THRESHOLD, frozen_heap
 
     trainer, _ = make_trainer(tmp_path, updates=2)
     during = []
-    trainer.on_metrics = lambda m: during.append(gc.get_freeze_count())
+    trainer.on_metrics = lambda m: during.append((gc.get_freeze_count(), gc.get_threshold()))
     assert gc.get_freeze_count() == 0
+    before = gc.get_threshold()
     trainer.train()
-    assert len(during) == 2 and min(during) > 0 and gc.get_freeze_count() == 0
+    assert len(during) == 2 and min(count for count, _ in during) > 0 and gc.get_freeze_count() == 0
+    assert all(t == (YOUNG_THRESHOLD, *before[1:]) for _, t in during) and gc.get_threshold() == before
     with pytest.raises(RuntimeError), frozen_heap():
         raise RuntimeError
-    assert gc.get_freeze_count() == 0
+    assert gc.get_freeze_count() == 0 and gc.get_threshold() == before
     gc.freeze()
     try:
         host = gc.get_freeze_count()
         with frozen_heap():
-            assert gc.get_freeze_count() == host
+            assert gc.get_freeze_count() == host and gc.get_threshold() == before
         assert gc.get_freeze_count() == host
     finally:
         gc.unfreeze()
