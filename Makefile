@@ -68,7 +68,8 @@ $(ENGINE_STAMP): engine-constraints.txt constraints.txt Makefile
 # vLLM's OpenAI server in .venv-engine (`make engine`, then see docs/scale.md); `make test` builds it once.
 engine: $(ENGINE_STAMP)
 
-# pytest-xdist, a worker per core (-n auto; --dist loadgroup keeps a module marked xdist_group on one worker:
+# pytest-xdist, a worker per core (-n auto; --dist loadgroup keeps a module marked xdist_group on one worker,
+# with tests/conftest.py under pytest 9, whose nodeids xdist 3.8 cannot suffix itself:
 # tests/test_vllm_engine.py starts its servers once): the tests are independent (each its own tmp folder, model
 # caches written by rename), and on 2 cores the whole suite takes half the time of one process
 # (10 against 21 minutes on a 2-core AVX2 EPYC), as most tests leave the second core idle.

@@ -181,7 +181,7 @@ def collect_babyai(tmp_path_factory, steps: int, seed: int, action_space: str):
     return out
 
 
-def pytest_collection_modifyitems(config, items):
+def _skip_gpu_tests(items) -> None:
     """`gpu`-marked tests run where torch sees a CUDA GPU and are skipped, saying so, elsewhere."""
     import torch
 
@@ -191,3 +191,25 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """The `gpu` tests' skips (`_skip_gpu_tests`), and `_keep_xdist_groups`."""
+    _skip_gpu_tests(items)
+    _keep_xdist_groups(items)
+
+
+def _keep_xdist_groups(items) -> None:
+    """Keep `--dist loadgroup`'s groups (`make test`): pytest-xdist names a test's group by a suffix it
+    writes to `item._nodeid` (its worker's own collection hook), which pytest 9 no longer reads (the
+    nodeid is `item._id`), so every group's tests were spread over the workers, and
+    tests/test_vllm_engine.py's servers started in both of them (two pairs of vLLM servers on two
+    cores, and a port one worker's server took given to the other's). Runs after xdist's hook and
+    moves the name it wrote to where pytest reads it (the hook runs last)."""
+    from _pytest.nodeid import coerce_node_id
+
+    for item in items:
+        named = getattr(item, "_nodeid", None)
+        if isinstance(named, str) and named != item.nodeid:
+            item._id = coerce_node_id(named)
