@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import socket
 import subprocess
 import time
@@ -67,7 +68,11 @@ class VLLMServer:
         self.model, self.served_name, self.python = str(model), served_name, Path(python)
         self.runner, self.dtype, self.kv_cache_gib, self.threads = runner, dtype, kv_cache_gib, threads
         self.optimization = optimization
-        self.port = port or free_port()
+        self.port, self._port_given = port or free_port(), port is not None
+        self.identity = f"{served_name}-{os.getpid()}-{secrets.token_hex(4)}"
+        """A second name the server serves the model under, unique to this server: `wait` reads it in
+        `/v1/models`, so another server that took the port (one `free_port` handed out elsewhere too,
+        say, to a test's server in another process) is never taken for this one."""
         self.log = Path(log) if log else None
         self.process: subprocess.Popen | None = None
 
@@ -79,7 +84,7 @@ class VLLMServer:
     def command(self) -> list[str]:
         """The server's command line (without the engine's Python)."""
         args = ["-m", "vllm.entrypoints.openai.api_server", "--model", self.model, "--served-model-name",
-                self.served_name, "--dtype", self.dtype, "--host", "127.0.0.1", "--port", str(self.port)]
+                self.served_name, self.identity, "--dtype", self.dtype, "--host", "127.0.0.1", "--port", str(self.port)]
         if self.optimization is not None:
             args += ["--optimization-level", str(self.optimization)]
         if self.runner == "pooling":
@@ -107,21 +112,32 @@ class VLLMServer:
                                         env=self.environment, start_new_session=True)
         return self.url
 
-    def wait(self, timeout: float = START_TIMEOUT_S) -> str:
-        """Block until `GET /v1/models` lists the served model; raise `EngineError` (with the end of
-        the server's log) if it stops or the time runs out."""
+    def wait(self, timeout: float = START_TIMEOUT_S, restarts: int = 3) -> str:
+        """Block until `GET /v1/models` lists this server's `identity`; raise `EngineError` (with the
+        end of the server's log) if it stops or the time runs out. A server that stopped while another
+        answered at its port (the port was taken between `free_port` and the server's bind) is started
+        again on a new port, at most `restarts` times; the URL it serves at is returned."""
         deadline = time.monotonic() + timeout
+        foreign = False
         while True:
             try:
                 with urllib.request.urlopen(self.url + "/models", timeout=5) as answer:
-                    if any(m.get("id") == self.served_name for m in json.loads(answer.read()).get("data", [])):
-                        return self.url
+                    served = {m.get("id") for m in json.loads(answer.read()).get("data", [])}
+                if self.identity in served:
+                    return self.url
+                foreign = True  # a server answers here, not this one
             except (OSError, ValueError):
                 pass
-            if self.process is None or self.process.poll() is not None or time.monotonic() > deadline:
+            stopped = self.process is None or self.process.poll() is not None
+            if stopped and foreign and restarts > 0 and not self._port_given:
+                self.port, foreign, restarts = free_port(), False, restarts - 1
+                self.start()
+                continue
+            if stopped or time.monotonic() > deadline:
                 tail = self.log.read_text()[-1500:] if self.log and self.log.is_file() else ""
-                state = "stopped" if self.process is not None and self.process.poll() is not None else "did not answer"
-                raise EngineError(f"vLLM's {self.runner} server {state} within {timeout:.0f} s: {tail!r}")
+                state = "stopped" if stopped else "did not answer"
+                taken = f" (another server answers at port {self.port})" if foreign else ""
+                raise EngineError(f"vLLM's {self.runner} server {state} within {timeout:.0f} s{taken}: {tail!r}")
             time.sleep(1.0)
 
     def stop(self) -> None:
