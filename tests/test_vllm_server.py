@@ -5,11 +5,10 @@ names they were started with): what is tested is the waiting, not vLLM."""
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
-import threading
-from http.server import BaseHTTPRequestHandler, HTTPServer
+import time
+import urllib.request
 
 import pytest
 
@@ -30,25 +29,23 @@ HTTPServer(("127.0.0.1", int(sys.argv[1])), Models).serve_forever()  # exits at 
 """
 
 
-def _serving(names: list[str]) -> HTTPServer:
-    """Another server listing `names` at /v1/models, on a free port, in a thread."""
-    class Models(BaseHTTPRequestHandler):
-        def do_GET(self):
-            body = json.dumps({"data": [{"id": n} for n in names]}).encode()
-            self.send_response(200)
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, *args):
-            pass
-
-    server = HTTPServer(("127.0.0.1", 0), Models)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    return server
+def _serving(names: list[str]) -> tuple[subprocess.Popen, int]:
+    """Another server (the stand-in) listing `names` at /v1/models, on a free port: (its process, the port)."""
+    port = vllm_server.free_port()
+    process = subprocess.Popen([sys.executable, "-c", STAND_IN, str(port), *names])
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/v1/models", timeout=1).close()
+            return process, port
+        except OSError:
+            time.sleep(0.05)
+    process.kill()
+    raise RuntimeError("the stand-in server did not start")
 
 
 @pytest.fixture
-def stand_in(monkeypatch, tmp_path):
+def stand_in(monkeypatch):
     """`VLLMServer.start` starts the stand-in on the server's port with its served names."""
     def start(self):
         self.process = subprocess.Popen([sys.executable, "-c", STAND_IN, str(self.port), self.served_name, self.identity],
@@ -56,7 +53,6 @@ def stand_in(monkeypatch, tmp_path):
         return self.url
 
     monkeypatch.setattr(VLLMServer, "start", start)
-    return tmp_path
 
 
 def _server(port=None):
@@ -64,8 +60,7 @@ def _server(port=None):
 
 
 def test_a_server_that_found_its_port_taken_starts_again_on_a_new_one(stand_in, monkeypatch):
-    other = _serving(["smol"])  # the same served name, another server
-    taken = other.server_address[1]
+    other, taken = _serving(["smol"])  # the same served name, another server
     ports, free_port = iter([taken]), vllm_server.free_port
     monkeypatch.setattr(vllm_server, "free_port", lambda: next(ports, None) or free_port())  # the taken one first
     server = _server()
@@ -76,16 +71,16 @@ def test_a_server_that_found_its_port_taken_starts_again_on_a_new_one(stand_in, 
         assert url != f"http://127.0.0.1:{taken}/v1" and url == server.url
     finally:
         server.process.kill()
-        other.shutdown()
+        other.kill()
 
 
 def test_a_server_given_a_taken_port_says_another_answers_there(stand_in):
-    other = _serving(["smol"])
-    server = _server(port=other.server_address[1])  # a port the caller chose: not changed
+    other, taken = _serving(["smol"])
+    server = _server(port=taken)  # a port the caller chose: not changed
     server.start()
     try:
         with pytest.raises(EngineError, match="another server answers at port"):
             server.wait(timeout=30)
     finally:
-        other.shutdown()
+        other.kill()
 
