@@ -128,6 +128,17 @@ def test_state_keys_are_the_rendered_prompts_keys_on_awkward_texts(layout):
         assert all(frame is not None for frame in b._state_keys._frames.values()) or "\x00" in mission  # the fast path ran
 
 
+def test_state_keys_memos_keep_observations_actions_and_places_apart():
+    """One builder keys states whose texts recur as observations (written on one line) and as
+    actions (verbatim), at every place of the history: each key is still its rendered prompt's."""
+    b = builder(history_len=3)
+    texts = ["two\nlines", "  padded  ", "", "turn left", 'say "hi"']
+    records = [StateRecord("go to the red ball", tuple((texts[(i + j) % 5], texts[(i + 2 * j) % 5]) for j in range(n)),
+                           texts[i], ACTIONS) for i in range(5) for n in range(4)]
+    for rec in records + records[::-1]:
+        assert b.state_keys(rec) == tuple(b.key(b.render(t, rec)) for t in ("action", "summary")), rec
+
+
 def test_bad_layout_is_refused():
     with pytest.raises(UsageError, match="layout"):
         builder(layout="fancy")
