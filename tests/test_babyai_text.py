@@ -117,6 +117,18 @@ def test_wall_hidden_by_object_or_unseen_cells():
                                "You see a blue ball 1 step forward"]
 
 
+def test_a_sentence_made_once_is_not_reused_in_a_view_of_another_size():
+    """Each object's sentence is made once per (cell, view size, codes): cell 13 of a 7x7 view and
+    of a 5x5 view lie at different places from the agent."""
+    image = _view((1, 6, "ball", "red", ""))  # cell 1 * 7 + 6 = 13
+    small = np.zeros((5, 5, 3), dtype=np.uint8)
+    small[:, :, 0] = OBJECT_TO_IDX["empty"]
+    small[2, 3] = image[1, 6]  # cell 2 * 5 + 3 = 13
+    for _ in range(2):
+        assert describe(image) == ["You see a red ball 2 steps left"]
+        assert describe(small) == ["You see a red ball 1 step forward"]
+
+
 def test_carry_comes_first_and_empty_view():
     image = _view((3, 4, "wall", "grey", ""), carry=("blue", "key"))
     assert render_text(image) == "You carry a blue key, You see a wall 2 steps forward"

@@ -109,10 +109,16 @@ def describe(image: np.ndarray) -> list[str]:
     return _describe(view.tobytes(), view.shape[0], view.shape[1])
 
 
+_OBJECT_CELLS = bytes(1 if code > _WALL else 0 for code in range(256))  # translate(): 1 where an object lies
+_SENTENCE_LIMIT = 100_000
+
+
 def _describe(data: bytes, width: int, height: int) -> list[str]:
     """`describe` over the view's bytes (C order [x, y, channel]). Plain Python over the 49 cells:
     a view is too small for numpy, whose per-call costs made rendering 2.5x slower (it is ~3% of
-    an iLLM update on BabyAI: every new view of every step is rendered)."""
+    an iLLM update on BabyAI: every new view of every step is rendered). The objects' cells are
+    found by `bytes.find` over a translated copy, and each (cell, object) sentence is made once
+    (3.9 -> 2.7 us a view over 8,267 distinct views of four levels' random rollouts)."""
     ax, ay = width // 2, height - 1
     types = data[::3]  # cell (x, y)'s object at x * height + y
     sentences = []
@@ -129,12 +135,28 @@ def _describe(data: bytes, width: int, height: int) -> list[str]:
                 if types[cell] == _WALL:
                     sentences.append(f"You see a wall {_steps(distance, direction)}")
                 break
-    for cell, obj in enumerate(types):  # row-major over [x, y]: GLAM's column-by-column order
-        if obj > _WALL and cell != here:
-            x, y = divmod(cell, height)
-            phrase = _object_phrase(obj, data[3 * cell + 1], data[3 * cell + 2])
-            sentences.append(f"You see {phrase} {_location(x - ax, ay - y)}")
+    objects = types.translate(_OBJECT_CELLS)
+    cell = objects.find(1)
+    while cell >= 0:  # row-major over [x, y]: GLAM's column-by-column order
+        if cell != here:
+            sentences.append(_object_sentence(cell, width, height, data[3 * cell:3 * cell + 3]))
+        cell = objects.find(1, cell + 1)
     return sentences
+
+
+_sentences: dict[tuple, str] = {}
+
+
+def _object_sentence(cell: int, width: int, height: int, codes: bytes) -> str:
+    """"You see <object> <where>" for the object `codes` (object, colour, state) at `cell` of a view."""
+    key = (cell, width, height, codes)
+    sentence = _sentences.get(key)
+    if sentence is None:
+        if len(_sentences) > _SENTENCE_LIMIT:
+            _sentences.clear()
+        x, y = divmod(cell, height)
+        sentence = _sentences[key] = f"You see {_object_phrase(*codes)} {_location(x - width // 2, height - 1 - y)}"
+    return sentence
 
 
 def render_text(image: np.ndarray) -> str:
