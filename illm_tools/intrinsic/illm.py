@@ -97,10 +97,14 @@ def summary_disagreement(pred: torch.Tensor, target: torch.Tensor) -> torch.Tens
 
 
 def _clean(batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Mask and targets with rows that have no target zeroed (they may hold NaN or garbage)."""
+    """Mask and targets with rows that have no target zeroed (they may hold NaN or garbage). With
+    every row covered on a CPU (a cached run) the targets are returned as they are, which is what
+    zeroing none of them gives: the copy of the embeddings was 1 ms of the bonus pass (2,048 x 576)."""
     mask = batch["target_mask"].bool()
-    m = mask.unsqueeze(-1)
     probs, emb = batch["target_probs"], batch["target_emb"]
+    if mask.device.type == "cpu" and bool(mask.all()):  # on CUDA the test would wait for the device
+        return mask, probs, emb
+    m = mask.unsqueeze(-1)
     return mask, torch.where(m, probs, 0.0), torch.where(m, emb, 0.0)
 
 
