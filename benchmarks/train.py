@@ -6,9 +6,14 @@ same run, in two cases, each as the median (and range) of three paired runs' rat
   rollouts (one thread) on this machine's cores, as `illm train --live-mode async` does; the
   worker is started before the env pool and the network, as a run starts it, and the time to its
   first answer in the cache is printed.
-Each run is 40,960 frames by default (20 updates of 16 x 128), long enough that a pair's ratio is
-stable to a few hundredths; the pairs alternate which method runs first. Each method's mean cost
-per update (rollout, target look-up, update) is printed beside its rate.
+Each run is 40,960 frames by default (20 updates of 16 x 128); the pairs alternate which method runs
+first. A cached pair runs in lockstep (`lockstep`): each method in its own process, as `illm train`
+runs, both held to the same core and taking their updates in turn, each rate over its own updates'
+time, so that both meet the same state of the machine (this VM's speed drifts by a fifth within
+minutes: run one after the other, one pair read 0.73 and the next 0.97 with the same code; in
+lockstep a run's three pairs lay within 0.03). Each method's mean cost per update (rollout,
+target look-up, update) is printed beside its rate, and what illm adds to an update in ms: the
+ratio also moves with what both pay (in a slow spell the envs' Python slows more than the heads).
 
 "Every target cached" is made exact without an LLM in the loop: a first illm pass fills an
 empty cache through the live-fallback path, with rows of deterministic pseudo-random scores and
@@ -59,11 +64,45 @@ from illm_tools.rl.targets import CachedTargets
 DIM = 576  # SmolLM2-135M's hidden size: the f^hc head is as large as with the embedded model
 
 
-def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> tuple[float, dict]:
+class Turns:
+    """A lockstep run's clock: before each of its updates the run waits for its `turn` (a
+    semaphore), and when the next one begins, or the run ends, it hands `other` the turn; `spent`
+    sums the time from each turn taken to the turn handed on: the run's own updates. Both runs meet
+    at `together` (a barrier) once built and once done, so that neither's start nor its exit falls
+    in the other's turns (without it, the run that went second paid for the first one's exit in its
+    last turns: its pairs read 0.90-0.95 with illm first against 0.82-0.84 with ppo first)."""
+
+    def __init__(self, turn, other, together):
+        self.turn, self.other, self.together = turn, other, together
+        self.spent, self.since, self.started = 0.0, None, False
+
+    def hand_on(self) -> None:
+        if self.since is not None:
+            self.spent += time.perf_counter() - self.since
+            self.since = None
+            self.other.release()
+
+    def __call__(self) -> bool:  # Trainer.train's should_stop: called before each update
+        if not self.started:
+            self.started = True
+            self.together.wait()
+        self.hand_on()
+        self.turn.acquire()
+        self.since = time.perf_counter()
+        return False
+
+    def done(self) -> None:
+        self.hand_on()
+        self.together.wait()
+
+
+def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False, turns: Turns | None = None) -> tuple[float, dict]:
     """One training run: (steps/s over its updates, its last metrics with `phases`: the mean cost
     per update of each phase, in seconds; and `close_s`, the time its shutdown took after training).
     Async live annotation runs as `illm train` assembles it (`build_run`: the worker started first);
-    the cached case reads a synthetic cache through `CachedTargets` (see the module docstring)."""
+    the cached case reads a synthetic cache through `CachedTargets` (see the module docstring).
+    With `turns` the run takes its updates in turn with another process's (`lockstep`), and its
+    rate is over its own updates' time."""
     phases = {k: 0.0 for k in (*PHASES, "episodes")}  # episodes: their resets are part of the rollout's cost
     forget_rendered()  # each run renders its views' text from scratch, as a run in its own process does
 
@@ -92,15 +131,63 @@ def run(cfg: TrainConfig, cache_dir: Path | None, live_async: bool = False) -> t
     trainer = Trainer(cfg.resolved(), pool, provider, on_metrics=on_metrics)
     start = time.perf_counter()
     try:
-        last = trainer.train()
+        last = trainer.train(should_stop=turns)
         trained = time.perf_counter() - start
     finally:
         pool.close()
+        if turns is not None:
+            turns.done()
+    if turns is not None:
+        trained = turns.spent
     last.update(phases=phases, close_s=0.0)
     return cfg.num_updates * cfg.batch_size / trained, last
 
 
 PHASES = ("rollout", "targets", "update")
+
+
+def _lockstep_run(settings: dict, cache_dir: Path | None, threads: int, turn, other, together, results) -> None:
+    """A lockstep pair's run in its own process (`lockstep`); puts (method, steps/s, last metrics).
+    Both runs of a pair are held to the same `threads` cores: this VM's two cores are not equally
+    quick at a given time (a pair whose runs sat on different cores read 1.10)."""
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:threads])
+    if settings["device"].startswith("cuda"):
+        deterministic_cuda()
+    with torch_threads(threads):
+        cfg = TrainConfig.from_dict(settings)
+        sps, last = run(cfg, cache_dir, turns=Turns(turn, other, together))
+    results.put((cfg.method, sps, {k: v for k, v in last.items() if isinstance(v, (int, float, dict))}))
+
+
+def lockstep(settings: dict[str, dict], cache_dir: Path, threads: int, first: str) -> dict[str, tuple[float, dict]]:
+    """A cached pair run in lockstep: each method in its own process, as `illm train` runs, taking
+    their updates in turn (`first` first), so that both meet the same state of the machine. Run
+    one after the other, a pair's two runs met different states: this machine's speed drifts by
+    a fifth within minutes, and one pair's ratio read 0.73 and the next 0.97 with the same code.
+    Each run's rate is over its own updates' time: {method: (steps/s, last metrics)}."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    sems = {method: ctx.Semaphore(0) for method in settings}
+    together, results = ctx.Barrier(len(settings), timeout=3600), ctx.Queue()
+    second = next(m for m in settings if m != first)
+    procs = [ctx.Process(target=_lockstep_run, args=(settings[m], cache_dir if m == "illm" else None, threads, sems[m],
+                                                     sems[second if m == first else first], together, results)) for m in settings]
+    for proc in procs:
+        proc.start()
+    sems[first].release()
+    out = {}
+    try:
+        for _ in procs:
+            method, sps, last = results.get(timeout=3600)
+            out[method] = (sps, last)
+    finally:
+        for proc in procs:
+            proc.join(timeout=60)
+    if any(proc.exitcode for proc in procs):
+        raise SystemExit(f"a lockstep run failed: exit codes {[proc.exitcode for proc in procs]}")
+    return out
 
 
 def phase_text(runs: list[dict]) -> str:
@@ -141,16 +228,22 @@ def gpu_name(device: str) -> str:
 
 
 def pairs(args, config, cached: Path | None, label: str, tmp: Path) -> list[dict]:
-    """`args.pairs` paired runs of ppo and illm (cached when `cached` names the filled cache; else
-    async live annotation into an empty cache each, under `tmp`), alternating which runs first."""
+    """`args.pairs` paired runs of ppo and illm, alternating which runs first: cached when `cached`
+    names the filled cache, the two in lockstep (`lockstep`); else async live annotation into an
+    empty cache each, under `tmp`, one run after the other (in lockstep the illm run's worker would
+    annotate on through ppo's turns too, more than in a run of its own)."""
     out = []
     for k in range(args.pairs):
-        pair = {}
-        for method in ("illm", "ppo") if k % 2 == 0 else ("ppo", "illm"):
+        order = ("illm", "ppo") if k % 2 == 0 else ("ppo", "illm")
+        if cached is not None:  # in lockstep: both runs meet the same state of the machine
+            pair = lockstep({m: config(m, f"{label}-{m}-{k}", 0, as_settings=True) for m in order}, cached,
+                            args.threads, first=order[0])
+            order = ()
+        else:
+            pair = {}
+        for method in order:
             if method == "ppo":
                 pair["ppo"] = run(config("ppo", f"{label}-ppo-{k}", 0), None)
-            elif cached is not None:
-                pair["illm"] = run(config("illm", f"{label}-illm-{k}", 0), cached)
             else:
                 cfg = config("illm", f"{label}-illm-{k}", 16, cache=tmp / f"live-ann-{k}", live_mode="async", history_len=0)
                 pair["illm"] = run(cfg, None, live_async=True)
@@ -166,10 +259,15 @@ def pairs(args, config, cached: Path | None, label: str, tmp: Path) -> list[dict
             extra = f"; cache hit rate {pair['illm'][1]['charts/cache_hit_rate']:.3f}"
         print(f"  pair {k + 1}: ppo {pair['ppo'][0]:7,.0f} steps/s, illm {pair['illm'][0]:7,.0f}: ratio {ratio:.3f}{extra}",
               flush=True)
-        out.append({"ratio": ratio, "ppo": pair["ppo"][1], "illm": pair["illm"][1]})
+        # what illm adds to each update (its steps at each method's rate), read beside the ratio: the
+        # ratio also moves with what both pay (a slow spell slows the envs' Python more than the heads)
+        added = (1 / pair["illm"][0] - 1 / pair["ppo"][0]) * args.num_envs * args.num_steps
+        out.append({"ratio": ratio, "added": added, "ppo": pair["ppo"][1], "illm": pair["illm"][1]})
     ratios = [p["ratio"] for p in out]
     print(f"  per update, median over the pairs: ppo {phase_text([p['ppo'] for p in out])}")
     print(f"                                     illm {phase_text([p['illm'] for p in out])}")
+    print(f"  illm's added time per update of {args.num_envs * args.num_steps:,} steps, median over the pairs: "
+          f"{1e3 * statistics.median(p['added'] for p in out):.0f} ms")
     print(f"  illm/ppo ratio, median of {len(ratios)} pairs: {statistics.median(ratios):.3f} "
           f"(range {min(ratios):.3f}-{max(ratios):.3f})", flush=True)
     return out
@@ -215,18 +313,19 @@ def main() -> None:
         deterministic_cuda()
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
-        def config(mode: str, name: str, live_budget: int, **settings) -> TrainConfig:
-            """A run's config; `settings` by their flat names (`illm_tools.rl.config.FLAT`). Unless the
+        def config(mode: str, name: str, live_budget: int, as_settings: bool = False, **settings) -> TrainConfig | dict:
+            """A run's config (or, `as_settings`, what makes it: a lockstep run's process makes its own);
+            `settings` by their flat names (`illm_tools.rl.config.FLAT`). Unless the
             run annotates live or reads Z_h (hop), its LLM is a stub of SmolLM2-135M's width: the heads' size without the
             model's package (the cache's rows come from the synthetic annotator either way)."""
             if settings.get("live_mode") != "async" and settings.get("obs_mode") != "hop":
                 settings.setdefault("llm", LLMSpec("stub", f"stub:{DIM}"))
             if args.head_hidden:
                 settings["head_hidden"] = args.head_hidden
-            return TrainConfig.from_dict(dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
-                               num_envs=args.num_envs, num_steps=args.num_steps, device=args.device,
-                               live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads,
-                               **settings))
+            made = dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
+                        num_envs=args.num_envs, num_steps=args.num_steps, device=args.device,
+                        live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads, **settings)
+            return made if as_settings else TrainConfig.from_dict(made)
 
         print(f"env {args.env}, {args.frames:,} frames a run, {args.num_envs} envs x {args.num_steps} steps, "
               f"{'' if not args.head_hidden else f'heads of {args.head_hidden} units, '}"
