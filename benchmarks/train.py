@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import queue
 import statistics
 import tempfile
 import time
@@ -148,8 +149,8 @@ PHASES = ("rollout", "targets", "update")
 
 def _lockstep_run(settings: dict, cache_dir: Path | None, threads: int, turn, other, together, results) -> None:
     """A lockstep pair's run in its own process (`lockstep`); puts (method, steps/s, last metrics).
-    Both runs of a pair are held to the same `threads` cores: this VM's two cores are not equally
-    quick at a given time (a pair whose runs sat on different cores read 1.10)."""
+    Both runs of a pair are held to the same `threads` cores: this VM's two cores need not be
+    equally quick at a given time (left to either core, one pair read 1.10)."""
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:threads])
     if settings["device"].startswith("cuda"):
@@ -179,14 +180,18 @@ def lockstep(settings: dict[str, dict], cache_dir: Path, threads: int, first: st
     sems[first].release()
     out = {}
     try:
-        for _ in procs:
-            method, sps, last = results.get(timeout=3600)
-            out[method] = (sps, last)
+        while len(out) < len(procs):
+            try:
+                method, sps, last = results.get(timeout=5)
+                out[method] = (sps, last)
+            except queue.Empty:  # a run that died leaves the other waiting for its turn: end both
+                if any(proc.exitcode not in (None, 0) for proc in procs):
+                    raise SystemExit(f"a lockstep run failed: exit codes {[proc.exitcode for proc in procs]}") from None
     finally:
         for proc in procs:
+            if len(out) < len(procs):
+                proc.terminate()
             proc.join(timeout=60)
-    if any(proc.exitcode for proc in procs):
-        raise SystemExit(f"a lockstep run failed: exit codes {[proc.exitcode for proc in procs]}")
     return out
 
 

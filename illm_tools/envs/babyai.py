@@ -175,6 +175,7 @@ def forget_rendered() -> None:
     """Empty the memo of rendered views (it lives as long as the process): runs timed one after
     another in one process each start as a fresh process would (`benchmarks/train.py`)."""
     _render.cache_clear()
+    _sentences.clear()
 
 
 def _check_done_is_noop(action_space: str) -> None:
