@@ -10,7 +10,7 @@ Each run is 40,960 frames by default (20 updates of 16 x 128); the pairs alterna
 first. A cached pair runs in lockstep (`lockstep`): each method in its own process, as `illm train`
 runs, both held to the same core and taking their updates in turn, each rate over its own updates'
 time, so that both meet the same state of the machine (this VM's speed drifts by a fifth within
-minutes: run one after the other, one pair read 0.73 and the next 0.97 with the same code; in
+minutes: run one after the other, four pairs of the same code read from 0.78 to 0.97; in
 lockstep a run's three pairs lay within 0.03). Each method's mean cost per update (rollout,
 target look-up, update) is printed beside its rate, and what illm adds to an update in ms: the
 ratio also moves with what both pay (in a slow spell the envs' Python slows more than the heads).
@@ -165,7 +165,7 @@ def lockstep(settings: dict[str, dict], cache_dir: Path, threads: int, first: st
     """A cached pair run in lockstep: each method in its own process, as `illm train` runs, taking
     their updates in turn (`first` first), so that both meet the same state of the machine. Run
     one after the other, a pair's two runs met different states: this machine's speed drifts by
-    a fifth within minutes, and one pair's ratio read 0.73 and the next 0.97 with the same code.
+    a fifth within minutes, and four pairs of the same code read from 0.78 to 0.97.
     Each run's rate is over its own updates' time: {method: (steps/s, last metrics)}."""
     import multiprocessing
 
