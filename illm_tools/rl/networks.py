@@ -182,13 +182,12 @@ def distinct(words: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
     collision falls back to `torch.unique(dim=0)`, which sorts whole rows and is the slow part
     (a minibatch's 512 missions of 32 words: 1.5 ms that way, 0.05 ms hashed; sixteen minibatches
     an update). On CUDA, `torch.unique(dim=0)`."""
-    if words.device.type == "cpu":
-        _, inverse, counts = torch.unique(row_hash(words), return_inverse=True, return_counts=True)
+    hashed = [(row_hash(words), None)] if words.device.type == "cpu" else []  # dim None: a 1-D sort, 55x faster
+    for keys, dim in hashed + [(words, 0)]:  # whole rows where two distinct rows hashed alike
+        _, inverse, counts = torch.unique(keys, dim=dim, return_inverse=True, return_counts=True)
         first = torch.argsort(inverse, stable=True)[torch.cumsum(counts, 0) - counts]
-        if torch.equal(words[first][inverse], words):
+        if dim == 0 or torch.equal(words[first][inverse], words):
             return first, inverse, counts
-    _, inverse, counts = torch.unique(words, dim=0, return_inverse=True, return_counts=True)  # two distinct rows hashed alike
-    return torch.argsort(inverse, stable=True)[torch.cumsum(counts, 0) - counts], inverse, counts
 
 
 def distinct_rows(x: torch.Tensor, multiple: int = 64) -> tuple[torch.Tensor, torch.Tensor] | None:
