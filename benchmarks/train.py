@@ -11,7 +11,7 @@ first. A cached pair runs in lockstep (`lockstep`): each method in its own proce
 runs, both held to the same core and taking their updates in turn, each rate over its own updates'
 time, so that both meet the same state of the machine (this VM's speed drifts by a fifth within
 minutes: run one after the other, four pairs of the same code read from 0.78 to 0.97; in
-lockstep a run's three pairs lay within 0.03). Each method's mean cost per update (rollout,
+lockstep a run's three pairs lay within 0.031). Each method's mean cost per update (rollout,
 target look-up, update) is printed beside its rate, and what illm adds to an update in ms: the
 ratio also moves with what both pay (in a slow spell the envs' Python slows more than the heads).
 
@@ -243,15 +243,15 @@ def pairs(args, config, cached: Path | None, label: str, tmp: Path) -> list[dict
         if cached is not None:  # in lockstep: both runs meet the same state of the machine
             pair = lockstep({m: config(m, f"{label}-{m}-{k}", 0, as_settings=True) for m in order}, cached,
                             args.threads, first=order[0])
-            order = ()
         else:
             pair = {}
-        for method in order:
-            if method == "ppo":
-                pair["ppo"] = run(config("ppo", f"{label}-ppo-{k}", 0), None)
-            else:
-                cfg = config("illm", f"{label}-illm-{k}", 16, cache=tmp / f"live-ann-{k}", live_mode="async", history_len=0)
-                pair["illm"] = run(cfg, None, live_async=True)
+            for method in order:
+                if method == "ppo":
+                    pair["ppo"] = run(config("ppo", f"{label}-ppo-{k}", 0), None)
+                else:
+                    cfg = config("illm", f"{label}-illm-{k}", 16, cache=tmp / f"live-ann-{k}", live_mode="async",
+                                 history_len=0)
+                    pair["illm"] = run(cfg, None, live_async=True)
         ratio = pair["illm"][0] / pair["ppo"][0]
         if cached is None:
             last = pair["illm"][1]
