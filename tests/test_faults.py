@@ -5,6 +5,7 @@ verified recovery, and never silently other data; nothing on disk is overwritten
 from __future__ import annotations
 
 import json
+import os
 import random
 import shutil
 
@@ -115,8 +116,11 @@ def test_a_damaged_model_cache_entry_is_refused_saying_to_delete_it(smollm2_cach
     rng = random.Random(0)
     for name, damage in (("model.safetensors", flip), ("config.json", truncate), ("illm_source.json", truncate)):
         root = tmp_path / name
-        shutil.copytree(entry, root / "models" / entry.name, copy_function=shutil.copyfile)  # writable
-        damage(root / "models" / entry.name / name, rng)
+        copy = root / "models" / entry.name
+        shutil.copytree(entry, copy, copy_function=os.link)  # links: loading reads an entry, never writes it
+        (copy / name).unlink()
+        shutil.copyfile(entry / name, copy / name)  # the damaged file alone is a copy of its own
+        damage(copy / name, rng)
         with pytest.raises(DamagedFileError, match=f"{entry.name} is damaged.*rm -r"):
             load_model("smollm2-135m", dtype="float32", cache_dir=root)
 
