@@ -306,3 +306,22 @@ def test_a_full_disk_midway_leaves_the_cache_and_the_run_folder_readable(tmp_pat
     writer.wait()
     assert load_checkpoint(tmp_path)["update"] == 5
 
+
+
+def test_a_test_run_without_room_for_its_folders_stops_at_once_with_one_line():
+    """tests/conftest.py's check: with too little disk free for the tests' temporary folders the run stops
+    before its first test, with exit code 1 and a line that says what to free (not, minutes in, with
+    tests failing at random on `No space left on device`, as a CI run did)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import collections, shutil, sys, pytest\n"
+            "shutil.disk_usage = lambda path: collections.namedtuple('Usage', 'total used free')(10**10, 10**10, 5 * 10**8)\n"
+            "sys.exit(pytest.main(['-q', '-p', 'no:cacheprovider', 'tests/test_layers.py']))\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_XDIST")}  # a run of its own, not a worker
+    out = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1
+    assert "only 0.5 GB free" in out.stdout and "free some" in out.stdout and "passed" not in out.stdout
+    assert "Traceback" not in out.stdout + out.stderr
