@@ -5,6 +5,9 @@ Ctrl-C in that time would end in Python's traceback from inside the import, befo
 one-line error handling exists; so the `illm` script, and only it, ends such an interrupt as every
 other: one line, exit code 130 (nothing has been written yet). `handled_from_here` puts Python's
 own handler back once the command line's error handling is in place (`cli.main._OneLineErrors`).
+Later, a command's first `import torch` runs with Ctrl-C held back until it ends
+(`illm_tools.signals.defer_ctrl_c_in_imports`): interrupted inside it, the process could abort
+(exit -6, `pybind11::error_already_set`) instead of ending in the one line.
 """
 
 import os
@@ -19,7 +22,10 @@ def _interrupted_while_starting(signum, frame) -> None:
 
 if os.path.basename(sys.argv[0] if sys.argv else "") == "illm" \
         and signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where SIGINT is ignored
+    from illm_tools.signals import defer_ctrl_c_in_imports
+
     signal.signal(signal.SIGINT, _interrupted_while_starting)
+    defer_ctrl_c_in_imports(["torch"])
 
 
 def handled_from_here() -> None:

@@ -259,18 +259,53 @@ def test_a_ctrl_c_during_the_spawn_reaches_the_trainer_once_the_worker_has_start
     import os
     import signal
 
-    from illm_tools.rl.live import _ctrl_c_deferred
+    from illm_tools.signals import ctrl_c_deferred
 
     before, got = signal.getsignal(signal.SIGINT), []
     try:
         signal.signal(signal.SIGINT, lambda signum, frame: got.append(signum))
-        with _ctrl_c_deferred():
+        with ctrl_c_deferred():
             os.kill(os.getpid(), signal.SIGINT)
             assert not got  # held back, not lost
         assert got == [signal.SIGINT]  # then handled by the trainer's own handler, once
         signal.signal(signal.SIGINT, signal.default_int_handler)
         with pytest.raises(KeyboardInterrupt):
-            with _ctrl_c_deferred():
+            with ctrl_c_deferred():
                 os.kill(os.getpid(), signal.SIGINT)
     finally:
         signal.signal(signal.SIGINT, before)
+
+
+def test_a_ctrl_c_inside_a_deferred_import_arrives_once_the_module_has_run_to_its_end(tmp_path, monkeypatch):
+    """What the `illm` command does for torch's first import (`defer_ctrl_c_in_imports`, cli/__init__.py):
+    a Ctrl-C landing inside the module's body lets the body finish (torch's C++ cannot unwind a
+    KeyboardInterrupt raised in the Python it calls: the process aborted, exit -6), then the import
+    raises it, once; the finder steps aside after that import, and the module is its loader's own."""
+    import os
+    import signal
+    import sys
+
+    from illm_tools.signals import defer_ctrl_c_in_imports
+
+    name = "illm_test_interrupted_midway"
+    path = tmp_path / f"{name}.py"
+    path.write_text("import os, signal\n"
+                    "os.kill(os.getpid(), signal.SIGINT)  # Python's handler would raise here, on the next line\n"
+                    "os.environ['ILLM_TEST_MIDWAY'] = 'ran to its end'\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delenv("ILLM_TEST_MIDWAY", raising=False)
+    monkeypatch.setattr(sys, "meta_path", list(sys.meta_path))
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        defer_ctrl_c_in_imports([name])
+        with pytest.raises(KeyboardInterrupt):
+            __import__(name)
+        assert os.environ["ILLM_TEST_MIDWAY"] == "ran to its end"
+        assert not any(type(f).__name__ == "_DeferredImports" for f in sys.meta_path)
+        path.write_text("import os\nLOADED_FROM = __file__\n")  # imported again: no deferral, the plain loader's module
+        module = __import__(name)
+        assert module.LOADED_FROM == str(path) and module.__spec__.origin == str(path)
+    finally:
+        signal.signal(signal.SIGINT, before)
+        sys.modules.pop(name, None)

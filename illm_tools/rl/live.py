@@ -35,10 +35,10 @@ import logging
 import multiprocessing as mp
 import queue
 from collections.abc import Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 from illm_tools.llm.spec import LLMSpec
+from illm_tools.signals import ctrl_c_deferred
 from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
@@ -185,35 +185,6 @@ def _work(spec: WorkerSpec, inbox, stop, queued, done, ready, first) -> None:  #
         queued.value = len(pending)
 
 
-@contextmanager
-def _ctrl_c_deferred():
-    """Ctrl-C put off while the worker is spawned. A Ctrl-C reaches the whole process group: one
-    landing while the worker's interpreter starts (before `_worker_main` ignores it) would end in
-    its traceback, and one raised here in the middle of the spawn would leave the worker half
-    started. So SIGINT is blocked (the worker inherits the block; the trainer stops it itself,
-    `stop`) and this process's handler waits: a Ctrl-C that came meanwhile reaches it once the
-    worker has started, none is lost. Only the main thread may set handlers; elsewhere only the
-    block applies."""
-    import signal
-    import threading
-
-    came: list[int] = []
-    handler = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
-    if handler is not None:
-        signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
-        if handler is not None:
-            signal.signal(signal.SIGINT, handler)
-            if came and callable(handler):
-                handler(signal.SIGINT, None)
-            elif came and handler == signal.SIG_DFL:
-                signal.raise_signal(signal.SIGINT)
-
-
 class AsyncLive:
     """A worker process that annotates the trainer's missed states while the rollouts go on.
 
@@ -265,7 +236,11 @@ class AsyncLive:
         self.process = self._ctx.Process(target=_worker_main, name="illm-live-annotation", daemon=True,
                                          args=(self.llm, self._setup, self._inbox, self._stop, self._queued,
                                                self._done, self._errors, self._ready, self._first))
-        with _ctrl_c_deferred():
+        # a Ctrl-C reaches the whole process group: one landing while the worker's interpreter starts (before
+        # `_worker_main` ignores it) would end in its traceback, and one raised here in the middle of the spawn
+        # would leave the worker half started. Deferred: the worker inherits the block (the trainer stops it
+        # itself, `stop`), and a Ctrl-C that came meanwhile reaches this process once the worker has started
+        with ctrl_c_deferred():
             self.process.start()
         if self.spec is not None:
             self._setup.put(self.spec)
