@@ -226,11 +226,13 @@ def pytest_sessionstart(session):
     fills the disk fails tests at random, minutes in, with `No space left on device` in their set-up."""
     import shutil
     import tempfile
+    from pathlib import Path
 
     if os.environ.get("PYTEST_XDIST_WORKER"):
         return  # the controller checked
-    root = session.config.option.basetemp or tempfile.gettempdir()
-    free = shutil.disk_usage(root if os.path.isdir(root) else tempfile.gettempdir()).free / 1e9
+    root = Path(session.config.option.basetemp or tempfile.gettempdir()).absolute()
+    where = next(folder for folder in (root, *root.parents) if folder.is_dir())  # `--basetemp` may not exist yet
+    free = shutil.disk_usage(where).free / 1e9
     if free < _FREE_GB_NEEDED:
         pytest.exit(f"only {free:.1f} GB free in {root}; the tests need about {_FREE_GB_NEEDED:.0f} GB for their "
                     f"temporary folders: free some (old /tmp/pytest-of-* folders?) and run again", returncode=1)
