@@ -7,8 +7,8 @@
   `import torch` runs Python code called from torch's C++ (pybind11): a KeyboardInterrupt raised
   there cannot unwind through it, and the process aborts (`terminate called after throwing an
   instance of 'pybind11::error_already_set'`, exit -6) with no one-line error and its worker left
-  behind. Here 3 of 150 `import torch` interrupted at a random moment ended that way, and so did a
-  fresh-clone CI run's Ctrl-C test; with the import deferred, the Ctrl-C arrives as the import
+  behind. Here 4 of 700 `import torch` interrupted at a random moment ended that way (and 5 more
+  ended 1), and so did a fresh-clone CI run's Ctrl-C test (docs/results/measured/ctrl-c-torch-import.txt); with the import deferred, the Ctrl-C arrives as the import
   ends, and the command reports it as any other. Hand-written: the standard library offers no
   "around this import" hook short of a finder whose loader wraps the real one's `exec_module`.
 """
@@ -16,7 +16,6 @@
 from __future__ import annotations
 
 import importlib.abc
-import importlib.machinery
 import signal
 import sys
 import threading
@@ -67,8 +66,8 @@ class _Deferred(importlib.abc.Loader):
 
 
 class _DeferredImports(importlib.abc.MetaPathFinder):
-    """Finds `names` as the path finder does, with each one's loader wrapped in `_Deferred`; steps
-    aside once all of them have been found."""
+    """Finds `names` as the finders after it would, with each one's loader wrapped in `_Deferred`;
+    steps aside once all of them have been found."""
 
     def __init__(self, names: Iterable[str]):
         self.names = set(names)
@@ -79,10 +78,13 @@ class _DeferredImports(importlib.abc.MetaPathFinder):
         self.names.discard(name)
         if not self.names and self in sys.meta_path:
             sys.meta_path.remove(self)
-        spec = importlib.machinery.PathFinder.find_spec(name, path, target)
-        if spec is not None and spec.loader is not None:
-            spec.loader = _Deferred(spec.loader)
-        return spec
+        for finder in [f for f in sys.meta_path if f is not self and hasattr(f, "find_spec")]:
+            spec = finder.find_spec(name, path, target)
+            if spec is not None:
+                if spec.loader is not None:
+                    spec.loader = _Deferred(spec.loader)
+                return spec
+        return None
 
 
 def defer_ctrl_c_in_imports(names: Iterable[str]) -> None:
