@@ -200,6 +200,32 @@ def test_texts_and_embeddings_are_deterministic_unit_vectors():
         assert a.embedding.shape == (384,) and abs(np.linalg.norm(a.embedding) - 1) < 1e-5 and a.finished
 
 
+def test_a_states_embedding_is_the_same_bits_in_any_batch_and_any_process():
+    """Runs filling one cache annotate a state among different batch-mates, and a fresh cache
+    annotates it again: its targets must not depend on either (padded into one batch, a text's
+    embedding moved by up to 1.3e-7 with its batch-mates, and a KeyCorridorS3R1 seed ended at 0.00
+    or 1.00 on that alone). A cleared memo stands for another process."""
+    from illm_tools.llm.sentence import shared_embedder
+
+    lm = OracleBackend()
+    builder = PromptBuilder(env_id="BabyAI-UnlockLocal-v0", renderer="babyai-text@1", model="oracle",
+                            model_fingerprint="f", history_len=1)
+    views = ["You see a locked purple door 3 steps forward, You see a purple key 1 step right",
+             "You see a wall 1 step forward", "You see a purple key 2 steps left and 4 steps forward",
+             "You carry a purple key, You see a locked purple door 1 step forward"]
+    records = [StateRecord("open the door", (("You see a wall 2 steps forward", "turn left"),), v, SIX) for v in views]
+    prompts = [builder.render(task, r).text for r in records for task in ("summary", "goal")]
+
+    def embeddings(batches):
+        shared_embedder()._memo.clear()
+        return {p: g.embedding for batch in batches for p, g in zip(batch, lm.generate(batch))}
+
+    alone = embeddings([[p] for p in prompts])
+    for batches in ([prompts], [prompts[::-1]], [prompts[1::2], prompts[::2]]):
+        together = embeddings(batches)
+        assert all(np.array_equal(together[p], alone[p]) for p in prompts)
+
+
 def test_oracle_keys_never_meet_an_llms_and_the_noise_is_in_them():
     oracle = {p: fingerprint_hash(backend_fingerprint("oracle", oracle_spec(p))) for p in (0, 0.5, 1)}
     assert len(set(oracle.values())) == 3

@@ -46,8 +46,11 @@ from illm_tools.errors import UsageError
 from illm_tools.llm.oracle_planner import (COLOURS, GAMES, MOVES, PLANNER_VERSION, NotAScene, Planner,
                                            Scene, parse_prompt, plan_text, summary_text)
 
-ORACLE_VERSION = 1
-"""Version of how the planner's reading becomes answers (KAPPA, the texts' use, the noise scheme)."""
+ORACLE_VERSION = 2
+"""Version of how the planner's reading becomes answers (KAPPA, the texts' use, the noise scheme,
+how the texts are embedded). 2: each text embedded alone (`SentenceEmbedder.encode`), so a state's
+embedding no longer depends on the batch it was annotated in; version 1's rows differ from it in
+the last bits, and a cache holding both would hand two runs of one seed different targets."""
 KAPPA = 2.0
 """Inverse temperature of the ranking: log P(a) = log softmax(-KAPPA * cost(a))."""
 NAME = "oracle"

@@ -64,7 +64,7 @@ def shared_embedder() -> SentenceEmbedder:
 class SentenceEmbedder:
     """all-MiniLM-L6-v2 on the CPU: `encode(texts)` -> float32 [n, 384] unit vectors."""
 
-    def __init__(self, folder: str | Path | None = None, *, batch_size: int = 64):
+    def __init__(self, folder: str | Path | None = None):
         import torch
         from transformers import AutoModel, AutoTokenizer
 
@@ -76,7 +76,6 @@ class SentenceEmbedder:
             if (folder / "sentence_bert_config.json").is_file() else {}
         self.max_length = int(settings.get("max_seq_length", 256))
         """Inputs are truncated to this many tokens (sentence-transformers' max_seq_length)."""
-        self.batch_size = batch_size
         with _quiet_transformers():
             self.tokenizer = AutoTokenizer.from_pretrained(folder)
             self.model = AutoModel.from_pretrained(folder, dtype=torch.float32).eval()
@@ -87,26 +86,30 @@ class SentenceEmbedder:
         self._memo: dict[str, np.ndarray] = {}
 
     def encode(self, texts: Sequence[str]) -> np.ndarray:
-        """float32 [len(texts), dim]: each text's L2-normalised mean-pooled embedding (memoised)."""
+        """float32 [len(texts), dim]: each text's L2-normalised mean-pooled embedding (memoised).
+
+        Each new text goes through the model alone, unpadded, so its embedding is the same bits
+        whatever else is asked with it and in whichever process: padded into a batch, a text's
+        embedding moved by up to 1.3e-7 with its batch-mates, so the same state annotated by two
+        processes (two runs filling one cache, a fresh cache against a filled one) got targets
+        an ulp apart, and a KeyCorridorS3R1 seed ended at 0.00 or at 1.00 on that alone
+        (docs/measured.md, "The learning"). The texts are few and memoised (the oracle's
+        summaries of four levels: 210 distinct sentences in 28,092 rows), so batching saved
+        little."""
         todo = list(dict.fromkeys(t for t in texts if t not in self._memo))
         if todo:
             if len(self._memo) + len(todo) > _MEMO_LIMIT:
                 self._memo.clear()
-            for start in range(0, len(todo), self.batch_size):
-                chunk = todo[start:start + self.batch_size]
-                self._memo.update(zip(chunk, self._forward(chunk)))
+            self._memo.update((t, self._forward(t)) for t in todo)
         if not texts:
             return np.zeros((0, self.dim), np.float32)
         return np.stack([self._memo[t] for t in texts])
 
-    def _forward(self, texts: list[str]) -> np.ndarray:
+    def _forward(self, text: str) -> np.ndarray:
         import torch
-        import torch.nn.functional as F
 
-        batch = self.tokenizer(texts, padding=True, truncation=True, max_length=self.max_length,
-                               return_tensors="pt")
+        batch = self.tokenizer([text], truncation=True, max_length=self.max_length, return_tensors="pt")
         with torch.inference_mode():
-            hidden = self.model(**batch).last_hidden_state
-        mask = batch["attention_mask"].unsqueeze(-1).to(hidden.dtype)
-        mean = (hidden * mask).sum(1) / mask.sum(1).clamp_min(1e-9)
-        return F.normalize(mean, p=2, dim=1).numpy().astype(np.float32)
+            hidden = self.model(**batch).last_hidden_state[0]
+        mean = hidden.mean(0)  # no padding: every token counts (sentence-transformers' masked mean)
+        return (mean / mean.norm().clamp_min(1e-12)).numpy().astype(np.float32)
