@@ -93,7 +93,7 @@ class SentenceEmbedder:
         embedding moved by up to 1.3e-7 with its batch-mates, so the same state annotated by two
         processes (two runs filling one cache, a fresh cache against a filled one) got targets
         an ulp apart, and a KeyCorridorS3R1 seed ended at 0.00 or at 1.00 on that alone
-        (docs/measured.md, "The learning"). The texts are few and memoised (the oracle's
+        (docs/results/measured/oracle-embeddings.txt). The texts are few and memoised (the oracle's
         summaries of four levels: 210 distinct sentences in 28,092 rows), so batching saved
         little."""
         todo = list(dict.fromkeys(t for t in texts if t not in self._memo))
