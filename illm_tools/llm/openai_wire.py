@@ -217,9 +217,9 @@ def served_fingerprint(spec: str) -> dict:
         if dim:
             embedder = f"endpoint /v1/embeddings ({dim})" if not pooled else f"pooling endpoint, {pooling} ({dim})"
         else:
-            from illm_tools.llm.sentence import MODEL_NAME, PIP_NAME, package_version
+            from illm_tools.llm.sentence import embedder_id
 
-            embedder = f"{MODEL_NAME}@{PIP_NAME}-{package_version()} (local: the endpoint has no embeddings)"
+            embedder = f"{embedder_id()} (local: the endpoint has no embeddings)"
         _FINGERPRINTS[spec] = {"model_id": model, "source": "openai", "engine": engine, "sha256": None,
                                "revision": None, "embedder": embedder, "embedding_dim": dim, "dtype": "served",
                                "quant": "served"}

@@ -26,8 +26,9 @@ of random words of the same grammar. Both the choice and the random answer are d
 state, so P = 1 is an annotator that knows nothing and answers each state the same way every time.
 
 Its fingerprint carries the planner's version, this file's answer version, the noise and the
-sentence model's package version, never a dtype or quantisation (the oracle has neither), so its
-rows never mix with an LLM's and every `--dtype` reads them. It refuses text suites other than
+sentence model's identity (`sentence.embedder_id`: its package version, texts embedded alone),
+never a dtype or quantisation (the oracle has neither), so its rows never mix with an LLM's and
+every `--dtype` reads them. It refuses text suites other than
 BabyAI/MiniGrid and `--mode hop` (it reads text, it has no embedding space) in one line.
 """
 
@@ -46,11 +47,9 @@ from illm_tools.errors import UsageError
 from illm_tools.llm.oracle_planner import (COLOURS, GAMES, MOVES, PLANNER_VERSION, NotAScene, Planner,
                                            Scene, parse_prompt, plan_text, summary_text)
 
-ORACLE_VERSION = 2
-"""Version of how the planner's reading becomes answers (KAPPA, the texts' use, the noise scheme,
-how the texts are embedded). 2: each text embedded alone (`SentenceEmbedder.encode`), so a state's
-embedding no longer depends on the batch it was annotated in; version 1's rows differ from it in
-the last bits, and a cache holding both would hand two runs of one seed different targets."""
+ORACLE_VERSION = 1
+"""Version of how the planner's reading becomes answers (KAPPA, the texts' use, the noise scheme).
+How the texts are embedded is the embedder's (`sentence.embedder_id`, in the fingerprint)."""
 KAPPA = 2.0
 """Inverse temperature of the ranking: log P(a) = log softmax(-KAPPA * cost(a))."""
 NAME = "oracle"
@@ -116,11 +115,11 @@ class OracleBackend:
 
     @staticmethod
     def model_fingerprint(model: str, *, dtype: str = "float32", quant: str = "none") -> dict:
-        from illm_tools.llm.sentence import MODEL_NAME, PIP_NAME, package_version
+        from illm_tools.llm.sentence import embedder_id
 
         return {"model_id": NAME, "source": "oracle", "sha256": None,
                 "revision": f"planner@{PLANNER_VERSION}+answers@{ORACLE_VERSION}", "noise": parse_spec(model),
-                "embedder": f"{MODEL_NAME}@{PIP_NAME}-{package_version()}", "dtype": "float32", "quant": "none"}
+                "embedder": embedder_id(), "dtype": "float32", "quant": "none"}
 
     @staticmethod
     def model_hidden_size(model: str) -> int:

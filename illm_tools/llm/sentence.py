@@ -55,6 +55,14 @@ def package_version() -> str:
         return "unknown"
 
 
+def embedder_id() -> str:
+    """The packaged model as a fingerprint names it (the oracle's, an engine's without embeddings):
+    the model, its package's version and how texts are embedded ("alone": one text a forward pass,
+    `SentenceEmbedder.encode`). Rows embedded in padded batches, before, named no way; they differ
+    from these in the last bits, so they are another setup and never read beside them."""
+    return f"{MODEL_NAME}@{PIP_NAME}-{package_version()}+alone"
+
+
 @functools.lru_cache(maxsize=1)
 def shared_embedder() -> SentenceEmbedder:
     """The packaged model, loaded once per process (its memo shared by every run in it)."""
@@ -81,7 +89,7 @@ class SentenceEmbedder:
             self.model = AutoModel.from_pretrained(folder, dtype=torch.float32).eval()
         self.dim = int(self.model.config.hidden_size)
         """Length of an embedding (384)."""
-        self.name = f"{MODEL_NAME}@{PIP_NAME}-{package_version()}" if packaged else f"{MODEL_NAME}@{folder}"
+        self.name = embedder_id() if packaged else f"{MODEL_NAME}@{folder}"
         """The model and where it came from (the package and its version, or the folder)."""
         self._memo: dict[str, np.ndarray] = {}
 
