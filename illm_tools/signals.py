@@ -8,8 +8,9 @@
   there cannot unwind through it, and the process aborts (`terminate called after throwing an
   instance of 'pybind11::error_already_set'`, exit -6) with no one-line error and its worker left
   behind. Here 4 of 700 `import torch` interrupted at a random moment ended that way (and 5 more
-  ended 1), and so did a fresh-clone CI run's Ctrl-C test (docs/results/measured/ctrl-c-torch-import.txt); with the import deferred, the Ctrl-C arrives as the import
-  ends, and the command reports it as any other. Hand-written: the standard library offers no
+  ended 1), and so did a fresh-clone CI run's Ctrl-C test
+  (docs/results/measured/ctrl-c-torch-import.txt); with the import deferred, the Ctrl-C arrives as
+  the import ends, and the command reports it as any other. Hand-written: the standard library offers no
   "around this import" hook short of a finder whose loader wraps the real one's `exec_module`.
 """
 

@@ -255,8 +255,18 @@ def _group_has_a_worker(group: int) -> bool:
     return any(_running(int(pid)) for pid in pids)
 
 
+def _ctrl_c_to_this_thread() -> None:
+    """SIGINT sent to this (the main) thread. Sent to the process (`os.kill(os.getpid(), ...)`), the
+    kernel may hand it to another thread (pytest-xdist's worker has one) a moment later, after the
+    block that should receive it has ended: a fast-tier run failed that way and its worker then took
+    the late KeyboardInterrupt."""
+    import signal
+    import threading
+
+    signal.pthread_kill(threading.get_ident(), signal.SIGINT)
+
+
 def test_a_ctrl_c_during_the_spawn_reaches_the_trainer_once_the_worker_has_started():
-    import os
     import signal
 
     from illm_tools.signals import ctrl_c_deferred
@@ -265,13 +275,13 @@ def test_a_ctrl_c_during_the_spawn_reaches_the_trainer_once_the_worker_has_start
     try:
         signal.signal(signal.SIGINT, lambda signum, frame: got.append(signum))
         with ctrl_c_deferred():
-            os.kill(os.getpid(), signal.SIGINT)
+            _ctrl_c_to_this_thread()
             assert not got  # held back, not lost
         assert got == [signal.SIGINT]  # then handled by the trainer's own handler, once
         signal.signal(signal.SIGINT, signal.default_int_handler)
         with pytest.raises(KeyboardInterrupt):
             with ctrl_c_deferred():
-                os.kill(os.getpid(), signal.SIGINT)
+                _ctrl_c_to_this_thread()
     finally:
         signal.signal(signal.SIGINT, before)
 
@@ -289,8 +299,8 @@ def test_a_ctrl_c_inside_a_deferred_import_arrives_once_the_module_has_run_to_it
 
     name = "illm_test_interrupted_midway"
     path = tmp_path / f"{name}.py"
-    path.write_text("import os, signal\n"
-                    "os.kill(os.getpid(), signal.SIGINT)  # Python's handler would raise here, on the next line\n"
+    path.write_text("import os, signal, threading\n"  # to this thread: see _ctrl_c_to_this_thread
+                    "signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # the handler would raise next line\n"
                     "os.environ['ILLM_TEST_MIDWAY'] = 'ran to its end'\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.delenv("ILLM_TEST_MIDWAY", raising=False)
