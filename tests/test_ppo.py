@@ -113,10 +113,12 @@ def test_short_run_writes_metrics_and_checkpoint_and_resumes(tmp_path):
     assert [r["update"] for r in rows] == [1, 2, 3] and load_checkpoint(run)["global_step"] == 384
 
 
-def test_training_freezes_what_the_run_was_built_with_and_puts_it_back(tmp_path):
+def test_training_freezes_what_the_run_was_built_with_and_puts_it_back(tmp_path, monkeypatch):
     """While a run trains, the objects it was built with are out of the collector's passes and its
     young generation is larger (`frozen_heap`); after it (or a failure) both are back; a process's
-    own freeze, and its thresholds, are left alone."""
+    own freeze, and its thresholds, are left alone: none of the collector's settings is touched (a
+    frozen object still dies when its last reference goes, on pytest-xdist's thread too, so the
+    frozen count may fall meanwhile: it failed a fast-tier run at 784,195 against 784,197)."""
     import gc
 
     from illm_tools.rl.threads import YOUNG_THRESHOLD, frozen_heap
@@ -134,11 +136,15 @@ def test_training_freezes_what_the_run_was_built_with_and_puts_it_back(tmp_path)
     assert gc.get_freeze_count() == 0 and gc.get_threshold() == before
     gc.freeze()
     try:
-        host = gc.get_freeze_count()
+        host, touched = gc.get_freeze_count(), []
+        for name in ("freeze", "unfreeze", "set_threshold"):
+            monkeypatch.setattr(gc, name, lambda *a, name=name: touched.append(name))
         with frozen_heap():
-            assert gc.get_freeze_count() == host and gc.get_threshold() == before
-        assert gc.get_freeze_count() == host
+            assert 0 < gc.get_freeze_count() <= host and gc.get_threshold() == before
+        monkeypatch.undo()
+        assert not touched and 0 < gc.get_freeze_count() <= host and gc.get_threshold() == before
     finally:
+        monkeypatch.undo()
         gc.unfreeze()
 
 
