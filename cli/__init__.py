@@ -8,6 +8,9 @@ own handler back once the command line's error handling is in place (`cli.main._
 Later, a command's first `import torch` runs with Ctrl-C held back until it ends
 (`illm_tools.signals.defer_ctrl_c_in_imports`): interrupted inside it, the process could abort
 (exit -6, `pybind11::error_already_set`) instead of ending in the one line.
+Before this module runs, in CPython's own start (`site` and its `.pth` imports), a Ctrl-C is
+CPython's: "Fatal Python error: init_import_site" and a traceback, whatever the program; no code of
+a package runs early enough to hold it.
 """
 
 import os
