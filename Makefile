@@ -90,7 +90,7 @@ test-fast: install
 # targets; docs/measured.md); annotate the 24 most visited; train a short illm run, whose closing line says the share of its steps
 # that had a target and the states the live fallback annotated during it (--live-mode sync: the run waits for
 # 4 missed states a rollout and uses them at once; the default async worker first loads the model, about 4.5 s
-# into the run on 2 cores, so this run's last two rollouts would get 2 states in all); a ppo run; evaluate both
+# into the run on a 2-core EPYC, so this run's last two rollouts would get 2 states in all); a ppo run; evaluate both
 # with 95% intervals, and say what one seed of a short run cannot show. Re-runs start afresh.
 demo: install
 	rm -rf $(DEMO)

@@ -22,8 +22,10 @@ counted over the run so far, `illm_tools.rl.targets`) and write their answers th
   safetensors, memory-mapped; its start-up is logged as `live_worker_startup_s`. Its first shards
   are small (1 state, then 2, 4, ... up to `chunk`), so the first answer lands about one state's
   annotation after the model is loaded, logged as `live_first_answer_s` (from the worker's spawn,
-  a third of a second into `illm train`). On 2 CPU cores with SmolLM2 that is about 4.5 s: an
-  8,192-frame run of the demo's level gets 2 states in its last two rollouts. No answer lands
+  a third of a second into `illm train`). On a 2-core EPYC with SmolLM2 that is about 4.5 s (6.6-11 s
+  on a 2-core Xeon at half its single-core rate, most of it importing transformers' Llama code): an
+  8,192-frame run of the demo's level gets 1-2 states in its last rollouts on the EPYC, and on the
+  Xeon none in 2 runs of 6 (docs/measured.md). No answer lands
   before the model is loaded, so a run of a few rollouts gets few live targets in this mode
   (`--live-budget all` promises every step only with sync; `illm train` says so before such a run
   starts).
