@@ -137,14 +137,13 @@ def test_training_freezes_what_the_run_was_built_with_and_puts_it_back(tmp_path,
     gc.freeze()
     try:
         host, touched = gc.get_freeze_count(), []
-        for name in ("freeze", "unfreeze", "set_threshold"):
-            monkeypatch.setattr(gc, name, lambda *a, name=name: touched.append(name))
-        with frozen_heap():
-            assert 0 < gc.get_freeze_count() <= host and gc.get_threshold() == before
-        monkeypatch.undo()
+        with monkeypatch.context() as spied:
+            for name in ("freeze", "unfreeze", "set_threshold"):
+                spied.setattr(gc, name, lambda *a, name=name: touched.append(name))
+            with frozen_heap():
+                assert 0 < gc.get_freeze_count() <= host and gc.get_threshold() == before
         assert not touched and 0 < gc.get_freeze_count() <= host and gc.get_threshold() == before
     finally:
-        monkeypatch.undo()
         gc.unfreeze()
 
 

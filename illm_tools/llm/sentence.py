@@ -72,14 +72,13 @@ def shared_embedder() -> SentenceEmbedder:
 class SentenceEmbedder:
     """all-MiniLM-L6-v2 on the CPU: `encode(texts)` -> float32 [n, 384] unit vectors."""
 
-    def __init__(self, folder: str | Path | None = None):
+    def __init__(self):
         import torch
         from transformers import AutoModel, AutoTokenizer
 
         from illm_tools.llm.loading import _quiet_transformers
 
-        packaged = folder is None
-        folder = model_dir() if packaged else Path(folder)
+        folder = model_dir()
         settings = json.loads((folder / "sentence_bert_config.json").read_text()) \
             if (folder / "sentence_bert_config.json").is_file() else {}
         self.max_length = int(settings.get("max_seq_length", 256))
@@ -89,8 +88,6 @@ class SentenceEmbedder:
             self.model = AutoModel.from_pretrained(folder, dtype=torch.float32).eval()
         self.dim = int(self.model.config.hidden_size)
         """Length of an embedding (384)."""
-        self.name = embedder_id() if packaged else f"{MODEL_NAME}@{folder}"
-        """The model and where it came from (the package and its version, or the folder)."""
         self._memo: dict[str, np.ndarray] = {}
 
     def encode(self, texts: Sequence[str]) -> np.ndarray:
