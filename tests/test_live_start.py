@@ -216,7 +216,8 @@ def _as_from_a_terminal() -> None:
 
 
 # A `sitecustomize` for the command under test: once `cli/__init__` has run (its Ctrl-C handler in
-# place), it writes the file ILLM_TEST_CLI_READY names. Nothing else changes in the child.
+# place), it writes the file ILLM_TEST_CLI_READY names. Besides its folder on PYTHONPATH, nothing
+# else changes in the child.
 _CLI_READY_HOOK = """
 import os, sys
 
