@@ -2,6 +2,7 @@
 their update, with a checkpoint each) or as submitit jobs, each run's outcome reported as it ends."""
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import replace
@@ -56,6 +57,20 @@ def _outcome(run: Run, future: Future) -> str:
         return "stopped before its first update"
     run.status = "stopped"
     return f"stopped at {result['global_step']:,} frames (checkpoint written)"
+
+
+def shared_cores(config, jobs: int):
+    """A run's config as it trains beside `jobs - 1` others on this machine: its live annotator (a sync
+    oracle or LLM) gets its share of the cores, `cpu_count // jobs` threads, where the spec leaves
+    `llm_threads` at 0 ("all cores", right for one run alone). Without it 10 sync illm runs of a 15-job
+    grid on a 16-core machine each ran their annotator on 16 threads: their first rollout's targets took
+    371-411 s instead of under a second, and the ppo runs beside them fell from 2,174 to about 216
+    steps/s (2026-11-28, docs/measured.md). `llm_threads` is not a setting (it changes no result), so a
+    run resumed at another --jobs is the same run."""
+    if jobs <= 1 or config.targets.llm_threads:
+        return config
+    share = max(1, (os.cpu_count() or 1) // jobs)
+    return replace(config, targets=replace(config.targets, llm_threads=share))
 
 
 def _failure(e: BaseException) -> str:
@@ -126,7 +141,7 @@ def run_experiment(spec: Spec, results: str | Path, *, jobs: int = 1,
     stop = context.Event()
     with ProcessPoolExecutor(max_workers=jobs, mp_context=context, initializer=_init_worker,
                              initargs=(stop,)) as pool:
-        futures = {pool.submit(_train_one, run.config): run for run in todo}
+        futures = {pool.submit(_train_one, shared_cores(run.config, jobs)): run for run in todo}
         pending = set(futures)
         try:
             while pending:
