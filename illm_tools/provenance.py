@@ -7,11 +7,19 @@ another commit than the one writing the report ("the runs predate the current co
 
 Read from `git` when the package is a git checkout (an installed wheel has no commit: None); a
 separate file rather than config.json, whose keys are the run's settings and are compared on resume.
+
+Secrets never reach a file (`redact`): the value of every secret option (`secret_option`: a flag whose
+last word is token, key, secret or password, as `--token` and `--annotator-token`; `--api-key-env`
+names a variable and stays) is written as `REDACTED`, in both `--opt VALUE` and `--opt=VALUE`, and so
+is the password of a URL (`http://user:PASSWORD@host`). The command is redacted when it is recorded
+and again whenever an entry is read back, so a file written before this rule never passes a
+token on into a report.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import shlex
 import subprocess
 import sys
@@ -20,6 +28,11 @@ from functools import cache
 from pathlib import Path
 
 NAME = "provenance.json"
+REDACTED = "REDACTED"
+"""What a secret's value is written as."""
+SECRET_WORDS = ("token", "key", "secret", "password", "passwd")
+"""The last word of a secret option's flag (`--annotator-token`, `--api-key`)."""
+_URL_PASSWORD = re.compile(r"(?P<head>[A-Za-z][A-Za-z0-9+.-]*://[^/@:\s]*):[^/@\s]*@")
 
 
 @cache
@@ -41,12 +54,54 @@ def code() -> dict:
     return {"commit": commit, "dirty": dirty, "version": __version__}
 
 
+def secret_option(flag: str) -> bool:
+    """Whether the long option `flag` (`--annotator-token`) carries a secret: its last word is one of
+    `SECRET_WORDS`. The one rule every record of a command line goes through (tests/test_trust_files.py
+    holds every option of the command line to it)."""
+    return flag.startswith("--") and flag[2:].lower().replace("_", "-").rsplit("-", 1)[-1] in SECRET_WORDS
+
+
+def redact_argv(argv: list[str]) -> list[str]:
+    """`argv` with every secret option's value (`--opt VALUE`, `--opt=VALUE`) and every URL's password
+    replaced by `REDACTED`."""
+    out, hide_next = [], False
+    for arg in argv:
+        if hide_next:
+            out.append(REDACTED)
+            hide_next = False
+            continue
+        flag, eq, _ = arg.partition("=")
+        if secret_option(flag):
+            out.append(f"{flag}={REDACTED}" if eq else arg)
+            hide_next = not eq
+            continue
+        out.append(_URL_PASSWORD.sub(rf"\g<head>:{REDACTED}@", arg))
+    return out
+
+
+def redact(command: str | None) -> str | None:
+    """A recorded command line with its secrets replaced (`redact_argv`); one that cannot be split as a
+    shell would (unbalanced quotes) is withheld whole: what it hides cannot be told."""
+    if command is None:
+        return None
+    try:
+        return shlex.join(redact_argv(shlex.split(str(command))))
+    except ValueError:
+        return "(withheld: not a command line that can be checked for secrets)"
+
+
+def redact_entries(entries: list) -> list[dict]:
+    """Provenance entries (dicts) with their commands redacted; anything else in the list left out."""
+    return [{**e, "command": redact(e.get("command"))} if "command" in e else e for e in entries if isinstance(e, dict)]
+
+
 def command() -> str:
-    """The command line of this process as a user would type it (`illm ...` for the console script)."""
+    """The command line of this process as a user would type it (`illm ...` for the console script),
+    its secrets redacted (`redact_argv`)."""
     argv = list(sys.argv)
     if argv and Path(argv[0]).name == "illm":
         argv[0] = "illm"
-    return shlex.join(argv)
+    return shlex.join(redact_argv(argv))
 
 
 def stamp(**extra) -> dict:
@@ -55,13 +110,13 @@ def stamp(**extra) -> dict:
 
 
 def read(folder: Path) -> list[dict]:
-    """A run folder's entries, oldest first; [] for a run written before provenance was recorded or a
-    damaged file (provenance informs a report, it never stops one)."""
+    """A run folder's entries, oldest first, their commands redacted; [] for a run written before
+    provenance was recorded or a damaged file (provenance informs a report, it never stops one)."""
     try:
         entries = json.loads((Path(folder) / NAME).read_text())
     except (OSError, ValueError):
         return []
-    return [e for e in entries if isinstance(e, dict)] if isinstance(entries, list) else []
+    return redact_entries(entries) if isinstance(entries, list) else []
 
 
 def append(folder: Path, **extra) -> None:
