@@ -33,6 +33,7 @@ from illm_tools.report.aggregate import aggregate
 from illm_tools.report.curves import load_curve, summarise
 from illm_tools.report.diagnostics import diagnostics_png, row_diagnostics, seeds_diagnostics_png
 from illm_tools.report.lengths import episode_length
+from illm_tools.report.results import read_results
 
 DEFAULT_BOOTSTRAP = 2000
 BOOTSTRAP_SEED = 0
@@ -222,27 +223,14 @@ def _write(out: Path, settings: dict, envs: list[str], rows: list[dict], quality
     return results
 
 
-def read_results(folder: Path, what: str) -> dict:
-    """A report folder's results.json (rows, envs and settings there); missing or damaged, one line
-    (`what`: the option's need, "--redraw takes a report folder")."""
-    try:
-        results = json.loads((Path(folder) / "results.json").read_text())
-        if not all(isinstance(results.get(k), t) for k, t in (("rows", list), ("envs", list), ("settings", dict))):
-            raise ValueError("rows, envs or settings missing")
-        return results
-    except FileNotFoundError:
-        raise UsageError(f"no results.json in {folder}: {what} written by `illm report --out`") from None
-    except (ValueError, TypeError, AttributeError):
-        raise UsageError(f"{Path(folder) / 'results.json'} is damaged: write the report again from its runs "
-                         "(`illm report RUNS --out DIR`)") from None
-
-
 def merge_reports(parts: list[Path], out: Path) -> dict:
     """Write the report folder `out` from the report folders `parts` (`ReportConfig.merge`): their rows
     as they are, the heatmaps copied beside them, the aggregate over every env computed afresh with the
     parts' bootstrap settings. Hand-written rather than re-reading the runs: a grid run in parts over
-    several sessions keeps its reports, not always its runs."""
-    import shutil
+    several sessions keeps its reports, not always its runs. Each part's results.json is checked
+    (`results.check_results`: its shape, and every heatmap it names a bare name inside the part)
+    before anything is written, and the commands it recorded are redacted again."""
+    from illm_tools import durable
 
     out = Path(out)
     loaded = []
@@ -271,8 +259,9 @@ def merge_reports(parts: list[Path], out: Path) -> dict:
         for row in part_rows:
             for name in ("visitation", "bonus_map"):
                 if row.get(name):
-                    if (part / row[name]["png"]).is_file():
-                        shutil.copyfile(part / row[name]["png"], out / row[name]["png"])
+                    png = part / row[name]["png"]  # a bare name (`read_results`): inside the part, copied inside out
+                    if png.is_file() and not png.is_symlink():
+                        durable.write_bytes(out / png.name, png.read_bytes())
                     else:
                         row[name] = None
             rows.append(row)
