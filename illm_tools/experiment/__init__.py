@@ -27,7 +27,9 @@ A spec (YAML; experiments/specs/ holds the paper's tables at CPU budgets):
       differs: {frames: "a CPU budget", seeds: "a CPU budget"}
 
 A grid value may be a mapping: a bundle of settings applied together, named by its `name` key (the
-label's value), e.g. `annotator: [{name: oracle, backend: oracle}, {name: gpt2, model: gpt2}]`.
+label's value), e.g. `annotator: [{name: oracle, backend: oracle}, {name: gpt2, model: gpt2}]`. The
+spec's name, a bundle's name and a plain grid value become folders, so each must be a bare name
+(`illm_tools.folders.bare_name`: no `/`, `\\` or `..`); a grid of paths is written as bundles.
 
 Everything is checked before anything runs: the top-level keys, the method names, the env ids, the
 setting names (each a setting of `illm train` under its flat name, `illm_tools.rl.config.FLAT`: model,

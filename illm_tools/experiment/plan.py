@@ -1,6 +1,8 @@
 """An `illm experiment`'s grid planned into runs (`plan`): each run's TrainConfig, folder and status,
 all built before anything trains; `select` picks the runs `--only` names, `claim_results` the
-results folder, and `unavailable_models` names the models a dry run would miss."""
+results folder, and `unavailable_models` names the models a dry run would miss. A run's folder is
+RESULTS/ENV/LABEL/seedN, so every grid value in a label is a bare name (`illm_tools.folders.bare_name`):
+`cache: [data/a]` is refused, a bundle `{name: a, cache: data/a}` takes its place."""
 from __future__ import annotations
 
 import fnmatch
@@ -13,6 +15,7 @@ from typing import Any
 
 from illm_tools.errors import IllmError, UsageError
 from illm_tools.experiment.spec import Spec
+from illm_tools.folders import bare_name
 
 SPEC_COPY = "spec.yaml"
 
@@ -124,6 +127,10 @@ def plan(spec: Spec, results: str | Path, say: Callable[[str], None] | None = No
             continue
         combo = {k: v for k, v in combo.items() if k != "__method__"}
         label = _label(method, combo)
+        for name, value in combo.items():  # a plain value is part of its runs' folders (a bundle's name: `load_spec`)
+            if not isinstance(value, dict):
+                bare_name(f"{name.split('.')[-1]}={value}", f"{spec.line(*where[name], name)}: the grid value of {name}",
+                          f"give it as a bundle with a plain name instead, e.g. {{name: a, {name}: {value}}}")
         base: dict = {}
         for name, value in spec.settings.items():
             _apply(base, name, value, spec, ("settings", name))

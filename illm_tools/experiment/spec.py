@@ -1,6 +1,8 @@
 """An `illm experiment`'s spec file (its format: the package's docstring) read and checked for
 shape: `Spec`, `load_spec`, and `Cluster`, its `cluster:` block (a run's job resources under a
-scheduler). Its names and values are checked when its grid is planned (`plan.py`)."""
+scheduler). Its names and values are checked when its grid is planned (`plan.py`), except the names
+that become folders, checked here: the spec's `name` (the default results folder) and each bundle's
+`name` (part of its runs' folders) are bare names (`illm_tools.folders.bare_name`), never `../x`."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
@@ -8,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from illm_tools.errors import UsageError
+from illm_tools.folders import bare_name
 
 TOP_KEYS = ("name", "frames", "env_frames", "seeds", "envs", "methods", "grid", "method_grid", "settings",
             "method_settings", "description", "paper", "cluster")
@@ -151,6 +154,9 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
                     raise UsageError(f"{path} line {spec_lines.get((*where, key), '?')}: a bundle of settings in "
                                      f"{'.'.join(where)}.{key} needs a name (its label), e.g. {{name: oracle, backend: "
                                      "oracle}")
+                if isinstance(value, dict):  # its name is part of its runs' folders
+                    bare_name(str(value["name"]), f"{path} line {spec_lines.get((*where, key), '?')}: the bundle name",
+                              "name it without / or ..")
     cluster = data.get("cluster") or {}
     if not isinstance(cluster, dict) or set(cluster) - set(CLUSTER_KEYS):
         bad = sorted(set(cluster) - set(CLUSTER_KEYS)) if isinstance(cluster, dict) else []
@@ -178,7 +184,9 @@ def load_spec(path: str | Path, *, frames: int | None = None, seeds: int | list[
             raise UsageError(f"{where}: env_frames names {env_id!r}, which is not among the spec's envs")
         if not isinstance(count, int) or isinstance(count, bool) or count <= 0:
             raise UsageError(f"{where}: env_frames.{env_id} must be a positive integer, got {count!r}")
-    return Spec(name=str(data.get("name") or path.stem), path=path, text=text, frames=total, seeds=seed_list,
+    name = bare_name(str(data.get("name") or path.stem), f"{path} line {spec_lines.get(('name',), '?')}: name",
+                     "the spec's name is its results folder's (results/NAME): name it without / or ..")
+    return Spec(name=name, path=path, text=text, frames=total, seeds=seed_list,
                 env_frames={str(k): int(v) for k, v in env_frames.items()},
                 envs=envs, methods=[str(m) for m in as_list("methods")], grid=grid,
                 method_grid=method_grid, settings=settings, method_settings=per_method, paper=paper or {},
