@@ -41,15 +41,19 @@ def register(app: typer.Typer) -> None:
         from illm_tools.llm.spec import LLMSpec
         from illm_tools.serve import AnnotationServer, ServeConfig, serve as run
 
-        config = config_from_options(ServeConfig, options)
-        store = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
-        chosen = [f.name for f in dataclasses.fields(LLMSpec) if f.name != "device"]  # what names the model
-        if all(options[k] == LLMSpec.__dataclass_fields__[k].default for k in chosen):  # none given: the cache's
-            from illm_tools.tasks.setup import adopt_model
+        from illm_tools.tasks.setup import REACHED, adopt_model
 
-            held = adopt_model(store)  # no model options: the cache's model setup
+        # what names the model; where a served one is reached (REACHED) is the user's alone, never the cache's
+        chosen = [f.name for f in dataclasses.fields(LLMSpec) if f.name not in ("device", *REACHED)]
+        adopting = all(options[k] == LLMSpec.__dataclass_fields__[k].default for k in chosen)
+        reach = {k: options[k] for k in REACHED if options[k]} if adopting else {}
+        config = config_from_options(ServeConfig, {**options, **dict.fromkeys(reach)})
+        store = AnnotationCache(config.cache)  # refuses a folder that is not a cache before loading a model
+        if adopting:  # no model options: the cache's model setup, reached where the user's options say
+            held = adopt_model(store, reach)
+            if held is not None or reach:  # an empty cache: the options given refused as without --cache
+                config = dataclasses.replace(config, llm=LLMSpec(**(held or reach), device=config.llm.device))
             if held is not None:
-                config = dataclasses.replace(config, llm=LLMSpec(**held, device=config.llm.device))
                 typer.echo(f"serving the cache's model setup: {config.llm.options()} (give model options to "
                            "choose another)", err=True)
         torch.set_num_threads(config.threads or os.cpu_count() or 1)

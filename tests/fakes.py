@@ -349,10 +349,12 @@ def stub_annotated(root, n: int = 6) -> Path:
     return Path(root)
 
 
-def trains_with_the_engine_stopped(ann, run, entries: int, env: str = "BabyAI-GoToRedBallNoDists-v0") -> str:
+def trains_with_the_engine_stopped(ann, run, entries: int, env: str = "BabyAI-GoToRedBallNoDists-v0",
+                                   reach: tuple[str, ...] = ("--endpoint", "http://127.0.0.1:9/v1")) -> str:
     """Issue 54's checks of a cache annotated through an engine at two addresses, the engine stopped:
     `illm cache info` lists one setup per task (served at both addresses, `entries` states each) and
-    `illm train --live-budget 0` adopts it and trains on its targets; returns the run's output."""
+    `illm train --live-budget 0` adopts it and trains on its targets; returns the run's output.
+    `reach`: the user's own options that say where the engine is (issue 69: never the cache's)."""
     from typer.testing import CliRunner
 
     from cli.main import app
@@ -368,7 +370,7 @@ def trains_with_the_engine_stopped(ann, run, entries: int, env: str = "BabyAI-Go
     assert all("another file or revision" not in u["model_options"] for u in setups)
     done = runner.invoke(app, ["train", "--env", env, "--method", "illm", "--cache", str(ann), "--live-budget", "0",
                                "--num-envs", "4", "--num-steps", "32", "--frames", "256", "--seed", "0", "--out",
-                               str(run), "--device", "cpu"])
+                               str(run), "--device", "cpu", *reach])
     assert done.exit_code == 0, done.output
     metrics = [json.loads(line) for line in (Path(run) / "metrics.jsonl").read_text().splitlines()]
     assert max(m.get("charts/target_coverage", 0.0) for m in metrics) > 0  # targets of the cached states

@@ -161,4 +161,5 @@ def test_its_cache_trains_with_the_engines_stopped_under_either_address(engines,
                   tasks="action,summary", limit=limit)
     for server in engine_servers:
         server.stop()
-    trains_with_the_engine_stopped(ann, tmp_path / "run", 16)
+    trains_with_the_engine_stopped(ann, tmp_path / "run", 16, reach=("--endpoint", engines[0], "--embed-endpoint",
+                                                                     engines[1]))

@@ -34,9 +34,11 @@ def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None
       apply; any other given setting that differs from the run's is refused in one line naming it;
     - else, when the run reads LLM targets from a cache that holds annotations and none of the
       options that select a setup (`ADOPTED`) was given, it takes the cache's setup, saying so
-      through `say` (`adopt_setup`).
+      through `say` (`adopt_setup`); where a served model is reached (`REACHED`: --endpoint,
+      --api-key-env, --embed-endpoint) is never taken from the cache, only from these settings.
     """
     from illm_tools.intrinsic.registry import get_method
+    from illm_tools.tasks.setup import ADOPTED, REACHED
 
     settings = dict(settings)
     given = set(settings) if given is None else set(given)
@@ -48,7 +50,10 @@ def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None
     settings.update(weights)
     if settings.get("resume"):
         return resumed(Path(settings["run_dir"]), settings, given - {"resume", "run_dir"})
-    return adopt_setup(TrainConfig.from_dict(settings), given, say)
+    reach = {}
+    if not given & set(ADOPTED):  # a setup may be adopted: the user's --endpoint reaches its model, set after
+        reach = {k: settings.pop(k) for k in REACHED if settings.get(k)}
+    return adopt_setup(TrainConfig.from_dict(settings), given, say, reach)
 
 
 def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) -> TrainConfig:
@@ -75,22 +80,31 @@ def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) 
     return cfg
 
 
-def adopt_setup(cfg: TrainConfig, given: Collection[str], say: Callable[[str], None] | None = None) -> TrainConfig:
+def adopt_setup(cfg: TrainConfig, given: Collection[str], say: Callable[[str], None] | None = None,
+                reach: Mapping[str, str] | None = None) -> TrainConfig:
     """`cfg` with its cache's annotation setup adopted (`illm_tools.tasks.setup.adopt`) when the run
     reads targets from a cache holding annotations and none of the setup's options was `given`;
-    `say` hears which, in one line."""
+    `say` hears which, in one line. `reach`: the user's own --endpoint, --api-key-env and
+    --embed-endpoint, set on the model either way: an adopted served model is reached only there (a
+    cache's rows never say where a request goes; without --endpoint it is refused in one line)."""
     from illm_tools.tasks.setup import ADOPTED, adopt
+
+    reach = dict(reach or {})
+
+    def own() -> TrainConfig:  # nothing adopted: the run's model with the options as given
+        return TrainConfig.from_dict({**cfg.flat(), **reach}) if reach else cfg
 
     if not cfg.needs_targets or cfg.targets.cache is None or set(given) & set(ADOPTED) or \
             not (cfg.targets.cache / "manifest.json").is_file():
-        return cfg
+        return own()
     from illm_tools.cache.store import AnnotationCache
 
     renderer = "hop@" if cfg.setup.hop else cfg.annotation_setup.renderer
     setup = adopt(AnnotationCache(cfg.targets.cache), cfg.target_tasks, renderer)
     if setup is None:
-        return cfg
+        return own()
+    adopted = TrainConfig.from_dict({**cfg.flat(), **setup.fields(reach, cfg.targets.cache)})
     if say is not None:
-        say(f"adopting the cache's setup: {setup.options()} ({setup.entries:,} states answered for every task; give any of these options to "
-            "choose another)")
-    return TrainConfig.from_dict({**cfg.flat(), **setup.fields()})
+        say(f"adopting the cache's setup: {adopted.llm.options()} {setup.prompt_options()} ({setup.entries:,} states "
+            "answered for every task; give any of these options to choose another)")
+    return adopted

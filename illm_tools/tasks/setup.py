@@ -30,13 +30,21 @@ read, whatever this machine's `--dtype auto` would have chosen. `illm serve --ca
 for the model. A cache that holds annotations but none of a run's setup is refused by
 `check_setup`, naming what differs.
 
+A row's `model` is an identity, never where a request goes: a cache may come from anyone (`illm
+cache import`), and the spec of a served model names an address and a key variable ("NAME@URL#VAR").
+An adopted served model (openai) keeps only its served name; where it is reached and with which key
+are the user's own options (`REACHED`: --endpoint, --api-key-env, --embed-endpoint) or the
+default key variable, and without --endpoint its adoption is refused in one line (`reached_model`).
+Nothing adopted is contacted before that, and the options a listing suggests name no address
+(`--endpoint URL`).
+
 The hop renderer's name lives here too: the renderer field of hop keys is the translation's
 settings (`hop_renderer`), read back by `parse_hop_renderer`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -131,6 +139,55 @@ class AnnotationSetup:
 
 ADOPTED = ("backend", "model", "model_dtype", "quant", "oracle_noise", "history_len", "layout", "hop_seed", "hop_beta")
 """The TrainConfig fields a run takes from its cache's setup (the CLI adopts when none was given)."""
+REACHED = ("endpoint", "api_key_env", "embed_endpoint")
+"""The `LLMSpec` options that say where a served model is reached and which variable holds its key:
+the user's own only, never adopted from a cache (`reached_model`)."""
+
+
+def reached_model(backend: str, model: str, reach: Mapping[str, str | None], where) -> dict:
+    """The `LLMSpec` fields naming an adopted model: `model` and `reach` (the user's own --endpoint,
+    --api-key-env and --embed-endpoint; None or absent where not given). A served model (openai) is
+    its served name alone, reached where `reach` says: the address and key variable of the spec its
+    rows were written under (`model`) are never read, and without --endpoint it is refused in one line
+    naming the options to give (`where`: the cache). Another backend's model is kept, with `reach` as
+    given (which `LLMSpec` refuses in one line: those options are the openai backend's)."""
+    given = {k: reach[k] for k in REACHED if reach.get(k)}
+    if backend != "openai":
+        return {"model": model, **given}
+    from illm_tools.llm.openai_wire import embed_url, parse_spec
+
+    name = parse_spec(model)[0]
+    missing = [option for option, needed in (("--endpoint URL (your engine's OpenAI base)", "endpoint"),
+                                             ("--embed-endpoint URL (its summaries were embedded by a pooling "
+                                              "endpoint)", "embed_endpoint" if embed_url(model) else None))
+               if needed and not given.get(needed)]
+    if missing:
+        raise UsageError(f"the cache {where} holds annotations of {name!r} served by an OpenAI-compatible engine, "
+                         f"and a cache never says where a request goes: give {' and '.join(missing)}, with "
+                         "--api-key-env VAR if it needs a key, or choose the model with --backend and --model")
+    return {"model": name, **given}
+
+
+def _model_options(model: str, fingerprint: str) -> str:
+    """The options that select a cache row's model (`model_options`), a served model's address left
+    for the user to give (`_options`)."""
+    from illm_tools.llm.backend import describe_model, model_options
+
+    found = describe_model(model, fingerprint)
+    return _options(**found) if found is not None else model_options(model, fingerprint)
+
+
+def _options(backend: str, model: str, dtype: str, quant: str) -> str:
+    """The options that select a held model setup (`selecting_options`), a served model's address
+    left for the user to give (`--endpoint URL`): a cache's rows never suggest where a request goes."""
+    from illm_tools.llm.backend import selecting_options
+
+    if backend != "openai":
+        return selecting_options(backend, model, dtype, quant)
+    from illm_tools.llm.openai_wire import embed_url, parse_spec
+
+    return (f"--backend openai --model {parse_spec(model)[0]} --endpoint URL"
+            + (" --embed-endpoint URL" if embed_url(model) else ""))
 
 
 @dataclass(frozen=True)
@@ -154,19 +211,23 @@ class HeldSetup:
     addresses its engine was reached at: one setup whatever the address, `model` the first)."""
 
     def options(self) -> str:
-        """The flags that select it ("--backend oracle --history 0 --layout shared")."""
-        from illm_tools.llm.backend import selecting_options
+        """The flags that select it ("--backend oracle --history 0 --layout shared"; a served model's
+        "--endpoint URL" left for the user to fill: `_options`)."""
+        return f"{_options(self.backend, self.model, self.dtype, self.quant)} {self.prompt_options()}"
 
-        model = selecting_options(self.backend, self.model, self.dtype, self.quant)
+    def prompt_options(self) -> str:
+        """The flags that select its prompts ("--history 0 --layout shared", and hop's)."""
         hop = ""
         settings = parse_hop_renderer(self.renderer)
         if settings is not None:
             hop = f" --mode hop --hop-seed {settings['seed']} --hop-beta {settings['beta']:g}"
-        return f"{model} --history {self.history_len} --layout {self.layout}{hop}"
+        return f"--history {self.history_len} --layout {self.layout}{hop}"
 
-    def fields(self) -> dict:
-        """The TrainConfig fields of the setup (`ADOPTED`)."""
-        out = {"backend": self.backend, "model": self.model, "model_dtype": self.dtype, "quant": self.quant,
+    def fields(self, reach: Mapping[str, str | None] | None = None, where=None) -> dict:
+        """The TrainConfig fields of the setup (`ADOPTED`), its model reached where the user's `reach`
+        options say (`reached_model`: a served model without --endpoint is refused; `where`: the cache)."""
+        out = {"backend": self.backend, **reached_model(self.backend, self.model, reach or {}, where),
+               "model_dtype": self.dtype, "quant": self.quant,
                "oracle_noise": 0.0, "history_len": self.history_len, "layout": self.layout}
         settings = parse_hop_renderer(self.renderer)
         if settings is not None:
@@ -186,8 +247,6 @@ def listed_setups(cache) -> list[dict]:
     identity (its fingerprint: a served model reached at two addresses is one setup), each with its
     model's options, the addresses it was served at (openai: the engines' URLs) and its entries,
     by task and most entries first. Nothing is contacted and no model is loaded."""
-    from illm_tools.llm.backend import model_options
-
     merged: dict[tuple, dict] = {}
     for u in setup_rows(cache):
         key = (u["task"], u["model_fingerprint"], u["history_len"], u["template_version"], u["renderer"],
@@ -203,7 +262,7 @@ def listed_setups(cache) -> list[dict]:
     for seen in merged.values():
         specs = sorted(seen.pop("specs").items(), key=lambda kv: -kv[1])
         seen["model"] = specs[0][0]
-        seen["model_options"] = model_options(seen["model"], seen["model_fingerprint"])
+        seen["model_options"] = _model_options(seen["model"], seen["model_fingerprint"])
         seen["served_at"] = _addresses([m for m, _ in specs])
         out.append(seen)
     return sorted(out, key=lambda u: (u["task"], -u["entries"]))
@@ -277,10 +336,12 @@ def adopt(cache, tasks: Sequence[str], renderer: str | None) -> HeldSetup | None
     return setups[0] if setups else None
 
 
-def adopt_model(cache) -> dict | None:
-    """The one model setup (backend, model, dtype, quant) of the cache's rows, for `illm serve
-    --cache` without model options; None for an empty cache; several are refused naming each."""
-    from illm_tools.llm.backend import describe_model, selecting_options
+def adopt_model(cache, reach: Mapping[str, str | None] | None = None) -> dict | None:
+    """The one model setup of the cache's rows as `LLMSpec` fields (backend, model, dtype, quant, and
+    the user's `reach` options: a served model is reached only where they say, `reached_model`), for
+    `illm serve --cache` without model options; None for an empty cache; several are refused naming
+    each."""
+    from illm_tools.llm.backend import describe_model
 
     found: dict[tuple, tuple[dict, int]] = {}
     for row in cache.setups():
@@ -289,10 +350,13 @@ def adopt_model(cache) -> dict | None:
             key = (model["backend"], row["model_fingerprint"], model["dtype"], model["quant"])
             found[key] = (found.get(key, (model, 0))[0], found.get(key, (model, 0))[1] + int(row["entries"]))
     if len(found) > 1:
-        listed = "; ".join(f"{selecting_options(**m)} ({n:,} entries)" for m, n in found.values())
+        listed = "; ".join(f"{_options(**m)} ({n:,} entries)" for m, n in found.values())
         raise UsageError(f"the cache {cache.root} holds annotations of {len(found)} model setups: {listed}. Pass the "
                          "options of the one to serve")
-    return next(iter(found.values()))[0] if found else None
+    if not found:
+        return None
+    model = next(iter(found.values()))[0]
+    return {**model, **reached_model(model["backend"], model["model"], reach or {}, cache.root)}
 
 
 def cached_identity(cache, backend: str, model: str) -> tuple[str, int | None] | None:
@@ -355,9 +419,7 @@ _FLAGS = {"history_len": "--history", "layout": "--layout", "renderer": "rendere
 
 def _describe(setup: dict, fields: list[str], model: str | None) -> str:
     """The differing settings of a setup as the flags that select them."""
-    from illm_tools.llm.backend import model_options
-
-    return ", ".join((model or model_options(setup["model"], setup["model_fingerprint"]))
+    return ", ".join((model or _model_options(setup["model"], setup["model_fingerprint"]))
                      if f == "model_fingerprint" else f"{_FLAGS[f]} {setup[f]}" for f in fields)
 
 
