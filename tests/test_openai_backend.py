@@ -77,8 +77,9 @@ class Server:
         token_lp = [None if at(i) < 0 else float(logprobs[at(i), t]) for i, t in enumerate(ids)]
         if self.no_echo:
             return {"text": prompt + " x", "finish_reason": "length", "logprobs": None}
+        tokens = [prompt[a:b] for a, b in zip(offsets, offsets[1:] + [len(prompt)])]  # the echo spells the prompt
         return {"text": prompt + " x", "finish_reason": "length",
-                "logprobs": {"tokens": ["?"] * (len(ids) + 1), "token_logprobs": token_lp + [-1.0],
+                "logprobs": {"tokens": tokens + [" x"], "token_logprobs": token_lp + [-1.0],
                              "text_offset": offsets + [len(prompt)]}}
 
     def _next(self, prompt: str) -> dict:
@@ -323,12 +324,12 @@ def test_a_cache_annotated_through_an_engine_trains_with_the_engine_stopped_unde
                                    "--endpoint", url, "--history", "0", "--limit", str(limit)])
         assert done.exit_code == 0, done.output
     engine.stop()
-    said = trains_with_the_engine_stopped(ann, tmp_path / "run", 12)
+    said = trains_with_the_engine_stopped(ann, tmp_path / "run", 12, reach=("--endpoint", engine.url))
     assert "adopting the cache's setup: --backend openai --model tiny" in said
     with caplog.at_level(logging.WARNING, logger="illm_tools.rl.run"):
         live = runner.invoke(app, ["train", "--env", "BabyAI-GoToRedBallNoDists-v0", "--method", "illm", "--cache",
                                    str(ann), "--live-budget", "4", "--num-envs", "4", "--num-steps", "32", "--frames",
-                                   "128", "--seed", "1", "--out", str(tmp_path / "run-live")])
+                                   "128", "--seed", "1", "--out", str(tmp_path / "run-live"), "--endpoint", engine.url])
     assert live.exit_code == 0, live.output  # the cache's targets alone, said in one line
     said = [r.getMessage() for r in caplog.records if "trains from the cache's targets alone" in r.getMessage()]
     assert len(said) == 1 and said[0].startswith("no OpenAI-compatible server answers at http://"), said

@@ -5,7 +5,8 @@ prefix caching, a model sharded over GPUs) instead of in illm's own process.
 `--backend openai --model NAME --endpoint URL [--api-key-env VAR]`: NAME is the model as the server
 serves it (`GET /v1/models`), URL the server's OpenAI base (`http://host:8000/v1`), VAR the
 environment variable holding its API key (default OPENAI_API_KEY; none needed for a local
-server). The model spec is "NAME@URL" (and "#VAR"), so every place that names a model names it.
+server). The model spec is "NAME@URL" (and "#VAR"), so every place that names a model names it; a
+spec read from a cache's rows is an identity only, never reached (`illm_tools.tasks.setup.reached_model`).
 
 - Ranking (`score`): one `POST /v1/completions` per state with its candidates as a list of
   prompts, context + candidate each, `echo: true, logprobs: 1, max_tokens: 1, temperature: 0`:
@@ -47,7 +48,7 @@ import numpy as np
 
 from illm_tools.errors import UsageError
 from illm_tools.llm.openai_wire import (Client, candidate_logprobs, check_ranking, describe_offline, embed_url,
-                                        embedding_vectors, engine_probe, ordered_choices, parse_spec,
+                                        embedding_vectors, engine_probe, generated_text, ordered_choices, parse_spec,
                                         served_fingerprint)
 
 NAME = "openai"
@@ -147,8 +148,7 @@ class OpenAIBackend:
     def _completion(self, item):
         prompts, max_new_tokens = item
         choices = self._choices(prompts, {"temperature": 0, "max_tokens": max_new_tokens, "logprobs": 0})
-        return [(c.get("text", ""), len((c.get("logprobs") or {}).get("tokens") or []),
-                 c.get("finish_reason") != "length") for c in choices]
+        return [generated_text(c, f"{self.client.url}/completions") for c in choices]
 
     def generate(self, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
         from illm_tools.llm.generation import Generation

@@ -18,18 +18,23 @@ and what its answers must be, read in one place whichever backend asks.
     ranking through it is refused in one line before anything is annotated (`check_ranking`: its
     rankings would be noise); summaries still run through it.
 - An engine's answers are checked before anything is stored, each failure one line naming the
-  engine's URL: JSON without NaN or Infinity and at most `MAX_ANSWER_BYTES`; one choice per prompt,
-  each index once (`ordered_choices`); a candidate's echoed tokens one run in increasing offsets,
-  each with a finite log-prob at most 0 (`candidate_logprobs`: a candidate with no scored token
-  would otherwise sum to 0 and win); an embedding finite and of the width the engine gave at
-  connection (`embedding_vectors`). A redirect is never followed, so the API key goes to the
-  configured endpoint only.
+  engine's URL: JSON without NaN or Infinity, at most `MAX_ANSWER_BYTES` and not nested too deep
+  to read; one choice per prompt, each index once (`ordered_choices`); a candidate's echoed tokens
+  spelling the prompt that was sent at their offsets (an engine echoing other tokens is refused),
+  one run in increasing offsets, each with a log-prob at most 0 and finite in float32, as is their
+  sum (`candidate_logprobs`: a candidate with no scored token would otherwise sum to 0 and win; the
+  cache stores float32, where 1e39 is infinite); a generated text a string (`generated_text`); an
+  embedding of numbers, finite in float32 and of the width the engine gave at connection
+  (`embedding_vectors`). A redirect is never followed, so the API key goes to the configured
+  endpoint only. The engine's URL and key variable come from the user's own options (a cache row's
+  model spec is an identity, never adopted with its address: `illm_tools.tasks.setup`).
 - Each request has a timeout; 429 and 5xx answers and lost connections are retried with
   exponential backoff (`retries` times), then refused in one line.
 """
 
 from __future__ import annotations
 
+import http.client
 import json
 import logging
 import math
@@ -75,8 +80,14 @@ class EngineUnreachableError(UsageError):
     """No OpenAI-compatible server answers at a model spec's endpoint (its identity cannot be asked)."""
 
 
+def _one_line(text: str, limit: int = 200) -> str:
+    """What an engine said, for a one-line error: its whitespace (line breaks included) one space, cut."""
+    return " ".join(text.split())[:limit]
+
+
 def _no_constant(name: str):
     raise ValueError(f"{name} is not a finite number")
+
 
 
 # --- the model spec ------------------------------------------------------------------------------
@@ -162,20 +173,23 @@ class Client:
                     raw = response.read(MAX_ANSWER_BYTES + 1)
                     if len(raw) > MAX_ANSWER_BYTES:
                         raise EndpointError(f"{base + path} answered more than {MAX_ANSWER_BYTES // 2**20} MiB: refused")
-                    answer = json.loads(raw or b"{}", parse_constant=_no_constant)
+                    try:
+                        answer = json.loads(raw or b"{}", parse_constant=_no_constant)
+                    except RecursionError:  # the decoder's own limit (about 1,000 levels; an answer nests 5)
+                        raise EndpointError(f"{base + path} answered JSON nested too deep to read: refused") from None
                     if not isinstance(answer, dict):
                         raise EndpointError(f"{base + path} answered what is not a JSON object")
                     return answer, {k.lower(): v for k, v in response.headers.items()}
             except urllib.error.HTTPError as e:
-                detail = e.read(2000).decode(errors="replace")[:200]
+                detail = _one_line(e.read(2000).decode(errors="replace"))
                 if 300 <= e.code < 400:
                     raise EndpointError(f"{base + path} answered a redirect ({e.code}), which illm does not follow (the "
                                         "key goes to --endpoint only): give the engine's own URL") from None
                 if e.code != 429 and e.code < 500:
                     raise EndpointError(f"{base + path} refused the request ({e.code}: {detail})") from None
                 last = f"{e.code}: {detail}"
-            except (urllib.error.URLError, OSError, TimeoutError) as e:
-                last = str(getattr(e, "reason", e))
+            except (urllib.error.URLError, OSError, TimeoutError, http.client.HTTPException) as e:
+                last = _one_line(str(getattr(e, "reason", e))) or type(e).__name__  # HTTPException: no HTTP answer
             except ValueError as e:
                 raise EndpointError(f"{base + path} answered what is not JSON ({e})") from None
             if attempt < self.retries:
@@ -196,15 +210,15 @@ def served_fingerprint(spec: str) -> dict:
         except EndpointError as e:
             raise EngineUnreachableError(f"no OpenAI-compatible server answers at {url} ({e}): start one (docs/scale.md: "
                                          "serving Llama-3-8B with vLLM) or check --endpoint") from None
-        served = [m.get("id") for m in models.get("data", [])]
+        served = [m.get("id") for m in _listed(models)]
         if model not in served:
             raise UsageError(f"the server at {url} serves {', '.join(map(str, served)) or 'no model'}, not {model!r}: "
                              "pass --model as it names it")
         try:
             version, _ = client.call("/version", root=True)
-            engine = f"version {version.get('version', '?')}"
+            engine = f"version {str(version.get('version', '?'))[:80]}"
         except EndpointError:
-            engine = f"server {headers['server']}" if headers.get("server") else "unknown"
+            engine = f"server {headers['server'][:80]}" if headers.get("server") else "unknown"
         pooled = embed_url(spec)
         dim, pooling = _embedding_endpoint(Client(pooled, key, timeout=60.0, retries=1) if pooled else client, model,
                                            models, required=pooled is not None)
@@ -224,6 +238,12 @@ def served_fingerprint(spec: str) -> dict:
                                "revision": None, "embedder": embedder, "embedding_dim": dim, "dtype": "served",
                                "quant": "served"}
     return dict(_FINGERPRINTS[spec])
+
+
+def _listed(models: dict) -> list[dict]:
+    """The served models a `GET /v1/models` answer lists (its `data`'s objects; anything else: none)."""
+    data = models.get("data")
+    return [m for m in data if isinstance(m, dict)] if isinstance(data, list) else []
 
 
 def engine_probe(spec: str) -> EngineProbe:
@@ -259,7 +279,10 @@ def _embedding_endpoint(client: Client, model: str, served: dict, *, required: b
     where = client.url
     try:
         answer, _ = client.call("/embeddings", {"model": model, "input": ["probe"]})
-        dim = len(answer["data"][0]["embedding"])
+        embedding = answer["data"][0]["embedding"]
+        if not isinstance(embedding, list):
+            raise TypeError("the embedding is not a list of numbers")
+        dim = len(embedding)
     except (EndpointError, KeyError, IndexError, TypeError) as e:
         if not required:
             return None, ""
@@ -272,17 +295,24 @@ def _embedding_endpoint(client: Client, model: str, served: dict, *, required: b
         version, _ = client.call("/version", root=True)
     except EndpointError:
         pooled_models, version = {}, {}
-    roots = {m.get("id"): m.get("root") for m in pooled_models.get("data", [])}
-    mine = {m.get("id"): m.get("root") for m in served.get("data", [])}
+    roots = {m.get("id"): m.get("root") for m in _listed(pooled_models)}
+    mine = {m.get("id"): m.get("root") for m in _listed(served)}
     if roots.get(model) and mine.get(model) and roots[model] != mine[model]:
         raise UsageError(f"the pooling endpoint {where} serves {roots[model]} as {model!r}, the completions endpoint "
                          f"{mine[model]}: embeddings must come from the same weights; start both on one model")
-    return dim, f"{roots.get(model) or model}, engine {version.get('version', '?')}"
+    return dim, f"{str(roots.get(model) or model)[:200]}, engine {str(version.get('version', '?'))[:80]}"
 
 
 def _probe_engine(client: Client, model: str) -> EngineProbe:
     """Ask the engine once: does it take a list of prompts; are its echoed prompt log-probs those its
-    generation gives (see the module docstring)?"""
+    generation gives (see the module docstring)? Log-probs that are not numbers answer no."""
+    try:
+        return _probe(client, model)
+    except (ValueError, TypeError, AttributeError, OverflowError):  # a top list, a log-prob that is no number
+        return EngineProbe(False, None, "its log-probabilities are not numbers")
+
+
+def _probe(client: Client, model: str) -> EngineProbe:
     try:
         answer, _ = client.call("/completions", {"model": model, "prompt": ["One,", "Two,"], "max_tokens": 1,
                                                  "temperature": 0})
@@ -324,7 +354,7 @@ def ordered_choices(answer: dict, prompts: int, where: str) -> list[dict]:
     """The choices of a completions answer to `prompts` prompts, in prompt order; refused in one line
     naming `where` unless each index comes once."""
     choices = answer.get("choices")
-    indices = [c.get("index") if isinstance(c, dict) else None for c in choices or []]
+    indices = [c.get("index") if isinstance(c, dict) else None for c in choices] if isinstance(choices, list) else []
     if not isinstance(choices, list) or sorted(i for i in indices if type(i) is int) != list(range(prompts)) \
             or len(indices) != prompts:
         raise EndpointError(f"{where} answered choices {indices[:8]} for {prompts} prompts "
@@ -332,41 +362,75 @@ def ordered_choices(answer: dict, prompts: int, where: str) -> list[dict]:
     return sorted(choices, key=lambda c: c["index"])
 
 
+def _float32(values) -> np.ndarray | None:
+    """`values` as float32, as the cache stores them, when each is a number (not a bool) finite there
+    (1e39 is not); else None."""
+    if not all(type(v) is float or type(v) is int for v in values):
+        return None
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            array = np.asarray(values, dtype=np.float64).astype(np.float32)
+    except OverflowError:  # an integer beyond any float
+        return None
+    return array if np.isfinite(array).all() else None
+
+
 def candidate_logprobs(choice: dict, prompt: str, start: int, where: str) -> list[float]:
     """The log-probs of a choice's echoed tokens that end after the context (`start` characters of
-    `prompt`): one run of consecutive tokens, each scored with a finite log-prob, in increasing
-    offsets; else refused in one line naming `where` (a candidate with no scored token would sum to 0)."""
+    `prompt`): the echoed tokens spell `prompt`, the one sent, at their offsets (from 0, each where
+    the one before ends); one run of consecutive tokens, in increasing offsets, each scored with a
+    log-prob at most 0 and finite in float32, as is their sum (what the cache stores); else refused
+    in one line naming `where` (a candidate with no scored token would sum to 0)."""
     lp = choice.get("logprobs") or {}
-    offsets, logprobs = lp.get("text_offset"), lp.get("token_logprobs")
+    if not isinstance(lp, dict):
+        raise EndpointError(f"{where} answered log-probabilities that are not a JSON object: not used")
+    offsets, logprobs, tokens = lp.get("text_offset"), lp.get("token_logprobs"), lp.get("tokens")
     if not offsets or logprobs is None:
         raise EndpointError(f"{where} gave no prompt log-probabilities (echo with logprobs): "
                             "this engine cannot rank candidates; vLLM can (docs/scale.md)")
-    if len(offsets) != len(logprobs) or any(type(o) is not int for o in offsets) or \
-            any(b <= a for a, b in zip(offsets, offsets[1:])):
+    if not isinstance(offsets, list) or not isinstance(logprobs, list) or len(offsets) != len(logprobs) or \
+            any(type(o) is not int for o in offsets) or any(b <= a for a, b in zip(offsets, offsets[1:])):
         raise EndpointError(f"{where} answered token offsets that are not increasing, one per log-prob: not used")
     ends = list(offsets[1:]) + [len(prompt) + 10**9]
     inside = [i for i in range(len(offsets)) if offsets[i] < len(prompt)]  # the echo, without a generated token
+    echoed = [tokens[i] for i in inside] if isinstance(tokens, list) and len(tokens) == len(offsets) else None
+    if echoed is None or not all(isinstance(t, str) for t in echoed) or "".join(echoed) != prompt or \
+            any(offsets[i] != n for i, n in zip(inside, np.cumsum([0] + [len(t) for t in echoed[:-1]]).tolist())):
+        raise EndpointError(f"{where} echoed tokens that do not spell the prompt it was sent at their offsets "
+                            f"({prompt[:40]!r}...): not used")
     mine = [i for i in inside if ends[i] > start]
     if not mine or mine != list(range(mine[0], inside[-1] + 1)):
         raise EndpointError(f"{where} answered no contiguous tokens for a candidate ({prompt[start:][:40]!r}): not used")
     values = [logprobs[i] for i in mine]
-    if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v > 0 for v in values):
+    stored = _float32(values)
+    if stored is None or any(v > 0 for v in values) or _float32([math.fsum(values)]) is None:
         raise EndpointError(f"{where} answered a candidate's token log-probs {values[:6]}, not all finite numbers "
-                            "at most 0: not used")
+                            "at most 0 (in float32, as the cache stores them, with their sum): not used")
     return [float(v) for v in values]
+
+
+def generated_text(choice: dict, where: str) -> tuple[str, int, bool]:
+    """(text, tokens generated, whether it finished) of a completion's choice; refused in one line
+    naming `where` unless its text is a string (its log-probs, when given, an object)."""
+    text, lp = choice.get("text", ""), choice.get("logprobs") or {}
+    if not isinstance(text, str) or not isinstance(lp, dict):
+        raise EndpointError(f"{where} answered a completion whose text is not a string: not used")
+    tokens = lp.get("tokens")
+    return text, len(tokens) if isinstance(tokens, list) else 0, choice.get("finish_reason") != "length"
 
 
 def embedding_vectors(answer: dict, texts: int, width: int, where: str) -> list[np.ndarray]:
     """The embeddings of an answer to `texts` texts, in text order, as float32 vectors; refused in one
     line naming `where` unless each index comes once with a finite vector of `width` dimensions."""
     data = answer.get("data")
-    if not isinstance(data, list) or sorted(d.get("index", -1) for d in data if isinstance(d, dict)) != \
-            list(range(texts)):
+    indices = [d.get("index") if isinstance(d, dict) else None for d in data] if isinstance(data, list) else []
+    if not isinstance(data, list) or len(data) != texts or any(type(i) is not int for i in indices) or \
+            sorted(indices) != list(range(texts)):
         raise EndpointError(f"{where} answered {len(data) if isinstance(data, list) else 'no'} embeddings for "
                             f"{texts} texts (each index once is expected): not used")
-    vectors = [d["embedding"] for d in sorted(data, key=lambda d: d["index"])]
-    array = np.asarray(vectors, dtype=np.float64) if all(isinstance(v, list) for v in vectors) else None
-    if array is None or array.ndim != 2 or array.shape[1] != width or not np.isfinite(array).all():
-        raise EndpointError(f"{where} answered embeddings that are not finite vectors of {width} "
-                            "dimensions (the width it gave when illm connected): not used")
-    return list(array.astype(np.float32))
+    vectors = [d.get("embedding") for d in sorted(data, key=lambda d: d["index"])]
+    stored = [_float32(v) if isinstance(v, list) and len(v) == width else None for v in vectors]
+    if any(v is None for v in stored):
+        raise EndpointError(f"{where} answered embeddings that are not finite vectors of {width} dimensions (finite "
+                            "in float32, as the cache stores them; the width it gave when illm connected): not used")
+    return stored

@@ -43,6 +43,15 @@ class AnnotatorAccess:
     variable, which keeps it out of `ps` and the shell's history. Never written to the run's files."""
 
 
+def answered_count(answer: dict, name: str, where: str) -> int:
+    """A count the server answered (`landed`, `queued`, `failed`, a limit): absent is 0; anything but
+    a whole number >= 0 is a `BadAnswer` (a hostile or broken server never raises in the trainer)."""
+    value = answer.get(name, 0)
+    if type(value) is not int or value < 0:
+        raise BadAnswer(f"{where} answered {name} {str(value)[:40]!r}, not a count")
+    return value
+
+
 def retry_after(value) -> float:
     """A Retry-After header's seconds clamped to `RETRY_AFTER` (5 when absent or not a finite number)."""
     import math
@@ -102,7 +111,7 @@ class RemoteLive:
         self._said = "up"  # what the log last said of the server: up, down, busy, refused
         info = self.server_stats(what="start")
         self._check_server(info, llm)
-        self.max_states = int(info.get("limits", {}).get("max_states", 0)) or None
+        self.max_states = self._max_states(info)
         self.wait = float(wait)
         self._lock = threading.Lock()
         self._outbox: list | None = None
@@ -131,22 +140,39 @@ class RemoteLive:
                              f"another model setup than this run's {llm.options()}: its answers would never be this run's "
                              "targets; train with the server's options or start a server for this model")
 
+    def _max_states(self, info: dict) -> int | None:
+        """The states one request may carry, as the server's /stats says (None: no limit given);
+        anything but a count is refused in one line."""
+        from illm_tools.errors import UsageError
+
+        limits = info.get("limits", {})
+        try:
+            return answered_count(limits if isinstance(limits, dict) else {"max_states": limits}, "max_states",
+                                  f"{self.url}/stats") or None
+        except BadAnswer as e:
+            raise UsageError(f"{e}: is it an illm server? start one with `illm serve`") from None
+
     def _call(self, path: str, body: dict | None = None, timeout: float | None = None) -> dict:
         """The server's JSON object answer to GET (no body) or POST `path`. Redirects are not followed
-        (an HTTPError: the token goes to the configured URL only); an answer that is not a JSON object,
-        or over `MAX_ANSWER_BYTES`, is a `BadAnswer`."""
+        (an HTTPError: the token goes to the configured URL only); an answer that is not HTTP, not a
+        JSON object (nested too deep to read included), or over `MAX_ANSWER_BYTES`, is a `BadAnswer`."""
         import json
 
         from illm_tools.annotate.wire import auth_headers
 
+        import http.client
+
         data = None if body is None else json.dumps(body).encode()
         request = urllib.request.Request(self.url + path, data=data, method="GET" if body is None else "POST",
                                          headers={"Content-Type": "application/json", **auth_headers(self._token)})
-        with NO_REDIRECTS.open(request, timeout=timeout or self.timeout) as response:
-            raw = response.read(MAX_ANSWER_BYTES + 1)
+        try:
+            with NO_REDIRECTS.open(request, timeout=timeout or self.timeout) as response:
+                raw = response.read(MAX_ANSWER_BYTES + 1)
+        except http.client.HTTPException as e:  # not HTTP (a status line of garbage): urllib lets it through
+            raise BadAnswer(f"{self.url}{path} answered what is not HTTP ({type(e).__name__})") from None
         try:
             answer = json.loads(raw) if len(raw) <= MAX_ANSWER_BYTES else None
-        except ValueError:
+        except (ValueError, RecursionError):  # RecursionError: nested deeper than the decoder reads
             answer = None
         if not isinstance(answer, dict):
             raise BadAnswer(f"{self.url}{path} answered what is not a JSON object of at most {MAX_ANSWER_BYTES:,} bytes")
@@ -258,10 +284,12 @@ class RemoteLive:
             wait = {"wait": self.wait} if self.waits else {}
             answer = self._call("/annotate", {**self.setup, "client": self.client, "session": self.session,
                                               "states": states, **wait}, timeout=self.timeout + self.wait)
+            where = f"{self.url}/annotate"
+            landed, queued, failed = (answered_count(answer, k, where) for k in ("landed", "queued", "failed"))
         except urllib.error.HTTPError as e:
             try:
-                why = json.loads(e.read()).get("error", "")
-            except (ValueError, AttributeError, OSError):
+                why = str(json.loads(e.read(MAX_ANSWER_BYTES)).get("error", ""))[:300]
+            except (ValueError, AttributeError, OSError, RecursionError):
                 why = ""
             if e.code in (429, 503):  # the server is full, or this run's client is over its share
                 self.counts["busy"] += 1
@@ -298,14 +326,14 @@ class RemoteLive:
             return 0.0
         self.counts["accepted"] += 1
         self._say("up", "the annotation server at %s answers again; this run's states are sent to it", self.url)
-        if answer.get("failed"):  # states the server's engine could not annotate: said once per run
-            self.counts["failed"] = self.counts.get("failed", 0) + int(answer["failed"])
-            if self.counts["failed"] == int(answer["failed"]):
+        if failed:  # states the server's engine could not annotate: said once per run
+            self.counts["failed"] = self.counts.get("failed", 0) + failed
+            if self.counts["failed"] == failed:
                 log.warning("the annotation server could not annotate %s of this run's states (%s); the run goes on "
-                            "without their targets", answer["failed"], str(answer.get("failure", ""))[:300])
+                            "without their targets", failed, str(answer.get("failure", ""))[:300])
         with self._lock:
-            self._landed += int(answer.get("landed", 0))
-            self._queue = int(answer.get("queued", 0))
+            self._landed += landed
+            self._queue = queued
         return None
 
     def _changed_server(self) -> str | None:
