@@ -134,11 +134,11 @@ def merge(
 ) -> None:
     """Copy into --into every entry it lacks from verified sources; keys are never duplicated.
 
-    Every row is checked before it enters (its key recomputed from its own columns, finite log-probs,
-    its lists and embedding consistent); a bad row is left out and counted."""
+    Every row is checked before it enters (its task's answer present, its key recomputed from its own
+    columns, finite log-probs, its lists and embedding consistent); a bad row is left out and counted."""
     from illm_tools.cache.verify import merge as run
 
-    check, found = _row_check()
+    check, found = _row_check(addresses=True)
     report = run(sources, into, check=check)
     typer.echo(f"merged {counted(len(sources), 'cache')} into {into}: {counted(report.rows_copied, 'row')} copied, "
                f"{report.rows_skipped:,} already present or refused, {counted(len(report.shards_written), 'new shard')}")
@@ -170,20 +170,24 @@ def import_(
 ) -> None:
     """Add a shared file's entries to a cache; keys it already holds are skipped.
 
-    No key is stored twice. Every row is checked before it enters (its key recomputed from its own
-    columns, finite log-probs, its lists and embedding consistent); a bad row is left out and counted."""
-    from illm_tools.cache.share import import_parquet
+    No key is stored twice. Every row is checked before it enters (its size before it is decoded, its
+    model a name and never an address or key variable, its task's answer present, its key recomputed
+    from its own columns, finite log-probs, its lists and embedding consistent); a bad row is left out
+    and counted."""
+    from illm_tools.cache.share import MAX_ROW_BYTES, import_parquet
 
     check, found = _row_check()
     report = import_parquet(path, into, check=check)
+    found.refused[:0] = [(key, f"it decodes to over {MAX_ROW_BYTES >> 10} KiB") for key in report.too_large]
     left = report.rows - report.added - len(found.refused) - len(found.conflicts)
     typer.echo(f"imported {path}: {report.added:,} new entries of its {report.rows:,} rows "
                f"({left:,} already present, {len(found.refused) + len(found.conflicts):,} refused) -> {into}")
     _say_refused(found)
 
 
-def _row_check():
-    """The check every imported or merged row passes (`illm_tools.tasks.rows`), and what it found."""
+def _row_check(addresses: bool = False):
+    """The check every imported or merged row passes (`illm_tools.tasks.rows`), and what it found;
+    `addresses`: a row's model may name a served model's address (merge: caches on this disk)."""
     from illm_tools.tasks.rows import Checked, check_rows, model_dims
 
     found = Checked()
@@ -192,7 +196,7 @@ def _row_check():
     def check(table, cache):
         if not dims:
             dims.update(model_dims(cache))
-        return check_rows(table, cache, dims, found)
+        return check_rows(table, cache, dims, found, addresses)
 
     return check, found
 
