@@ -80,6 +80,20 @@ class Stats:
         return self.summary_tokens / self.summaries if self.summaries else 0.0
 
 
+HOP_MARK = "\x00HISTORY\x00"
+"""Where a hop prompt's translated window is spliced: rendered as its history, then split at."""
+
+
+def hop_parts(job: Job) -> tuple[str, str]:
+    """A hop job's prompt text before and after its history, where its window of translated steps
+    stands (`illm_tools.llm.spliced.SplicedPrompt`'s head and tail)."""
+    mark = HOP_MARK
+    while (text := job.builder.render(job.prompt.task, job.record, mark).text).count(mark) > 1:
+        mark += "\x00"  # a state's own text holds the mark: a longer one it cannot hold
+    head, _, tail = text.partition(mark)
+    return head, tail
+
+
 class Annotator:
     """Owns a loaded model, a cache and the prompt builders of the envs it has seen."""
 
@@ -167,19 +181,28 @@ class Annotator:
 
     def tokens_needed(self, jobs: Sequence[Job]) -> int | None:
         """The tokens a state's jobs need when the longest is more than the model's context (its prompt
-        plus its longest candidate, or plus the generated tokens), else None: such a state is
-        refused before the engine (hop prompts, a window of a few embeddings, are not measured)."""
+        plus its longest candidate, or plus the generated tokens; a hop prompt's head, window of
+        translated steps and tail in place of its prompt), else None: such a state is refused
+        before the engine."""
         limit = self.context_length
-        if limit is None or not jobs or jobs[0].builder.renderer.startswith("hop@"):
+        if limit is None or not jobs:
             return None
-        needed = max(self.lm.tokens_needed(j.prompt.text, j.prompt.candidates, get_task(j.prompt.task).max_new_tokens)
-                     for j in jobs)
+        needed = max(self._job_tokens(j) for j in jobs)
         return needed if needed > limit else None
+
+    def _job_tokens(self, job: Job) -> int:
+        """The positions one job takes in the engine (the backend's `tokens_needed`)."""
+        new_tokens = get_task(job.prompt.task).max_new_tokens
+        if not job.builder.renderer.startswith("hop@"):
+            return self.lm.tokens_needed(job.prompt.text, job.prompt.candidates, new_tokens)
+        head, tail = hop_parts(job)
+        return self.lm.tokens_needed(head, job.prompt.candidates, new_tokens,
+                                     window=len(getattr(job.record, "frames", ())), tail=tail)
 
     def state_too_long(self, record: StateRecord, env_id: str, renderer: str) -> int | None:
         """The tokens `record` needs under this annotator's tasks when more than the model's context
-        (`tokens_needed`), else None (`illm serve` refuses such a state at arrival)."""
-        if self.context_length is None or renderer.startswith("hop@"):
+        (`tokens_needed`; a hop state's too), else None (`illm serve` refuses such a state at arrival)."""
+        if self.context_length is None:
             return None
         builder = self.builder(env_id, renderer)
         history = format_history(record)
@@ -291,7 +314,6 @@ class Annotator:
         (one call per generation length: the ranking tasks ride with the first)."""
         from illm_tools.llm.spliced import SplicedPrompt
 
-        marker = "\x00HISTORY\x00"
         groups: dict[int, tuple[list[Job], list]] = {}  # max_new_tokens -> (jobs, prompts)
         for jobs in states:
             record = jobs[0].record
@@ -304,7 +326,7 @@ class Annotator:
                                        len(record.valid_actions))
             window = context.window_embeddings(record.frames, record.prev_actions)
             for job in jobs:
-                head, tail = job.builder.render(job.prompt.task, record, marker).text.split(marker)
+                head, tail = hop_parts(job)
                 group = groups.setdefault(get_task(job.prompt.task).max_new_tokens, ([], []))
                 group[0].append(job)
                 group[1].append(SplicedPrompt(head, window, tail, job.prompt.candidates))

@@ -8,6 +8,13 @@ size (states x the widest state's tokens) stays within the budget and its count 
 `--batch-size`. A state alone over the budget is a batch of its own (the context length, checked
 before the engine, bounds it).
 
+The packed candidates' attention mask (`illm_tools.llm.packed`) is the one part that grows with the
+square of a state's tokens: [rows, fed, prefix + fed] entries for a batch whose widest row feeds
+`fed` tokens (lead and candidates) behind a `prefix` of cached columns. Its bytes (`mask_bytes`),
+in tokens of `token_bytes`, count in a batch's padded size beside its tokens; a state whose mask
+alone is over the budget has its candidates scored in groups behind the one cached prefix, each
+group's mask within the budget (`packed.packed_logprobs`; a single candidate is never split).
+
 The default budget comes from the memory the machine has when the model loads: free RAM on a
 CPU (MemAvailable), free device memory on CUDA, of which `SHARE` is given to the batches, divided
 by what a token holds at the peak (`token_bytes`: its keys and values in every layer, held up to
@@ -17,7 +24,7 @@ activations). `--batch-tokens` sets it instead.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 SHARE = 0.25
@@ -46,6 +53,23 @@ def token_bytes(model: Any) -> int:
     return KV_COPIES * kv + (4 * hidden + 3 * inner) * size
 
 
+MASK_BUILD_BYTES = 1
+"""Bytes an entry of the packed mask holds at the peak beside its own (the compute dtype's): the
+bool block `packed_mask` builds it from ([rows, fed, fed], counted over every entry: a bound)."""
+
+
+def mask_bytes(model: Any, rows: int, fed: int, prefix: int) -> int:
+    """Bytes the packed-candidate mask of a batch holds at its peak: `rows` x `fed` x (`prefix` +
+    `fed`) entries of the compute dtype, plus `MASK_BUILD_BYTES` each while it is built."""
+    size = model.get_input_embeddings().weight.element_size()
+    return rows * fed * (prefix + fed) * (size + MASK_BUILD_BYTES)
+
+
+def mask_tokens(model: Any, rows: int, fed: int, prefix: int) -> int:
+    """`mask_bytes` in tokens of the budget (`token_bytes` each), rounded up."""
+    return -(-mask_bytes(model, rows, fed, prefix) // token_bytes(model)) if fed else 0
+
+
 def free_bytes(device: Any) -> int:
     """Memory free now where the model runs: device memory on CUDA, MemAvailable on a CPU."""
     import torch
@@ -69,9 +93,13 @@ def context_length(model: Any) -> int | None:
     return int(value) if value else None
 
 
-def token_batches(costs: Sequence[int], max_states: int, budget: int | None) -> list[list[int]]:
+def token_batches(costs: Sequence[int], max_states: int, budget: int | None,
+                  packed: Sequence[tuple[int, int]] | None = None,
+                  mask: Callable[[int, int, int], int] | None = None) -> list[list[int]]:
     """Indices grouped into batches, shortest first: at most `max_states` a batch, and (with a
-    `budget`) at most `budget` tokens of padded size (count x the widest cost)."""
+    `budget`) at most `budget` tokens of padded size: count x the widest cost, plus, where `packed`
+    gives each state's (prefix, fed) tokens, the tokens of the batch's packed-candidate mask at its
+    widest prefix and fed, `mask(rows, fed, prefix)` (`mask_tokens` of the model)."""
     from illm_tools.errors import UsageError
 
     if max_states < 1:
@@ -79,10 +107,17 @@ def token_batches(costs: Sequence[int], max_states: int, budget: int | None) -> 
     order = sorted(range(len(costs)), key=costs.__getitem__)
     batches: list[list[int]] = []
     batch: list[int] = []
+    prefix = fed = 0  # the batch's widest, were the next state to join
     for i in order:  # sorted: the newest state is the widest of its batch
-        if batch and (len(batch) >= max_states or (budget is not None and (len(batch) + 1) * costs[i] > budget)):
-            batches.append(batch)
-            batch = []
+        if packed is not None:
+            prefix, fed = max(prefix, packed[i][0]), max(fed, packed[i][1])
+        if batch:
+            rows = len(batch) + 1
+            padded = rows * costs[i] + (mask(rows, fed, prefix) if packed is not None and mask is not None else 0)
+            if len(batch) >= max_states or (budget is not None and padded > budget):
+                batches.append(batch)
+                batch = []
+                prefix, fed = packed[i] if packed is not None else (0, 0)
         batch.append(i)
     if batch:
         batches.append(batch)

@@ -14,9 +14,8 @@ from collections.abc import Sequence
 
 from illm_tools.llm.generation import Generation, greedy_from
 from illm_tools.llm.loading import LoadedModel
-from illm_tools.llm.budget import token_batches
 from illm_tools.llm.scoring import (CandidateScores, common_prefix, extend, has_sliding_window, merge_states,
-                                    plan_state, plan_tokens, score_continuations)
+                                    packed_batches, plan_shape, plan_state, plan_tokens, score_continuations)
 
 
 def can_share_prefix(lm: LoadedModel) -> bool:
@@ -29,7 +28,8 @@ def score_and_generate(lm: LoadedModel, contexts: Sequence[str], candidates: Seq
     """For each state i: log P(candidates[i] | contexts[i]) and the greedy continuation of
     prompts[i], computing the tokens the two prompts share once. Prompts are prefilled in
     length-sorted batches of at most `batch_size` states and `lm.batch_tokens` tokens (a state's:
-    its action prompt with its packed candidates, its summary prompt's own tokens and the summary);
+    its action prompt with its packed candidates, its summary prompt's own tokens and the summary;
+    the candidates' mask counted too);
     the summaries of up to `decode_batch` states, and the budget's tokens, are then decoded
     together (decoding is per-step overhead bound: wider steps cost less per state)."""
     plans = [plan_state(lm, c, cands) for c, cands in zip(contexts, candidates)]
@@ -52,7 +52,8 @@ def score_and_generate(lm: LoadedModel, contexts: Sequence[str], candidates: Seq
 
     costs = [plan_tokens(lm, p) + len(s) - shared_n + max_new_tokens
              for p, s, shared_n in zip(plans, summary_ids, shared)]
-    for batch in token_batches(costs, batch_size, budget):
+    shapes = [plan_shape(p, cached=n) for p, n in zip(plans, shared)]  # the action prompt's end fed with its candidates
+    for batch in packed_batches(lm, costs, shapes, batch_size):
         prefix = extend(lm, [plans[i].prefix[:shared[i]] for i in batch])
         logps = score_continuations(lm, prefix, [plans[i].continuations for i in batch], [plans[i].skip for i in batch],
                                     leads=[plans[i].prefix[shared[i]:] for i in batch])  # the action prompt's own end

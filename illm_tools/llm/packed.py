@@ -14,6 +14,12 @@ the prefix's KV is held once per state: the memory a state costs is its prefix p
 candidates' tokens, not K times the prefix (the repeated form, `repeated_logprobs`, kept for
 sliding-window models, whose windows a custom mask would not apply).
 
+The mask is the one part that grows with the square of a state's tokens: [B, 1, Q, L + Q] entries
+of the compute dtype (and a [B, Q, Q] bool while it is built). It counts in the batch's token
+budget (`illm_tools.llm.budget.mask_bytes`); a batch whose mask alone is over the budget (one state
+of many long candidates) scores its candidates in consecutive groups behind the same read-only
+cache, each group's mask within the budget (`mask_groups`).
+
 The LM head runs only where a log-prob is read: the decoder's last hidden states at the packed
 tokens (padding left out) go through the output layer in slices of `HEAD_ROWS` positions, so the
 logits a batch holds at once are bounded whatever its size.
@@ -77,14 +83,16 @@ def packed_mask(prefix_mask: Any, owner: Any, dtype: Any) -> Any:
     -1: padding)."""
     import torch
 
-    b, q = owner.shape
-    causal = torch.ones(q, q, dtype=torch.bool, device=owner.device).tril()
-    same = (owner[:, :, None] == owner[:, None, :]) | (owner == LEAD)[:, None, :]
-    own = same & causal & (owner != -1)[:, :, None]
-    own |= torch.eye(q, dtype=torch.bool, device=owner.device)  # padding rows see themselves
-    seen = torch.cat([prefix_mask.bool()[:, None, :].expand(b, q, -1), own], dim=2)
-    mask = torch.zeros(seen.shape, dtype=dtype, device=owner.device)
-    return mask.masked_fill_(~seen, torch.finfo(dtype).min)[:, None]
+    (b, q), width = owner.shape, prefix_mask.shape[1]
+    mask = torch.full((b, 1, q, width + q), torch.finfo(dtype).min, dtype=dtype, device=owner.device)
+    mask[:, 0, :, :width].masked_fill_(prefix_mask.bool()[:, None, :], 0)
+    own = owner[:, :, None] == owner[:, None, :]  # built in place: the mask and one [B, Q, Q] bool at the peak
+    own |= (owner == LEAD)[:, None, :]
+    own &= (owner != -1)[:, :, None]
+    own.tril_()
+    own.diagonal(dim1=1, dim2=2).fill_(True)  # padding rows see themselves
+    mask[:, 0, :, width:].masked_fill_(own, 0)
+    return mask
 
 
 def head_logits(lm, hidden: Any) -> Any:
@@ -147,12 +155,59 @@ def read_only(state) -> Any:
     return cache
 
 
+def mask_groups(lm, prefix: int, continuations: Sequence[Sequence[Sequence[int]]],
+                leads: Sequence[Sequence[int]] | None = None) -> list[tuple[int, int]]:
+    """Ranges of the flattened candidates scored in one packed forward each behind a prefix of
+    `prefix` columns: all of them in one when the batch's mask fits `lm.batch_tokens`
+    (`budget.mask_tokens`), else consecutive groups whose masks do (one candidate at least each)."""
+    from illm_tools.llm.budget import mask_tokens
+
+    rows = len(continuations)
+    lead = [len(x) for x in leads] if leads is not None else [0] * rows
+    fed = [(i, max(len(c) - 1, 0)) for i, cands in enumerate(continuations) for c in cands]
+    totals = list(lead)
+    for i, n in fed:
+        totals[i] += n
+    if lm.batch_tokens is None or mask_tokens(lm.model, rows, max(totals, default=0), prefix) <= lm.batch_tokens:
+        return [(0, len(fed))]
+    groups, start, held = [], 0, {}  # held: the group's fed tokens per row
+    for k, (i, n) in enumerate(fed):
+        grown = {**held, i: held.get(i, lead[i]) + n}
+        if k > start and mask_tokens(lm.model, rows, max(grown.values()), prefix) > lm.batch_tokens:
+            groups.append((start, k))
+            start, grown = k, {i: lead[i] + n}
+        held = grown
+    return [*groups, (start, len(fed))]
+
+
 def packed_logprobs(lm, state, continuations: Sequence[Sequence[Sequence[int]]], ids: Any, real: Any,
                     grad: bool, leads: Sequence[Sequence[int]] | None = None) -> Any:
     """float32 [N, W] as `scoring.continuation_logprobs` returns it (`ids`, `real`: the flattened
     candidates right-padded [N, W]); `leads`: per row, tokens fed after the prefix and before the
     candidates, seen by all of them (a task's own prompt suffix), whose last logits score the
-    candidates' first tokens (without lead tokens: the state's last log-probs)."""
+    candidates' first tokens (without lead tokens: the state's last log-probs). Candidates whose
+    mask together is over the budget are scored in groups (`mask_groups`) behind the same cache,
+    each group's rows feeding their lead again."""
+    import torch
+
+    groups = mask_groups(lm, int(state.attention_mask.shape[1]), continuations, leads)
+    if len(groups) == 1:
+        return _packed_logprobs(lm, state, continuations, ids, real, grad, leads)
+    owner = [i for i, cands in enumerate(continuations) for _ in cands]
+    flat = [c for cands in continuations for c in cands]
+    parts = []
+    for start, end in groups:
+        part: list[list] = [[] for _ in continuations]
+        for k in range(start, end):
+            part[owner[k]].append(flat[k])
+        part_leads = [lead if part[i] else [] for i, lead in enumerate(leads)] if leads is not None else None
+        parts.append(_packed_logprobs(lm, state, part, ids[start:end], real[start:end], grad, part_leads))
+    return torch.cat(parts)
+
+
+def _packed_logprobs(lm, state, continuations: Sequence[Sequence[Sequence[int]]], ids: Any, real: Any,
+                     grad: bool, leads: Sequence[Sequence[int]] | None = None) -> Any:
+    """`packed_logprobs` of candidates packed in one forward."""
     import torch
 
     from illm_tools.llm.forward import cache_kwargs, forward_mode

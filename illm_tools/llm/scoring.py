@@ -322,17 +322,37 @@ def plan_tokens(lm: LoadedModel, plan: _Plan) -> int:
     return len(plan.prefix) * max(len(plan.continuations), 1) + sum(len(c) for c in plan.continuations)
 
 
+def plan_shape(plan: _Plan, cached: int | None = None) -> tuple[int, int]:
+    """(prefix, fed): the tokens of a planned state's packed forward, behind the first `cached` of its
+    prefix (all of it by default): the geometry of its candidates' mask (`budget.mask_bytes`)."""
+    cached = len(plan.prefix) if cached is None else cached
+    return cached, len(plan.prefix) - cached + sum(max(len(c) - 1, 0) for c in plan.continuations)
+
+
+def packed_batches(lm: LoadedModel, costs: Sequence[int], shapes: Sequence[tuple[int, int]],
+                   batch_size: int) -> list[list[int]]:
+    """`budget.token_batches` of states of these costs whose candidates are packed in forwards of
+    these `shapes` (`plan_shape`): each batch's mask counted in its budget where the model packs."""
+    import functools
+
+    from illm_tools.llm.budget import mask_tokens, token_batches
+
+    if not packs_candidates(lm):
+        return token_batches(costs, batch_size, lm.batch_tokens)
+    return token_batches(costs, batch_size, lm.batch_tokens, shapes, functools.partial(mask_tokens, lm.model))
+
+
 def score_candidates(lm: LoadedModel, contexts: Sequence[str], candidates: Sequence[Sequence[str]], *,
                      batch_size: int = 8) -> list[CandidateScores]:
     """log P(candidate | context) for each state's candidates (joint tokenisation, KV reuse), in
-    batches of at most `batch_size` states and `lm.batch_tokens` tokens (`illm_tools.llm.budget`)."""
-    from illm_tools.llm.budget import token_batches
-
+    batches of at most `batch_size` states and `lm.batch_tokens` tokens, their masks counted
+    (`illm_tools.llm.budget`)."""
     if len(contexts) != len(candidates):
         raise UsageError(f"{len(contexts)} contexts but {len(candidates)} candidate lists")
     plans = [plan_state(lm, ctx, cands) for ctx, cands in zip(contexts, candidates)]
     results: list[CandidateScores | None] = [None] * len(plans)
-    for batch in token_batches([plan_tokens(lm, p) for p in plans], batch_size, lm.batch_tokens):
+    costs, shapes = [plan_tokens(lm, p) for p in plans], [plan_shape(p) for p in plans]
+    for batch in packed_batches(lm, costs, shapes, batch_size):
         state = extend(lm, [plans[i].prefix for i in batch])
         scored = score_continuations(lm, state, [plans[i].continuations for i in batch],
                                      [plans[i].skip for i in batch])

@@ -80,17 +80,22 @@ class TransformersBackend:
         """The model's context in tokens (None: its config states none)."""
         return self.lm.context_length
 
-    def tokens_needed(self, prompt: str, candidates: Sequence[str] | None, max_new_tokens: int) -> int:
+    def tokens_needed(self, prompt: str, candidates: Sequence[str] | None, max_new_tokens: int, *,
+                      window: int = 0, tail: str = "") -> int:
         """The positions one task of a state takes: its prompt, then its longest candidate or its
-        generated tokens. Texts whose UTF-8 bytes could not reach the context are not tokenised (a
-        token holds at least one byte)."""
+        generated tokens; a hop prompt (`spliced`) is `prompt` its head, `window` input embeddings,
+        then `tail`. Texts whose UTF-8 bytes could not reach the context are not tokenised (a token
+        holds at least one byte)."""
         longest = max((len(c.encode()) for c in candidates or ()), default=0)
-        bound = len(self.lm.bos_ids) + len(prompt.encode()) + longest + max_new_tokens
+        bound = len(self.lm.bos_ids) + len(prompt.encode()) + window + len(tail.encode()) + longest + max_new_tokens
         if self.context_length is None or bound <= self.context_length:
             return bound
-        tokenize = self.lm.tokenizer
-        own = max((len(tokenize(c, add_special_tokens=False)["input_ids"]) for c in candidates or ()), default=0)
-        return len(self.lm.encode(prompt)) + own + max_new_tokens
+
+        def tokens(text: str) -> int:
+            return len(self.lm.tokenizer(text, add_special_tokens=False)["input_ids"]) if text else 0
+
+        own = max((tokens(c) for c in candidates or ()), default=0)
+        return len(self.lm.encode(prompt)) + window + tokens(tail) + own + max_new_tokens
 
     @property
     def shares_prefix(self) -> bool:
@@ -128,12 +133,14 @@ class TransformersBackend:
     def spliced(self, prompts: Sequence[SplicedPrompt], *, max_new_tokens: int = 64, batch_size: int = 8) -> list:
         """Per prompt: `CandidateScores` (candidates given) or `Generation` (none). Each prompt runs
         as one sequence of input embeddings (head tokens, the window, tail tokens); prompts of one
-        length form a batch (no padding); candidates are scored after the prompt with joint
-        tokenisation of tail and candidate, summaries decoded greedily from it."""
+        length form batches (no padding) within the token budget (`scoring.packed_batches`);
+        candidates are scored after the prompt with joint tokenisation of tail and candidate,
+        summaries decoded greedily from it."""
         import torch
 
         from illm_tools.llm.generation import Generation, greedy_from
-        from illm_tools.llm.scoring import CandidateScores, extend, plan_state, score_continuations
+        from illm_tools.llm.scoring import (CandidateScores, extend, packed_batches, plan_shape, plan_state,
+                                           score_continuations)
 
         lm = self.lm
         embed = lm.model.get_input_embeddings()
@@ -155,9 +162,12 @@ class TransformersBackend:
         for n, (full, _plan) in enumerate(items):
             by_length.setdefault(int(full.shape[0]), []).append(n)
         pending = []
-        for members in by_length.values():
-            for start in range(0, len(members), batch_size):
-                batch = members[start:start + batch_size]
+        for members in by_length.values():  # batched within the token budget, candidates' masks counted
+            fed = [plan_shape(items[n][1])[1] if items[n][1] is not None else 0 for n in members]
+            length = int(items[members[0]][0].shape[0])
+            costs = [length + (f if items[n][1] is not None else max_new_tokens) for n, f in zip(members, fed)]
+            for chosen in packed_batches(lm, costs, [(length, f) for f in fed], batch_size):
+                batch = [members[i] for i in chosen]
                 state = extend(lm, [], embeds=torch.stack([items[n][0] for n in batch]))
                 scored = [i for i, n in enumerate(batch) if items[n][1] is not None]
                 if scored:
