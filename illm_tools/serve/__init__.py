@@ -14,8 +14,11 @@ The package, one concern a module:
 - `protocol`: a request read and checked whole on arrival against the server's own setup
   (`ServerSetup`: text sizes, history, valid actions, a hop frame's shape and dtype, the backend's
   own check; a declared setup other than the server's is refused naming the difference);
-- `scheduler`: `AnnotationServer`, the queue (per-trainer lists, caps per client), round-robin
-  across clients, the batch with its deadline and a failing state isolated from the others;
+- `quotas`: who may be queued, wait or add states (per client name and peer, per peer, in all, room
+  kept for new peers), checked before any state of a request is read;
+- `scheduler`: `AnnotationServer`, the queue (per-trainer lists, the costly checks off the event
+  loop), round-robin across clients, the waits (one per trainer, cancelled when the client goes), the batch with its
+  deadline and a failing state isolated from the others;
 - `http`: aiohttp behind a gate of our own (connection caps, header and idle timeouts), Host,
   Origin, Content-Type and token checks, one-line JSON refusals.
 
@@ -26,13 +29,15 @@ Endpoints (JSON):
   202 {"queued", "queue", "landed"[, "failed", "failure", "pending"]} (`landed`: the trainer's states
   annotated since its previous request; `failed`: those the engine could not annotate, with the
   last reason; with `wait` (at most 120 s) the answer comes once none of the trainer's states is
-  queued or in the engine, or the wait is over: `pending` says which). An empty
-  `states` list withdraws the trainer's pending states. Refusals are {"error": one line} with 400
-  (bad JSON or fields), 401 (token), 403 (Host or Origin), 408 (too slow), 409 (another model or
-  setup), 413 (too large), 415 (not JSON), 429 (a client's cap) or 503 (the server's), the last two
-  with Retry-After (docs/commands/serve.md lists every limit).
-- `GET /stats` -> the queue, totals (states, rows, batches, refusals by kind, failed states),
-  throughput, the setup, the limits, the model, the cache and the resident memory.
+  queued or in the engine, or the wait is over, or a newer request of the trainer waits: `pending`
+  says which). No other field is read: one is refused. An empty `states` list withdraws the
+  trainer's pending states. Refusals are {"error": one line} with 400 (bad JSON or fields), 401
+  (token), 403 (Host or Origin), 408 (too slow), 409 (another model or setup, or a session another
+  peer opened), 413 (too large), 415 (not JSON), 429 (a client's or a peer's cap) or 503 (the
+  server's), the last two with Retry-After (docs/commands/serve.md lists every limit).
+- `GET /stats` -> the queue, the requests waiting, totals (states, rows, batches, refusals by kind,
+  connections refused and evicted, failed states), throughput, the setup, the limits, the model,
+  the cache and the resident memory.
 """
 
 from __future__ import annotations

@@ -116,6 +116,10 @@ class ServeLimits:
     max_peer_share: float = 0.5
     """Share of --max-queue, and of --max-clients, one peer may hold whatever client names it sends
     under (loopback is one peer, an IPv4 /24 or an IPv6 /64 another; 429 with Retry-After above)."""
+    new_peer_room: float = 0.125
+    """Share of --max-clients and of --max-queue kept for peers with nothing queued: the peers already
+    queued cannot fill it, so a new peer is served however few peers hold the rest (503 with
+    Retry-After to a queued peer reaching it; 0: no room kept)."""
     max_queue: int = 8192
     """States queued across all trainers; a request that would go beyond gets 503 with Retry-After
     (the trainer backs off and goes on training)."""
@@ -145,6 +149,9 @@ class ServeLimits:
                              f"give at least {MIN_REQUEST_BYTES / 2**20:g}")
         if self.max_client_share > 1:
             raise UsageError(f"--max-client-share is a share of --max-queue, in (0, 1], got {self.max_client_share:g}")
+        if not 0 <= self.new_peer_room < 1:
+            raise UsageError(f"--new-peer-room is a share of --max-clients and --max-queue, in [0, 1), got "
+                             f"{self.new_peer_room:g}")
         if self.max_peer_share > 1:
             raise UsageError(f"--max-peer-share is a share of --max-queue and --max-clients, in (0, 1], got "
                              f"{self.max_peer_share:g}")

@@ -2,16 +2,20 @@
 
 The gate (`Gate`) owns the listening socket's connections, whatever aiohttp version runs: at most
 `max_connections` open and `max_connections_per_peer` from one peer (loopback as one, an IPv4 /24,
-an IPv6 /64: `config.peer_group`; a further one is answered 503 and closed); a connection that has
+an IPv6 /64: `config.peer_group`; a further one is answered 503 and closed, except that with every
+connection taken an idle one is closed to make room, those that never passed a request's checks
+first: strangers without the token cannot hold the server's connections); a connection that has
 started a request's headers has `header_timeout` seconds to finish them, and one idle between
 requests `request_timeout` seconds, then it is closed; a request's body has `request_timeout`
 (408). aiohttp parses at most `MAX_HEADERS` headers and decompresses nothing: a body with a
 `Content-Encoding` is answered 415 unread. Then, per request: the Host header must name the server's own address when it listens on
 loopback without a token, and an Origin header must be the server's own origin (a web page in a
 browser on the node cannot post to it: 403); a POST must be `Content-Type: application/json` (415);
-the token, when there is one (401, the connection closed); the body is read within the timeout and
-checked whole (`AnnotationServer.submit`). Every refusal is one line of JSON and at most one log
-line, never a traceback.
+the token, when there is one (401, the connection closed); the body is read within the timeout (a
+Content-Length over the limit: 413 unread) and checked whole (`AnnotationServer.take`), and a
+request that waits for its states keeps its trainer's name only. A client that disconnects cancels
+its request's handler (aiohttp's `handler_cancellation`): nothing is held for a client that has
+gone. Every refusal is one line of JSON and at most one log line, never a traceback.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import time
 
 from illm_tools.annotate.wire import TOKEN_ENV
 from illm_tools.serve.config import peer_group
-from illm_tools.serve.protocol import RequestError, read_json, requested_wait, trainer_of
+from illm_tools.serve.protocol import RequestError
 from illm_tools.serve.scheduler import AnnotationServer
 
 log = logging.getLogger(__name__)
@@ -43,6 +47,7 @@ class _Connection(asyncio.Protocol):
         self.active = 0  # requests being handled now
         self.since = time.monotonic()  # when it last started being idle (or opened)
         self.started: float | None = None  # when the bytes of a request not yet handled began to arrive
+        self.proven = False  # a request of its own passed the checks (the token, where one is set)
 
     def connection_made(self, transport) -> None:
         self.transport = transport
@@ -93,16 +98,28 @@ class Gate:
         self.per_peer: dict[str, int] = {}
 
     def admit(self, conn: _Connection) -> str | None:
-        """None when the connection may stay, else the one-line reason it is refused."""
-        if len(self.open) >= self.limits.max_connections:
-            return f"the server has {len(self.open)} connections open, its --max-connections: try again shortly"
+        """None when the connection may stay, else the one-line reason it is refused. With every
+        connection taken, an idle one makes room (`evictable`) before a new one is refused."""
         if self.per_peer.get(conn.peer, 0) >= self.limits.max_connections_per_peer:
             return (f"this peer ({conn.peer}) has {self.per_peer[conn.peer]} connections open, the server's "
                     "--max-connections-per-peer: close some")
+        if len(self.open) >= self.limits.max_connections:
+            idle = self.evictable()
+            if idle is None:
+                return f"the server has {len(self.open)} connections open, its --max-connections: try again shortly"
+            idle.transport.close()
+            self.release(idle)
+            self.server.totals["connections_evicted"] += 1
         self.open[id(conn.transport)] = conn
         self.per_peer[conn.peer] = self.per_peer.get(conn.peer, 0) + 1
         self.server.connections = len(self.open)
         return None
+
+    def evictable(self) -> _Connection | None:
+        """The connection closed to make room for a new one: none in a request; of the others, those
+        that never passed a request's checks (the token) first, each kind longest idle first."""
+        idle = [c for c in self.open.values() if not c.active and c.transport is not None]
+        return min(idle, key=lambda c: (c.proven, c.since), default=None)
 
     def release(self, conn: _Connection) -> None:
         if self.open.pop(id(conn.transport), None) is not None:
@@ -183,6 +200,8 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
             refused = refusal(request)
             if refused is not None:
                 return refused
+            if conn is not None:
+                conn.proven = True
             return await handler(request)
         except web.HTTPException:
             raise
@@ -195,30 +214,35 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
                 conn.since = time.monotonic()
 
     async def annotate(request: web.Request) -> web.Response:
-        try:
-            raw = await asyncio.wait_for(request.read(), request_timeout)
-        except web.HTTPRequestEntityTooLarge:
-            return error(413, f"the request is larger than the server's --max-request-mb "
-                              f"{server.limits.max_request_mb:g}: send fewer states", close=True)
-        except asyncio.TimeoutError:  # a slow or stalled client: cut off, so it holds nothing
-            return error(408, f"the request was not sent whole within {request_timeout:g} s", close=True)
-        except (ConnectionError, asyncio.IncompleteReadError, OSError):  # the client went away mid-request
-            return web.Response(status=400)
-        try:  # a large body is parsed off the event loop: other requests and /stats are answered meanwhile
-            body = await asyncio.get_running_loop().run_in_executor(None, read_json, raw) if len(raw) > 2**20 \
-                else read_json(raw)
-            answer = server.submit(body, peer=peer_group(request.remote or ""))
-        except RequestError as e:
-            log.info("refused a request (%d): %s", e.status, str(e)[:300])
-            return error(e.status, str(e), e.retry_after)
-        wait = requested_wait(body)
+        taken = await take(request)
+        if isinstance(taken, web.Response):
+            return taken
+        answer, trainer, wait = taken  # all that is kept of the request while it waits
         if wait and answer["queued"]:  # held until its states land (a trainer in --live-mode sync)
-            later = await server.settled(trainer_of(body), wait)
+            later = await server.settled(trainer, wait, peer_group(request.remote or ""))
             answer = {**answer, **later, "landed": answer["landed"] + later["landed"],
                       "failed": answer.get("failed", 0) + later.get("failed", 0)}
             if not answer["failed"]:
                 answer.pop("failed")
         return web.json_response(answer, status=202)
+
+    async def take(request: web.Request):
+        """The request read, checked and queued (`AnnotationServer.take`): (answer, trainer, wait), or the
+        refusal. Its body lives in no variable here, so nothing of it outlasts its check."""
+        limit = server.limits.max_request_bytes
+        try:
+            return await server.take(await asyncio.wait_for(read_body(request, limit), request_timeout),
+                                     peer_group(request.remote or ""))
+        except TooLarge:
+            return error(413, f"the request is larger than the server's --max-request-mb "
+                              f"{server.limits.max_request_mb:g}: send fewer states", close=True)
+        except asyncio.TimeoutError:  # a slow or stalled client: cut off, so it holds nothing
+            return error(408, f"the request was not sent whole within {request_timeout:g} s", close=True)
+        except RequestError as e:
+            log.info("refused a request (%d): %s", e.status, str(e)[:300])
+            return error(e.status, str(e), e.retry_after)
+        except (ConnectionError, asyncio.IncompleteReadError, OSError):  # the client went away mid-request
+            return web.Response(status=400)
 
     async def stats(request: web.Request) -> web.Response:
         return web.json_response(server.stats())
@@ -227,6 +251,24 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
     app.router.add_post("/annotate", annotate)
     app.router.add_get("/stats", stats)
     return app
+
+
+class TooLarge(Exception):
+    """A request body beyond the server's --max-request-mb."""
+
+
+async def read_body(request, limit: int) -> bytearray:
+    """A request's body, at most `limit` bytes (TooLarge beyond: a Content-Length over it before any
+    byte is read). Read here rather than by `request.read()`, which keeps the bytes on the request for
+    as long as the request lives (a waiting request would hold them)."""
+    if request.content_length is not None and request.content_length > limit:
+        raise TooLarge
+    body = bytearray()
+    while chunk := await request.content.readany():
+        if len(body) + len(chunk) > limit:
+            raise TooLarge
+        body += chunk
+    return body
 
 
 def own_hosts(host: str, port: int, token: str | None) -> tuple[str, ...] | None:
@@ -255,8 +297,10 @@ async def serve(server: AnnotationServer, host: str, port: int, stop: asyncio.Ev
     bound = listening.sockets[0].getsockname()[1]
     app = make_app(server, token=token, request_timeout=timeout, own_hosts=own_hosts(host, bound, token), gate=gate)
     # the gate closes idle and stalled connections (`Gate.sweep`), whatever this aiohttp version does itself
+    # handler_cancellation: a client gone cancels its request's handler (aiohttp's documented way), so a
+    # request waiting for its states (`settled`) or for its check holds nothing once its client has left
     runner = web.AppRunner(app, access_log=None, handle_signals=False, keepalive_timeout=3600,
-                           auto_decompress=False, max_headers=MAX_HEADERS)
+                           auto_decompress=False, max_headers=MAX_HEADERS, handler_cancellation=True)
     await runner.setup()
     gate.factory = runner.server
     await listening.start_serving()

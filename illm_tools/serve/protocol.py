@@ -17,11 +17,15 @@ import numpy as np
 from illm_tools.errors import IllmError
 from illm_tools.serve.config import ServeLimits
 from illm_tools.tasks.prompt_setup import PromptSetup
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.setup import WIRE_FIELDS, AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 MAX_ID_CHARS = 256
 """Characters of a client name, a session, an env id, a renderer or a fingerprint."""
+REQUEST_FIELDS = ("client", "session", "model_fingerprint", *WIRE_FIELDS, "states", "wait")
+"""The top-level fields of a request (any other: 400, so a body carries nothing the server does not read)."""
+STATE_FIELDS = ("mission", "history", "observation", "valid_actions", "visits", "frames", "prev_actions")
+"""The fields of one state of a request (any other: 400)."""
 
 
 class RequestError(ValueError):
@@ -65,6 +69,15 @@ def text(value, name: str, limit: int, status: int = 413) -> str:
 
 MAX_WAIT = 120.0
 """The longest a request may ask to be held until its states land (`"wait"`)."""
+
+
+def unknown_fields(item: dict, known: tuple[str, ...], what: str) -> None:
+    """RequestError(400) in one line when `item` has a key outside `known`."""
+    extra = [k for k in item if k not in known]
+    if extra:
+        names = ", ".join(repr(str(k)[:40]) for k in extra[:4])
+        names += f" and {len(extra) - 4:,} more" if len(extra) > 4 else ""
+        raise RequestError(400, f"{what} has fields this server does not read ({names}): send only {', '.join(known)}")
 
 
 def requested_wait(body: dict) -> float:
@@ -167,6 +180,7 @@ class ServerSetup:
         missing = [k for k in ("mission", "history", "observation", "valid_actions") if k not in item]
         if missing:
             raise RequestError(400, f"a state lacks {', '.join(missing)}")
+        unknown_fields(item, STATE_FIELDS, "a state")
         history = item["history"]
         if not isinstance(history, list) or not all(isinstance(p, list) and len(p) == 2 for p in history):
             raise RequestError(400, "history must be a list of [observation, action] pairs")

@@ -2,10 +2,12 @@
 is `illm_tools.serve.http`).
 
 Queue. Each trainer, named by `client` (its run) and `session` (a random id it makes), has one
-pending list, replaced by its newest request, checked whole before anything is queued (`protocol`).
-Room: at most `max_queue` states (503) and `max_clients` trainers (503), `max_sessions` and
-`max_client_share` of the queue per client name, `max_peer_share` of the queue and of the trainers
-per peer, whatever names it sends under (429); 429 and 503 carry Retry-After.
+pending list, replaced by its newest request, checked whole before anything is queued (`protocol`)
+and within the quotas (`quotas`: per client name and peer, per peer, in all, room kept for new
+peers; 429 and 503 with Retry-After). The checks run cheapest first (`take`): the request's fields
+and the trainer quotas, then its states parsed, then the queue quotas, then its states measured in
+tokens, the costly steps in one checking thread off the event loop, so no state is read for a
+trainer the quotas refuse and `/stats` is answered meanwhile.
 
 Scheduling. Round-robin across peers (`config.peer_group`), then across a peer's client names,
 least recently served first, one state per turn until the batch holds `chunk` (`batch.take_turns`);
@@ -20,7 +22,9 @@ their next answer) and counted, and every other state lands.
 
 Waiting. A request may ask to be answered once its states have landed (`"wait": seconds`, at most
 `MAX_WAIT`): a trainer in `--live-mode sync` uses the answers in the rollout that asked for them, as
-with an annotator of its own, whatever the machine's speed (`settled`).
+with an annotator of its own, whatever the machine's speed (`settled`). A waiting request holds its
+trainer's name, nothing of its body; one waits per trainer (a newer one answers the older at once),
+and a client gone cancels its wait (the HTTP side's handler cancellation).
 """
 
 from __future__ import annotations
@@ -30,22 +34,23 @@ import logging
 import math
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 from illm_tools.annotate.wire import PROTOCOL
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.serve.config import ServeConfig, ServeLimits
 from illm_tools.serve.batch import annotate_batch, in_thread, one_line, take_turns
-from illm_tools.serve.memory import resident_mb
-from illm_tools.serve.protocol import MAX_ID_CHARS, RequestError, ServerSetup, requested_wait, text, trainer_of
+from illm_tools.serve.memory import release_free_memory, resident_mb
+from illm_tools.serve.protocol import (MAX_ID_CHARS, REQUEST_FIELDS, RequestError, ServerSetup, read_json,
+                                       requested_wait, text, trainer_of, unknown_fields)
+from illm_tools.serve.quotas import LOOPBACK, Asked, check_queue, check_trainer
 from illm_tools.tasks.prompt_setup import PromptSetup
 from illm_tools.tasks.setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
 
-LOOPBACK = "loopback"
-"""The peer of every loopback address (`config.peer_group`), and of requests handed in-process."""
 MAX_RETRY_AFTER = 60
 """Longest Retry-After a busy server answers (seconds)."""
 
@@ -93,14 +98,16 @@ class AnnotationServer:
         self._peer: dict[tuple[str, str], str] = {}  # trainer -> the peer its requests come from
         self._round = 0
         self._in_engine: set[tuple[str, str]] = set()  # trainers with states in the batch in progress
-        self._waiters: dict[tuple[str, str], asyncio.Event] = {}  # trainers whose request waits (`settled`)
+        self._waiters: dict[tuple[str, str], tuple[asyncio.Event, str]] = {}  # trainer -> (its waiter, its peer)
+        self._checker: ThreadPoolExecutor | None = None  # the one thread that parses and measures requests (`take`)
+        self._checking = asyncio.Lock()
         self._stuck: asyncio.Future | None = None  # a batch past its deadline, still in the engine
         self._wake = asyncio.Event()
         self._stop: asyncio.Event | None = None
         self.started = time.time()
         self.totals = {"states": 0, "rows": 0, "batches": 0, "requests": 0, "refused": 0, "busy": 0,
                        "throttled": 0, "unauthorized": 0, "forbidden": 0, "timeouts": 0, "connections_refused": 0,
-                       "seconds": 0.0, "errors": 0, "failed_states": 0, "late_batches": 0}
+                       "connections_evicted": 0, "seconds": 0.0, "errors": 0, "failed_states": 0, "late_batches": 0}
         self.last_error: str | None = None
 
     @classmethod
@@ -120,17 +127,54 @@ class AnnotationServer:
         return min(MAX_RETRY_AFTER, max(1, math.ceil(self.chunk / rate))) if rate else 5
 
     # --- requests ------------------------------------------------------------------------------
-    def submit(self, body, peer: str = "loopback") -> dict:
-        """Queue a parsed request body for its trainer (replacing that trainer's pending list); `peer`:
-        the group of the address it came from (`config.peer_group`), whose share it counts in."""
+    def submit(self, body, peer: str = LOOPBACK) -> dict:
+        """Queue a parsed request body for its trainer (replacing that trainer's pending list), every
+        check in order, in this thread (`take` is the server's own way: the same steps, the costly ones
+        off the event loop); `peer`: the group of the address it came from (`config.peer_group`)."""
+        ask = self.admit(body, peer)
+        entries = self.parse_states(ask)
+        check_queue(self, ask, entries)
+        self.measure(ask, entries)
+        return self.commit(ask, entries)
+
+    async def take(self, raw: bytes | bytearray, peer: str) -> tuple[dict, tuple[str, str], float]:
+        """`submit` for a body as received, without holding up the event loop: the JSON parsed and the
+        states parsed and measured in tokens in the server's one checking thread, one request's parsed
+        form at a time, the quotas checked on the loop before any per-state work. Returns (answer,
+        trainer, wait): all a wait needs; the body is dropped once its states are parsed (the caller
+        passes `raw` without keeping it)."""
+        loop = asyncio.get_running_loop()
+        if self._checker is None:
+            self._checker = ThreadPoolExecutor(1, thread_name_prefix="illm-serve-check")
+
+        def off(work, *args):
+            return loop.run_in_executor(self._checker, work, *args)
+
+        large = len(raw) > 2**20
+        async with self._checking:  # one body's parsed form alive at a time, whatever its size
+            body = await off(read_json, raw)
+            del raw
+            ask = self.admit(body, peer)  # the quotas a trainer needs, before any state is read
+            del body  # `ask.states` is all that is left of it, and `parse_states` drops it
+            entries = await off(self.parse_states, ask)
+            if large:  # what its parsing freed, handed back to the system (as after a batch)
+                await off(release_free_memory)
+        check_queue(self, ask, entries)  # the queue's quotas, before any state is measured in tokens
+        await off(self.measure, ask, entries)
+        return self.commit(ask, entries), ask.trainer, ask.wait
+
+    def admit(self, body, peer: str = LOOPBACK) -> Asked:
+        """The checks of a request that read no state: its fields, its model and setup, its wait, its
+        number of states, and the quotas of trainers (`_check_trainer`); RequestError otherwise."""
         if not isinstance(body, dict):
             raise RequestError(400, "the request body must be a JSON object")
         missing = [k for k in ("client", "session", "model_fingerprint", "states") if k not in body]
         if missing:
             raise RequestError(400, f"the request lacks {', '.join(missing)} (a trainer of protocol {PROTOCOL} "
                                     "sends them: use the server's illm version)")
+        unknown_fields(body, REQUEST_FIELDS, "the request")
         trainer = trainer_of(body)
-        requested_wait(body)  # checked before anything is queued
+        wait = requested_wait(body)
         text(body["model_fingerprint"], "model_fingerprint", MAX_ID_CHARS, 400)  # its type before anything reads it
         if body["model_fingerprint"] != self.fingerprint:
             raise RequestError(409, f"this server annotates with {self.llm.options()} (fingerprint {self.fingerprint}); "
@@ -144,21 +188,38 @@ class AnnotationServer:
         if len(states) > self.limits.max_states:
             raise RequestError(413, f"a request carries at most {self.limits.max_states:,} states (the server's "
                                     f"--max-states), this one {len(states):,}: send the most visited first")
-        if self.stopping:
-            raise RequestError(503, "the server is stopping: send the states again when it is back",
-                               self.retry_after())
+        ask = Asked(trainer, peer, setup, states, wait)
+        check_trainer(self, ask)
+        return ask
+
+    def parse_states(self, ask: Asked) -> dict[tuple, Pending]:
+        """The request's states, each checked (`ServerSetup.parse_state`), one entry per distinct state;
+        the request's own list of them dropped (blocking: the checking thread runs it)."""
+        states, ask.states = ask.states, None
         entries: dict[tuple, Pending] = {}
         for item in states:
-            record, visits = self.setup.parse_state(item, setup)
-            needed = self.annotator.state_too_long(record, setup.env_id, setup.renderer)
+            record, visits = self.setup.parse_state(item, ask.setup)
+            entry = entries.setdefault((ask.setup, record), Pending(ask.setup, record, 0, {ask.trainer}))
+            entry.visits += visits
+        return entries
+
+    def measure(self, ask: Asked, entries: dict[tuple, Pending]) -> None:
+        """RequestError(413) when a state needs more tokens than the model's context (blocking: the
+        checking thread runs it; the tokenizer's calls are the engine's, stateless)."""
+        for entry in entries.values():
+            needed = self.annotator.state_too_long(entry.record, ask.setup.env_id, ask.setup.renderer)
             if needed is not None:
                 raise RequestError(413, f"a state needs {needed:,} tokens, more than the context of the server's model "
                                         f"({self.annotator.context_length:,}): send shorter states (a shorter "
                                         "--history, shorter texts)")
-            entry = entries.setdefault((setup, record), Pending(setup, record, 0, {trainer}))
-            entry.visits += visits
+
+    def commit(self, ask: Asked, entries: dict[tuple, Pending]) -> dict:
+        """Queue `entries` as the trainer's list (none: withdraw it), every quota checked again (others
+        may have been queued while its states were measured), and answer."""
+        trainer, peer = ask.trainer, ask.peer
+        check_trainer(self, ask)
         if entries:
-            self._check_room(trainer, entries, peer)
+            check_queue(self, ask, entries)
         self.totals["requests"] += 1
         self._seen[trainer] = time.monotonic()
         if entries:
@@ -181,17 +242,31 @@ class AnnotationServer:
         """Whether some state of `trainer`'s is queued or in the engine now."""
         return trainer in self._clients or trainer in self._in_engine
 
-    async def settled(self, trainer: tuple[str, str], timeout: float) -> dict:
+    @property
+    def waiting(self) -> int:
+        """Requests held now until their states land (`settled`)."""
+        return len(self._waiters)
+
+    async def settled(self, trainer: tuple[str, str], timeout: float, peer: str = LOOPBACK) -> dict:
         """Wait (at most `timeout` seconds) until none of `trainer`'s states is queued or in the engine,
-        then take what became of them since its answer: {"landed"[, "failed", "failure"], "queue"}."""
+        then take what became of them since its answer: {"landed"[, "failed", "failure"], "queue"}.
+        One waiter per trainer: a newer one answers the older at once (`pending`, nothing taken); a
+        waiter cancelled (its client gone) leaves nothing behind."""
         if timeout > 0 and self.pending_for(trainer):
-            event = self._waiters.setdefault(trainer, asyncio.Event())
+            older = self._waiters.get(trainer)
+            if older is not None:
+                older[0].set()
+            event = asyncio.Event()
+            self._waiters[trainer] = (event, peer)
             try:
                 await asyncio.wait_for(event.wait(), timeout)
             except asyncio.TimeoutError:
                 pass
             finally:
-                self._waiters.pop(trainer, None)
+                if self._waiters.get(trainer, (None,))[0] is event:
+                    del self._waiters[trainer]
+            if trainer in self._waiters:  # a newer request of this trainer waits: it takes the answers
+                return {"landed": 0, "queue": self.queue_size(), "pending": True}
         answer = {"landed": self._landed.pop(trainer, 0), "queue": self.queue_size(),
                   "pending": self.pending_for(trainer)}
         failed = self._failed.pop(trainer, None)
@@ -200,43 +275,9 @@ class AnnotationServer:
         return answer
 
     def _wake_waiters(self) -> None:
-        for trainer, event in self._waiters.items():
+        for trainer, (event, _) in self._waiters.items():
             if not self.pending_for(trainer):
                 event.set()
-
-    def _check_room(self, trainer: tuple[str, str], entries: dict, peer: str = LOOPBACK) -> None:
-        """RequestError (429 or 503, with Retry-After) when queueing `entries` for `trainer` (in place
-        of its list) would go beyond a limit; the trainer's current list stays queued. A client name's
-        and a peer's shares: invented names take no more than their peer's."""
-        limits, client = self.limits, trainer[0]
-        theirs = [who for who in self._clients if self._peer.get(who, LOOPBACK) == peer and who != trainer]
-        if trainer not in self._clients:
-            if len(self._clients) >= limits.max_clients:
-                raise RequestError(503, f"the server queues the states of {len(self._clients)} trainers, its limit "
-                                        "(--max-clients): this run backs off and sends them again", self.retry_after())
-            if len(theirs) >= max(1, int(limits.max_peer_share * limits.max_clients)):
-                raise RequestError(429, f"the peer {peer} has {len(theirs)} trainers queued, its share of --max-clients "
-                                        "(--max-peer-share)", self.retry_after())
-            sessions = sum(1 for who in self._clients if who[0] == client)
-            if sessions >= limits.max_sessions:
-                raise RequestError(429, f"the client {client[:80]!r} has {sessions} sessions queued, the server's "
-                                        "--max-sessions: one run is one session", self.retry_after())
-        others = {k for who, pending in self._clients.items() if who != trainer for k in pending}
-        total = len(others | entries.keys())
-        if total > limits.max_queue:
-            raise RequestError(503, f"the queue would hold {total:,} states, beyond the server's --max-queue "
-                                    f"{limits.max_queue:,}: this run backs off and sends them again", self.retry_after())
-        mine = {k for who, pending in self._clients.items() if who[0] == client and who != trainer for k in pending}
-        share = max(1, int(limits.max_client_share * limits.max_queue))
-        if len(mine | entries.keys()) > share:
-            raise RequestError(429, f"the client {client[:80]!r} would hold {len(mine | entries.keys()):,} queued states, "
-                                    f"beyond its share {share:,} of the queue (--max-client-share): send fewer",
-                               self.retry_after())
-        ours = {k for who in theirs for k in self._clients[who]}
-        share = max(1, int(limits.max_peer_share * limits.max_queue))
-        if len(ours | entries.keys()) > share:
-            raise RequestError(429, f"the peer {peer} would hold {len(ours | entries.keys()):,} queued states, beyond its "
-                                    f"share {share:,} of the queue (--max-peer-share): send fewer", self.retry_after())
 
     def _forget_gone(self) -> None:
         """Drop what is kept of trainers that went away without withdrawing (their landed and failed
@@ -265,10 +306,10 @@ class AnnotationServer:
         return {"protocol": PROTOCOL, "model": self.model, "model_options": self.llm.options(),
                 "model_fingerprint": self.fingerprint, "setup": self.setup.describe(), "cache": str(self.cache.root),
                 "queue": self.queue_size(), "annotating": self.annotating, "clients": len(self._clients),
-                "connections": self.connections,
+                "connections": self.connections, "waiting": self.waiting,
                 "annotated_states": t["states"], "rows": t["rows"], "batches": t["batches"], "requests": t["requests"],
                 **{k: t[k] for k in ("refused", "busy", "throttled", "unauthorized", "forbidden", "timeouts",
-                                     "connections_refused", "errors", "failed_states", "late_batches")},
+                                     "connections_refused", "connections_evicted", "errors", "failed_states", "late_batches")},
                 "last_error": self.last_error, "stopping": self.stopping, "limits": asdict(self.limits),
                 "states_per_s": t["states"] / busy if busy else 0.0,
                 "states_per_s_since_start": t["states"] / up if up else 0.0, "uptime_s": up,
@@ -342,6 +383,9 @@ class AnnotationServer:
                 await self._run_batch(batch)
         finally:
             stopper.cancel()
+            if self._checker is not None:  # a request being checked is dropped: the server stops
+                self._checker.shutdown(wait=False, cancel_futures=True)
+                self._checker = None
 
     async def _run_batch(self, batch: list[Pending]) -> None:
         self._in_engine = {trainer for p in batch for trainer in p.clients}
