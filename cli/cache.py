@@ -155,10 +155,13 @@ def export(
 ) -> None:
     """Write every entry of a cache to one file, to share it.
 
-    The file can be published as a Hugging Face dataset, for one."""
+    A model served by an engine is written as its name ("openai:NAME"), never its address or key
+    variable: whoever trains on the file gives their own --endpoint. The file can be published as a
+    Hugging Face dataset, for one."""
     from illm_tools.cache.share import export as run
+    from illm_tools.tasks.rows import shareable
 
-    report = run(path, out, fmt=fmt, overwrite=overwrite)
+    report = run(path, out, fmt=fmt, overwrite=overwrite, transform=shareable)
     typer.echo(f"exported {counted(report.rows, 'row')} from {counted(report.shards, 'shard')} of {path} -> {report.path}")
 
 

@@ -89,6 +89,30 @@ def test_a_merge_of_this_disks_caches_keeps_a_served_models_spec_and_still_check
     assert f"refused 1 rows (1 it holds no answer (no scores)); first keys {empty[0][:12]}" in out.output, out.output
 
 
+def test_an_export_names_a_served_model_without_its_address_and_the_import_takes_it(shared, tmp_path):
+    """A cache annotated through an engine shares as its served model's name: the export writes
+    "openai:m" (";embed" where a pooling endpoint embedded), never the address or key variable, so
+    the import takes every row, its keys unchanged, and adopting it asks for the user's --endpoint."""
+    from illm_tools.tasks.setup import adopt_model
+
+    rows = shared()
+    for r, spec in zip(rows, ["m@http://127.0.0.1:9/v1#SECRET_VAR", "m@http://10.0.0.1:8000/v1;embed=http://10.0.0.1:8001/v1"]
+                       * len(rows)):
+        r["model"] = spec
+    AnnotationCache(tmp_path / "served").write(rows)
+    out = runner.invoke(app, ["cache", "export", str(tmp_path / "served"), "--out", str(tmp_path / "s.parquet")])
+    assert out.exit_code == 0, out.output
+    text = (tmp_path / "s.parquet").read_bytes()
+    assert b"SECRET_VAR" not in text and b"127.0.0.1" not in text and b"10.0.0.1" not in text
+    got = pq.read_table(tmp_path / "s.parquet").to_pylist()
+    assert sorted({r["model"] for r in got}) == ["openai:m", "openai:m;embed"]
+    assert [r["key"] for r in got] == [r["key"] for r in rows]
+    out = runner.invoke(app, ["cache", "import", str(tmp_path / "s.parquet"), "--into", str(tmp_path / "dst")])
+    assert "12 new entries of its 12 rows (0 already present, 0 refused)" in out.output, out.output
+    with pytest.raises(Exception, match="--endpoint URL"):
+        adopt_model(AnnotationCache(tmp_path / "dst"), {})
+
+
 # --- finding 6: each task's answer present, counted >= 1 ---------------------------------------------------------
 def _no_answer(rows: list[dict], how: str) -> list[str]:
     """Empty rows' answers (their keys stay right: answers are not key inputs); their keys."""

@@ -77,8 +77,10 @@ class ShareReport:
 
 
 def export(root: str | os.PathLike, out: str | os.PathLike, *, fmt: str = "parquet",
-           overwrite: bool = False) -> ShareReport:
-    """Write a verified cache's rows to one Parquet file (see the module docstring)."""
+           overwrite: bool = False, transform: Callable | None = None) -> ShareReport:
+    """Write a verified cache's rows to one Parquet file (see the module docstring); `transform` (a
+    pyarrow table of a shard's rows -> the rows as the file holds them) is what the caller shares them
+    as (`illm cache export`: `tasks.rows.shareable`, a served model's address-free identity)."""
     from illm_tools.cache.verify import verify
 
     root, out = Path(root), Path(out)
@@ -101,6 +103,7 @@ def export(root: str | os.PathLike, out: str | os.PathLike, *, fmt: str = "parqu
     with durable.staged(out) as fh, pq.ParquetWriter(fh, schema, compression="zstd") as writer:
         for entry in manifest["shards"]:
             table = layout.read_shard(root / entry["name"])
+            table = transform(table) if transform is not None else table
             writer.write_table(table.cast(schema), row_group_size=EXPORT_GROUP_ROWS)
             rows += table.num_rows
     durable.commit(fh.name, out)

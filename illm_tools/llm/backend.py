@@ -209,12 +209,12 @@ def selecting_options(backend: str, model: str, dtype: str, quant: str) -> str:
         noise = parse_spec(model)
         return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
     if backend == "openai":
-        from illm_tools.llm.openai_wire import embed_url
-        from illm_tools.llm.openai_wire import parse_spec as endpoint_of
+        from illm_tools.llm.openai_wire import address_of, embed_url, served_as
 
-        name, url, _ = endpoint_of(model)
-        pooled = embed_url(model)
-        return f"--backend openai --model {name} --endpoint {url}" + (f" --embed-endpoint {pooled}" if pooled else "")
+        url = address_of(model)  # None: a shared file's identity, which names no address
+        name, pooled = served_as(model)
+        embed = (embed_url(model) if url else "URL") if pooled else None
+        return f"--backend openai --model {name} --endpoint {url or 'URL'}" + (f" --embed-endpoint {embed}" if embed else "")
     prefix = "" if backend == DEFAULT_BACKEND else f"--backend {backend} "
     return f"{prefix}--model {model} --dtype {dtype} --quant {quant}"
 

@@ -53,6 +53,8 @@ from illm_tools.web import NO_REDIRECTS
 DEFAULT_KEY_ENV = "OPENAI_API_KEY"
 _SPEC = re.compile(r"^(?P<model>[^@#\s]+)@(?P<url>https?://[^#;\s]+?)/?(?:#(?P<key>[A-Za-z_][A-Za-z0-9_]*))?"
                    r"(?:;embed=(?P<embed>https?://[^#;\s]+?)/?)?$")
+IDENTITY_PREFIX = "openai:"
+_IDENTITY = re.compile(r"^openai:(?P<model>[^@#\s;]+)(?P<embed>;embed)?$")
 _FINGERPRINTS: dict[str, dict] = {}
 _ENGINES: dict[str, "EngineProbe"] = {}
 log = logging.getLogger(__name__)
@@ -95,16 +97,33 @@ def describe_offline(spec: str) -> dict | None:
     """A cache row's served model as its options, from the spec alone ({"backend", "model", "dtype",
     "quant"}; None when `spec` is no openai spec): the engine is never asked, so a cache annotated
     through an engine is read, listed and adopted with the engine stopped. The row's fingerprint
-    hash, not its URL, is the model's identity."""
-    if _SPEC.match(spec or "") is None:
+    hash, not its URL, is the model's identity. A spec is the annotator's "NAME@URL[#VAR][;embed=URL]"
+    or, in a shared file, its address-free `identity` "openai:NAME[;embed]"."""
+    if _SPEC.match(spec or "") is None and _IDENTITY.match(spec or "") is None:
         return None
     return {"backend": "openai", "model": spec, "dtype": "float32", "quant": "none"}
 
 
 def served_as(spec: str) -> tuple[str, bool]:
     """What a spec serves whatever its address: the model's served name, and whether a pooling
-    endpoint embeds (another embedder, another fingerprint)."""
+    endpoint embeds (another embedder, another fingerprint); an `identity` says both."""
+    shared = _IDENTITY.match(spec or "")
+    if shared is not None:
+        return shared.group("model"), shared.group("embed") is not None
     return parse_spec(spec)[0], embed_url(spec) is not None
+
+
+def identity(spec: str) -> str:
+    """A served model's spec as a shared cache names it: "openai:NAME", with ";embed" where a pooling
+    endpoint embedded its summaries: what it serves (`served_as`), never where or with which key
+    (`illm cache export` writes it; an import refuses the address form)."""
+    name, pooled = served_as(spec)
+    return f"{IDENTITY_PREFIX}{name}" + (";embed" if pooled else "")
+
+
+def address_of(spec: str) -> str | None:
+    """The engine URL a spec written by this machine's annotator names; None for an `identity`."""
+    return None if _IDENTITY.match(spec or "") else parse_spec(spec)[1]
 
 
 def openai_spec(model: str, endpoint: str | None, api_key_env: str | None = None,
@@ -130,6 +149,9 @@ def embed_url(spec: str) -> str | None:
 
 def parse_spec(spec: str) -> tuple[str, str, str]:
     """(served model name, base URL, key variable) of a spec; anything else refused in one line."""
+    if _IDENTITY.match(spec or ""):
+        raise UsageError(f"{spec!r} names a served model as a shared cache does, without its address: give "
+                         "--endpoint URL (your engine serving it), with --api-key-env VAR if it needs a key")
     m = _SPEC.match(spec or "")
     if m is None:
         raise UsageError(f"--backend openai names its model as the server serves it, with --endpoint URL (model spec "

@@ -192,3 +192,21 @@ def summary(found: Checked, first: int = 3) -> Sequence[str]:
         lines.append(f"kept the cache's own row for {len(found.conflicts):,} keys it holds with another answer; "
                      f"first keys {keys}")
     return lines
+
+
+def shareable(table):
+    """A shard's rows as a shared file holds them: a served model's spec written by this machine's
+    annotator ("NAME@URL#VAR") as its address-free identity ("openai:NAME", `openai_wire.identity`),
+    so the file names no engine and no key variable (an import refuses those) and another user's
+    `illm train --cache` reaches the model at their own --endpoint. The keys are unchanged: a served
+    model's key holds its fingerprint, never its address."""
+    import pyarrow as pa
+
+    from illm_tools.llm.openai_wire import address_of, describe_offline, identity
+
+    models = table.column("model").to_pylist()
+    named = {m: identity(m) for m in set(models) if m and describe_offline(m) is not None and address_of(m)}
+    if not named:
+        return table
+    column = pa.array([named.get(m, m) for m in models], type=table.schema.field("model").type)
+    return table.set_column(table.schema.get_field_index("model"), "model", column)

@@ -154,12 +154,12 @@ def reached_model(backend: str, model: str, reach: Mapping[str, str | None], whe
     given = {k: reach[k] for k in REACHED if reach.get(k)}
     if backend != "openai":
         return {"model": model, **given}
-    from illm_tools.llm.openai_wire import embed_url, parse_spec
+    from illm_tools.llm.openai_wire import served_as
 
-    name = parse_spec(model)[0]
+    name, pooled = served_as(model)
     missing = [option for option, needed in (("--endpoint URL (your engine's OpenAI base)", "endpoint"),
                                              ("--embed-endpoint URL (its summaries were embedded by a pooling "
-                                              "endpoint)", "embed_endpoint" if embed_url(model) else None))
+                                              "endpoint)", "embed_endpoint" if pooled else None))
                if needed and not given.get(needed)]
     if missing:
         raise UsageError(f"the cache {where} holds annotations of {name!r} served by an OpenAI-compatible engine, "
@@ -184,10 +184,10 @@ def _options(backend: str, model: str, dtype: str, quant: str) -> str:
 
     if backend != "openai":
         return selecting_options(backend, model, dtype, quant)
-    from illm_tools.llm.openai_wire import embed_url, parse_spec
+    from illm_tools.llm.openai_wire import served_as
 
-    return (f"--backend openai --model {parse_spec(model)[0]} --endpoint URL"
-            + (" --embed-endpoint URL" if embed_url(model) else ""))
+    name, pooled = served_as(model)
+    return f"--backend openai --model {name} --endpoint URL" + (" --embed-endpoint URL" if pooled else "")
 
 
 @dataclass(frozen=True)
@@ -269,10 +269,11 @@ def listed_setups(cache) -> list[dict]:
 
 
 def _addresses(specs: Sequence[str]) -> list[str]:
-    """The engine URLs of served model specs (openai's "NAME@URL"), in order; [] for other models."""
-    from illm_tools.llm.openai_wire import describe_offline, parse_spec
+    """The engine URLs of served model specs (openai's "NAME@URL"), in order; [] for other models and
+    for a shared file's address-free identities ("openai:NAME")."""
+    from illm_tools.llm.openai_wire import address_of, describe_offline
 
-    return [parse_spec(m)[1] for m in specs if describe_offline(m) is not None]
+    return [url for m in specs if describe_offline(m) is not None and (url := address_of(m)) is not None]
 
 
 def _open(cache):
