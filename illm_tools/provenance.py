@@ -32,7 +32,9 @@ REDACTED = "REDACTED"
 """What a secret's value is written as."""
 SECRET_WORDS = ("token", "key", "secret", "password", "passwd")
 """The last word of a secret option's flag (`--annotator-token`, `--api-key`)."""
-_URL_PASSWORD = re.compile(r"(?P<head>[A-Za-z][A-Za-z0-9+.-]*://[^/@:\s]*):[^/@\s]*@")
+_URL_PASSWORD = re.compile(r"(?P<head>[A-Za-z][A-Za-z0-9+.-]*://[^/@:\s?#]*):[^\s?#]*@(?=[^@/?#\s]*(?:[/?#]|$))")
+"""A URL's user:password@ (the password may hold / and @: the host is what follows the last @ before
+the path); the query and fragment are never read as credentials."""
 
 
 @cache

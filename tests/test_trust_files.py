@@ -118,6 +118,12 @@ def test_every_option_that_names_a_secret_is_redacted_and_only_those():
                                                                        "OPENAI_KEY"]),
     (["illm", "train", "--annotator", "http://me:pw@host:8/v1"], ["illm", "train", "--annotator", "http://me:REDACTED@host:8/v1"]),
     (["illm", "train", "--annotator-token"], ["illm", "train", "--annotator-token"]),  # no value given: nothing to hide
+    (["illm", "train", "--annotator", "http://me:p@ss@host:8/v1"], ["illm", "train", "--annotator",
+                                                                   "http://me:REDACTED@host:8/v1"]),  # @ in the password
+    (["illm", "train", "--annotator", "http://me:a/b@host:8/v1"], ["illm", "train", "--annotator",
+                                                                  "http://me:REDACTED@host:8/v1"]),  # / in the password
+    (["illm", "train", "--annotator", "http://host:8/v1?x=a@b"], ["illm", "train", "--annotator",
+                                                                 "http://host:8/v1?x=a@b"]),  # a query is no password
 ])
 def test_redaction_hides_both_forms_of_a_secret_option_and_a_urls_password(argv, expected):
     assert provenance.redact_argv(argv) == expected
@@ -209,6 +215,14 @@ def _set(value, *path):
             node = node[key]
         node[last] = value
     return edit
+
+
+def test_a_part_nested_too_deep_to_read_is_refused_in_one_line(tmp_path, part):
+    first, second = parts(tmp_path, part)
+    (second / "results.json").write_text("[" * 100_000 + "]" * 100_000)
+    for args in ((first, second, "--merge", "--out", tmp_path / "joined"), (second, "--redraw")):
+        one_line_refusal(illm("report", *args), str(second / "results.json"), "RecursionError")
+    assert not (tmp_path / "joined").exists()
 
 
 @pytest.mark.parametrize("edit,field", [

@@ -198,6 +198,22 @@ def test_a_dictionary_encoded_file_of_huge_prompts_is_refused_row_by_row_in_boun
     assert "refused 1,000 rows (1,000 it decodes to over 256 KiB); first keys " + row["key"][:12] in said["output"]
 
 
+@pytest.mark.parametrize("keys", [pa.array([1, 2], pa.int64()), pa.array([[1], [2]], pa.list_(pa.int64()))])
+def test_a_file_whose_keys_are_not_text_is_refused_without_a_traceback(shared, tmp_path, keys):
+    """A row over the size cap is named by its key before the schema is checked: a key column of
+    another type must not end the import in a traceback."""
+    rows = shared()[:2]
+    for r in rows:
+        r["prompt"] = "x" * (300 << 10)
+    table = pa.Table.from_pylist(rows, schema=layout.arrow_schema())
+    table = table.set_column(table.schema.get_field_index("key"), "key", keys)
+    pq.write_table(table, tmp_path / "k.parquet")
+    out = runner.invoke(app, ["cache", "import", str(tmp_path / "k.parquet"), "--into", str(tmp_path / "dst")])
+    assert out.exit_code == 0 and out.exception is None, out.output
+    assert "0 new entries of its 2 rows (0 already present, 2 refused)" in out.output, out.output
+    assert "refused 2 rows (2 it decodes to over 256 KiB); first keys ?, ?" in out.output, out.output
+
+
 def test_a_row_group_too_large_to_read_at_once_refuses_the_file_in_one_line(shared, tmp_path, monkeypatch):
     from illm_tools.cache import share
 

@@ -273,6 +273,10 @@ def _keys(batch: pa.RecordBatch) -> list[str]:
     if "key" not in batch.schema.names:
         return ["?"] * batch.num_rows
     keys = batch.column(batch.schema.get_field_index("key"))
+    kind = keys.type.value_type if pa.types.is_dictionary(keys.type) else keys.type
+    if not (pa.types.is_string(kind) or pa.types.is_large_string(kind) or pa.types.is_binary(kind)
+            or pa.types.is_large_binary(kind)):  # not a key column: its rows are refused by the schema check
+        return ["?"] * batch.num_rows
     if pa.types.is_dictionary(keys.type):
         keys = pc.take(pc.binary_slice(keys.dictionary.cast(pa.binary()), 0, 64), keys.indices)
     else:

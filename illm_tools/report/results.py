@@ -189,7 +189,7 @@ def read_results(folder: Path, what: str) -> dict:
         results = json.loads(path.read_text())
     except FileNotFoundError:
         raise UsageError(f"no {NAME} in {folder}: {what} written by `illm report --out`") from None
-    except (OSError, ValueError) as e:  # not JSON, not UTF-8, a folder of that name
+    except (OSError, ValueError, RecursionError) as e:  # not JSON, not UTF-8, nested too deep, a folder
         raise DamagedFileError(f"{path} is damaged ({type(e).__name__}): {REWRITE}") from None
     return _redacted(check_results(results, path))
 
