@@ -96,14 +96,14 @@ def test_an_export_names_a_served_model_without_its_address_and_the_import_takes
     from illm_tools.tasks.setup import adopt_model
 
     rows = shared()
-    for r, spec in zip(rows, ["m@http://127.0.0.1:9/v1#SECRET_VAR", "m@http://10.0.0.1:8000/v1;embed=http://10.0.0.1:8001/v1"]
+    for r, spec in zip(rows, ["m@http://127.0.0.1:9/v1#SECRET_VAR", "m@http://127.0.0.2:8000/v1;embed=http://127.0.0.2:8001/v1"]
                        * len(rows)):
         r["model"] = spec
     AnnotationCache(tmp_path / "served").write(rows)
     out = runner.invoke(app, ["cache", "export", str(tmp_path / "served"), "--out", str(tmp_path / "s.parquet")])
     assert out.exit_code == 0, out.output
     text = (tmp_path / "s.parquet").read_bytes()
-    assert b"SECRET_VAR" not in text and b"127.0.0.1" not in text and b"10.0.0.1" not in text
+    assert b"SECRET_VAR" not in text and b"127.0.0.1" not in text and b"127.0.0.2" not in text
     got = pq.read_table(tmp_path / "s.parquet").to_pylist()
     assert sorted({r["model"] for r in got}) == ["openai:m", "openai:m;embed"]
     assert [r["key"] for r in got] == [r["key"] for r in rows]
