@@ -6,7 +6,7 @@ prefix caching, a model sharded over GPUs) instead of in illm's own process.
 serves it (`GET /v1/models`), URL the server's OpenAI base (`http://host:8000/v1`), VAR the
 environment variable holding its API key (default OPENAI_API_KEY; none needed for a local
 server). The model spec is "NAME@URL" (and "#VAR"), so every place that names a model names it; a
-spec read from a cache's rows is an identity only, never reached (`illm_tools.tasks.setup.reached_model`).
+spec read from a cache's rows is an identity only, never reached (`illm_tools.tasks.served.reached_model`).
 
 - Ranking (`score`): one `POST /v1/completions` per state with its candidates as a list of
   prompts, context + candidate each, `echo: true, logprobs: 1, max_tokens: 1, temperature: 0`:

@@ -38,7 +38,8 @@ def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None
       --api-key-env, --embed-endpoint) is never taken from the cache, only from these settings.
     """
     from illm_tools.intrinsic.registry import get_method
-    from illm_tools.tasks.setup import ADOPTED, REACHED
+    from illm_tools.tasks.served import REACHED
+    from illm_tools.tasks.setup import ADOPTED
 
     settings = dict(settings)
     given = set(settings) if given is None else set(given)

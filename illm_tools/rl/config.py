@@ -382,7 +382,7 @@ def _hidden_size(backend: str, model: str, cache: str | None = None) -> int:
     try:
         return LLMSpec(backend=backend, model=model).hidden_size()
     except EngineUnreachableError:
-        from illm_tools.tasks.setup import cached_identity
+        from illm_tools.tasks.served import cached_identity
 
         found = cached_identity(cache, backend, model)
         if found is None or found[1] is None:

@@ -33,8 +33,8 @@ for the model. A cache that holds annotations but none of a run's setup is refus
 A row's `model` is an identity, never where a request goes: a cache may come from anyone (`illm
 cache import`), and the spec of a served model names an address and a key variable ("NAME@URL#VAR").
 An adopted served model (openai) keeps only its served name; where it is reached and with which key
-are the user's own options (`REACHED`: --endpoint, --api-key-env, --embed-endpoint) or the
-default key variable, and without --endpoint its adoption is refused in one line (`reached_model`).
+are the user's own options (`served.REACHED`: --endpoint, --api-key-env, --embed-endpoint) or the
+default key variable, and without --endpoint its adoption is refused in one line (`served.reached_model`).
 Nothing adopted is contacted before that, and the options a listing suggests name no address
 (`--endpoint URL`).
 
@@ -51,6 +51,7 @@ from pathlib import Path
 from illm_tools.errors import CacheError, UsageError
 from illm_tools.tasks.prompts import DEFAULT_TASKS, LAYOUTS, PromptBuilder, layouts_of
 from illm_tools.tasks.registry import get_task, parse_tasks
+from illm_tools.tasks.served import held_options, reached_model, served_addresses
 HOP_VERSION = 2
 """Version of the hop record format and translation; part of every hop cache key (bump on change).
 2: Crafter's pictures are grey-scaled before the translation (`Suite.hop_frame`)."""
@@ -139,55 +140,13 @@ class AnnotationSetup:
 
 ADOPTED = ("backend", "model", "model_dtype", "quant", "oracle_noise", "history_len", "layout", "hop_seed", "hop_beta")
 """The TrainConfig fields a run takes from its cache's setup (the CLI adopts when none was given)."""
-REACHED = ("endpoint", "api_key_env", "embed_endpoint")
-"""The `LLMSpec` options that say where a served model is reached and which variable holds its key:
-the user's own only, never adopted from a cache (`reached_model`)."""
-
-
-def reached_model(backend: str, model: str, reach: Mapping[str, str | None], where) -> dict:
-    """The `LLMSpec` fields naming an adopted model: `model` and `reach` (the user's own --endpoint,
-    --api-key-env and --embed-endpoint; None or absent where not given). A served model (openai) is
-    its served name alone, reached where `reach` says: the address and key variable of the spec its
-    rows were written under (`model`) are never read, and without --endpoint it is refused in one line
-    naming the options to give (`where`: the cache). Another backend's model is kept, with `reach` as
-    given (which `LLMSpec` refuses in one line: those options are the openai backend's)."""
-    given = {k: reach[k] for k in REACHED if reach.get(k)}
-    if backend != "openai":
-        return {"model": model, **given}
-    from illm_tools.llm.openai_wire import served_as
-
-    name, pooled = served_as(model)
-    missing = [option for option, needed in (("--endpoint URL (your engine's OpenAI base)", "endpoint"),
-                                             ("--embed-endpoint URL (its summaries were embedded by a pooling "
-                                              "endpoint)", "embed_endpoint" if pooled else None))
-               if needed and not given.get(needed)]
-    if missing:
-        raise UsageError(f"the cache {where} holds annotations of {name!r} served by an OpenAI-compatible engine, "
-                         f"and a cache never says where a request goes: give {' and '.join(missing)}, with "
-                         "--api-key-env VAR if it needs a key, or choose the model with --backend and --model")
-    return {"model": name, **given}
-
-
 def _model_options(model: str, fingerprint: str) -> str:
     """The options that select a cache row's model (`model_options`), a served model's address left
     for the user to give (`_options`)."""
     from illm_tools.llm.backend import describe_model, model_options
 
     found = describe_model(model, fingerprint)
-    return _options(**found) if found is not None else model_options(model, fingerprint)
-
-
-def _options(backend: str, model: str, dtype: str, quant: str) -> str:
-    """The options that select a held model setup (`selecting_options`), a served model's address
-    left for the user to give (`--endpoint URL`): a cache's rows never suggest where a request goes."""
-    from illm_tools.llm.backend import selecting_options
-
-    if backend != "openai":
-        return selecting_options(backend, model, dtype, quant)
-    from illm_tools.llm.openai_wire import served_as
-
-    name, pooled = served_as(model)
-    return f"--backend openai --model {name} --endpoint URL" + (" --embed-endpoint URL" if pooled else "")
+    return held_options(**found) if found is not None else model_options(model, fingerprint)
 
 
 @dataclass(frozen=True)
@@ -213,7 +172,7 @@ class HeldSetup:
     def options(self) -> str:
         """The flags that select it ("--backend oracle --history 0 --layout shared"; a served model's
         "--endpoint URL" left for the user to fill: `_options`)."""
-        return f"{_options(self.backend, self.model, self.dtype, self.quant)} {self.prompt_options()}"
+        return f"{held_options(self.backend, self.model, self.dtype, self.quant)} {self.prompt_options()}"
 
     def prompt_options(self) -> str:
         """The flags that select its prompts ("--history 0 --layout shared", and hop's)."""
@@ -263,17 +222,9 @@ def listed_setups(cache) -> list[dict]:
         specs = sorted(seen.pop("specs").items(), key=lambda kv: -kv[1])
         seen["model"] = specs[0][0]
         seen["model_options"] = _model_options(seen["model"], seen["model_fingerprint"])
-        seen["served_at"] = _addresses([m for m, _ in specs])
+        seen["served_at"] = served_addresses([m for m, _ in specs])
         out.append(seen)
     return sorted(out, key=lambda u: (u["task"], -u["entries"]))
-
-
-def _addresses(specs: Sequence[str]) -> list[str]:
-    """The engine URLs of served model specs (openai's "NAME@URL"), in order; [] for other models and
-    for a shared file's address-free identities ("openai:NAME")."""
-    from illm_tools.llm.openai_wire import address_of, describe_offline
-
-    return [url for m in specs if describe_offline(m) is not None and (url := address_of(m)) is not None]
 
 
 def _open(cache):
@@ -351,67 +302,13 @@ def adopt_model(cache, reach: Mapping[str, str | None] | None = None) -> dict | 
             key = (model["backend"], row["model_fingerprint"], model["dtype"], model["quant"])
             found[key] = (found.get(key, (model, 0))[0], found.get(key, (model, 0))[1] + int(row["entries"]))
     if len(found) > 1:
-        listed = "; ".join(f"{_options(**m)} ({n:,} entries)" for m, n in found.values())
+        listed = "; ".join(f"{held_options(**m)} ({n:,} entries)" for m, n in found.values())
         raise UsageError(f"the cache {cache.root} holds annotations of {len(found)} model setups: {listed}. Pass the "
                          "options of the one to serve")
     if not found:
         return None
     model = next(iter(found.values()))[0]
     return {**model, **reached_model(model["backend"], model["model"], reach or {}, cache.root)}
-
-
-def cached_identity(cache, backend: str, model: str) -> tuple[str, int | None] | None:
-    """For a model only its engine can fingerprint (openai): the fingerprint hash and embedding width
-    the cache's rows carry for the same served model at any address (`openai_wire.served_as`),
-    when they carry one; None when they carry none; several are refused in one line. A run that
-    cannot reach the engine reads its keys from these, so training from the cache asks it nothing."""
-    from illm_tools.cache.store import AnnotationCache
-
-    root = cache.root if isinstance(cache, AnnotationCache) else cache
-    if backend != "openai" or root is None or not (Path(root) / "manifest.json").is_file():
-        return None
-    from illm_tools.llm.openai_wire import served_as
-
-    cache = cache if isinstance(cache, AnnotationCache) else AnnotationCache(cache)
-    rows = cache.setups()
-    want = served_as(model)
-    found: dict[str, set] = {}
-    for row in rows:
-        try:
-            same = served_as(row["model"]) == want
-        except UsageError:  # a row of another backend
-            continue
-        if same:
-            found.setdefault(row["model_fingerprint"], set())
-    if not found:
-        return None
-    if len(found) > 1:
-        raise UsageError(f"the cache {cache.root} holds rows of {want[0]} with {len(found)} model identities (other "
-                         "weights or engines behind its address): start the engine, whose answers say which is "
-                         "this run's")
-    fingerprint = next(iter(found))
-    table = cache.table(["model_fingerprint", "embedding_dim"])
-    dims = {d for f, d in zip(table.column("model_fingerprint").to_pylist(), table.column("embedding_dim").to_pylist())
-            if f == fingerprint and d is not None}
-    return fingerprint, (dims.pop() if len(dims) == 1 else None)
-
-
-def model_identity(llm, cache) -> tuple[str, str | None]:
-    """(the fingerprint hash of an `LLMSpec`'s model, None or why its engine does not answer). Asked
-    of the backend (no weights loaded); where only an engine can tell (openai) and none answers, read
-    from the rows of the same served model in `cache` (`cached_identity`): a run trains from the
-    cache with the engine stopped, under any address it was annotated at. Neither: one line."""
-    from illm_tools.llm.openai_wire import EngineUnreachableError
-
-    try:
-        return llm.fingerprint(), None
-    except EngineUnreachableError as e:
-        unreachable = str(e).split(" (")[0]  # "no OpenAI-compatible server answers at URL"
-    found = cached_identity(cache, llm.backend, llm.model)
-    if found is None:
-        raise UsageError(f"{unreachable}: start it, or train from a cache that holds this model's annotations "
-                         f"({cache.root} holds none)")
-    return found[0], unreachable
 
 
 _FLAGS = {"history_len": "--history", "layout": "--layout", "renderer": "renderer", "template_version": "template version",

@@ -1,0 +1,118 @@
+"""A cache's served models (the openai backend: a model only its engine can fingerprint), read from its
+rows without asking the engine: how an adopted served model is reached (`REACHED`, `reached_model`: by the
+user's own --endpoint, --api-key-env and --embed-endpoint only; a row's spec is an identity, never an
+address to contact), the options that select a held setup with the address left for the user
+(`held_options`), the addresses its rows were annotated at (`served_addresses`, a record only), and the
+model's fingerprint read from the rows of the same served model when its engine is stopped
+(`cached_identity`, `model_identity`). `illm_tools.tasks.setup` lists and adopts a cache's setups with
+these."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from illm_tools.errors import UsageError
+
+REACHED = ("endpoint", "api_key_env", "embed_endpoint")
+"""The `LLMSpec` options that say where a served model is reached and which variable holds its key:
+the user's own only, never adopted from a cache (`reached_model`)."""
+
+
+def reached_model(backend: str, model: str, reach: Mapping[str, str | None], where) -> dict:
+    """The `LLMSpec` fields naming an adopted model: `model` and `reach` (the user's own --endpoint,
+    --api-key-env and --embed-endpoint; None or absent where not given). A served model (openai) is
+    its served name alone, reached where `reach` says: the address and key variable of the spec its
+    rows were written under (`model`) are never read, and without --endpoint it is refused in one line
+    naming the options to give (`where`: the cache). Another backend's model is kept, with `reach` as
+    given (which `LLMSpec` refuses in one line: those options are the openai backend's)."""
+    given = {k: reach[k] for k in REACHED if reach.get(k)}
+    if backend != "openai":
+        return {"model": model, **given}
+    from illm_tools.llm.openai_wire import served_as
+
+    name, pooled = served_as(model)
+    missing = [option for option, needed in (("--endpoint URL (your engine's OpenAI base)", "endpoint"),
+                                             ("--embed-endpoint URL (its summaries were embedded by a pooling "
+                                              "endpoint)", "embed_endpoint" if pooled else None))
+               if needed and not given.get(needed)]
+    if missing:
+        raise UsageError(f"the cache {where} holds annotations of {name!r} served by an OpenAI-compatible engine, "
+                         f"and a cache never says where a request goes: give {' and '.join(missing)}, with "
+                         "--api-key-env VAR if it needs a key, or choose the model with --backend and --model")
+    return {"model": name, **given}
+
+
+def held_options(backend: str, model: str, dtype: str, quant: str) -> str:
+    """The options that select a held model setup (`selecting_options`), a served model's address
+    left for the user to give (`--endpoint URL`): a cache's rows never suggest where a request goes."""
+    from illm_tools.llm.backend import selecting_options
+
+    if backend != "openai":
+        return selecting_options(backend, model, dtype, quant)
+    from illm_tools.llm.openai_wire import served_as
+
+    name, pooled = served_as(model)
+    return f"--backend openai --model {name} --endpoint URL" + (" --embed-endpoint URL" if pooled else "")
+
+
+def served_addresses(specs: Sequence[str]) -> list[str]:
+    """The engine URLs of served model specs (openai's "NAME@URL"), in order; [] for other models and
+    for a shared file's address-free identities ("openai:NAME")."""
+    from illm_tools.llm.openai_wire import address_of, describe_offline
+
+    return [url for m in specs if describe_offline(m) is not None and (url := address_of(m)) is not None]
+
+
+def cached_identity(cache, backend: str, model: str) -> tuple[str, int | None] | None:
+    """For a model only its engine can fingerprint (openai): the fingerprint hash and embedding width
+    the cache's rows carry for the same served model at any address (`openai_wire.served_as`),
+    when they carry one; None when they carry none; several are refused in one line. A run that
+    cannot reach the engine reads its keys from these, so training from the cache asks it nothing."""
+    from illm_tools.cache.store import AnnotationCache
+
+    root = cache.root if isinstance(cache, AnnotationCache) else cache
+    if backend != "openai" or root is None or not (Path(root) / "manifest.json").is_file():
+        return None
+    from illm_tools.llm.openai_wire import served_as
+
+    cache = cache if isinstance(cache, AnnotationCache) else AnnotationCache(cache)
+    rows = cache.setups()
+    want = served_as(model)
+    found: dict[str, set] = {}
+    for row in rows:
+        try:
+            same = served_as(row["model"]) == want
+        except UsageError:  # a row of another backend
+            continue
+        if same:
+            found.setdefault(row["model_fingerprint"], set())
+    if not found:
+        return None
+    if len(found) > 1:
+        raise UsageError(f"the cache {cache.root} holds rows of {want[0]} with {len(found)} model identities (other "
+                         "weights or engines behind its address): start the engine, whose answers say which is "
+                         "this run's")
+    fingerprint = next(iter(found))
+    table = cache.table(["model_fingerprint", "embedding_dim"])
+    dims = {d for f, d in zip(table.column("model_fingerprint").to_pylist(), table.column("embedding_dim").to_pylist())
+            if f == fingerprint and d is not None}
+    return fingerprint, (dims.pop() if len(dims) == 1 else None)
+
+
+def model_identity(llm, cache) -> tuple[str, str | None]:
+    """(the fingerprint hash of an `LLMSpec`'s model, None or why its engine does not answer). Asked
+    of the backend (no weights loaded); where only an engine can tell (openai) and none answers, read
+    from the rows of the same served model in `cache` (`cached_identity`): a run trains from the
+    cache with the engine stopped, under any address it was annotated at. Neither: one line."""
+    from illm_tools.llm.openai_wire import EngineUnreachableError
+
+    try:
+        return llm.fingerprint(), None
+    except EngineUnreachableError as e:
+        unreachable = str(e).split(" (")[0]  # "no OpenAI-compatible server answers at URL"
+    found = cached_identity(cache, llm.backend, llm.model)
+    if found is None:
+        raise UsageError(f"{unreachable}: start it, or train from a cache that holds this model's annotations "
+                         f"({cache.root} holds none)")
+    return found[0], unreachable
