@@ -47,8 +47,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from illm_tools.errors import UsageError
-from illm_tools.llm.openai_wire import (Client, candidate_logprobs, check_ranking, describe_offline, embed_url,
-                                        embedding_vectors, engine_probe, generated_text, ordered_choices, parse_spec,
+from illm_tools.llm.openai_answers import candidate_logprobs, embedding_vectors, generated_text, ordered_choices
+from illm_tools.llm.openai_wire import (Client, check_ranking, describe_offline, embed_url, engine_probe, parse_spec,
                                         served_fingerprint)
 
 NAME = "openai"
