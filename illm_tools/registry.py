@@ -1,6 +1,7 @@
-"""One registry shape for every kind of plug-in: training methods, language tasks, LLM backends and
-environment suites (`illm_tools.intrinsic.registry.METHODS`, `illm_tools.tasks.registry.LANGUAGE_TASKS`,
-`illm_tools.llm.backend.BACKENDS`, `illm_tools.envs.SUITES`).
+"""One registry shape for every kind of plug-in: training methods, language tasks, LLM backends,
+environment suites and oracles (`illm_tools.intrinsic.registry.METHODS`,
+`illm_tools.tasks.registry.LANGUAGE_TASKS`, `illm_tools.llm.backend.BACKENDS`, `illm_tools.envs.SUITES`,
+`illm_tools.oracles.registry.ORACLES`).
 
 A `Registry` maps a name to an entry: the object itself, or "module:attribute", imported the first
 time the entry is used (so `illm --help` imports no simulator, torch or model code). A loaded entry
@@ -8,7 +9,8 @@ is checked by the registry's `check` (a base class, or a function saying what is
 unknown name is refused in one line that lists the known ones. Entries come from three places, in
 this order: the built-ins (registered by the module that owns the registry), code (`register`, or
 `registry[name] = entry`), and installed packages through Python entry points of the registry's
-group (`illm.methods`, `illm.tasks`, `illm.backends`, `illm.suites`, `illm.observations`), read once, on the first look-up:
+group (`illm.methods`, `illm.tasks`, `illm.backends`, `illm.suites`, `illm.observations`, `illm.oracles`), read
+once, on the first look-up:
 
     # a plug-in package's pyproject.toml
     [project.entry-points."illm.methods"]
@@ -29,7 +31,7 @@ from illm_tools.errors import UsageError
 
 T = TypeVar("T")
 
-ENTRY_POINT_GROUPS = ("illm.methods", "illm.tasks", "illm.backends", "illm.suites", "illm.observations")
+ENTRY_POINT_GROUPS = ("illm.methods", "illm.tasks", "illm.backends", "illm.suites", "illm.observations", "illm.oracles")
 
 
 def load_reference(ref: str) -> Any:

@@ -16,7 +16,8 @@ from illm_tools.keys import fingerprint_hash
 from illm_tools.errors import UsageError
 from illm_tools.llm.backend import backend_fingerprint, load_backend, resolve_model
 from illm_tools.llm.oracle import OracleBackend, oracle_spec
-from illm_tools.llm.oracle_planner import Planner, Scene, parse_mission, parse_prompt, parse_view
+from illm_tools.oracles.babyai_planner import Planner, parse_mission, parse_view
+from illm_tools.oracles.base import Scene, parse_prompt
 from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.state import StateRecord
 

@@ -17,9 +17,9 @@ summary embedding's width) and `device`, and answers:
 name is refused in one line), `backend_fingerprint` / `backend_hidden_size` answer without loading
 weights. `transformers` (the default: `illm_tools.llm.transformers_backend`) runs real models;
 `stub` (`illm_tools.llm.stub`) answers deterministically from the prompt, for tests and
-benchmarks of everything around the LLM; `oracle` (`illm_tools.llm.oracle`) answers BabyAI and
-MiniGrid prompts as a player who knows the game, the positive control. Another backend is one new
-file plus one entry here.
+benchmarks of everything around the LLM; `oracle` (`illm_tools.llm.oracle`) answers the prompts
+of every game an oracle knows (`illm_tools.oracles`, one per suite: BabyAI and MiniGrid's today) as a
+player who knows the game, the positive control. Another backend is one new file plus one entry here.
 
 Optional, on a backend class: `default_model` (the model when none is named: `resolve_model`),
 `check_use(env_id, renderer)` (refuse, in one line, envs or hop states it cannot read:

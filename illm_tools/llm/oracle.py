@@ -1,35 +1,36 @@
-"""The oracle backend: an annotator that knows BabyAI and MiniGrid, for a positive control of iLLM.
+"""The oracle backend: the oracles (annotators that know a game, one per suite: `illm_tools.oracles`)
+behind the `Backend` protocol, for a positive control of iLLM.
 
 `--backend oracle` answers every language task from the rendered prompt alone (the mission, the
-history of observations and actions, the valid actions; never the environment's state) with the
-rule-based planner of `illm_tools.llm.oracle_planner`, as an LLM that knows the game would:
+history of observations and actions, the valid actions; never the environment's state): it reads
+the prompt's frame (`illm_tools.oracles.base.parse_prompt`) and hands the state to the oracle of the
+game the prompt names (`illm_tools.oracles.registry.oracle_for`: BabyAI and MiniGrid's is
+`illm_tools.oracles.babyai`), as an LLM that knows the game would answer:
 
 - `action` (ranking): each valid action's log-probability is log softmax(-KAPPA * cost), the cost
-  being the planner's count of steps left after the action (the best actions share most of the
+  being the oracle's count of steps left after the action (the best actions share most of the
   mass: a step worse is e^-2 as likely). One "token" per candidate, so `--action-score sum`,
   `mean` and `pmi` (the neutral prompt scores every action alike) rank the same, and
   `--action-target argmax` and `distribution` both work.
-- text tasks: `summary` a short deterministic account of the history (the step at hand, what the
-  agent did, where the step's objects are, what it carries, what blocks it), `goal` the step at
-  hand and those after it ("pick up the yellow key, open the door"), `plan` the next actions of
-  the plan ("go forward, turn left, pick up"); the task is read from the prompt's instruction
-  line, and a task the oracle does not know gets the summary. The texts are embedded with
-  all-MiniLM-L6-v2 (`illm_tools.llm.sentence`, the sentence model ELLM already uses; unit vectors
-  of 384, the run's `embedding_dim`): a goal or plan whole, a summary as the normalised mean of its
-  sentences' embeddings (one fact a sentence, so the sentence model runs once per distinct
+- text tasks: `summary`, `goal` and `plan`, the oracle's texts; the task is read from the prompt's
+  instruction line, and a task the oracle does not know gets the summary. The texts are embedded
+  with all-MiniLM-L6-v2 (`illm_tools.llm.sentence`, the sentence model ELLM already uses; unit
+  vectors of 384, the run's `embedding_dim`): a goal or plan whole, a summary as the normalised mean
+  of its sentences' embeddings (one fact a sentence, so the sentence model runs once per distinct
   sentence: annotation stays above 1,000 states/s on one core; `benchmarks/oracle.py`).
 
 The quality knob (`--oracle-noise P`, the model spec "oracle:noise=P"): a fixed, keyed share P of
 the states (a keyed hash of the state, not of the task's prompt, so all of a state's tasks go
-together) gets a random answer instead: random action costs, and a summary, goal and plan made
-of random words of the same grammar. Both the choice and the random answer are deterministic per
-state, so P = 1 is an annotator that knows nothing and answers each state the same way every time.
+together) gets a random answer instead: random action costs, and the oracle's random texts of its
+grammar. Both the choice and the random answer are deterministic per state, so P = 1 is an
+annotator that knows nothing and answers each state the same way every time.
 
-Its fingerprint carries the planner's version, this file's answer version, the noise and the
-sentence model's identity (`sentence.embedder_id`: its package version, texts embedded alone),
-never a dtype or quantisation (the oracle has neither), so its rows never mix with an LLM's and
-every `--dtype` reads them. It refuses text suites other than
-BabyAI/MiniGrid and `--mode hop` (it reads text, it has no embedding space) in one line.
+Its fingerprint carries every registered oracle's version (the backend does not know the state's
+game when it is fingerprinted, so a new or changed oracle re-keys every oracle row), this file's
+answer version, the noise and the sentence model's identity (`sentence.embedder_id`: its package
+version, texts embedded alone), never a dtype or quantisation (the oracle has neither), so its rows
+never mix with an LLM's and every `--dtype` reads them. It refuses, in one line, an env of a game no
+oracle reads (naming those one does) and `--mode hop` (it reads text, it has no embedding space).
 """
 
 from __future__ import annotations
@@ -44,11 +45,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from illm_tools.errors import UsageError
-from illm_tools.llm.oracle_planner import (COLOURS, GAMES, MOVES, PLANNER_VERSION, NotAScene, Planner,
-                                           Scene, parse_prompt, plan_text, summary_text)
+from illm_tools.oracles.base import NotAScene, Oracle, Scene, family_of, parse_prompt
+from illm_tools.oracles.registry import ORACLES, known_families, named, oracle_for, versions
 
 ORACLE_VERSION = 1
-"""Version of how the planner's reading becomes answers (KAPPA, the texts' use, the noise scheme).
+"""Version of how the oracles' answers become the backend's (KAPPA, the texts' use, the noise scheme).
 How the texts are embedded is the embedder's (`sentence.embedder_id`, in the fingerprint)."""
 KAPPA = 2.0
 """Inverse temperature of the ranking: log P(a) = log softmax(-KAPPA * cost(a))."""
@@ -104,8 +105,9 @@ class OracleBackend:
         self.noise = parse_spec(model)
         self.fingerprint = self.model_fingerprint(model)
         self.hidden_size = _embedding_dim()
-        self.planner = Planner()
-        self._tokens: dict[str, int] = {}
+        self._oracles: dict[str, Oracle] = {}
+        """A game -> the instance of its oracle this backend answers with (one per oracle, made on the
+        oracle's first state: BabyAI and MiniGrid share one planner)."""
 
     # --- building ------------------------------------------------------------------------------
     @classmethod
@@ -118,7 +120,7 @@ class OracleBackend:
         from illm_tools.llm.sentence import embedder_id
 
         return {"model_id": NAME, "source": "oracle", "sha256": None,
-                "revision": f"planner@{PLANNER_VERSION}+answers@{ORACLE_VERSION}", "noise": parse_spec(model),
+                "revision": "+".join((*versions(), f"answers@{ORACLE_VERSION}")), "noise": parse_spec(model),
                 "embedder": embedder_id(), "dtype": "float32", "quant": "none"}
 
     @staticmethod
@@ -127,14 +129,12 @@ class OracleBackend:
 
     @staticmethod
     def check_use(env_id: str, renderer: str) -> None:
-        """Refuse what the oracle cannot read, in one line: hop states and other suites' text."""
+        """Refuse what the oracle cannot read, in one line: hop states and the text of a game no oracle reads."""
         if renderer.startswith("hop@"):
-            raise UsageError("the oracle backend reads the text of BabyAI/MiniGrid states; --mode hop translates "
+            raise UsageError("the oracle backend reads the text of a state; --mode hop translates "
                              "observations into an LLM's embedding space, which the oracle does not have: use "
                              "--mode obs, or an LLM backend for hop")
-        if not env_id.startswith(tuple(f"{g}-" for g in GAMES)):
-            raise UsageError(f"the oracle backend knows BabyAI and MiniGrid only, not {env_id}: use an LLM backend "
-                             "(--backend transformers) for other suites")
+        oracle_for(family_of(env_id), env_id)
 
     # --- reading prompts -----------------------------------------------------------------------
     def _scene(self, text: str, actions: Sequence[str] = ()) -> Scene:
@@ -142,11 +142,18 @@ class OracleBackend:
             scene = parse_prompt(text)
         except NotAScene as e:
             raise UsageError(f"the oracle backend cannot read this prompt ({e}): it answers the prompts illm "
-                             "renders for BabyAI/MiniGrid states") from None
-        if scene.game not in GAMES:
-            raise UsageError(f"the oracle backend knows BabyAI and MiniGrid only, not {scene.game}: use an LLM "
-                             "backend (--backend transformers) for other suites")
+                             f"renders for the states of {named(known_families())}") from None
+        self._oracle(scene)  # a game no oracle reads is refused here, before any answer
         return Scene(scene.game, scene.mission, scene.history, scene.observation, tuple(actions) or scene.actions)
+
+    def _oracle(self, scene: Scene) -> Oracle:
+        """The oracle of the scene's game (`oracle_for`, asked once per game)."""
+        oracle = self._oracles.get(scene.game)
+        if oracle is None:
+            cls = ORACLES.load(oracle_for(scene.game))
+            made = [o for o in self._oracles.values() if type(o) is cls]
+            oracle = self._oracles[scene.game] = made[0] if made else cls()
+        return oracle
 
     def _noised(self, scene: Scene) -> random.Random | None:
         """The state's random stream when it is in the noised share, else None (both keyed by the state)."""
@@ -166,8 +173,11 @@ class OracleBackend:
             return CandidateScores.from_logprobs([[-math.log(len(names))] for _ in names])
         scene = self._scene(context, names)
         rng = self._noised(scene)
-        costs = [rng.uniform(0.0, 2.0) for _ in names] if rng is not None else \
-            [self.planner.answer(scene).costs[n] for n in names]
+        if rng is not None:
+            costs = [rng.uniform(0.0, 2.0) for _ in names]
+        else:
+            known = self._oracle(scene).costs(scene)
+            costs = [known[n] for n in names]
         logits = -KAPPA * np.asarray(costs, dtype=np.float64)
         logp = logits - (logits.max() + np.log(np.exp(logits - logits.max()).sum()))
         return CandidateScores.from_logprobs([[float(x)] for x in logp])
@@ -176,14 +186,8 @@ class OracleBackend:
         scene = self._scene(prompt)
         task = _task_of(prompt)
         rng = self._noised(scene)
-        if rng is not None:
-            return _random_text(task, rng, len(scene.history))
-        answer = self.planner.answer(scene)
-        if task == "goal":
-            return answer.goal
-        if task == "plan":
-            return plan_text(answer)
-        return summary_text(scene, answer)
+        oracle = self._oracle(scene)
+        return oracle.random_text(scene, task, rng) if rng is not None else oracle.text(scene, task)
 
     def score(self, contexts, candidates, *, batch_size: int = 8):
         return [self._ranking(c, cands) for c, cands in zip(contexts, candidates)]
@@ -239,31 +243,3 @@ def _task_of(prompt: str) -> str:
         if marker in prompt:
             return task
     return "summary"
-
-
-_VERBS = ("go to", "pick up", "open", "put")
-_KINDS = ("key", "ball", "box", "door")
-_PLACES = ("adjacent in front", "near, ahead", "near, ahead on the left", "near, ahead on the right", "far, ahead",
-           "far, ahead on the left", "far, ahead on the right", "near to the left", "near to the right")
-
-
-def _random_text(task: str, rng: random.Random, history: int) -> str:
-    """A random answer of the task's grammar (the noised share of `--oracle-noise`)."""
-    def thing() -> str:
-        return f"{rng.choice(COLOURS)} {rng.choice(_KINDS)}"
-
-    def step() -> str:
-        verb = rng.choice(_VERBS)
-        return f"put the {thing()} next to the {thing()}" if verb == "put" else f"{verb} the {thing()}"
-
-    if task == "goal":
-        return ", ".join(step() for _ in range(rng.randint(1, 2)))
-    if task == "plan":
-        return ", ".join(rng.choice(MOVES + ("pick up", "drop", "toggle")) for _ in range(rng.randint(2, 7)))
-    parts = [f"The agent must {step()}."]
-    if history:
-        parts.append(f"It {', then '.join(rng.choice(('turned left', 'turned right', 'went forward')) for _ in range(history))}.")
-    parts.append(f"The {thing()} is {rng.choice(_PLACES)}." if rng.random() < 0.7 else "Nothing it needs is in view.")
-    parts.append(f"It carries a {thing()}." if rng.random() < 0.3 else "It carries nothing.")
-    return " ".join(parts)
-

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from illm_tools.keys import canonical_json, key_text, make_key
 from illm_tools.errors import UsageError
+from illm_tools.oracles.base import family_of
 from illm_tools.tasks.registry import DEFAULT_TASKS, LANGUAGE_TASKS, get_task  # noqa: F401
 from illm_tools.tasks.state import StateRecord
 
@@ -48,9 +49,9 @@ def template_sha(name: str) -> str:
 
 def game_of(env_id: str) -> str:
     """The game named in the prompt's "You are an expert player playing {task}": the env id's
-    family ("BabyAI", "MiniGrid", "MiniHack"; "Crafter" for CrafterReward-v1 / CrafterNoReward-v1)."""
-    family = env_id.split("-", 1)[0]
-    return "Crafter" if family.startswith("Crafter") else family
+    family ("BabyAI", "MiniGrid", "MiniHack"; "Crafter" for CrafterReward-v1 / CrafterNoReward-v1),
+    by the one rule the oracles are chosen by (`illm_tools.oracles.base.family_of`)."""
+    return family_of(env_id)
 
 
 def format_history(record: StateRecord) -> str:

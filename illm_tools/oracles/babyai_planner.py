@@ -1,5 +1,5 @@
-"""The planner behind the oracle backend (`illm_tools.llm.oracle`): it reads the text an LLM is
-given about a BabyAI or MiniGrid state and answers as a player who knows the game would.
+"""The planner of the BabyAI and MiniGrid oracle (`illm_tools.oracles.babyai`): it reads the text an
+LLM is given about a BabyAI or MiniGrid state and answers as a player who knows the game would.
 
 It reads the rendered prompt alone, never the environment: the game and mission on the prompt's
 first line ("You are an expert player playing BabyAI. The goal is: open the red door."), the B.1
@@ -49,9 +49,10 @@ import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from illm_tools.llm.oracle_map import _STEP, HALF_VIEW, MOVES, UNREACHABLE, Map, _path, _successor
-from illm_tools.llm.oracle_reading import (COLOURS, Desc, Instr, NotAScene, Scene, Thing, View,  # noqa: F401
-                                           parse_mission, parse_prompt, parse_view)
+from illm_tools.oracles.babyai_map import _STEP, HALF_VIEW, MOVES, UNREACHABLE, Map, _path, _successor
+from illm_tools.oracles.babyai_reading import (COLOURS, Desc, Instr, Thing, View, parse_mission,  # noqa: F401
+                                               parse_view)
+from illm_tools.oracles.base import Scene
 
 PLANNER_VERSION = 1
 """Version of the rules: part of the oracle's fingerprint, so of every cache key of its answers.

@@ -1,8 +1,8 @@
-"""What the oracle's planner reads (`illm_tools.llm.oracle_planner`): the prompt an LLM would be given
-(game, mission, the numbered observations and actions, the valid actions) parsed into a `Scene`,
-each observation's BabyAI-Text sentences into a `View` of `Thing`s, and the mission into its
-instructions (`Instr`, `Desc`). Split from the planner along the seam between reading text and
-planning on it; the planner re-exports these names.
+"""What the BabyAI oracle's planner reads (`illm_tools.oracles.babyai_planner`), beyond the prompt's
+frame (`illm_tools.oracles.base.parse_prompt`: game, mission, the numbered observations and actions,
+the valid actions, as a `Scene`): each observation's BabyAI-Text sentences as a `View` of `Thing`s,
+and the mission as its instructions (`Instr`, `Desc`). Split from the planner along the seam
+between reading text and planning on it; the planner re-exports these names.
 """
 from __future__ import annotations
 
@@ -44,57 +44,6 @@ class View:
 
     def at(self, x: int, y: int) -> Thing | None:
         return self._cells.get((x, y))  # type: ignore[attr-defined]
-
-
-@dataclass(frozen=True)
-class Scene:
-    """What one prompt says: game, mission, history pairs (observation, action) and the current
-    observation, and the valid actions (empty where the prompt lists none: the text tasks)."""
-
-    game: str
-    mission: str
-    history: tuple[tuple[str, str], ...]
-    observation: str
-    actions: tuple[str, ...]
-
-    @property
-    def state_id(self) -> str:
-        """What determines the state, whatever the task asking about it."""
-        parts = [self.game, self.mission, *(f"{o}\x1e{a}" for o, a in self.history), self.observation]
-        return "\x1f".join(parts)
-
-
-class NotAScene(ValueError):
-    """The text is not a prompt about a BabyAI/MiniGrid state."""
-
-
-_FIRST = re.compile(r"You are an expert player playing (?P<game>.+?)\. The goal is: (?P<mission>.*?)\.?\s*$")
-_OBS = re.compile(r"^Observation (\d+): (.*)$")
-_ACT = re.compile(r"^Action (\d+): (.*)$")
-_VALID = re.compile(r"^Valid actions: (.*)$")
-
-
-def parse_prompt(text: str) -> Scene:
-    """The scene of a prompt rendered by `illm_tools.tasks.prompts` (any task, either layout)."""
-    lines = text.splitlines()
-    first = _FIRST.match(lines[0]) if lines else None
-    if first is None:
-        raise NotAScene("the prompt does not start with 'You are an expert player playing GAME. The goal is: ...'")
-    observations: dict[int, str] = {}
-    actions: dict[int, str] = {}
-    valid: tuple[str, ...] = ()
-    for line in lines[1:]:
-        if m := _OBS.match(line):
-            observations[int(m.group(1))] = m.group(2).strip()
-        elif m := _ACT.match(line):
-            actions[int(m.group(1))] = m.group(2).strip()
-        elif m := _VALID.match(line):
-            valid = tuple(a.strip() for a in m.group(1).split(",") if a.strip())
-    if not observations:
-        raise NotAScene("the prompt holds no 'Observation N:' line")
-    last = max(observations)
-    history = tuple((observations[i], actions.get(i, "")) for i in range(last) if i in observations)
-    return Scene(first.group("game").strip(), first.group("mission").strip(), history, observations[last], valid)
 
 
 _SEE = re.compile(r"^You see (?:a|an) (?:(open|closed|locked) )?(\w+) (\w+) (.+)$")

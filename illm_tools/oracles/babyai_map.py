@@ -1,4 +1,4 @@
-"""The view's geometry for the oracle's planner (`illm_tools.llm.oracle_planner`): which cells of
+"""The view's geometry for the BabyAI oracle's planner (`illm_tools.oracles.babyai_planner`): which cells of
 the 7x7 view the agent can stand on (`Map`, read from the text as the planner's docstring says),
 breadth-first distances over (cell, heading), and the moves along them. Split from the planner,
 which decides what to do; this only says where the agent can go."""
@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Sequence
 
-from illm_tools.llm.oracle_reading import View
+from illm_tools.oracles.babyai_reading import View
 
 HALF_VIEW, DEPTH = 3, 7
 """The view: x in [-HALF_VIEW, HALF_VIEW], y in [0, DEPTH)."""
