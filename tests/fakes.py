@@ -5,13 +5,15 @@ methods that must never ask), `make_trainer` (a small Trainer over them) and `pl
 run, read by every xdist worker); annotation cache rows (`make_rows`, `keys_of`, `run_writers`),
 trajectory rows, file damage (`flip`, `truncate`), fake run folders for `illm report` (`fake_run`); a
 backend and a suite defined outside illm (`TinyBackend`, `TinySuite`); `illm serve` requests of the
-stub's setup (`serve_state`, `serve_request`, `hop_states`) and `wait_for`.
+stub's setup (`serve_state`, `serve_request`, `hop_states`), a server in a thread of the test
+(`running_server`), `illm serve` with slow batches (`SLOW_SERVER`) and `wait_for`.
 
 Over 400 lines: these are the suite's shared helpers, kept in one module on purpose (issue 48); each
 block names the test files that use it."""
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import functools
 import importlib.metadata
@@ -19,6 +21,7 @@ import json
 import os
 import random
 import stat
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -510,7 +513,7 @@ class TinySuite(Suite):
         return ObsSpec(shape=(7, 7, 3), dtype="uint8", kind="grid", description="a corridor as MiniGrid codes")
 
 
-# --- `illm serve`'s requests (test_serve.py, test_serve_hardening.py) ----------------------------------------
+# --- `illm serve`'s requests and servers (test_serve.py, test_serve_hardening.py, test_trust_serve.py) ------
 SHORT_ACTIONS = ("turn left", "turn right", "go forward")
 STUB_MODEL = "stub:16"
 STUB_LLM = LLMSpec(backend="stub", model=STUB_MODEL, dtype="float32")
@@ -536,6 +539,48 @@ def serve_request(pending, client="run-a", session="s1", **changes) -> dict:
             "states": [{**record_to_json(s), "visits": n} for s, n in pending]}
     body.update(changes)
     return body
+
+
+@contextmanager
+def running_server(server, *, token: str | None = None, timeout: float | None = None, port: int = 0) -> Iterator[str]:
+    """`server` (an `AnnotationServer`) listening on 127.0.0.1 (a free port, or `port`) in a thread of
+    its own, its URL yielded; stopped at the end. `timeout`: the request timeout (default the server's)."""
+    from illm_tools.serve import serve
+
+    ready, box = threading.Event(), {}
+
+    async def main() -> None:
+        box["stop"], box["loop"] = asyncio.Event(), asyncio.get_running_loop()
+        await serve(server, "127.0.0.1", port, box["stop"], token=token, request_timeout=timeout,
+                    on_ready=lambda addresses: (box.update(port=addresses[0][1]), ready.set()))
+
+    thread = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
+    thread.start()
+    assert ready.wait(30), "the server did not start"
+    try:
+        yield f"http://127.0.0.1:{box['port']}"
+    finally:
+        box["loop"].call_soon_threadsafe(box["stop"].set)
+        thread.join(30)
+
+
+SLOW_SERVER = """
+import os, sys, time
+from illm_tools.llm.backend import BACKENDS
+from illm_tools.llm.stub import StubBackend
+
+class SlowStub(StubBackend):  # the stub's answers and fingerprint, each batch taking SLOW_S seconds
+    def score(self, *args, **kwargs):
+        time.sleep(float(os.environ["SLOW_S"]))
+        return super().score(*args, **kwargs)
+
+BACKENDS.register("slow", SlowStub)
+from cli.main import main
+sys.argv = ["illm", *sys.argv[1:]]
+main()
+"""
+"""`illm serve` as `python -c SLOW_SERVER serve ... --backend slow`: the stub, each batch taking the
+environment's SLOW_S seconds."""
 
 
 def call(url: str, body=None, raw: bytes | None = None, token: str | None = None,

@@ -32,7 +32,7 @@ from illm_tools.llm.stub import StubBackend
 from illm_tools.serve import AnnotationServer, RequestError, ServeConfig, ServeLimits, record_to_json
 from illm_tools.tasks.prompt_setup import PromptSetup
 from fakes import STUB_LLM as LLM, STUB_MODEL as MODEL
-from fakes import call, hop_states, serve_request as request, serve_state as state, wait_for
+from fakes import SLOW_SERVER, call, hop_states, serve_request as request, serve_state as state, wait_for
 
 runner = CliRunner()
 ENV = "BabyAI-GoToLocal-v0"
@@ -71,23 +71,6 @@ def test_malformed_requests_are_refused_with_their_reason(tmp_path, change, stat
     with pytest.raises(RequestError, match=message) as e:
         server.submit(request([(state(1), 1)], **change))
     assert e.value.status == status and server.queue_size() == 0
-
-
-SLOW_SERVER = """
-import os, sys, time
-from illm_tools.llm.backend import BACKENDS
-from illm_tools.llm.stub import StubBackend
-
-class SlowStub(StubBackend):  # the stub's answers and fingerprint, each batch taking SLOW_S seconds
-    def score(self, *args, **kwargs):
-        time.sleep(float(os.environ["SLOW_S"]))
-        return super().score(*args, **kwargs)
-
-BACKENDS.register("slow", SlowStub)
-from cli.main import main
-sys.argv = ["illm", *sys.argv[1:]]
-main()
-"""
 
 
 @pytest.fixture

@@ -7,7 +7,6 @@ refused and the cache left with one setup; malformed JSON of any shape a 400 in 
 
 from __future__ import annotations
 
-import asyncio
 import base64
 import json
 import logging
@@ -17,7 +16,6 @@ import threading
 import time
 import urllib.error
 import urllib.request
-from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -28,32 +26,12 @@ from illm_tools.cache import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.llm.stub import StubBackend
-from illm_tools.serve import AnnotationServer, RequestError, ServeLimits, record_to_json, serve, token_bits
+from illm_tools.serve import AnnotationServer, RequestError, ServeLimits, record_to_json, token_bits
 from illm_tools.tasks.state import StateRecord
 from fakes import SHORT_ACTIONS as ACTIONS, STUB_LLM as LLM, STUB_MODEL as MODEL, hop_states, wait_for
-from fakes import serve_request as request, serve_state as state
+from fakes import running_server as running, serve_request as request, serve_state as state
 
 HOP = {"renderer": "hop@2:seed=0:beta=100.0:window=2", "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
-
-
-@contextmanager
-def running(server: AnnotationServer, *, token: str | None = None, timeout: float | None = None, port: int = 0):
-    """`server` listening on a free port of 127.0.0.1 in a thread of its own; stopped at the end."""
-    ready, box = threading.Event(), {}
-
-    async def main() -> None:
-        box["stop"], box["loop"] = asyncio.Event(), asyncio.get_running_loop()
-        await serve(server, "127.0.0.1", port, box["stop"], token=token, request_timeout=timeout,
-                    on_ready=lambda addresses: (box.update(port=addresses[0][1]), ready.set()))
-
-    thread = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
-    thread.start()
-    assert ready.wait(30), "the server did not start"
-    try:
-        yield f"http://127.0.0.1:{box['port']}"
-    finally:
-        box["loop"].call_soon_threadsafe(box["stop"].set)
-        thread.join(30)
 
 
 def post(url: str, body=None, *, raw: bytes | None = None, headers: dict | None = None) -> tuple[int, dict, dict]:

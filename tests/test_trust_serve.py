@@ -18,38 +18,17 @@ import threading
 import time
 import urllib.error
 import urllib.request
-from contextlib import contextmanager
 
 import pytest
 
 from illm_tools.cache import AnnotationCache
 from illm_tools.llm.stub import StubBackend
-from illm_tools.serve import AnnotationServer, RequestError, ServeLimits, record_to_json, serve
+from illm_tools.serve import AnnotationServer, RequestError, ServeLimits, record_to_json
 from illm_tools.tasks.state import StateRecord
-from fakes import SHORT_ACTIONS as ACTIONS, STUB_LLM as LLM, STUB_MODEL as MODEL, wait_for
-from fakes import serve_request as request, serve_state as state
+from fakes import SHORT_ACTIONS as ACTIONS, SLOW_SERVER, STUB_LLM as LLM, STUB_MODEL as MODEL, wait_for
+from fakes import running_server as running, serve_request as request, serve_state as state
 
 V4, V6, THIRD = "203.0.113.0/24", "2001:db8:1::/64", "198.51.100.0/24"  # one dual-stack host's two groups, another
-
-
-@contextmanager
-def running(server: AnnotationServer, *, token: str | None = None):
-    """`server` listening on a free port of 127.0.0.1 in a thread of its own; stopped at the end."""
-    ready, box = threading.Event(), {}
-
-    async def main() -> None:
-        box["stop"], box["loop"] = asyncio.Event(), asyncio.get_running_loop()
-        await serve(server, "127.0.0.1", 0, box["stop"], token=token,
-                    on_ready=lambda addresses: (box.update(port=addresses[0][1]), ready.set()))
-
-    thread = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
-    thread.start()
-    assert ready.wait(30), "the server did not start"
-    try:
-        yield f"http://127.0.0.1:{box['port']}"
-    finally:
-        box["loop"].call_soon_threadsafe(box["stop"].set)
-        thread.join(30)
 
 
 def post(url: str, body=None, *, raw: bytes | None = None, token: str | None = None) -> tuple[int, dict]:
@@ -206,22 +185,58 @@ def test_another_peer_sending_a_runs_name_takes_nothing_of_that_runs_quota(tmp_p
         except RequestError as e:
             assert (n, e.status, "--max-sessions" in str(e)) == (4, 429, True)
     assert server.submit(victim, peer=THIRD)["queued"] == 1  # the run's own trainer is served
-    with pytest.raises(RequestError, match="opened from another peer") as e:  # nor can its session be taken over
+    with pytest.raises(RequestError, match="from another peer") as e:  # nor can its session be taken over
         server.submit(request([], client="runs/victim", session="own"), peer=V4)
     assert e.value.status == 409 and {p.record for p in server._clients[("runs/victim", "own")].values()} == {state(1)}
 
 
 def test_quotas_are_checked_before_any_state_is_read(tmp_path, monkeypatch):
-    server = make(tmp_path, max_sessions=1)
-    server.submit(request([(state(1), 1)], client="flood", session="s0"))
-    read = []
-    parse = server.setup.parse_state
-    monkeypatch.setattr(server.setup, "parse_state", lambda *a: read.append(1) or parse(*a))
-    monkeypatch.setattr(server.annotator, "state_too_long", lambda *a: read.append(1))
+    """Through HTTP, the way requests take: a trainer beyond its quotas is refused before any of its
+    states is parsed, and a list beyond the queue's before any is measured in tokens."""
+    HeldStub.gate = threading.Event()
+    server = make(tmp_path, lm=HeldStub(MODEL), max_sessions=1, max_queue=100)
+    parsed, measured = [], []
+    parse, measure = server.setup.parse_state, server.annotator.state_too_long
+    monkeypatch.setattr(server.setup, "parse_state", lambda *a: parsed.append(1) or parse(*a))
+    monkeypatch.setattr(server.annotator, "state_too_long", lambda *a: measured.append(1) or measure(*a))
     many = [(StateRecord("flood", (), f"{i}", ACTIONS), 1) for i in range(1000)]
-    with pytest.raises(RequestError, match="--max-sessions"):
-        server.submit(request(many, client="flood", session="s1"))
-    assert read == []
+    try:
+        with running(server) as url:
+            assert post(url, request([(state(0), 1)], client="engine"))[0] == 202
+            wait_for(lambda: server.annotating == 1, 30, "the engine held")  # so the next list stays queued
+            assert post(url, request([(state(1), 1)], client="flood", session="s0"))[0] == 202
+            parsed.clear(), measured.clear()
+            code, answer = post(url, request(many, client="flood", session="s1"))
+            assert (code, "--max-sessions" in answer["error"], parsed, measured) == (429, True, [], [])
+            code, answer = post(url, request(many, client="other"))
+            assert (code, "--max-queue" in answer["error"], len(parsed), measured) == (503, True, 1000, [])
+            HeldStub.gate.set()
+    finally:
+        HeldStub.gate.set()
+
+
+def test_a_session_follows_its_trainer_to_another_peer_once_nothing_of_it_is_queued_or_waiting(tmp_path):
+    """A dual-stack trainer falling back from IPv6 to IPv4: its session is refused from the new peer
+    while its list is queued or a request of it waits, then goes on from there (and is tied to it)."""
+    server = make(tmp_path)
+    trainer, mine = ("runs/dual", "s"), {"client": "runs/dual", "session": "s"}
+    server.submit(request([(state(1), 1)], **mine), peer=V6)
+
+    async def waiting_from_v6() -> None:
+        wait = asyncio.ensure_future(server.settled(trainer, 60, V6))
+        await asyncio.sleep(0)  # its wait begun
+        assert [p.record for p in server.next_batch()] == [state(1)]  # its list leaves the queue; the wait stays
+        with pytest.raises(RequestError, match="a request waiting from another peer") as e:
+            server.submit(request([(state(2), 1)], **mine), peer=V4)
+        assert e.value.status == 409 and server.waiting == 1
+        wait.cancel()
+
+    with pytest.raises(RequestError, match="states queued or a request waiting from another peer"):
+        server.submit(request([(state(2), 1)], **mine), peer=V4)
+    asyncio.run(waiting_from_v6())
+    assert server.submit(request([(state(2), 1)], **mine), peer=V4)["queued"] == 1  # nothing left from V6
+    with pytest.raises(RequestError, match=f"another peer \\({re.escape(V4)}\\)"):  # tied to V4 now
+        server.submit(request([], **mine), peer=V6)
 
 
 def test_idle_connections_without_the_token_make_room_for_a_trainer(tmp_path):
@@ -244,54 +259,39 @@ def test_idle_connections_without_the_token_make_room_for_a_trainer(tmp_path):
 # --- finding 8: the event loop free while a large request is checked ------------------------------------------
 
 
-class SlowTokens(StubBackend):
-    """The stub with a context, each state's measure taking CPU time (a real tokenizer's cost)."""
+class HeldTokens(StubBackend):
+    """The stub with a context, its first measure held until `go` is set (a large request's tokenizing
+    that takes as long as a test needs)."""
 
     context_length = 10**6
     calls = 0
+    go = threading.Event()
 
     def tokens_needed(self, prompt, candidates, max_new_tokens) -> int:
-        SlowTokens.calls += 1
-        start = time.perf_counter()
-        while time.perf_counter() - start < 0.003:  # holds the GIL as tokenizing Python does
-            pass
+        HeldTokens.calls += 1
+        assert HeldTokens.go.wait(120)  # longer than /stats is given to answer
         return 1
 
 
 def test_stats_is_answered_while_a_large_request_is_measured(tmp_path):
-    SlowTokens.calls = 0
-    server = make(tmp_path, lm=SlowTokens(MODEL))
+    HeldTokens.calls, HeldTokens.go = 0, threading.Event()
+    server = make(tmp_path, lm=HeldTokens(MODEL))
     many = [(StateRecord("go to the red ball", (), f"You see {i}", ACTIONS), 1) for i in range(200)]
-    with running(server) as url:
-        done: dict = {}
-        big = threading.Thread(target=lambda: done.update(answer=post(url, request(many, client="big"))))
-        big.start()
-        wait_for(lambda: SlowTokens.calls > 0, 30, "the large request being measured")
-        assert stats(url)["queue"] == 0
-        during = SlowTokens.calls  # the measures done when /stats was answered
-        big.join(60)
-        assert done["answer"][0] == 202 and done["answer"][1]["queued"] == 200
-        assert during < 400 <= SlowTokens.calls  # /stats did not wait for the request's 400 measures (the batch's follow)
+    try:
+        with running(server) as url:
+            done: dict = {}
+            big = threading.Thread(target=lambda: done.update(answer=post(url, request(many, client="big"))))
+            big.start()
+            wait_for(lambda: HeldTokens.calls > 0, 30, "the large request being measured")
+            assert stats(url)["queue"] == 0 and HeldTokens.calls == 1  # answered while its first measure is held
+            HeldTokens.go.set()
+            big.join(60)
+            assert done["answer"][0] == 202 and done["answer"][1]["queued"] == 200
+    finally:
+        HeldTokens.go.set()
 
 
 # --- the memory bound (finding 2 through `illm serve` itself) ----------------------------------------------
-
-
-SLOW_SERVER = """
-import os, sys, time
-from illm_tools.llm.backend import BACKENDS
-from illm_tools.llm.stub import StubBackend
-
-class SlowStub(StubBackend):  # the stub's answers and fingerprint, each batch taking SLOW_S seconds
-    def score(self, *args, **kwargs):
-        time.sleep(float(os.environ["SLOW_S"]))
-        return super().score(*args, **kwargs)
-
-BACKENDS.register("slow", SlowStub)
-from cli.main import main
-sys.argv = ["illm", *sys.argv[1:]]
-main()
-"""
 
 
 @pytest.mark.slow  # 5 s quiet, more on a busy machine: a server process, 128 MB sent (the fast tier tests the mechanism)

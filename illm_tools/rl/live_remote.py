@@ -30,7 +30,7 @@ RETRY_AFTER = (1.0, 60.0)
 """The range a server's Retry-After is clamped to (seconds): no answer parks the sender longer."""
 SYNC_WAIT = 60.0
 """Seconds a trainer in `--live-mode sync` lets the server hold a rollout's request until its states
-land (the server's own cap is `illm_tools.serve.scheduler.MAX_WAIT`)."""
+land (the server's own cap is `illm_tools.serve.protocol.MAX_WAIT`)."""
 
 
 @dataclass

@@ -15,10 +15,16 @@ The package, one concern a module:
   (`ServerSetup`: text sizes, history, valid actions, a hop frame's shape and dtype, the backend's
   own check; a declared setup other than the server's is refused naming the difference);
 - `quotas`: who may be queued, wait or add states (per client name and peer, per peer, in all, room
-  kept for new peers), checked before any state of a request is read;
-- `scheduler`: `AnnotationServer`, the queue (per-trainer lists, the costly checks off the event
-  loop), round-robin across clients, the waits (one per trainer, cancelled when the client goes), the batch with its
-  deadline and a failing state isolated from the others;
+  kept for new peers, a session tied to its peer while it has states queued or waiting), checked
+  before any state of a request is read;
+- `intake`: a request's way into the queue, one sequence of checks cheapest first (its fields and
+  the trainer quotas, its states parsed, the queue quotas, its states measured in tokens), the
+  costly steps in one checking thread off the event loop;
+- `scheduler`: `AnnotationServer`, the queue (per-trainer lists), round-robin across clients, the
+  waits (one per trainer, cancelled when the client goes), the batch with its deadline and a
+  failing state isolated from the others;
+- `batch`: a batch's fair order (`take_turns`) and its way through the annotator in a thread;
+- `memory`: the process's resident size and the freed memory handed back to the system;
 - `http`: aiohttp behind a gate of our own (connection caps, header and idle timeouts), Host,
   Origin, Content-Type and token checks, one-line JSON refusals.
 
@@ -32,9 +38,10 @@ Endpoints (JSON):
   queued or in the engine, or the wait is over, or a newer request of the trainer waits: `pending`
   says which). No other field is read: one is refused. An empty `states` list withdraws the
   trainer's pending states. Refusals are {"error": one line} with 400 (bad JSON or fields), 401
-  (token), 403 (Host or Origin), 408 (too slow), 409 (another model or setup, or a session another
-  peer opened), 413 (too large), 415 (not JSON), 429 (a client's or a peer's cap) or 503 (the
-  server's), the last two with Retry-After (docs/commands/serve.md lists every limit).
+  (token), 403 (Host or Origin), 408 (too slow), 409 (another model or setup, or a session with
+  states queued or waiting from another peer), 413 (too large), 415 (not JSON), 429 (a client's or
+  a peer's cap) or 503 (the server's), the last two with Retry-After (docs/commands/serve.md lists
+  every limit).
 - `GET /stats` -> the queue, the requests waiting, totals (states, rows, batches, refusals by kind,
   connections refused and evicted, failed states), throughput, the setup, the limits, the model,
   the cache and the resident memory.

@@ -12,7 +12,7 @@ requests `request_timeout` seconds, then it is closed; a request's body has `req
 loopback without a token, and an Origin header must be the server's own origin (a web page in a
 browser on the node cannot post to it: 403); a POST must be `Content-Type: application/json` (415);
 the token, when there is one (401, the connection closed); the body is read within the timeout (a
-Content-Length over the limit: 413 unread) and checked whole (`AnnotationServer.take`), and a
+Content-Length over the limit: 413 unread) and checked whole (`intake.Intake.take`), and a
 request that waits for its states keeps its trainer's name only. A client that disconnects cancels
 its request's handler (aiohttp's `handler_cancellation`): nothing is held for a client that has
 gone. Every refusal is one line of JSON and at most one log line, never a traceback.
@@ -227,12 +227,12 @@ def make_app(server: AnnotationServer, *, token: str | None = None, request_time
         return web.json_response(answer, status=202)
 
     async def take(request: web.Request):
-        """The request read, checked and queued (`AnnotationServer.take`): (answer, trainer, wait), or the
+        """The request read, checked and queued (`Intake.take`): (answer, trainer, wait), or the
         refusal. Its body lives in no variable here, so nothing of it outlasts its check."""
         limit = server.limits.max_request_bytes
         try:
-            return await server.take(await asyncio.wait_for(read_body(request, limit), request_timeout),
-                                     peer_group(request.remote or ""))
+            return await server.intake.take(await asyncio.wait_for(read_body(request, limit), request_timeout),
+                                            peer_group(request.remote or ""))
         except TooLarge:
             return error(413, f"the request is larger than the server's --max-request-mb "
                               f"{server.limits.max_request_mb:g}: send fewer states", close=True)

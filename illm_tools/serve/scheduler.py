@@ -2,12 +2,10 @@
 is `illm_tools.serve.http`).
 
 Queue. Each trainer, named by `client` (its run) and `session` (a random id it makes), has one
-pending list, replaced by its newest request, checked whole before anything is queued (`protocol`)
-and within the quotas (`quotas`: per client name and peer, per peer, in all, room kept for new
-peers; 429 and 503 with Retry-After). The checks run cheapest first (`take`): the request's fields
-and the trainer quotas, then its states parsed, then the queue quotas, then its states measured in
-tokens, the costly steps in one checking thread off the event loop, so no state is read for a
-trainer the quotas refuse and `/stats` is answered meanwhile.
+pending list, replaced by its newest request, checked whole before anything is queued (`intake`:
+the request's fields and the trainer quotas, its states parsed, the queue quotas, its states
+measured in tokens, in that order, off the event loop) and within the quotas (`quotas`, which read
+the queue through `queued`, `peer_of`, `is_waiting` and `waiting_from` only).
 
 Scheduling. Round-robin across peers (`config.peer_group`), then across a peer's client names,
 least recently served first, one state per turn until the batch holds `chunk` (`batch.take_turns`);
@@ -33,36 +31,24 @@ import asyncio
 import logging
 import math
 import time
-from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from collections.abc import Mapping, Sequence, Set
+from dataclasses import asdict
+from types import MappingProxyType
 
 from illm_tools.annotate.wire import PROTOCOL
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.serve.config import ServeConfig, ServeLimits
 from illm_tools.serve.batch import annotate_batch, in_thread, one_line, take_turns
-from illm_tools.serve.memory import release_free_memory, resident_mb
-from illm_tools.serve.protocol import (MAX_ID_CHARS, REQUEST_FIELDS, RequestError, ServerSetup, read_json,
-                                       requested_wait, text, trainer_of, unknown_fields)
-from illm_tools.serve.quotas import LOOPBACK, Asked, check_queue, check_trainer
+from illm_tools.serve.intake import Intake, Pending
+from illm_tools.serve.memory import resident_mb
+from illm_tools.serve.protocol import ServerSetup
+from illm_tools.serve.quotas import LOOPBACK
 from illm_tools.tasks.prompt_setup import PromptSetup
-from illm_tools.tasks.setup import AnnotationSetup
-from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
 
 MAX_RETRY_AFTER = 60
 """Longest Retry-After a busy server answers (seconds)."""
-
-
-@dataclass
-class Pending:
-    """One state waiting, with the trainers that asked for it and their summed visits."""
-
-    setup: AnnotationSetup
-    record: StateRecord
-    visits: int
-    clients: set[tuple[str, str]] = field(default_factory=set)
 
 
 class AnnotationServer:
@@ -99,8 +85,8 @@ class AnnotationServer:
         self._round = 0
         self._in_engine: set[tuple[str, str]] = set()  # trainers with states in the batch in progress
         self._waiters: dict[tuple[str, str], tuple[asyncio.Event, str]] = {}  # trainer -> (its waiter, its peer)
-        self._checker: ThreadPoolExecutor | None = None  # the one thread that parses and measures requests (`take`)
-        self._checking = asyncio.Lock()
+        self.intake = Intake(self)
+        """A request's way into the queue (`Intake.take` for those over HTTP)."""
         self._stuck: asyncio.Future | None = None  # a batch past its deadline, still in the engine
         self._wake = asyncio.Event()
         self._stop: asyncio.Event | None = None
@@ -128,98 +114,13 @@ class AnnotationServer:
 
     # --- requests ------------------------------------------------------------------------------
     def submit(self, body, peer: str = LOOPBACK) -> dict:
-        """Queue a parsed request body for its trainer (replacing that trainer's pending list), every
-        check in order, in this thread (`take` is the server's own way: the same steps, the costly ones
-        off the event loop); `peer`: the group of the address it came from (`config.peer_group`)."""
-        ask = self.admit(body, peer)
-        entries = self.parse_states(ask)
-        check_queue(self, ask, entries)
-        self.measure(ask, entries)
-        return self.commit(ask, entries)
+        """Queue a parsed request body for its trainer, in this thread (tests, in-process callers): the
+        steps a request over HTTP takes (`Intake`); `peer`: the group of the address it came from."""
+        return self.intake.submit(body, peer)
 
-    async def take(self, raw: bytes | bytearray, peer: str) -> tuple[dict, tuple[str, str], float]:
-        """`submit` for a body as received, without holding up the event loop: the JSON parsed and the
-        states parsed and measured in tokens in the server's one checking thread, one request's parsed
-        form at a time, the quotas checked on the loop before any per-state work. Returns (answer,
-        trainer, wait): all a wait needs; the body is dropped once its states are parsed (the caller
-        passes `raw` without keeping it)."""
-        loop = asyncio.get_running_loop()
-        if self._checker is None:
-            self._checker = ThreadPoolExecutor(1, thread_name_prefix="illm-serve-check")
-
-        def off(work, *args):
-            return loop.run_in_executor(self._checker, work, *args)
-
-        large = len(raw) > 2**20
-        async with self._checking:  # one body's parsed form alive at a time, whatever its size
-            body = await off(read_json, raw)
-            del raw
-            ask = self.admit(body, peer)  # the quotas a trainer needs, before any state is read
-            del body  # `ask.states` is all that is left of it, and `parse_states` drops it
-            entries = await off(self.parse_states, ask)
-            if large:  # what its parsing freed, handed back to the system (as after a batch)
-                await off(release_free_memory)
-        check_queue(self, ask, entries)  # the queue's quotas, before any state is measured in tokens
-        await off(self.measure, ask, entries)
-        return self.commit(ask, entries), ask.trainer, ask.wait
-
-    def admit(self, body, peer: str = LOOPBACK) -> Asked:
-        """The checks of a request that read no state: its fields, its model and setup, its wait, its
-        number of states, and the quotas of trainers (`_check_trainer`); RequestError otherwise."""
-        if not isinstance(body, dict):
-            raise RequestError(400, "the request body must be a JSON object")
-        missing = [k for k in ("client", "session", "model_fingerprint", "states") if k not in body]
-        if missing:
-            raise RequestError(400, f"the request lacks {', '.join(missing)} (a trainer of protocol {PROTOCOL} "
-                                    "sends them: use the server's illm version)")
-        unknown_fields(body, REQUEST_FIELDS, "the request")
-        trainer = trainer_of(body)
-        wait = requested_wait(body)
-        text(body["model_fingerprint"], "model_fingerprint", MAX_ID_CHARS, 400)  # its type before anything reads it
-        if body["model_fingerprint"] != self.fingerprint:
-            raise RequestError(409, f"this server annotates with {self.llm.options()} (fingerprint {self.fingerprint}); "
-                                    f"the request's fingerprint {str(body['model_fingerprint'])[:80]!r} is another model "
-                                    "setup: train with the server's --model, --dtype and --quant, or start a server for "
-                                    "yours")
-        setup = self.setup.of_request(body)
-        states = body["states"]
-        if not isinstance(states, list):
-            raise RequestError(400, f"states must be a list, got {type(states).__name__}")
-        if len(states) > self.limits.max_states:
-            raise RequestError(413, f"a request carries at most {self.limits.max_states:,} states (the server's "
-                                    f"--max-states), this one {len(states):,}: send the most visited first")
-        ask = Asked(trainer, peer, setup, states, wait)
-        check_trainer(self, ask)
-        return ask
-
-    def parse_states(self, ask: Asked) -> dict[tuple, Pending]:
-        """The request's states, each checked (`ServerSetup.parse_state`), one entry per distinct state;
-        the request's own list of them dropped (blocking: the checking thread runs it)."""
-        states, ask.states = ask.states, None
-        entries: dict[tuple, Pending] = {}
-        for item in states:
-            record, visits = self.setup.parse_state(item, ask.setup)
-            entry = entries.setdefault((ask.setup, record), Pending(ask.setup, record, 0, {ask.trainer}))
-            entry.visits += visits
-        return entries
-
-    def measure(self, ask: Asked, entries: dict[tuple, Pending]) -> None:
-        """RequestError(413) when a state needs more tokens than the model's context (blocking: the
-        checking thread runs it; the tokenizer's calls are the engine's, stateless)."""
-        for entry in entries.values():
-            needed = self.annotator.state_too_long(entry.record, ask.setup.env_id, ask.setup.renderer)
-            if needed is not None:
-                raise RequestError(413, f"a state needs {needed:,} tokens, more than the context of the server's model "
-                                        f"({self.annotator.context_length:,}): send shorter states (a shorter "
-                                        "--history, shorter texts)")
-
-    def commit(self, ask: Asked, entries: dict[tuple, Pending]) -> dict:
-        """Queue `entries` as the trainer's list (none: withdraw it), every quota checked again (others
-        may have been queued while its states were measured), and answer."""
-        trainer, peer = ask.trainer, ask.peer
-        check_trainer(self, ask)
-        if entries:
-            check_queue(self, ask, entries)
+    def enqueue(self, trainer: tuple[str, str], peer: str, entries: dict[tuple, Pending]) -> dict:
+        """Queue `entries` as `trainer`'s list (none: withdraw it) and answer its request: the intake's
+        last step, once every check has passed (`Intake.commit`)."""
         self.totals["requests"] += 1
         self._seen[trainer] = time.monotonic()
         if entries:
@@ -299,6 +200,27 @@ class AnnotationServer:
 
     def queue_size(self) -> int:
         return len({k for entries in self._clients.values() for k in entries})
+
+    # --- what the quotas read (`quotas`) -----------------------------------------------------------
+    def queued(self) -> Mapping[tuple[str, str], Set[tuple]]:
+        """Each trainer with a list queued -> the keys of its states (read-only)."""
+        return MappingProxyType({trainer: entries.keys() for trainer, entries in self._clients.items()})
+
+    def peer_of(self, trainer: tuple[str, str]) -> str | None:
+        """The peer `trainer`'s session is tied to: the one its queued list or its waiting request came
+        from; None with neither (its next request's peer takes it)."""
+        if trainer in self._clients:
+            return self._peer.get(trainer, LOOPBACK)
+        waiter = self._waiters.get(trainer)
+        return waiter[1] if waiter is not None else None
+
+    def is_waiting(self, trainer: tuple[str, str]) -> bool:
+        """Whether a request of `trainer`'s waits for its states now (`settled`)."""
+        return trainer in self._waiters
+
+    def waiting_from(self, peer: str) -> int:
+        """Requests from `peer` waiting for their states now."""
+        return sum(1 for _, at in self._waiters.values() if at == peer)
 
     def stats(self) -> dict:
         """The queue, totals, throughput, setup and limits (GET /stats)."""
@@ -383,9 +305,7 @@ class AnnotationServer:
                 await self._run_batch(batch)
         finally:
             stopper.cancel()
-            if self._checker is not None:  # a request being checked is dropped: the server stops
-                self._checker.shutdown(wait=False, cancel_futures=True)
-                self._checker = None
+            self.intake.close()  # a request being checked is dropped: the server stops
 
     async def _run_batch(self, batch: list[Pending]) -> None:
         self._in_engine = {trainer for p in batch for trainer in p.clients}
