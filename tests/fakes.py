@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import functools
+import http.server
 import importlib.metadata
 import json
 import os
@@ -624,3 +625,31 @@ def hop_states(n: int = 3):
         out.append(record)
         tracker.push([2], [False])
     return out
+
+
+class QuietHandler(http.server.BaseHTTPRequestHandler):
+    """A fake HTTP peer's handler (an engine, an `illm serve`): `reply` sends a body with its length
+    and headers; nothing is logged."""
+
+    def reply(self, status: int, body: bytes, headers: dict | None = None) -> None:
+        self.send_response(status)
+        for k, v in (headers or {}).items():
+            self.send_header(k, v)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, *args):
+        pass
+
+
+@contextmanager
+def http_fake(handler: type[http.server.BaseHTTPRequestHandler]) -> Iterator[str]:
+    """`handler` served on 127.0.0.1 from a thread; yields its base URL, shut down after."""
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, args=(0.02,), daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_port}"
+    finally:
+        server.shutdown()
+        server.server_close()

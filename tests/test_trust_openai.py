@@ -213,7 +213,7 @@ def test_a_generated_text_that_is_no_string_is_refused(engine):
                                    b'{"queued": null}', b'{"failed": "many"}', b"[" * 100_000 + b"]" * 100_000,
                                    None])  # None: a status line of garbage, no HTTP at all
 def test_a_hostile_servers_counts_never_raise_in_the_trainer(reply, caplog):
-    from fakes import STUB_LLM, serve_state
+    from fakes import STUB_LLM, QuietHandler, http_fake, serve_state
     from illm_tools.annotate.wire import PROTOCOL
     from illm_tools.rl.live_remote import RemoteLive
     from illm_tools.tasks.setup import AnnotationSetup
@@ -221,44 +221,29 @@ def test_a_hostile_servers_counts_never_raise_in_the_trainer(reply, caplog):
     stats = json.dumps({"protocol": PROTOCOL, "model_fingerprint": STUB_LLM.fingerprint(),
                         "limits": {"max_states": 64}}).encode()
 
-    class Fake(http.server.BaseHTTPRequestHandler):
+    class Fake(QuietHandler):
         def do_GET(self):
-            self._send(stats)
+            self.reply(200, stats)
 
         def do_POST(self):
             self.rfile.read(int(self.headers["Content-Length"]))
             if reply is None:
                 self.wfile.write(b"garbage\r\n\r\n")
                 return
-            self._send(reply)
+            self.reply(202, reply)
 
-        def _send(self, body):
-            self.send_response(202 if self.command == "POST" else 200)
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, *args):
-            pass
-
-    fake = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Fake)
-    threading.Thread(target=fake.serve_forever, args=(0.02,), daemon=True).start()
-    try:
-        with caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
-            live = RemoteLive(f"http://127.0.0.1:{fake.server_port}", client="run", llm=STUB_LLM, wait=1.0, budget=8,
-                              setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0))
-            assert live.submit([serve_state(0)]) == 0  # sync mode: the trainer's own call
-            assert (live.counts["refused"], live.counts["accepted"], live.stats()) == (1, 0, {"live_queue": 0.0})
+    with http_fake(Fake) as url, caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
+        live = RemoteLive(url, client="run", llm=STUB_LLM, wait=1.0, budget=8,
+                          setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0))
+        assert live.submit([serve_state(0)]) == 0  # sync mode: the trainer's own call
+        assert (live.counts["refused"], live.counts["accepted"], live.stats()) == (1, 0, {"live_queue": 0.0})
         assert any("not an illm server's answer" in r.getMessage() for r in caplog.records)
         live.close(timeout=0.5)
-    finally:
-        fake.shutdown()
-        fake.server_close()
 
 
 @pytest.mark.parametrize("limits", [{"max_states": "x"}, [1, 2], {"max_states": 1e400}])
 def test_a_servers_limits_that_are_no_counts_are_one_line_at_start(limits):
-    from fakes import STUB_LLM
+    from fakes import STUB_LLM, QuietHandler, http_fake
     from illm_tools.annotate.wire import PROTOCOL
     from illm_tools.errors import UsageError
     from illm_tools.rl.live_remote import RemoteLive
@@ -266,23 +251,12 @@ def test_a_servers_limits_that_are_no_counts_are_one_line_at_start(limits):
 
     stats = json.dumps({"protocol": PROTOCOL, "model_fingerprint": STUB_LLM.fingerprint(), "limits": limits}).encode()
 
-    class Fake(http.server.BaseHTTPRequestHandler):
+    class Fake(QuietHandler):
         def do_GET(self):
-            self.send_response(200)
-            self.send_header("Content-Length", str(len(stats)))
-            self.end_headers()
-            self.wfile.write(stats)
+            self.reply(200, stats)
 
-        def log_message(self, *args):
-            pass
-
-    fake = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Fake)
-    threading.Thread(target=fake.serve_forever, args=(0.02,), daemon=True).start()
-    try:
+    with http_fake(Fake) as url:
         with pytest.raises(UsageError, match="max_states .* not a count") as e:
-            RemoteLive(f"http://127.0.0.1:{fake.server_port}", client="run", llm=STUB_LLM, budget=8,
+            RemoteLive(url, client="run", llm=STUB_LLM, budget=8,
                        setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0))
         assert len(str(e.value).splitlines()) == 1
-    finally:
-        fake.shutdown()
-        fake.server_close()
