@@ -30,6 +30,7 @@ from illm_tools.serve import AnnotationServer, RequestError, ServeLimits, record
 from illm_tools.tasks.state import StateRecord
 from fakes import SHORT_ACTIONS as ACTIONS, STUB_LLM as LLM, STUB_MODEL as MODEL, hop_states, wait_for
 from fakes import running_server as running, serve_request as request, serve_state as state
+from fakes import QuietHandler
 
 HOP = {"renderer": "hop@2:seed=0:beta=100.0:window=2", "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
 
@@ -392,25 +393,15 @@ def test_the_trainers_client_clamps_retry_after_follows_no_redirect_and_survives
     answers = [(503, {"Retry-After": "inf"}, b"{}"), (202, {}, b"[1, 2]"),
                (302, {"Location": f"http://127.0.0.1:{other.server_port}/annotate"}, b"")]
 
-    class Fake(http.server.BaseHTTPRequestHandler):
+    class Fake(QuietHandler):
         def do_GET(self):  # /stats: an illm server of the stub's setup
-            self._send(200, {}, _json.dumps({"protocol": PROTOCOL, "model_fingerprint": LLM.fingerprint(),
-                                             "limits": {"max_states": 64}}).encode())
+            self.reply(200, _json.dumps({"protocol": PROTOCOL, "model_fingerprint": LLM.fingerprint(),
+                                         "limits": {"max_states": 64}}).encode())
 
         def do_POST(self):
             self.rfile.read(int(self.headers["Content-Length"]))
-            self._send(*(answers.pop(0) if answers else (202, {}, b'{"queued": 1, "queue": 1, "landed": 0}')))
-
-        def _send(self, status, headers, body):
-            self.send_response(status)
-            for k, v in headers.items():
-                self.send_header(k, v)
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, *args):
-            pass
+            status, headers, body = answers.pop(0) if answers else (202, {}, b'{"queued": 1, "queue": 1, "landed": 0}')
+            self.reply(status, body, headers)
 
     fake = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Fake)
     for s in (fake, other):
