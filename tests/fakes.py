@@ -165,11 +165,11 @@ def one_update_seen(trainer, monkeypatch) -> SimpleNamespace:
 
 
 @contextmanager
-def plugins_installed(monkeypatch, points: dict[str, list[tuple[str, str]]]) -> Iterator[list[list[str]]]:
+def plugins_installed(monkeypatch, points: dict[str, list[tuple[str, str]]], also: tuple = ()) -> Iterator[list[list[str]]]:
     """Plug-ins as if installed: `importlib.metadata.entry_points` answers `points` ({group: [(name,
     "module:object")]}) for their groups and the installed ones for other groups; every registry
-    reads them. Yields the names each registry added (methods, tasks, backends, suites); removes them
-    after."""
+    reads them, and the registries in `also` (e.g. the oracles'). Yields the names each registry added
+    (methods, tasks, backends, suites, then `also`'s in order); removes them after."""
     from illm_tools.envs import SUITES
     from illm_tools.intrinsic.registry import METHODS
     from illm_tools.llm.backend import BACKENDS
@@ -184,7 +184,7 @@ def plugins_installed(monkeypatch, points: dict[str, list[tuple[str, str]]]) -> 
         return [importlib.metadata.EntryPoint(name, value, group) for name, value in points[group]]
 
     monkeypatch.setattr(importlib.metadata, "entry_points", entry_points)
-    registries = (METHODS, LANGUAGE_TASKS, BACKENDS, SUITES)
+    registries = (METHODS, LANGUAGE_TASKS, BACKENDS, SUITES, *also)
     added = [registry.read_plugins(again=True) for registry in registries]
     try:
         yield added

@@ -75,13 +75,9 @@ def corridor(monkeypatch):
     """The docs' corridor suite and its oracle as an installed package's entry points."""
     monkeypatch.syspath_prepend(str(EXAMPLES))
     with plugins_installed(monkeypatch, {"illm.suites": [("corridor", "corridor_suite:SUITE")],
-                                         "illm.oracles": [("corridor", "corridor_oracle:CorridorOracle")]}):
-        added = ORACLES.read_plugins(again=True)
-        try:
-            yield added
-        finally:
-            for name in added:
-                del ORACLES[name]
+                                         "illm.oracles": [("corridor", "corridor_oracle:CorridorOracle")]},
+                           also=(ORACLES,)) as added:
+        yield added[-1]
 
 
 def _rows(cache) -> list[dict]:
