@@ -1,14 +1,18 @@
-"""The README's results table, rendered from the suite's results.json files, never typed by hand.
+"""Tables rendered from their results files, never typed by hand: README's results table and the prior
+probe's table (docs/experiments/prior-probe.md).
 
-`python docs/render.py` rewrites the block between `<!-- results:begin -->` and `<!-- results:end -->`
-in README.md; `python docs/render.py --check` exits 1 when README.md's block differs from what the files
-say (tests/test_claims.py runs the same comparison, so a hand-edited number fails the test suite).
+`python docs/render.py` rewrites each page's block between `<!-- NAME:begin -->` and `<!-- NAME:end -->`
+(`BLOCKS`: README.md's `results`, prior-probe.md's `probe`); `python docs/render.py --check` exits 1 when
+a block differs from what the files say (tests/test_claims.py runs the same comparison, so a
+hand-edited number fails the test suite).
 
 Sources (docs/results/, written by `illm report`):
 - suite-report/results.json: each level's final success rate per method (IQM [95% CI], 5 seeds) and
   the aggregate over the 8 levels with the probability of improvement over ppo;
 - suite-report-half/results.json: the aggregate over the 4 levels of the report half;
-- suite-tune/results.json: which levels are the tune half (its `envs`).
+- suite-tune/results.json: which levels are the tune half (its `envs`);
+- oracle/probes/GoToLocal-MODEL.json (`illm probe --out`): the prior probe's table, one row per model
+  and calibration, its baselines from the same file.
 
 Numbers are printed with the report's own formatting (`illm_tools.report.markdown.num`, 3 decimals),
 so README and report.md read the same digits. Two words, two counts: illm is *above* a control on a
@@ -35,7 +39,11 @@ from illm_tools.report.markdown import iqm_cell, num
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
 README = ROOT / "README.md"
+PROBE_PAGE = ROOT / "docs" / "experiments" / "prior-probe.md"
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+PROBE_MODELS = (("SmolLM2-135M", "smollm2-135m"), ("Gemma-3-270M", "gemma3-270m"))
+"""The prior probe's rows: the name a page prints, and the file's model (oracle/probes/GoToLocal-MODEL.json)."""
+CALIBRATIONS = ("sum", "mean", "pmi")
 METHODS = ("illm", "ppo", "illm-shuffled", "rnd", "illm-noreward")
 CONTROLS = ("ppo", "illm-shuffled")
 
@@ -104,24 +112,56 @@ def render() -> str:
     return "\n".join(lines)
 
 
-def splice(text: str, block: str) -> str:
-    """`text` with the block between the markers replaced; one-line error if the markers are missing."""
-    if BEGIN not in text or END not in text:
-        raise SystemExit(f"README.md lacks the markers {BEGIN} ... {END}: add them where the table goes")
-    head, rest = text.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
-    return f"{head}{BEGIN}\n{block}\n{END}{tail}"
+def render_probe() -> str:
+    """The prior probe's table: each model's agreement with the expert, log-loss, pairwise AUROC, mutual
+    information, top-1 entropy and favourite action per calibration, then always "go forward" and
+    uniform chance (the baselines the same files hold)."""
+    lines = ["| model | calibration | agreement | log-loss (nats) | pairwise AUROC | MI state;ranking (bits) | "
+             "top-1 entropy (bits) | LLM's top action |", "|---|---|---|---|---|---|---|---|"]
+    for shown, model in PROBE_MODELS:
+        probe = json.loads((RESULTS / "oracle" / "probes" / f"GoToLocal-{model}.json").read_text())
+        for i, name in enumerate(CALIBRATIONS):
+            c = probe["calibrations"][name]
+            lines.append(f"| {shown if i == 0 else ''} | {name} | {num(c['agreement'])} | {num(c['log_loss'])} | "
+                         f"{num(c['auroc'])} | {num(c['mutual_information_bits'])} | "
+                         f"{num(c['top_choice_entropy_bits'])} | {c['top_action']} in {c['top_action_share']:.0%} of states |")
+    base = probe["baselines"]
+    lines += [f"| always \"{base['majority_action']}\" | | **{num(base['majority_agreement'])}** | "
+              f"**{num(base['marginal_log_loss'])}** (the expert's own frequencies, in sample) | | 0 | 0 | "
+              f"{base['majority_action']} in 100% |",
+              f"| uniform chance | | {num(base['chance_agreement'])} | {num(base['uniform_log_loss'])} | {num(0.5)} | 0 | | |"]
+    return "\n".join(lines)
+
+
+def blocks() -> dict:
+    """Each rendered block: name -> (the page, the block's rendering)."""
+    return {"results": (README, render), "probe": (PROBE_PAGE, render_probe)}
+
+
+def splice(text: str, block: str, name: str = "results") -> str:
+    """`text` with the block between NAME's markers replaced; one-line error if the markers are missing."""
+    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    if begin not in text or end not in text:
+        raise SystemExit(f"the page lacks the markers {begin} ... {end}: add them where the table goes")
+    head, rest = text.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    return f"{head}{begin}\n{block}\n{end}{tail}"
 
 
 def main(argv: list[str]) -> int:
-    text = README.read_text()
-    wanted = splice(text, render())
-    if "--check" in argv:
-        if wanted != text:
-            print("README.md's results table differs from docs/results: run `python docs/render.py`")
-            return 1
-        return 0
-    README.write_text(wanted)
+    stale = []
+    for name, (page, make) in blocks().items():
+        text = page.read_text()
+        wanted = splice(text, make(), name)
+        if wanted == text:
+            continue
+        if "--check" in argv:
+            stale.append(f"{page.name} ({name})")
+        else:
+            page.write_text(wanted)
+    if stale:
+        print(f"{', '.join(stale)}: the table differs from docs/results: run `python docs/render.py`")
+        return 1
     return 0
 
 

@@ -41,6 +41,16 @@ def test_a_hand_edited_number_fails(tmp_path, monkeypatch):
     assert render.main(["--check"]) == 1
 
 
+def test_the_prior_probes_table_is_rendered_and_a_hand_edit_fails(tmp_path, monkeypatch):
+    text = render.PROBE_PAGE.read_text()
+    assert render.splice(text, render.render_probe(), "probe") == text, "run `python docs/render.py`"
+    assert "| SmolLM2-135M | sum | 0.250 | 4.010 | 0.359 |" in text  # GoToLocal-smollm2-135m.json's sum row
+    edited = tmp_path / "prior-probe.md"
+    edited.write_text(text.replace("| 4.010 |", "| 3.989 |"))  # the stale table's value
+    monkeypatch.setattr(render, "PROBE_PAGE", edited)
+    assert render.main(["--check"]) == 1
+
+
 def test_above_and_clear_are_two_counts():
     suite = render._load("suite-report")
     counts = render.counts(suite)
