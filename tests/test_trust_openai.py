@@ -241,6 +241,34 @@ def test_a_hostile_servers_counts_never_raise_in_the_trainer(reply, caplog):
         live.close(timeout=0.5)
 
 
+def test_a_server_that_closes_without_answering_is_down_not_hostile(caplog):
+    """A connection closed with no answer (a server being killed: RemoteDisconnected, which is an
+    http.client exception too) is a server that does not answer, tried again later, not a bad answer."""
+    from fakes import STUB_LLM, QuietHandler, http_fake, serve_state
+    from illm_tools.annotate.wire import PROTOCOL
+    from illm_tools.rl.live_remote import RemoteLive
+    from illm_tools.tasks.setup import AnnotationSetup
+
+    stats = json.dumps({"protocol": PROTOCOL, "model_fingerprint": STUB_LLM.fingerprint(),
+                        "limits": {"max_states": 64}}).encode()
+
+    class Closing(QuietHandler):
+        def do_GET(self):
+            self.reply(200, stats)
+
+        def do_POST(self):
+            self.rfile.read(int(self.headers["Content-Length"]))
+            self.close_connection = True  # nothing written: the client sees the connection closed
+
+    with http_fake(Closing) as url, caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
+        live = RemoteLive(url, client="run", llm=STUB_LLM, wait=1.0, budget=8,
+                          setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0))
+        assert live.submit([serve_state(0)]) == 0
+        said = [r.getMessage() for r in caplog.records]
+        assert sum("does not answer" in m for m in said) == 1 and not any("not HTTP" in m for m in said), said
+        live.close(timeout=0.5)
+
+
 @pytest.mark.parametrize("limits", [{"max_states": "x"}, [1, 2], {"max_states": 1e400}])
 def test_a_servers_limits_that_are_no_counts_are_one_line_at_start(limits):
     from fakes import STUB_LLM, QuietHandler, http_fake

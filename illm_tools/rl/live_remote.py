@@ -158,9 +158,9 @@ class RemoteLive:
         JSON object (nested too deep to read included), or over `MAX_ANSWER_BYTES`, is a `BadAnswer`."""
         import json
 
-        from illm_tools.annotate.wire import auth_headers
-
         import http.client
+
+        from illm_tools.annotate.wire import auth_headers
 
         data = None if body is None else json.dumps(body).encode()
         request = urllib.request.Request(self.url + path, data=data, method="GET" if body is None else "POST",
@@ -169,6 +169,8 @@ class RemoteLive:
             with NO_REDIRECTS.open(request, timeout=timeout or self.timeout) as response:
                 raw = response.read(MAX_ANSWER_BYTES + 1)
         except http.client.HTTPException as e:  # not HTTP (a status line of garbage): urllib lets it through
+            if isinstance(e, ConnectionError):  # RemoteDisconnected: closed with no answer, a server going down
+                raise
             raise BadAnswer(f"{self.url}{path} answered what is not HTTP ({type(e).__name__})") from None
         try:
             answer = json.loads(raw) if len(raw) <= MAX_ANSWER_BYTES else None
