@@ -209,32 +209,48 @@ def test_a_generated_text_that_is_no_string_is_refused(engine):
 
 
 # --- the trainer's client of an `illm serve` server -------------------------------------------------------
-@pytest.mark.parametrize("reply", [b'{"landed": "x"}', b'{"landed": 1e400}', b'{"landed": [1]}', b'{"landed": -5}',
-                                   b'{"queued": null}', b'{"failed": "many"}', b"[" * 100_000 + b"]" * 100_000,
-                                   None])  # None: a status line of garbage, no HTTP at all
-def test_a_hostile_servers_counts_never_raise_in_the_trainer(reply, caplog):
-    from fakes import STUB_LLM, QuietHandler, http_fake, serve_state
+def _illm_server(post, limits=None):
+    """A fake `illm serve` of the stub's setup: GET /stats answers `limits`, POST runs `post(handler)`."""
+    from fakes import STUB_LLM, QuietHandler
     from illm_tools.annotate.wire import PROTOCOL
-    from illm_tools.rl.live_remote import RemoteLive
-    from illm_tools.tasks.setup import AnnotationSetup
 
     stats = json.dumps({"protocol": PROTOCOL, "model_fingerprint": STUB_LLM.fingerprint(),
-                        "limits": {"max_states": 64}}).encode()
+                        "limits": {"max_states": 64} if limits is None else limits}).encode()
 
-    class Fake(QuietHandler):
+    class Server(QuietHandler):
         def do_GET(self):
             self.reply(200, stats)
 
         def do_POST(self):
             self.rfile.read(int(self.headers["Content-Length"]))
-            if reply is None:
-                self.wfile.write(b"garbage\r\n\r\n")
-                return
-            self.reply(202, reply)
+            post(self)
 
-    with http_fake(Fake) as url, caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
-        live = RemoteLive(url, client="run", llm=STUB_LLM, wait=1.0, budget=8,
-                          setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0))
+    return Server
+
+
+def _client(url, **kw):
+    from fakes import STUB_LLM
+    from illm_tools.rl.live_remote import RemoteLive
+    from illm_tools.tasks.setup import AnnotationSetup
+
+    return RemoteLive(url, client="run", llm=STUB_LLM, budget=8,
+                      setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0), **kw)
+
+
+@pytest.mark.parametrize("reply", [b'{"landed": "x"}', b'{"landed": 1e400}', b'{"landed": [1]}', b'{"landed": -5}',
+                                   b'{"queued": null}', b'{"failed": "many"}', b"[" * 100_000 + b"]" * 100_000,
+                                   None])  # None: a status line of garbage, no HTTP at all
+def test_a_hostile_servers_counts_never_raise_in_the_trainer(reply, caplog):
+    from fakes import http_fake, serve_state
+
+    def post(handler):
+        if reply is None:
+            handler.wfile.write(b"garbage\r\n\r\n")
+        else:
+            handler.reply(202, reply)
+
+    with http_fake(_illm_server(post)) as url, caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
+        live = _client(url, wait=1.0)
         assert live.submit([serve_state(0)]) == 0  # sync mode: the trainer's own call
         assert (live.counts["refused"], live.counts["accepted"], live.stats()) == (1, 0, {"live_queue": 0.0})
         assert any("not an illm server's answer" in r.getMessage() for r in caplog.records)
@@ -244,25 +260,13 @@ def test_a_hostile_servers_counts_never_raise_in_the_trainer(reply, caplog):
 def test_a_server_that_closes_without_answering_is_down_not_hostile(caplog):
     """A connection closed with no answer (a server being killed: RemoteDisconnected, which is an
     http.client exception too) is a server that does not answer, tried again later, not a bad answer."""
-    from fakes import STUB_LLM, QuietHandler, http_fake, serve_state
-    from illm_tools.annotate.wire import PROTOCOL
-    from illm_tools.rl.live_remote import RemoteLive
-    from illm_tools.tasks.setup import AnnotationSetup
+    from fakes import http_fake, serve_state
 
-    stats = json.dumps({"protocol": PROTOCOL, "model_fingerprint": STUB_LLM.fingerprint(),
-                        "limits": {"max_states": 64}}).encode()
+    def post(handler):
+        handler.close_connection = True  # nothing written: the client sees the connection closed
 
-    class Closing(QuietHandler):
-        def do_GET(self):
-            self.reply(200, stats)
-
-        def do_POST(self):
-            self.rfile.read(int(self.headers["Content-Length"]))
-            self.close_connection = True  # nothing written: the client sees the connection closed
-
-    with http_fake(Closing) as url, caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
-        live = RemoteLive(url, client="run", llm=STUB_LLM, wait=1.0, budget=8,
-                          setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0))
+    with http_fake(_illm_server(post)) as url, caplog.at_level(logging.WARNING, logger="illm_tools.rl.live"):
+        live = _client(url, wait=1.0)
         assert live.submit([serve_state(0)]) == 0
         said = [r.getMessage() for r in caplog.records]
         assert sum("does not answer" in m for m in said) == 1 and not any("not HTTP" in m for m in said), said
@@ -271,20 +275,10 @@ def test_a_server_that_closes_without_answering_is_down_not_hostile(caplog):
 
 @pytest.mark.parametrize("limits", [{"max_states": "x"}, [1, 2], {"max_states": 1e400}])
 def test_a_servers_limits_that_are_no_counts_are_one_line_at_start(limits):
-    from fakes import STUB_LLM, QuietHandler, http_fake
-    from illm_tools.annotate.wire import PROTOCOL
+    from fakes import http_fake
     from illm_tools.errors import UsageError
-    from illm_tools.rl.live_remote import RemoteLive
-    from illm_tools.tasks.setup import AnnotationSetup
 
-    stats = json.dumps({"protocol": PROTOCOL, "model_fingerprint": STUB_LLM.fingerprint(), "limits": limits}).encode()
-
-    class Fake(QuietHandler):
-        def do_GET(self):
-            self.reply(200, stats)
-
-    with http_fake(Fake) as url:
+    with http_fake(_illm_server(lambda handler: None, limits)) as url:
         with pytest.raises(UsageError, match="max_states .* not a count") as e:
-            RemoteLive(url, client="run", llm=STUB_LLM, budget=8,
-                       setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0))
+            _client(url)
         assert len(str(e.value).splitlines()) == 1
