@@ -7,6 +7,7 @@ count, and the splice refuses a README without its markers in one line."""
 from __future__ import annotations
 
 import importlib.util
+import json
 from pathlib import Path
 
 import pytest
@@ -113,3 +114,14 @@ def test_a_number_under_a_computed_marker_is_not_read(tmp_path):
     assert "0.782 on GoToLocal" in text and not numbers.problems(page, text)
     unmarked = "\n".join(line for line in text.splitlines() if not line.startswith("<!-- computed:"))
     assert any("0.782 is in none" in line for line in numbers.problems(page, unmarked))
+
+
+def test_a_series_is_quoted_by_its_ends_only(tmp_path):
+    """A list of more than SERIES numbers (a curve) offers only its first and last value to a page: its
+    every point would match nearly any number a page could print (the number check's series rule)."""
+    curve = [0.111, 0.222, 0.333, 0.444, 0.555, 0.666]
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"curve": curve, "final": {"iqm": 0.777}, "short": [0.888, 0.999]}))
+    held = numbers.values(path)
+    assert {"0.111", "0.666", "0.777", "0.888", "0.999"} <= held
+    assert not {"0.222", "0.333", "0.444", "0.555"} & held
