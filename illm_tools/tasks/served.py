@@ -48,12 +48,11 @@ def held_options(backend: str, model: str, dtype: str, quant: str) -> str:
     left for the user to give (`--endpoint URL`): a cache's rows never suggest where a request goes."""
     from illm_tools.llm.backend import selecting_options
 
-    if backend != "openai":
-        return selecting_options(backend, model, dtype, quant)
-    from illm_tools.llm.openai_wire import served_as
+    if backend == "openai":  # as a shared file names it: its identity, whose options say `--endpoint URL`
+        from illm_tools.llm.openai_wire import identity
 
-    name, pooled = served_as(model)
-    return f"--backend openai --model {name} --endpoint URL" + (" --embed-endpoint URL" if pooled else "")
+        model = identity(model)
+    return selecting_options(backend, model, dtype, quant)
 
 
 def served_addresses(specs: Sequence[str]) -> list[str]:
