@@ -104,3 +104,23 @@ def test_training_on_cuda_runs_every_hook_and_tracks_the_cpu_run(tmp_path, metho
     assert first["charts/episodes"] == reference["charts/episodes"]  # the same actions: sampled on the CPU
     assert np.isclose(first["losses/value_loss"], reference["losses/value_loss"], rtol=1e-3, atol=1e-5)
     assert on_gpu["global_step"] == on_cpu["global_step"] == 256
+
+
+def test_a_run_begun_on_a_gpu_resumes_on_the_devices_of_the_machine_it_resumes_on(tmp_path):
+    """A grid begun on a GPU machine records device "cuda"; resumed where no --device is given, the
+    run chooses its devices again (auto), so it resumes on a CPU machine instead of refusing to start.
+    A device given on resume still wins; a setting that changes what it learns is still refused."""
+    from illm_tools.rl import TrainConfig
+    from illm_tools.rl.build import resumed
+
+    run = tmp_path / "run"
+    run.mkdir()
+    recorded = TrainConfig(run_dir=run, method="ppo", total_steps=128, device="auto").flat()
+    (run / "config.json").write_text(json.dumps({**recorded, "run_dir": str(run), "device": "cuda",
+                                                 "llm_device": "cuda"}))
+    cfg = resumed(run, {"total_steps": 256}, ["total_steps"])
+    assert cfg.device == "auto" and cfg.llm.device is None and cfg.total_steps == 256
+    assert cfg.resolved().device == ("cpu" if NO_GPU else "cuda")
+    assert resumed(run, {"device": "cpu"}, ["device"]).device == "cpu"
+    with pytest.raises(UsageError, match="--seed"):
+        resumed(run, {"seed": 7}, ["seed"])

@@ -21,6 +21,10 @@ from illm_tools.rl.presets import PRESET_FIELDS, bonus_weights
 AUTO_CHOICES = ("model_dtype", "quant", "action_space")
 """Settings a run resolves when it starts (`TrainConfig.resolved`) that a resumed run keeps: their
 `auto`, given again on resume, is the choice the run made, not a change."""
+MACHINE_CHOICES = ("device", "llm_device")
+"""Settings a run resolves when it starts that a resumed run makes again on the machine it resumes on
+when they are not given: the devices (a grid begun on a GPU machine resumes on a CPU one; the run's
+recorded "cuda" would there refuse to start). What the run learns does not depend on them."""
 
 
 def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None, *,
@@ -60,15 +64,18 @@ def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None
 def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) -> TrainConfig:
     """The TrainConfig of a resumed run: its own settings from its config.json, with the `given`
     ones of `settings` applied where a resumed run may change them (RESUMABLE_CHANGES: --frames,
-    --live-budget, threads, ...; the folder may have moved). Any other given setting that differs
+    --live-budget, threads, ...; the folder may have moved) and its devices chosen again where not
+    given (MACHINE_CHOICES). Any other given setting that differs
     from the run's is refused in one line naming its option."""
     from illm_tools.rl.config import RESUMABLE_CHANGES
     from illm_tools.rl.saved import read_run
 
     own = {**read_run(run_dir).settings, "run_dir": str(run_dir), "resume": True}  # the folder may have moved
     stored = TrainConfig.from_dict(own).flat()
-    changes = {k: settings[k] for k in given if k in settings
-               and not (k in AUTO_CHOICES and settings[k] in ("auto", None))}
+    unset = TrainConfig().flat()
+    changes = {**{k: unset[k] for k in MACHINE_CHOICES if k not in given},
+               **{k: settings[k] for k in given if k in settings
+                  and not (k in AUTO_CHOICES and settings[k] in ("auto", None))}}
     cfg = TrainConfig.from_dict({**stored, **changes})
     now = cfg.flat()  # compared as the config holds them ("1" and [1] alike, the LLM named one way)
     refused = sorted(f"{flag_of(k)} (the run has {stored.get(k)!r})" for k, v in now.items()
