@@ -67,6 +67,28 @@ def test_the_cap_holds_the_bonus_to_a_multiple_of_the_task_advantage_where_the_t
     assert adv.int_scale < 1 and adv.int_part.abs().mean().item() == pytest.approx(0.5 * adv.ext_part.abs().mean().item(), rel=1e-5)
 
 
+def test_the_cap_keeps_the_bonus_from_taking_over_as_the_task_s_advantage_fades():
+    """Issue 71's failed seed: the task's reward was found, then its advantage faded (the critic had
+    learned it, the policy drifted) while the bonus's did not, and |A_int|/|A_ext| climbed from ~1 to
+    ~6 as the seed forgot the task. A fake run of rollouts whose rewards fade the same way: uncapped,
+    the ratio climbs; with int_ext_cap 1 it stays at most 1 in every rollout where the task still
+    pays, so the task keeps at least half of the advantage's steer."""
+    ratios = {0.0: [], 1.0: []}
+    for fade in (1.0, 0.3, 0.1, 0.03, 0.01):
+        ro, bonus, next_ext, next_int = _rollout(seed=1, t=32, n=4)
+        ro.rewards *= fade  # the task pays less and less of what it paid
+        ro.values_ext *= fade  # the critic follows it
+        next_ext = next_ext * fade
+        for cap in ratios:
+            adv = two_stream_advantages(ro, bonus, next_ext, next_int, ext_coef=1.0, int_coef=1.0, int_ext_cap=cap, **KW)
+            ratios[cap].append(adv.scale_logs()["adv_int_ext_ratio"])
+            if cap:
+                assert adv.int_part.abs().mean() <= cap * adv.ext_part.abs().mean() * (1 + 1e-5)
+    uncapped, capped_run = ratios[0.0], ratios[1.0]
+    assert all(b > a for a, b in zip(uncapped, uncapped[1:])) and uncapped[-1] > 50 * uncapped[0]
+    assert max(capped_run) <= 1.0 + 1e-5 and capped_run[-1] == pytest.approx(1.0, rel=1e-4)
+
+
 def test_the_schedules_weights():
     anneal = BonusSchedule("anneal", 4)
     assert [anneal.weight(u) for u in (1, 2, 3, 4)] == [1.0, 0.75, 0.5, 0.25]

@@ -178,6 +178,7 @@ def test_bonus_presets_and_explicit_flags_win():
     assert bonus_weights("paper") == {"lambda_a": 0.8, "beta_hc": 0.5, "ext_coef": 1.0, "int_coef": 1.0, **defaults}
     assert bonus_weights("rnd", int_coef=0.5, lambda_a=None) == {"lambda_a": 0.8, "beta_hc": 0.5,
                                                                  "ext_coef": 2.0, "int_coef": 0.5, **defaults}
+    assert bonus_weights("small")["int_ext_cap"] == 1.0  # the default's cap (issue 71)
     assert bonus_weights("ngu")["int_coef"] == 0.3  # NGU's r = r_e + beta r_i, beta 0.3 (Badia et al. 2020)
     literal = bonus_weights("paper-literal")  # Algorithm 1: one stream, the argmax action
     assert (literal["reward_streams"], literal["action_target"], literal["lambda_a"]) == (1, "argmax", 0.8)

@@ -90,7 +90,7 @@ class BonusConfig:
     """The intrinsic advantage's weight over the run (`illm_tools.rl.bonus_schedule`): constant,
     anneal (linear to 0 over the run), or success (1 - the running success rate: it fades as the
     level is solved)."""
-    int_ext_cap: float = PRESET_DEFAULTS["int_ext_cap"]
+    int_ext_cap: float = BONUS_PRESETS[DEFAULT_PRESET]["int_ext_cap"]
     """Cap the intrinsic advantage at this multiple of the extrinsic one (mean |.| per rollout) where
     the task paid anything in the rollout; 0: no cap (the bonus alone steers until a reward is found)."""
 
