@@ -121,7 +121,7 @@ def root(
 
 
 def _register() -> None:
-    from cli import annotate, cache, collect, data, distil, envs, experiment, models, probe, report, serve, train
+    from cli import act, annotate, cache, collect, data, distil, envs, experiment, models, probe, report, serve, train
 
     envs.register(app)
     collect.register(app)
@@ -134,6 +134,7 @@ def _register() -> None:
     experiment.register(app)
     serve.register(app)
     probe.register(app)
+    act.register(app)
     distil.register(app)
     _unwrapped_help(app)
 

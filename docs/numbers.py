@@ -63,9 +63,22 @@ def _nodes(node):
 @cache
 def estimates(name: str) -> frozenset[tuple[str, str, str]]:
     """Every (estimate, low, high) a results folder's results.json holds, as printed."""
-    return frozenset(tuple(num(node[k]) for k in keys)
-                     for node in _nodes(json.loads((RESULTS / name / "results.json").read_text()))
-                     if isinstance(node, dict) for keys in KEYS if all(_number(node.get(k)) for k in keys))
+    return file_estimates(RESULTS / name / "results.json")
+
+
+@cache
+def file_estimates(path: Path) -> frozenset[tuple[str, str, str]]:
+    """Every (estimate, low, high) a JSON file holds, as printed: a report's `KEYS` triples, and
+    `illm act`'s success rate with its interval (`success_rate`, `success_interval` [low, high])."""
+    found = set()
+    for node in _nodes(json.loads(path.read_text())):
+        if not isinstance(node, dict):
+            continue
+        found |= {tuple(num(node[k]) for k in keys) for keys in KEYS if all(_number(node.get(k)) for k in keys)}
+        interval = node.get("success_interval")
+        if _number(node.get("success_rate")) and isinstance(interval, list) and len(interval) == 2:
+            found.add((num(node["success_rate"]), num(interval[0]), num(interval[1])))
+    return frozenset(found)
 
 
 def _number(node) -> bool:
@@ -111,8 +124,8 @@ def problems(page: Path, text: str | None = None) -> list[str]:
     holds, outside paragraphs marked `<!-- computed: ... -->`; one line each."""
     text = page.read_text() if text is None else text
     sources = sorted({n for n in SOURCE.findall(text) if (RESULTS / n / "results.json").is_file()})
-    known = frozenset().union(*(estimates(n) for n in sources))
     files = _json_files(page, text)
+    known = frozenset().union(*(estimates(n) for n in sources), *(file_estimates(f) for f in files))
     singles = frozenset().union(*(values(f) for f in files))
     where = ", ".join(str(f.relative_to(RESULTS)) for f in files) or "none: link the report the number comes from"
     out = []

@@ -12,7 +12,11 @@ Sources (docs/results/, written by `illm report`):
 - suite-report-half/results.json: the aggregate over the 4 levels of the report half;
 - suite-tune/results.json: which levels are the tune half (its `envs`);
 - oracle/probes/GoToLocal-MODEL.json (`illm probe --out`): the prior probe's table, one row per model
-  and calibration, its baselines from the same file.
+  and calibration, its baselines from the same file;
+- seeds-candidate/results.json and seeds-candidate-report/results.json: the default since issue 71 (cap 1)
+  per level, README's `default` block;
+- oracle/acting/ENV.json (`illm act --out`): the oracles acting on their own rankings, one row per env
+  (docs/experiments/oracle-acting.md's `acting` block).
 
 Numbers are printed with the report's own formatting (`illm_tools.report.markdown.num`, 3 decimals),
 so README and report.md read the same digits. Two words, two counts: illm is *above* a control on a
@@ -40,6 +44,7 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
 README = ROOT / "README.md"
 PROBE_PAGE = ROOT / "docs" / "experiments" / "prior-probe.md"
+ACTING_PAGE = ROOT / "docs" / "experiments" / "oracle-acting.md"
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 PROBE_MODELS = (("SmolLM2-135M", "smollm2-135m"), ("Gemma-3-270M", "gemma3-270m"))
 """The prior probe's rows: the name a page prints, and the file's model (oracle/probes/GoToLocal-MODEL.json)."""
@@ -133,9 +138,57 @@ def render_probe() -> str:
     return "\n".join(lines)
 
 
+def render_acting() -> str:
+    """The oracles acting greedily on their own rankings (`illm act --out` files), one row per env: the
+    oracle's and a random policy's success rate [95% Wilson interval] (Crafter: its score) and mean
+    episode length, over the same episodes."""
+    tables: list[str] = []
+    lines = ["| env | history | episodes | oracle | random | oracle's mean length | random's | file |",
+             "|---|---|---|---|---|---|---|---|"]
+    for path in sorted((RESULTS / "oracle" / "acting").glob("*.json")):
+        figures = json.loads(path.read_text())
+        mine, other = figures["policies"]["annotator"], figures["policies"]["random"]
+
+        def cell(r: dict) -> str:
+            if r["success_rate"] is None:
+                return f"score {r['metrics']['score']:.2f}"
+            low, high = r["success_interval"]
+            return f"{num(r['success_rate'])} [{num(low)}, {num(high)}]"
+
+        lines.append(f"| {figures['config']['env_id']} | {figures['config']['history']} | {mine['episodes']} | "
+                     f"{cell(mine)} | {cell(other)} | {mine['mean_length']:.1f} | {other['mean_length']:.1f} | "
+                     f"[json](../results/oracle/acting/{path.name}) |")
+        achieved = {k.removeprefix("achievement_"): (v, other["metrics"][k]) for k, v in mine["metrics"].items()
+                    if k.startswith("achievement_")}
+        if achieved:  # Crafter: each achievement's success rate, the oracle's and random's
+            tables.append(f"\n{figures['config']['env_id']}, each achievement's success rate (oracle / random):\n\n"
+                          "| achievement | oracle | random |\n|---|---|---|\n" + "\n".join(
+                              f"| {k} | {num(a)} | {num(b)} |" for k, (a, b) in achieved.items()))
+    return "\n".join(lines + tables)
+
+
+def render_default() -> str:
+    """The default since issue 71 (the small weights, int_ext_cap 1) per level: the tune half's 10 seeds
+    (seeds-candidate/results.json, beside ppo's 10) and the report half's 5 (seeds-candidate-report, beside
+    the uncapped rows of suite-report), each cell IQM [95% CI] of the final success rate."""
+    tune, report, old = _load("seeds-candidate"), _load("seeds-candidate-report"), _load("suite-report")
+    lines = ["| level (half, seeds) | illm, the default (cap 1) | illm before the cap | ppo |", "|---|---|---|---|"]
+    rows = {(r["env_id"], r["label"]): r["final"] for r in tune["rows"]}
+    for env in tune["envs"]:
+        cells = [rows[(env, "illm (int_ext_cap 1)")], rows[(env, "illm (int_ext_cap 0)")], rows[(env, "ppo")]]
+        lines.append(f"| {_short(env)} (tune, 10) | " + " | ".join(iqm_cell(c) for c in cells) + " |")
+    mine = {r["env_id"]: r["final"] for r in report["rows"] if r["label"] == "illm"}
+    before = {(r["env_id"], r["label"]): r["final"] for r in old["rows"]}
+    for env in report["envs"]:
+        cells = [mine[env], before[(env, "illm")], before[(env, "ppo")]]
+        lines.append(f"| {_short(env)} (report, 5) | " + " | ".join(iqm_cell(c) for c in cells) + " |")
+    return "\n".join(lines)
+
+
 def blocks() -> dict:
     """Each rendered block: name -> (the page, the block's rendering)."""
-    return {"results": (README, render), "probe": (PROBE_PAGE, render_probe)}
+    return {"results": (README, render), "probe": (PROBE_PAGE, render_probe), "acting": (ACTING_PAGE, render_acting),
+            "default": (README, render_default)}
 
 
 def splice(text: str, block: str, name: str = "results") -> str:

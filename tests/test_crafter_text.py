@@ -142,6 +142,25 @@ def test_empty_view_inventory_vitals_sleep_and_world_edge():
     assert describe(env)[1] == "You face the edge of the world"
 
 
+def test_the_edge_of_the_world_is_seen():
+    """Renderer version 2: the nearest cell past the map's border is named like any thing of interest
+    (always straight along an axis; at a corner, the tie goes north first like every tie)."""
+    assert RENDERER_VERSION == 2
+    env = crafter.Env(seed=0)
+    env.reset()
+    player = env._player
+    env._world.move(player, (0, 32))
+    player.facing = (-1, 0)
+    assert describe(env)[:2] == ["You face the edge of the world",
+                                 "You see the edge of the world 1 step west, a tree 2 steps north-east, a cow 4 steps east, "
+                                 "stone 6 steps south-east"]
+    env._world.move(player, (62, 1))  # 2 steps from the north border and 2 from the east one
+    player.facing = (0, -1)
+    assert "the edge of the world 2 steps north" in describe(env)[1]
+    env._world.move(player, (32, 32))  # the middle: no border in view
+    assert "edge" not in render_text(env)
+
+
 def test_directions_agree_with_the_semantic_map():
     env, info = _run(NORTH_RUN)
     semantic, (px, py) = info["semantic"], info["player_pos"]

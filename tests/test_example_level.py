@@ -44,7 +44,7 @@ def test_the_level_is_owned_by_its_suite_and_reads_as_babyai_text(level):
     assert info["valid_actions"] == ["turn left", "turn right", "go forward", "pick up", "drop", "toggle"]
     # the oracle's rule: an id of the BabyAI or MiniGrid family (the game the prompt names)
     OracleBackend.check_use(ENV, renderer_of(ENV))
-    with pytest.raises(UsageError, match="knows BabyAI and MiniGrid only"):
+    with pytest.raises(UsageError, match="knows BabyAI, MiniGrid, Crafter and MiniHack only"):
         OracleBackend.check_use("GoalCorner-v0", "babyai-text@1")
 
 

@@ -23,17 +23,30 @@ from illm_tools.envs.minihack_text import (OBS_KEYS, RENDERER_VERSION, TASKS, ac
                                            render_text)
 
 RESET_TEXTS = {
-    "River-Monster": ("message: Be careful! New moon tonight.; a jackal adjacent southeast; "
-                      "a kobold zombie far east; a boulder far east; 2 boulders very far east; "
-                      "water very far east"),
-    "MultiRoom-N4-Monster": ("message: Be careful! New moon tonight.; a jackal adjacent north; "
-                             "a closed door adjacent south; a jackal adjacent west"),
-    "LavaCross-Ring": ("message: Be careful! New moon tonight.; lava adjacent northeast; lava adjacent east; "
-                       "lava adjacent southeast; the staircase down very near northeast; a ring near west"),
-    "LavaCross-Potion": ("message: Be careful! New moon tonight.; lava adjacent northeast; lava adjacent east; "
-                         "lava adjacent southeast; the staircase down very near northeast; a potion near west"),
-    "LavaCross-Full": ("message: Be careful! New moon tonight.; lava very near northeast; lava very near east; "
-                       "lava near northeast; a pair of boots near northwest; the staircase down far northeast"),
+    "River-Monster": ('message: Be careful! New moon tonight.; '
+        'a jackal adjacent southeast (1 east, 1 south); '
+        'a kobold zombie far east (6 east, 1 north); a boulder far east (8 east); '
+        '2 boulders very far east (9 east, 1 south); '
+        'water very far east (18 east, 3 south)'),
+    "MultiRoom-N4-Monster": ('message: Be careful! New moon tonight.; a jackal adjacent north (1 north); '
+        'a closed door adjacent south (1 south); a jackal adjacent west (1 west); '
+        'walls adjacent northeast, east, southeast and southwest'),
+    "LavaCross-Ring": ('message: Be careful! New moon tonight.; '
+        'lava adjacent northeast (1 east, 1 north); lava adjacent east (1 east); '
+        'lava adjacent southeast (1 east, 1 south); '
+        'the staircase down very near northeast (2 east, 1 north); '
+        'a ring near west (3 west, 1 north)'),
+    "LavaCross-Potion": ('message: Be careful! New moon tonight.; '
+        'lava adjacent northeast (1 east, 1 north); lava adjacent east (1 east); '
+        'lava adjacent southeast (1 east, 1 south); '
+        'the staircase down very near northeast (2 east, 1 north); '
+        'a potion near west (3 west, 1 north)'),
+    "LavaCross-Full": ('message: Be careful! New moon tonight.; '
+        'lava very near northeast (2 east, 2 north); lava very near east (2 east); '
+        'lava near northeast (2 east, 3 north); '
+        'a pair of boots near northwest (3 west, 2 north); '
+        'the staircase down far northeast (6 east, 4 north); '
+        'walls adjacent southeast, south and southwest'),
 }
 
 _D, _C = nethack.CompassDirection, nethack.Command
@@ -41,31 +54,56 @@ _RING = "you carry a ring of levitation (on right hand)"
 # LavaCross-Ring, seed 0: walk to the ring, pick it up, put it on (item f, right hand: the keys f
 # and r are the actions FIRE and READ), float east over the lava next to the staircase down.
 RING_STEPS = [
-    (_D.W, "the staircase up adjacent east; lava very near northeast; lava very near east; "
-           "lava very near southeast; a ring very near northwest; the staircase down near east"),
-    (_D.W, "a ring adjacent northwest; the staircase up very near east; lava near northeast; lava near east; "
-           "the staircase down near east"),
-    (_D.NW, "message: You see here an opal ring.; the staircase up near east; lava near northeast; "
-            "lava near east; lava near southeast; the staircase down far east"),
-    (_C.PICKUP, "message: f - an opal ring.; the staircase up near east; lava near northeast; lava near east; "
-                "lava near southeast; the staircase down far east; you carry an opal ring"),
-    (_C.PUTON, "message: What do you want to put on? [f or ?*]; the staircase up near east; "
-               "lava near northeast; lava near east; lava near southeast; the staircase down far east; "
-               "you carry an opal ring"),
-    (_C.FIRE, "message: Which ring-finger, Right or Left? [rl]; the staircase up near east; "
-              "lava near northeast; lava near east; lava near southeast; the staircase down far east; "
-              "you carry an opal ring"),
-    (_C.READ, "message: f - a ring of levitation (on right hand).; you are levitating; "
-              "the staircase up near east; lava near northeast; lava near east; lava near southeast; "
-              f"the staircase down far east; {_RING}"),
-    (_D.E, "you are levitating; the staircase up very near southeast; lava near northeast; lava near east; "
-           f"lava near southeast; the staircase down near east; {_RING}"),
-    (_D.E, "you are levitating; the staircase up adjacent southeast; lava very near northeast; "
-           f"lava very near east; lava very near southeast; the staircase down near east; {_RING}"),
-    (_D.E, "you are levitating; lava adjacent northeast; lava adjacent east; lava adjacent southeast; "
-           f"the staircase up adjacent south; the staircase down very near east; {_RING}"),
-    (_D.E, "you are levitating; lava adjacent north; the staircase down adjacent east; lava adjacent south; "
-           f"the staircase up adjacent southwest; lava very near north; {_RING}"),
+    (_D.W, 'the staircase up adjacent east (1 east); '
+        'lava very near northeast (2 east, 2 north); lava very near east (2 east); '
+        'lava very near southeast (2 east, 1 south); '
+        'a ring very near northwest (2 west, 1 north); '
+        'the staircase down near east (3 east, 1 north)'),
+    (_D.W, 'a ring adjacent northwest (1 west, 1 north); '
+        'the staircase up very near east (2 east); '
+        'lava near northeast (3 east, 3 north); lava near east (3 east, 1 north); '
+        'the staircase down near east (4 east, 1 north)'),
+    (_D.NW, 'message: You see here an opal ring.; '
+        'the staircase up near east (3 east, 1 south); '
+        'lava near northeast (4 east, 2 north); lava near east (4 east, 1 north); '
+        'lava near southeast (4 east, 2 south); the staircase down far east (5 east)'),
+    (_C.PICKUP, 'message: f - an opal ring.; the staircase up near east (3 east, 1 south); '
+        'lava near northeast (4 east, 2 north); lava near east (4 east, 1 north); '
+        'lava near southeast (4 east, 2 south); the staircase down far east (5 east); '
+        'you carry an opal ring'),
+    (_C.PUTON, 'message: What do you want to put on? [f or ?*]; '
+        'the staircase up near east (3 east, 1 south); '
+        'lava near northeast (4 east, 2 north); lava near east (4 east, 1 north); '
+        'lava near southeast (4 east, 2 south); the staircase down far east (5 east); '
+        'you carry an opal ring'),
+    (_C.FIRE, 'message: Which ring-finger, Right or Left? [rl]; '
+        'the staircase up near east (3 east, 1 south); '
+        'lava near northeast (4 east, 2 north); lava near east (4 east, 1 north); '
+        'lava near southeast (4 east, 2 south); the staircase down far east (5 east); '
+        'you carry an opal ring'),
+    (_C.READ, 'message: f - a ring of levitation (on right hand).; you are levitating; '
+        'the staircase up near east (3 east, 1 south); '
+        'lava near northeast (4 east, 2 north); lava near east (4 east, 1 north); '
+        'lava near southeast (4 east, 2 south); the staircase down far east (5 east); '
+        'you carry a ring of levitation (on right hand)'),
+    (_D.E, 'you are levitating; the staircase up very near southeast (2 east, 1 south); '
+        'lava near northeast (3 east, 2 north); lava near east (3 east, 1 north); '
+        'lava near southeast (3 east, 2 south); the staircase down near east (4 east); '
+        'you carry a ring of levitation (on right hand)'),
+    (_D.E, 'you are levitating; the staircase up adjacent southeast (1 east, 1 south); '
+        'lava very near northeast (2 east, 2 north); lava very near east (2 east); '
+        'lava very near southeast (2 east, 1 south); '
+        'the staircase down near east (3 east); '
+        'you carry a ring of levitation (on right hand)'),
+    (_D.E, 'you are levitating; lava adjacent northeast (1 east, 1 north); '
+        'lava adjacent east (1 east); lava adjacent southeast (1 east, 1 south); '
+        'the staircase up adjacent south (1 south); '
+        'the staircase down very near east (2 east); '
+        'you carry a ring of levitation (on right hand)'),
+    (_D.E, 'you are levitating; lava adjacent north (1 north); '
+        'the staircase down adjacent east (1 east); lava adjacent south (1 south); '
+        'the staircase up adjacent southwest (1 west, 1 south); '
+        'lava very near north (2 north); you carry a ring of levitation (on right hand)'),
 ]
 
 
@@ -99,7 +137,7 @@ def test_task_ids_are_registered():
 
 @pytest.mark.parametrize("task", sorted(TASKS))
 def test_reset_snapshot(task):
-    assert RENDERER_VERSION == 1, "snapshots of renderer version 1: regenerate them for the new version"
+    assert RENDERER_VERSION == 2, "snapshots of renderer version 2: regenerate them for the new version"
     env = _make(TASKS[task])
     try:
         assert render_text(_reset(env, 0)) == RESET_TEXTS[task], "text changed: bump RENDERER_VERSION"
@@ -159,6 +197,14 @@ def _obs(*cells: tuple[int, int, int], message: str = "", inventory: tuple[str, 
     return {"glyphs": glyphs, "message": msg, "blstats": blstats, "inv_strs": inv_strs}
 
 
+_OFFSET = re.compile(r" \((?:\d+ (?:east|west|north|south)(?:, )?)+\)$")
+
+
+def _words(phrases: list[str]) -> list[str]:
+    """The phrases without their offsets (version 2's "(3 east, 1 north)"), for the tests of the words."""
+    return [_OFFSET.sub("", p) for p in phrases]
+
+
 @pytest.mark.parametrize("dx,dy,expected", [
     (1, 0, "a newt adjacent east"), (-1, -1, "a newt adjacent northwest"), (0, 1, "a newt adjacent south"),
     (0, -2, "a newt very near north"), (2, -1, "a newt very near northeast"),
@@ -168,12 +214,23 @@ def _obs(*cells: tuple[int, int, int], message: str = "", inventory: tuple[str, 
     (-30, 7, "a newt very far west"),
 ])
 def test_direction_and_distance_words(dx, dy, expected):
-    assert describe(_obs((dx, dy, _monster("newt")))) == [expected]
+    assert _words(describe(_obs((dx, dy, _monster("newt"))))) == [expected]
 
 
-def test_agent_square_walls_and_floor_are_not_described():
+def test_agent_square_and_floor_are_not_described_and_walls_only_where_adjacent():
     obs = _obs((1, 0, WALL), (-1, 0, WALL), (0, 1, nethack.GLYPH_CMAP_OFF))  # walls, dark part of a room
-    assert describe(obs) == []
+    assert describe(obs) == ["walls adjacent east and west"]
+    assert describe(_obs((0, -1, WALL), (2, 0, WALL))) == ["a wall adjacent north"]
+    assert describe(_obs((3, 0, WALL))) == []
+
+
+@pytest.mark.parametrize("dx,dy,offset", [(1, 0, "1 east"), (-2, -1, "2 west, 1 north"), (0, 5, "5 south"),
+                                          (-7, 3, "7 west, 3 south")])
+def test_a_phrase_gives_the_offset_of_its_nearest_square(dx, dy, offset):
+    (phrase,) = describe(_obs((dx, dy, _monster("newt"))))
+    assert phrase.endswith(f" ({offset})")
+    boulder = _object("boulder", nethack.ROCK_CLASS)  # two squares in one phrase: the nearer one's offset
+    assert describe(_obs((4, 0, boulder), (3, 0, boulder))) == ["2 boulders near east (3 east)"]
 
 
 def test_things_are_named_grouped_and_ordered_nearest_first():
@@ -183,7 +240,7 @@ def test_things_are_named_grouped_and_ordered_nearest_first():
                (-2, 0, _object("levitation", nethack.POTION_CLASS)),
                (0, -2, _object("levitation boots", nethack.ARMOR_CLASS)),
                (2, 2, nethack.GLYPH_CMAP_OFF + 12), (-3, -3, nethack.GLYPH_CMAP_OFF + 15))
-    assert describe(obs) == [
+    assert _words(describe(obs)) == [
         "a tame little dog adjacent west", "a pair of boots very near north", "a doorway very near southeast",
         "a potion very near west", "2 boulders near east", "lava near south", "a closed door near northwest",
         "the staircase down far northeast"]
@@ -198,7 +255,7 @@ def test_at_most_three_phrases_per_thing_and_twelve_in_all_keeping_the_staircase
     cells += [(15, -9, STAIRS_DOWN)]
     # 13 phrases: the staircase down, then monsters and objects, then the nearest features are kept,
     # so the farthest feature (the fountain) goes.
-    assert describe(_obs(*cells)) == [
+    assert _words(describe(_obs(*cells))) == [
         "a newt adjacent south", "lava very near south", "a newt near east", "lava near south",
         "a newt near west", "a jackal far north", "2 jackals far northeast", "2 jackals far northwest",
         "a doorway very far south",
@@ -216,7 +273,7 @@ def test_message_status_and_inventory():
     assert describe(obs) == [
         "message: You see here an opal ring.", "you are levitating and confused",
         "your hit points are low (2 of 14)",
-        "a newt adjacent east",
+        "a newt adjacent east (1 east)",
         "you carry an opal ring, a ring of levitation (on right hand), 2 uncursed daggers named sting"]
     assert render_text(obs) == "; ".join(describe(obs))
 
@@ -233,7 +290,7 @@ def test_articles_and_plurals():
     obs = _obs((1, 0, _monster("Medusa")), (0, 1, _monster("Oracle")), (-1, 0, _monster("owlbear")),
                (0, -1, statue), (3, 0, gold), (4, 0, gold), (3, 3, _monster("dwarf")),
                (4, 4, _monster("dwarf")), (-3, 0, stairs_up), (-4, 0, stairs_up))
-    assert describe(obs) == ["a statue of Medusa adjacent north", "Medusa adjacent east", "the Oracle adjacent south",
+    assert _words(describe(obs)) == ["a statue of Medusa adjacent north", "Medusa adjacent east", "the Oracle adjacent south",
                              "an owlbear adjacent west", "gold near east", "2 dwarves near southeast",
                              "2 staircases up near west"]
 

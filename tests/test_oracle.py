@@ -248,7 +248,6 @@ def test_what_the_oracle_cannot_do_is_refused_in_one_line(tmp_path):
         oracle_spec(1.5)
     for args, message in (
             (["--mode", "hop"], "--mode hop translates"),
-            (["--env", "MiniHack-River-Monster-v0"], "knows BabyAI and MiniGrid only"),
             (["--live-budget", "many"], "--live-budget is a number of states >= 0 or 'all'"),
             (["--oracle-noise", "2"], "--oracle-noise must be between 0 and 1")):
         out = runner.invoke(app, ["train", "--method", "illm", "--backend", "oracle", "--cache", str(tmp_path / "c"),

@@ -27,11 +27,13 @@ from illm_tools.tasks.state import StateRecord
 ENV = "Corridor-Walk-v0"
 
 
-def test_the_babyai_oracle_reads_babyai_and_minigrid_and_other_games_are_refused_by_name():
-    assert list(ORACLES) == ["babyai"] and known_families() == ("BabyAI", "MiniGrid")
+def test_each_suite_s_oracle_reads_its_games_and_other_games_are_refused_by_name():
+    assert list(ORACLES) == ["babyai", "crafter", "minihack"]
+    assert known_families() == ("BabyAI", "MiniGrid", "Crafter", "MiniHack")
     assert oracle_for("BabyAI") == oracle_for("MiniGrid") == "babyai"
-    for env_id in ("MiniHack-River-Monster-v0", "CrafterReward-v1", ENV):
-        with pytest.raises(UsageError, match=rf"knows BabyAI and MiniGrid only, not {env_id}: use an LLM backend"):
+    assert oracle_for("MiniHack") == "minihack" and oracle_for("Crafter") == "crafter"
+    for env_id in ("ALE/Pong-v5", ENV):
+        with pytest.raises(UsageError, match=rf"knows BabyAI, MiniGrid, Crafter and MiniHack only, not {env_id}: use an LLM backend"):
             oracle_for(family_of(env_id), env_id)
     # one rule for the game a prompt names and the oracle that reads it
     for env_id in ("BabyAI-GoToLocal-v0", "MiniGrid-DoorKey-5x5-v0", "MiniHack-Room-5x5-v0", "CrafterReward-v1"):
@@ -90,8 +92,9 @@ def _rows(cache) -> list[dict]:
 def test_an_oracle_plugged_in_annotates_its_suite_through_the_oracle_backend(corridor, tmp_path):
     traj, ann = tmp_path / "traj", tmp_path / "ann"
     ok("collect", "--env", ENV, "--env-option", "length=6", "--steps", 40, "--num-envs", 2, "--out", traj)
-    assert corridor == ["corridor"] and known_families() == ("BabyAI", "MiniGrid", "Corridor")
-    assert backend_fingerprint("oracle", "oracle")["revision"] == "planner@1+corridor@1+answers@1"
+    assert corridor == ["corridor"] and known_families() == ("BabyAI", "MiniGrid", "Crafter", "MiniHack", "Corridor")
+    assert backend_fingerprint("oracle", "oracle")["revision"] == \
+        "planner@1+crafter-planner@1+minihack-planner@1+corridor@1+answers@1"
 
     said = ok("annotate", traj, "--cache", ann, "--backend", "oracle", "--history", 0, "--tasks",
               "action,summary,goal,plan")
@@ -125,8 +128,8 @@ def test_an_oracle_plugged_in_annotates_its_suite_through_the_oracle_backend(cor
         prompt = PromptBuilder(env_id=env_id, renderer="r@1", model="oracle", model_fingerprint="f",
                                history_len=0).render("action", record)
         assert prompt.candidates[lm.score([prompt.text], [list(prompt.candidates)])[0].best].strip() == best
-    with pytest.raises(UsageError, match="knows BabyAI, MiniGrid and Corridor only, not MiniHack-Room-5x5-v0"):
-        lm.check_use("MiniHack-Room-5x5-v0", "minihack-text@1")
+    with pytest.raises(UsageError, match="knows BabyAI, MiniGrid, Crafter, MiniHack and Corridor only, not ALE/Pong-v5"):
+        lm.check_use("ALE/Pong-v5", "atari-frames@1")
 
 
 def test_without_its_oracle_the_suite_is_refused_by_the_oracle_backend(monkeypatch, tmp_path):
@@ -136,5 +139,5 @@ def test_without_its_oracle_the_suite_is_refused_by_the_oracle_backend(monkeypat
         out = CliRunner().invoke(app, ["annotate", str(tmp_path / "traj"), "--cache", str(tmp_path / "ann"),
                                        "--backend", "oracle", "--history", "0"])
     assert out.exit_code == 1 and "Traceback" not in out.output
-    assert "the oracle backend knows BabyAI and MiniGrid only, not Corridor-Walk-v0" in out.output
+    assert "the oracle backend knows BabyAI, MiniGrid, Crafter and MiniHack only, not Corridor-Walk-v0" in out.output
     assert not (tmp_path / "ann" / "manifest.json").exists()

@@ -13,14 +13,16 @@ sentences in this order:
    world" outside the map.
 3. "You see <thing> <N> step(s) <direction>, ...": every kind of thing of interest in the 9x7 view,
    each named once by its nearest instance, nearest first. Things of interest are the creatures and
-   objects (zombie, skeleton, arrow, cow, plant, ripe plant) and the materials water, stone, coal, iron,
-   diamond, tree, lava, table and furnace; the ground (grass, sand, path) and the agent are not
-   described. N is the Manhattan distance (the moves needed on an open floor). <direction> is one
-   of the eight compass points: a diagonal one when the smaller of |dx|, |dy| is at least half the
-   larger, else the larger's axis ("a cow 4 steps east" for dx=3, dy=1). Ties in distance go by the
-   kind order of `_SIGHT_ORDER`; between instances of one kind, the faced one, else the
-   northern-most, then the western-most wins. The sentence is left out when nothing of interest is
-   in view.
+   objects (zombie, skeleton, arrow, cow, plant, ripe plant), the materials water, stone, coal, iron,
+   diamond, tree, lava, table and furnace, and the edge of the world (the cells past the map's
+   border, which the image shows grey: "the edge of the world 2 steps west", renderer version 2;
+   its nearest cell is straight along one axis, so the whole row or column from there on is out);
+   the ground (grass, sand, path) and the agent are not described. N is the Manhattan distance (the
+   moves needed on an open floor). <direction> is one of the eight compass points: a diagonal one
+   when the smaller of |dx|, |dy| is at least half the larger, else the larger's axis ("a cow 4
+   steps east" for dx=3, dy=1). Ties in distance go by the kind order of `_SIGHT_ORDER`; between
+   instances of one kind, the faced one, else the northern-most, then the western-most wins. The
+   sentence is left out when nothing of interest is in view.
 4. "You have 2 wood, 1 wood pickaxe": the inventory items with a count above 0 in crafter's item
    order (vitals excluded; saplings, diamonds, pickaxes and swords take a plural "s"), or "You have
    nothing".
@@ -49,7 +51,9 @@ from crafter import constants
 from illm_tools.errors import UsageError
 
 RENDERER_NAME = "crafter-text"
-RENDERER_VERSION = 1
+RENDERER_VERSION = 2
+"""1: no edge of the world in "You see"; 2: the nearest cell past the map's border is named there too
+(a player who cannot see the border walks into it and stays: the image shows it, the text did not)."""
 
 # Crafter's 17 actions (crafter.constants.actions), in its order, in words.
 _ACTION_WORDS = {
@@ -69,7 +73,7 @@ _MATERIALS = {
 _OBJECTS = {"Zombie": "a zombie", "Skeleton": "a skeleton", "Arrow": "an arrow", "Cow": "a cow", "Plant": "a plant"}
 # Kinds described by sentence 3, by name phrase; their order breaks ties in distance.
 _SIGHT_ORDER = ("a zombie", "a skeleton", "an arrow", "lava", "a cow", "a ripe plant", "a plant", "water",
-                "a tree", "stone", "coal", "iron", "a diamond", "a table", "a furnace")
+                "a tree", "stone", "coal", "iron", "a diamond", "a table", "a furnace", "the edge of the world")
 _SIGHT_RANK = {phrase: rank for rank, phrase in enumerate(_SIGHT_ORDER)}
 _COUNTABLE_ITEMS = ("sapling", "diamond", "wood_pickaxe", "stone_pickaxe", "iron_pickaxe", "wood_sword",
                     "stone_sword", "iron_sword")

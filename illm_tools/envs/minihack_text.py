@@ -11,8 +11,11 @@ contain commas, so a comma cannot separate phrases). Phrases, in this order:
    being strangled); "your hit points are low (<hp> of <max>)" when hit points are at most 5 or
    at most a seventh of the maximum (NetHack's own "low hit points" rule, the one prayer answers).
 3. What the map (`glyphs`; the agent stands at x = blstats[0], y = blstats[1]) shows, as
-   "<thing> <distance> <direction>", e.g. "a newt very near east", "lava adjacent east",
-   "2 boulders far northeast", "the staircase down very far east". Things are monsters (a pet is
+   "<thing> <distance> <direction> (<offset>)", e.g. "a newt very near east (2 east)", "lava
+   adjacent east (1 east)", "2 boulders far northeast (5 east, 3 north)", "the staircase down very
+   far east (11 east, 1 south)"; the offset is the nearest square's of the phrase, in squares east
+   or west and north or south (version 2: a band and a direction alone do not say where to step,
+   so neither a planner nor an LLM could walk to a thing more than a square away). Things are monsters (a pet is
    "a tame little dog", a remembered unseen monster "an unseen creature"), objects, corpses,
    statues and dungeon features: doorways, doors, stairs, ladders, altars, fountains, sinks,
    thrones, graves, trees, iron bars, water, lava, ice, drawbridges, traps, poison clouds. Walls,
@@ -35,11 +38,15 @@ contain commas, so a comma cannot separate phrases). Phrases, in this order:
      ("a pair of boots"); gems by colour ("a red gem", "a gray stone"); everything else by its
      fixed look or, when it has none, its name ("a boulder", "a horn", "a runed dagger"). Class
      names rather than looks keep the text the same across episodes.
+   - Offset: "<n> east" or "<n> west", then "<n> north" or "<n> south", each left out when 0.
    - Selection: at most 3 phrases per thing (its nearest), then at most 12 in all, chosen
      staircases and ladders down first (the goal of most MiniHack tasks), then monsters and
      objects, then the other features, nearer first within each; the chosen phrases are written
      nearest first, ties broken clockwise from north, then by name.
-4. "you carry <item>, <item>": NetHack's inventory lines (`inv_strs`) of what the agent carries
+4. "walls adjacent <direction>, <direction> and <direction>" ("a wall adjacent north" for one): the
+   agent's neighbouring squares that are walls (version 2: walls are otherwise not described, and
+   without them a step into one is the only way to learn where a room ends).
+5. "you carry <item>, <item>": NetHack's inventory lines (`inv_strs`) of what the agent carries
    beyond the starting kits of MiniHack's default characters (a rogue in navigation tasks: short
    sword, daggers, leather armor, potion of sickness, lock pick, sack, at times a blindfold; a
    caveman in skill tasks: club, sling, flint stones, rocks, leather armor; a kit item is a line
@@ -82,7 +89,7 @@ from nle import nethack  # no minihack import here: minihack's import warns (pkg
 from illm_tools.envs.minihack_glyphs import _Thing, _glyph_table, _noun_phrase
 
 RENDERER_NAME = "minihack-text"
-RENDERER_VERSION = 1
+RENDERER_VERSION = 2
 """Part of every annotation cache key: CHANGING THE RENDERED TEXT MUST BUMP IT."""
 
 OBS_KEYS: tuple[str, ...] = ("glyphs", "message", "blstats", "inv_strs")
@@ -260,6 +267,8 @@ class _Group:
     """Index into _DIRECTIONS."""
     distance: int
     """Of the group's nearest square."""
+    offset: tuple[int, int]
+    """(dx, dy) of the group's nearest square (the first met of equally near ones, in row order)."""
     count: int = 1
 
     def order(self) -> tuple[int, int, str]:
@@ -279,10 +288,12 @@ def _map_phrases(glyphs: np.ndarray, x: int, y: int) -> list[str]:
         heading = _heading(dx, dy)
         key = (thing.name, _distance_band(distance), heading)
         if key in groups:
-            groups[key].count += 1
-            groups[key].distance = min(groups[key].distance, distance)
+            group = groups[key]
+            group.count += 1
+            if distance < group.distance:
+                group.distance, group.offset = distance, (dx, dy)
         else:
-            groups[key] = _Group(thing, key[1], heading, distance)
+            groups[key] = _Group(thing, key[1], heading, distance, (dx, dy))
     per_thing: dict[str, int] = {}
     nearest = []
     for group in sorted(groups.values(), key=_Group.order):
@@ -290,8 +301,38 @@ def _map_phrases(glyphs: np.ndarray, x: int, y: int) -> list[str]:
         if per_thing[group.thing.name] <= _MAX_PHRASES_PER_THING:
             nearest.append(group)
     chosen = sorted(nearest, key=lambda g: (g.thing.tier, *g.order()))[:_MAX_MAP_PHRASES]
-    return [f"{_noun_phrase(g.thing, g.count)} {g.band} {_DIRECTIONS[g.heading]}"
+    return [f"{_noun_phrase(g.thing, g.count)} {g.band} {_DIRECTIONS[g.heading]} ({_offset(*g.offset)})"
             for g in sorted(chosen, key=_Group.order)]
+
+
+def _offset(dx: int, dy: int) -> str:
+    """(3, -1) -> "3 east, 1 north"; a zero part is left out."""
+    parts = [f"{abs(dx)} {'east' if dx > 0 else 'west'}" if dx else "",
+             f"{abs(dy)} {'south' if dy > 0 else 'north'}" if dy else ""]
+    return ", ".join(p for p in parts if p)
+
+
+_WALL_CMAP = range(1, 12)
+"""NetHack's defsyms 1-11: vertical and horizontal walls, the four corners, crosswall and T-walls."""
+_NEIGHBOURS = ((0, -1), (1, -1), (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1))
+"""(dx, dy) of the 8 neighbours, clockwise from north (the order of _DIRECTIONS)."""
+
+
+def _walls(glyphs: np.ndarray, x: int, y: int) -> list[str]:
+    """The "walls adjacent ..." phrase of the agent's neighbouring wall squares, clockwise from north."""
+    rows, cols = glyphs.shape
+    found = []
+    for heading, (dx, dy) in enumerate(_NEIGHBOURS):
+        col, row = x + dx, y + dy
+        if 0 <= row < rows and 0 <= col < cols:
+            glyph = int(glyphs[row, col])
+            if nethack.glyph_is_cmap(glyph) and nethack.glyph_to_cmap(glyph) in _WALL_CMAP:
+                found.append(_DIRECTIONS[heading])
+    if not found:
+        return []
+    if len(found) == 1:
+        return [f"a wall adjacent {found[0]}"]
+    return [f"walls adjacent {', '.join(found[:-1])} and {found[-1]}"]
 
 
 # ------------------------------------------------------------------------- message, status, items
@@ -339,14 +380,16 @@ def _carried(inv_strs: np.ndarray) -> list[str]:
 
 def describe(obs: dict) -> list[str]:
     """The MiniHack-Text phrases for one observation (a dict holding `OBS_KEYS`), in the order of
-    the module docstring: message, status, map (nearest first), inventory."""
+    the module docstring: message, status, map (nearest first), walls, inventory."""
     blstats = np.asarray(obs["blstats"])
     phrases = []
     message = _decode(obs["message"])
     if message:
         phrases.append(f"message: {message}")
     phrases += _status(blstats)
-    phrases += _map_phrases(obs["glyphs"], int(blstats[nethack.NLE_BL_X]), int(blstats[nethack.NLE_BL_Y]))
+    x, y = int(blstats[nethack.NLE_BL_X]), int(blstats[nethack.NLE_BL_Y])
+    phrases += _map_phrases(obs["glyphs"], x, y)
+    phrases += _walls(np.asarray(obs["glyphs"]), x, y)
     carried = _carried(obs["inv_strs"])
     if carried:
         phrases.append("you carry " + ", ".join(carried))

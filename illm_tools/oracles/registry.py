@@ -27,6 +27,8 @@ def _oracle_problem(cls) -> str | None:
 ORACLES: Registry = Registry("oracle", "illm.oracles", check=_oracle_problem)
 """Suite name -> its oracle's class; the families each one reads decide which answers a state."""
 ORACLES.register("babyai", "illm_tools.oracles.babyai:BabyAIOracle")
+ORACLES.register("crafter", "illm_tools.oracles.crafter:CrafterOracle")
+ORACLES.register("minihack", "illm_tools.oracles.minihack:MiniHackOracle")
 
 
 def _by_family() -> dict[str, str]:
