@@ -107,8 +107,9 @@ def test_training_on_cuda_runs_every_hook_and_tracks_the_cpu_run(tmp_path, metho
 
 
 def test_a_run_begun_on_a_gpu_resumes_on_the_devices_of_the_machine_it_resumes_on(tmp_path):
-    """A grid begun on a GPU machine records device "cuda"; resumed where no --device is given, the
-    run chooses its devices again (auto), so it resumes on a CPU machine instead of refusing to start.
+    """A grid begun on a GPU machine records device "cuda"; resumed where no --device is given on a
+    machine without one, the run chooses its devices again (auto), so it resumes on a CPU machine
+    instead of refusing to start; a recorded device the machine has is kept.
     A device given on resume still wins; a setting that changes what it learns is still refused."""
     from illm_tools.rl import TrainConfig
     from illm_tools.rl.build import resumed
@@ -122,5 +123,8 @@ def test_a_run_begun_on_a_gpu_resumes_on_the_devices_of_the_machine_it_resumes_o
     assert cfg.device == "auto" and cfg.llm.device is None and cfg.total_steps == 256
     assert cfg.resolved().device == ("cpu" if NO_GPU else "cuda")
     assert resumed(run, {"device": "cpu"}, ["device"]).device == "cpu"
+    on_cpu = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**on_cpu, "device": "cpu", "llm_device": "cpu"}))
+    assert resumed(run, {}, []).device == "cpu"  # a recorded device the machine has is kept
     with pytest.raises(UsageError, match="--seed"):
         resumed(run, {"seed": 7}, ["seed"])

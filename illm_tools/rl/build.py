@@ -22,9 +22,20 @@ AUTO_CHOICES = ("model_dtype", "quant", "action_space")
 """Settings a run resolves when it starts (`TrainConfig.resolved`) that a resumed run keeps: their
 `auto`, given again on resume, is the choice the run made, not a change."""
 MACHINE_CHOICES = ("device", "llm_device")
-"""Settings a run resolves when it starts that a resumed run makes again on the machine it resumes on
-when they are not given: the devices (a grid begun on a GPU machine resumes on a CPU one; the run's
-recorded "cuda" would there refuse to start). What the run learns does not depend on them."""
+"""Settings a run resolves when it starts that a resumed run chooses again when they are not given and
+the machine it resumes on lacks the recorded one (a grid begun on a GPU machine resumes on a CPU one:
+its recorded "cuda" would there refuse to start); a recorded device the machine has is kept (runs put
+on the CPU of a GPU machine stay there). What the run learns does not depend on them."""
+
+
+def _missing_here(device) -> bool:
+    """Whether `device` names a CUDA device this machine does not have."""
+    import torch
+
+    if not isinstance(device, str) or not device.startswith("cuda"):
+        return False
+    index = int(device[5:]) if ":" in device else 0
+    return index >= (torch.cuda.device_count() if torch.cuda.is_available() else 0)
 
 
 def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None, *,
@@ -65,7 +76,7 @@ def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) 
     """The TrainConfig of a resumed run: its own settings from its config.json, with the `given`
     ones of `settings` applied where a resumed run may change them (RESUMABLE_CHANGES: --frames,
     --live-budget, threads, ...; the folder may have moved) and its devices chosen again where not
-    given (MACHINE_CHOICES). Any other given setting that differs
+    given and this machine lacks them (MACHINE_CHOICES). Any other given setting that differs
     from the run's is refused in one line naming its option."""
     from illm_tools.rl.config import RESUMABLE_CHANGES
     from illm_tools.rl.saved import read_run
@@ -73,7 +84,7 @@ def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) 
     own = {**read_run(run_dir).settings, "run_dir": str(run_dir), "resume": True}  # the folder may have moved
     stored = TrainConfig.from_dict(own).flat()
     unset = TrainConfig().flat()
-    changes = {**{k: unset[k] for k in MACHINE_CHOICES if k not in given},
+    changes = {**{k: unset[k] for k in MACHINE_CHOICES if k not in given and _missing_here(stored.get(k))},
                **{k: settings[k] for k in given if k in settings
                   and not (k in AUTO_CHOICES and settings[k] in ("auto", None))}}
     cfg = TrainConfig.from_dict({**stored, **changes})
