@@ -23,8 +23,8 @@ class LLMSpec:
     """The LLM a stage loads (see the module docstring)."""
 
     backend: str = "transformers"
-    """LLM backend: transformers | oracle (a rule-based annotator that knows BabyAI/MiniGrid: the positive
-    control) | openai (an OpenAI-compatible server: vLLM, ...; with --endpoint) | stub (deterministic
+    """LLM backend: transformers | oracle (rule-based annotators that know BabyAI/MiniGrid, MiniHack and
+    Crafter: the positive control) | openai (an OpenAI-compatible server: vLLM, ...; with --endpoint) | stub (deterministic
     answers from the prompt, no weights; for tests)."""
     model: str | None = None
     """Alias (see `illm models`), hub id or local folder; default: the backend's (smollm2-135m for
