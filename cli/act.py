@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import emit_json, progress
+from cli.common import progress, save_figures
 from cli.errors import friendly
 
 EXAMPLE = ("Example: illm act --env MiniHack-Room-5x5-v0 --backend oracle --episodes 100  |  "
@@ -43,8 +43,6 @@ def register(app: typer.Typer) -> None:
         Each state is prompted as `illm annotate` prompts it; the best-scored action is taken (ties at
         random). Per policy: success rate with its 95% interval, mean return and length, and the suite's
         own figures (Crafter: score and each achievement's rate)."""
-        import json
-
         from cli.options import config_from_options
         from illm_tools.acting import POLICIES, ActConfig, act as run
         from illm_tools.settings import check_new_file
@@ -55,13 +53,7 @@ def register(app: typer.Typer) -> None:
         with progress(len(POLICIES) * config.episodes, f"act {config.llm.model or config.llm.backend}",
                       unit="episodes") as advance:
             figures = run(config, on_episode=lambda _policy, _done, _total: advance(1))
-        if out is not None:  # written whole or not at all
-            from illm_tools import durable
-
-            out.parent.mkdir(parents=True, exist_ok=True)
-            durable.write_text(out, json.dumps(figures, indent=2, sort_keys=True) + "\n")
-        if as_json:
-            emit_json(figures)
+        if save_figures(figures, out, as_json):
             return
         c = figures["config"]
         typer.echo(f"act {c['model']} ({c['backend']} backend) on {c['env_id']}: {c['episodes']} episodes a policy "

@@ -130,3 +130,18 @@ def score_text(value: float | None) -> str:
 def counted(n: int, word: str, plural: str | None = None) -> str:
     """ "1 shard", "2 shards", "1,024 runs": a count and its noun."""
     return f"{n:,} {word if n == 1 else plural or word + 's'}"
+
+
+def save_figures(figures: dict, out, as_json: bool) -> bool:
+    """A measuring command's figures written to `out` as JSON (whole or not at all; None: not written)
+    and, with --json, printed; True when printed (the command prints nothing else)."""
+    import json
+
+    if out is not None:
+        from illm_tools import durable
+
+        out.parent.mkdir(parents=True, exist_ok=True)
+        durable.write_text(out, json.dumps(figures, indent=2, sort_keys=True) + "\n")
+    if as_json:
+        emit_json(figures)
+    return as_json

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from cli.common import emit_json, progress
+from cli.common import progress, save_figures
 from cli.errors import friendly
 
 
@@ -34,8 +34,6 @@ def register(app: typer.Typer) -> None:
         Per calibration (sum, mean, pmi): agreement with the bot, against always choosing the expert's
         most frequent action; mutual information between state and ranking; log-loss; pairwise
         AUROC."""
-        import json
-
         from cli.options import config_from_options
         from illm_tools.probe import ProbeConfig, probe as run
 
@@ -55,13 +53,7 @@ def register(app: typer.Typer) -> None:
 
             result = run(config, on_progress=on_progress)
         figures = result.to_dict()
-        if out is not None:  # written whole or not at all
-            from illm_tools import durable
-
-            out.parent.mkdir(parents=True, exist_ok=True)
-            durable.write_text(out, json.dumps(figures, indent=2, sort_keys=True) + "\n")
-        if as_json:
-            emit_json(figures)
+        if save_figures(figures, out, as_json):
             return
         b = result.baselines
         resolved, quant = result.config["dtype"], result.config.get("quant", quant)  # as the probe resolved them

@@ -49,6 +49,7 @@ from typing import Any
 from crafter import constants
 
 from illm_tools.errors import UsageError
+from illm_tools.oracles.crafter_reading import direction as _direction  # one rule for the text and its reader
 
 RENDERER_NAME = "crafter-text"
 RENDERER_VERSION = 2
@@ -90,14 +91,6 @@ def _view_offsets(width: int, height: int, facing: tuple[int, int]) -> tuple[tup
     return tuple((dist, dx, dy) for dist, _, dy, dx in sorted(cells) if dist)
 
 
-def _direction(dx: int, dy: int) -> str:
-    """The compass point of an offset (dy > 0 is south); diagonal when the smaller side is at least
-    half the larger."""
-    north_south = "north" if dy < 0 else "south"
-    east_west = "east" if dx > 0 else "west"
-    if 2 * min(abs(dx), abs(dy)) >= max(abs(dx), abs(dy)):
-        return f"{north_south}-{east_west}"
-    return east_west if abs(dx) > abs(dy) else north_south
 
 
 def _object(obj: Any) -> str:

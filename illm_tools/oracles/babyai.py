@@ -15,28 +15,18 @@ from __future__ import annotations
 
 import random
 
-from illm_tools.oracles.babyai_planner import COLOURS, GAMES, MOVES, PLANNER_VERSION, Planner, plan_text, summary_text
-from illm_tools.oracles.base import Oracle, Scene
+from illm_tools.oracles.babyai_planner import COLOURS, GAMES, MOVES, PLANNER_VERSION, Planner, summary_text
+from illm_tools.oracles.base import PlannerOracle, Scene
 
 
-class BabyAIOracle(Oracle):
+class BabyAIOracle(PlannerOracle):
     """BabyAI's and MiniGrid's oracle (see the module docstring); one planner, memoised per state."""
 
     families = GAMES
     version = f"planner@{PLANNER_VERSION}"
+    planner_class = Planner
 
-    def __init__(self) -> None:
-        self.planner = Planner()
-
-    def costs(self, scene: Scene) -> dict[str, float]:
-        return self.planner.answer(scene).costs
-
-    def text(self, scene: Scene, task: str) -> str:
-        answer = self.planner.answer(scene)
-        if task == "goal":
-            return answer.goal
-        if task == "plan":
-            return plan_text(answer)
+    def summary(self, scene: Scene, answer) -> str:
         return summary_text(scene, answer)
 
     def random_text(self, scene: Scene, task: str, rng: random.Random) -> str:

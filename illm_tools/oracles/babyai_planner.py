@@ -370,7 +370,3 @@ def _runs(words: list[str]) -> list[str]:
             out.append(w if count == 1 else f"{w} twice" if count == 2 else f"{w} {count} times")
             count = 0
     return out
-
-
-def plan_text(answer: Answer) -> str:
-    return ", ".join(answer.plan) if answer.plan else "look around"

@@ -111,3 +111,30 @@ class Oracle(ABC):
     @abstractmethod
     def random_text(self, scene: Scene, task: str, rng: random.Random) -> str:
         """A random answer of the task's grammar drawn from `rng` alone (`--oracle-noise`'s share)."""
+
+
+class PlannerOracle(Oracle):
+    """An oracle whose answers are one planner's: `planner_class()` made once, its `answer(scene)`
+    (memoised per state by the planner) holding `costs`, `goal` and `plan` (the next actions' names).
+    The goal and plan tasks are those, the plan joined with ", " ("look around" when empty); the
+    summary is the oracle's own (`summary`). The three suites' oracles share this shape."""
+
+    planner_class: ClassVar[type]
+
+    def __init__(self) -> None:
+        self.planner = self.planner_class()
+
+    def costs(self, scene: Scene) -> dict[str, float]:
+        return self.planner.answer(scene).costs
+
+    def text(self, scene: Scene, task: str) -> str:
+        answer = self.planner.answer(scene)
+        if task == "goal":
+            return answer.goal
+        if task == "plan":
+            return ", ".join(answer.plan) if answer.plan else "look around"
+        return self.summary(scene, answer)
+
+    @abstractmethod
+    def summary(self, scene: Scene, answer) -> str:
+        """The summary task's answer, one fact a sentence, from the planner's answer."""

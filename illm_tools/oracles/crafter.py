@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import random
 
-from illm_tools.oracles.base import Oracle, Scene
+from illm_tools.oracles.base import PlannerOracle, Scene
 from illm_tools.oracles.crafter_planner import PLANNER_VERSION, STRIKES, TOOLS, Answer, Planner, make_text
 from illm_tools.oracles.crafter_reading import ACTIONS, FACE_PHRASES, ITEMS, KINDS, Seen, View, candidates, parse_view
 
@@ -25,24 +25,14 @@ _LOW = 3
 """A vital at or below this is said to be low."""
 
 
-class CrafterOracle(Oracle):
+class CrafterOracle(PlannerOracle):
     """Crafter's oracle (see the module docstring); one planner, memoised per state."""
 
     families = ("Crafter",)
     version = f"crafter-planner@{PLANNER_VERSION}"
+    planner_class = Planner
 
-    def __init__(self) -> None:
-        self.planner = Planner()
-
-    def costs(self, scene: Scene) -> dict[str, float]:
-        return self.planner.answer(scene).costs
-
-    def text(self, scene: Scene, task: str) -> str:
-        answer = self.planner.answer(scene)
-        if task == "goal":
-            return answer.goal
-        if task == "plan":
-            return ", ".join(answer.plan) if answer.plan else "look around"
+    def summary(self, scene: Scene, answer: Answer) -> str:
         return summary_text(parse_view(scene.observation), answer)
 
     def random_text(self, scene: Scene, task: str, rng: random.Random) -> str:

@@ -62,7 +62,8 @@ Cell = tuple[int, int]
 
 
 def direction(dx: int, dy: int) -> str:
-    """The renderer's compass point of an offset (crafter_text._direction)."""
+    """The compass point of an offset (dy > 0 is south): diagonal when the smaller side is at least half
+    the larger. The renderer writes with it (`illm_tools.envs.crafter_text`), the oracle reads with it."""
     north_south = "north" if dy < 0 else "south"
     east_west = "east" if dx > 0 else "west"
     if 2 * min(abs(dx), abs(dy)) >= max(abs(dx), abs(dy)):

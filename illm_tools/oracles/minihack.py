@@ -39,7 +39,7 @@ import random
 import re
 from dataclasses import dataclass
 
-from illm_tools.oracles.base import Oracle, Scene
+from illm_tools.oracles.base import PlannerOracle, Scene
 from illm_tools.oracles.minihack_reading import (DIRECTIONS, KEYS, LEVITATION_ITEMS, STAIRS, View,
                                                  is_hostile_monster, read_view)
 
@@ -287,24 +287,14 @@ def summary_text(scene: Scene, answer: Answer) -> str:
     return " ".join(parts)
 
 
-class MiniHackOracle(Oracle):
+class MiniHackOracle(PlannerOracle):
     """MiniHack's oracle (see the module docstring)."""
 
     families = ("MiniHack",)
     version = f"minihack-planner@{PLANNER_VERSION}"
+    planner_class = Planner
 
-    def __init__(self) -> None:
-        self.planner = Planner()
-
-    def costs(self, scene: Scene) -> dict[str, float]:
-        return self.planner.answer(scene).costs
-
-    def text(self, scene: Scene, task: str) -> str:
-        answer = self.planner.answer(scene)
-        if task == "goal":
-            return answer.goal
-        if task == "plan":
-            return ", ".join(answer.plan)
+    def summary(self, scene: Scene, answer: Answer) -> str:
         return summary_text(scene, answer)
 
     def random_text(self, scene: Scene, task: str, rng: random.Random) -> str:
