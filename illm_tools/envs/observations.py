@@ -163,9 +163,33 @@ class GlyphsObservation(Observation):
                              nn.Linear(hidden, out))
 
 
+class _Codes(nn.Module):
+    """Each byte of a flat uint8 array as a code through a 4-wide learned embedding, flattened."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.codes = nn.Embedding(256, 4)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.codes(x.long().clamp(0, 255)).flatten(1)
+
+
+class CellsObservation(Observation):
+    """A flat uint8 array of named parts (`ObsSpec.parts`), every byte a code: 2-D parts are grids
+    of cells (Crafter's semantic view: each cell's material and object), 1-D parts codes or counts
+    (its inventory, the daylight). The rows as they are for RND; encoded through a 4-wide learned
+    embedding of each byte into an MLP, as the glyphs are."""
+
+    kind = "cells"
+
+    def encoder(self, hidden: int, out: int) -> nn.Module:
+        return nn.Sequential(_Codes(), nn.Linear(4 * int(np.prod(self.shape)), hidden), nn.ReLU(),
+                             nn.Linear(hidden, out))
+
+
 OBSERVATIONS: Registry = Registry("observation kind", "illm.observations", check=Observation, instance=False)
 """Observation kind (`ObsSpec.kind`) -> its `Observation` class, the default adapter of a suite."""
-for _cls in (GridObservation, FramesObservation, ImageObservation, GlyphsObservation):
+for _cls in (GridObservation, FramesObservation, ImageObservation, GlyphsObservation, CellsObservation):
     OBSERVATIONS.register(_cls.kind, _cls)
 
 
