@@ -38,7 +38,7 @@ def _line(name: str, r: dict) -> str:
 
 def register(app: typer.Typer) -> None:
     def act(**options) -> None:
-        """Play episodes acting greedily on an annotator's next-action ranking, beside a random policy.
+        """Play episodes greedily on an annotator's action ranking, beside a random policy.
 
         Each state is prompted as `illm annotate` prompts it; the best-scored action is taken (ties at
         random). Per policy: success rate with its 95% interval, mean return and length, and the suite's

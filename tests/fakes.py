@@ -158,7 +158,7 @@ def one_update_seen(trainer, monkeypatch) -> SimpleNamespace:
         logged = trainer.train_one_update()
     cfg, ro, nxt = trainer.cfg, seen["ro"], seen["next"]
     kw = dict(gamma=cfg.ppo.gamma, int_gamma=cfg.bonus.int_gamma, lam=cfg.ppo.gae_lambda, ext_coef=cfg.bonus.ext_coef,
-              int_coef=cfg.bonus.int_coef, int_episodic=cfg.bonus.int_episodic)
+              int_coef=cfg.bonus.int_coef, int_episodic=cfg.bonus.int_episodic, int_ext_cap=cfg.bonus.int_ext_cap)
     return SimpleNamespace(logged=logged, ro=ro, adv=seen["adv"], bonus=seen["bonus"].reward, next=nxt,
                            expected=two_stream_advantages(ro, seen["bonus"].reward, nxt.value_ext, nxt.value_int, **kw),
                            without=two_stream_advantages(ro, None, nxt.value_ext, nxt.value_int, **kw))
