@@ -19,8 +19,8 @@ import pytest
 from nle import nethack
 from nle.env.base import NLE
 
-from illm_tools.envs.minihack_text import (OBS_KEYS, RENDERER_VERSION, TASKS, action_names, describe, mission,
-                                           render_text)
+from illm_tools.envs.minihack_actions import action_names
+from illm_tools.envs.minihack_text import OBS_KEYS, RENDERER_VERSION, TASKS, describe, mission, render_text
 
 RESET_TEXTS = {
     "River-Monster": ('message: Be careful! New moon tonight.; '

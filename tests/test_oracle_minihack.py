@@ -9,7 +9,8 @@ import pytest
 from nle import nethack
 
 from illm_tools.envs import make_env
-from illm_tools.envs.minihack_text import _DIRECTIONS, action_names
+from illm_tools.envs.minihack_actions import action_names
+from illm_tools.envs.minihack_text import _DIRECTIONS
 from illm_tools.oracles.base import Scene
 from illm_tools.oracles.minihack import DEADLY, MiniHackOracle
 from illm_tools.oracles.minihack_reading import DIRECTIONS, KEYS, read_view

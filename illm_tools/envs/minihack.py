@@ -48,11 +48,12 @@ class MiniHackTextEnv(gym.Wrapper):
 
     def __init__(self, env: gym.Env, env_id: str, render_text: bool = True):
         from illm_tools.envs import minihack_text
+        from illm_tools.envs.minihack_actions import action_names
 
         super().__init__(env)
         self.render_text = render_text
         self.mission = minihack_text.mission(env_id)
-        self.action_names: tuple[str, ...] = minihack_text.action_names(env.unwrapped.actions)
+        self.action_names: tuple[str, ...] = action_names(env.unwrapped.actions)
         self._render = minihack_text.render_text
 
     def _info(self, obs: dict, info: dict) -> dict:

@@ -1,5 +1,5 @@
 """MiniHack-Text: the text illm writes for a MiniHack (NetHack Learning Environment) observation,
-the missions of the paper's MiniHack tasks, and readable names for NLE's actions.
+and the missions of the paper's MiniHack tasks (readable names for NLE's actions: `minihack_actions`).
 
 The text is `describe`'s phrases joined with "; " (NetHack's messages and the inventory list
 contain commas, so a comma cannot separate phrases). Phrases, in this order:
@@ -77,10 +77,8 @@ serve annotations of other texts.
 """
 from __future__ import annotations
 
-import enum
 import math
 import re
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -145,94 +143,6 @@ def mission(env_id: str) -> str:
     """The goal of a MiniHack task in one short phrase, for LLM prompts; "reach the staircase down"
     (MiniHack's default goal) for tasks without a more specific one."""
     return next((text for prefix, text in _MISSIONS if env_id.startswith(prefix)), _DEFAULT_MISSION)
-
-
-# ---------------------------------------------------------------------------------------- actions
-
-_COMPASS = {"N": "north", "NE": "northeast", "E": "east", "SE": "southeast", "S": "south",
-            "SW": "southwest", "W": "west", "NW": "northwest"}
-_TYPED = {"PLUS": "plus sign", "MINUS": "minus sign", "SPACE": "space", "APOS": "apostrophe",
-          "QUOTE": "quotation mark", "DOLLAR": "dollar sign"}
-# (enum class, member) -> name; members missing here are named after themselves ("apply", "kick").
-_ACTION_NAMES = {
-    ("MiscDirection", "UP"): "go up the stairs",
-    ("MiscDirection", "DOWN"): "go down the stairs",
-    ("MiscDirection", "WAIT"): "wait",
-    ("MiscAction", "MORE"): "next message",
-    ("Command", "EXTCMD"): "extended command",
-    ("Command", "EXTLIST"): "list extended commands",
-    ("Command", "ADJUST"): "adjust inventory letters",
-    ("Command", "ANNOTATE"): "annotate level",
-    ("Command", "ATTRIBUTES"): "show attributes",
-    ("Command", "AUTOPICKUP"): "toggle autopickup",
-    ("Command", "CALL"): "call (name)",
-    ("Command", "CAST"): "cast a spell",
-    ("Command", "CLOSE"): "close a door",
-    ("Command", "CONDUCT"): "show conduct",
-    ("Command", "DROPTYPE"): "drop several",
-    ("Command", "ENHANCE"): "enhance skills",
-    ("Command", "ESC"): "escape",
-    ("Command", "FORCE"): "force a lock",
-    ("Command", "GLANCE"): "glance at a symbol",
-    ("Command", "HISTORY"): "show history",
-    ("Command", "INVENTORY"): "show inventory",
-    ("Command", "INVENTTYPE"): "show inventory of one kind",
-    ("Command", "KNOWN"): "show discoveries",
-    ("Command", "KNOWNCLASS"): "show discoveries of one class",
-    ("Command", "LOOK"): "look here",
-    ("Command", "MONSTER"): "use monster ability",
-    ("Command", "MOVE"): "move without picking up",
-    ("Command", "MOVEFAR"): "run without picking up",
-    ("Command", "OFFER"): "offer a sacrifice",
-    ("Command", "OPEN"): "open a door",
-    ("Command", "OVERVIEW"): "dungeon overview",
-    ("Command", "PICKUP"): "pick up",
-    ("Command", "PUTON"): "put on",
-    ("Command", "QUAFF"): "drink (quaff)",
-    ("Command", "QUIVER"): "fill quiver",
-    ("Command", "REDRAW"): "redraw screen",
-    ("Command", "REMOVE"): "remove an accessory",
-    ("Command", "RUSH2"): "rush (alternative)",
-    ("Command", "SEEALL"): "show equipment in use",
-    ("Command", "SEEAMULET"): "show amulet",
-    ("Command", "SEEARMOR"): "show armor",
-    ("Command", "SEEGOLD"): "count gold",
-    ("Command", "SEERINGS"): "show rings",
-    ("Command", "SEESPELLS"): "show spells",
-    ("Command", "SEETOOLS"): "show tools in use",
-    ("Command", "SEETRAP"): "show adjacent trap",
-    ("Command", "SEEWEAPON"): "show weapon",
-    ("Command", "SWAP"): "swap weapons",
-    ("Command", "TAKEOFF"): "take off",
-    ("Command", "TAKEOFFALL"): "take off all armor",
-    ("Command", "TIP"): "tip a container",
-    ("Command", "TURN"): "turn undead",
-    ("Command", "TWOWEAPON"): "toggle two-weapon combat",
-    ("Command", "VERSION"): "show version",
-    ("Command", "VERSIONSHORT"): "show short version",
-    ("Command", "WHATDOES"): "what does a key do",
-    ("Command", "WHATIS"): "what is a symbol",
-    ("Command", "WIPE"): "wipe face",
-}
-
-
-def _action_name(action: enum.Enum) -> str:
-    kind, name = type(action).__name__, action.name
-    if kind == "CompassDirection":
-        return f"move {_COMPASS[name]}"
-    if kind == "CompassDirectionLonger":  # Shift + direction: run until something interesting
-        return f"run {_COMPASS[name]}"
-    if kind == "TextCharacters":
-        return f"type {_TYPED.get(name, name.removeprefix('NUM_'))}"
-    return _ACTION_NAMES.get((kind, name), name.lower().replace("_", " "))
-
-
-def action_names(actions: Sequence[enum.Enum]) -> tuple[str, ...]:
-    """Readable lower-case names of an env's actions (`env.unwrapped.actions`, NLE enum members),
-    in order: "move north", "run northeast", "pick up", "put on", "drink (quaff)", "apply", ...
-    Distinct members get distinct names: members are told apart by enum class as well as value
-    (TextCharacters.PLUS is "type plus sign", Command.SEESPELLS, the same key, "show spells")."""
-    return tuple(_action_name(action) for action in actions)
 
 
 # ------------------------------------------------------------------------------------ map things

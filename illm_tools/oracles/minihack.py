@@ -40,8 +40,8 @@ import re
 from dataclasses import dataclass
 
 from illm_tools.oracles.base import PlannerOracle, Scene
-from illm_tools.oracles.minihack_reading import (DIRECTIONS, KEYS, LEVITATION_ITEMS, STAIRS, View,
-                                                 is_hostile_monster, read_view)
+from illm_tools.oracles.minihack_reading import (DIRECTIONS, KEYS, LEVITATION_ITEMS, STAIRS, Seen,
+                                                 View, is_hostile_monster, read_view)
 
 PLANNER_VERSION = 1
 """CHANGING ANY ANSWER THE PLANNER GIVES MUST BUMP IT (the oracle backend's fingerprint names it)."""
@@ -62,8 +62,10 @@ class Answer:
     costs: dict[str, float]
     goal: str
     plan: list[str]
-    target: str | None = None
-    """What it walks to, as the text named it ("staircase down"), if anything."""
+    view: View
+    """The observation it answered, read."""
+    target: Seen | None = None
+    """What it walks to, as the text named it, if anything."""
 
 
 def _sign(v: int) -> int:
@@ -107,12 +109,10 @@ class Planner:
         step = _prompt_answer(view, actions) or self._item_step(scene, view, actions)
         if step is not None:  # one action does the step at hand
             action, goal = step
-            return Answer(_costs(actions, view, None, best=action), goal, [action])
+            return Answer(_costs(actions, view, None, best=action), goal, [action], view)
         target, goal = self._target(scene, view)
-        plan = _walk(view, target)
-        if _in_doorway(scene):
-            view.message += " You can't move diagonally out of an intact doorway."  # what a diagonal step would say
-        return Answer(_costs(actions, view, target), goal, plan, target.name if target else None)
+        view.no_diagonal = view.no_diagonal or _in_doorway(scene, view)
+        return Answer(_costs(actions, view, target), goal, _walk(view, target), view, target)
 
     @staticmethod
     def _item_step(scene: Scene, view: View, actions: tuple[str, ...]) -> tuple[str, str] | None:
@@ -170,16 +170,16 @@ def _way_on(doors: list, view: View, history) -> object:
     return (ahead or doors)[0]
 
 
-def _in_doorway(scene: Scene) -> bool:
+def _in_doorway(scene: Scene, view: View) -> bool:
     """Whether the agent stands in a doorway: its last move took it onto the square where the
-    observation before showed a door (a move the message did not say failed)."""
+    observation before showed a door (a move the message, `view`'s, did not say failed)."""
     if not scene.history:
         return False
     before, action = scene.history[-1]
     if not action.startswith("move ") or action[5:] not in DIRECTIONS:
         return False
     d = DIRECTIONS[action[5:]]
-    if any(w in read_view(scene.observation).message for w in ("You can't", "It's a wall", "resists", "locked")):
+    if any(w in view.message for w in ("You can't", "It's a wall", "resists", "locked")):
         return False
     return any((s.dx, s.dy) == d and s.name in DOORS for s in read_view(before).seen)
 
@@ -224,7 +224,7 @@ def _blocked(view: View, d: tuple[int, int]) -> float:
     here = [s for s in view.seen if (s.dx, s.dy) == d]
     if not view.levitating and any(s.name in ("lava", "water") for s in here):
         return DEADLY
-    if "diagonally" in view.message and d[0] and d[1]:
+    if view.no_diagonal and d[0] and d[1]:
         return 1.0
     return 0.0
 
@@ -274,9 +274,9 @@ def _walk(view: View, target, steps: int = 5) -> list[str]:
 
 def summary_text(scene: Scene, answer: Answer) -> str:
     """One fact a sentence: the step at hand, where its target is, being levitating, what is carried."""
-    view = read_view(scene.observation)
+    view = answer.view  # the target's nearest phrase of its name (a door chosen farther is named by the nearest)
+    target = next((s for s in view.seen if answer.target is not None and s.name == answer.target.name), None)
     parts = [f"The agent must {answer.goal.split(', ')[0]}."]
-    target = next((s for s in view.seen if s.name == answer.target), None)
     if target is not None:
         parts.append(f"The {target.name} is {_dist(target.dx, target.dy)} steps away.")
     else:

@@ -62,7 +62,9 @@ class View:
 
     message: str = ""
     levitating: bool = False
-    low_hp: bool = False
+    no_diagonal: bool = False
+    """A doorway forbids a diagonal step: the message said so ("You can't move diagonally out of an
+    intact doorway."), or the planner knows the agent stands in one (`minihack._in_doorway`)."""
     seen: list[Seen] = field(default_factory=list)
     walls: set[tuple[int, int]] = field(default_factory=set)
     """Offsets of the neighbouring wall squares."""
@@ -108,10 +110,9 @@ def read_view(text: str) -> View:
     for phrase in text.split("; "):
         if phrase.startswith("message: "):
             view.message = phrase[len("message: "):]
+            view.no_diagonal = "diagonally" in view.message
         elif phrase.startswith("you are "):
             view.levitating = "levitating" in phrase or "flying" in phrase
-        elif phrase.startswith("your hit points are low"):
-            view.low_hp = True
         elif phrase.startswith("you carry "):
             view.carried = phrase[len("you carry "):]
         elif phrase.startswith(("walls adjacent ", "a wall adjacent ")):
