@@ -14,7 +14,7 @@ Sources (docs/results/, written by `illm report`):
 - oracle/probes/GoToLocal-MODEL.json (`illm probe --out`): the prior probe's table, one row per model
   and calibration, its baselines from the same file;
 - seeds-candidate/results.json and seeds-candidate-report/results.json: the default since issue 71 (cap 1)
-  per level, README's `default` block;
+  per level, docs/experiments/suite.md's `default` block;
 - oracle/acting/ENV.json (`illm act --out`): the oracles acting on their own rankings, one row per env
   (docs/experiments/oracle-acting.md's `acting` block).
 
@@ -45,6 +45,7 @@ RESULTS = ROOT / "docs" / "results"
 README = ROOT / "README.md"
 PROBE_PAGE = ROOT / "docs" / "experiments" / "prior-probe.md"
 ACTING_PAGE = ROOT / "docs" / "experiments" / "oracle-acting.md"
+SUITE_PAGE = ROOT / "docs" / "experiments" / "suite.md"
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 PROBE_MODELS = (("SmolLM2-135M", "smollm2-135m"), ("Gemma-3-270M", "gemma3-270m"))
 """The prior probe's rows: the name a page prints, and the file's model (oracle/probes/GoToLocal-MODEL.json)."""
@@ -188,7 +189,7 @@ def render_default() -> str:
 def blocks() -> dict:
     """Each rendered block: name -> (the page, the block's rendering)."""
     return {"results": (README, render), "probe": (PROBE_PAGE, render_probe), "acting": (ACTING_PAGE, render_acting),
-            "default": (README, render_default)}
+            "default": (SUITE_PAGE, render_default)}
 
 
 def splice(text: str, block: str, name: str = "results") -> str:

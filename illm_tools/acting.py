@@ -128,7 +128,10 @@ class RankingPolicy:
     with random tie-breaks. Its scores are memoised per state (an episode often comes back to one)."""
 
     def __init__(self, lm, builder, calibration: str):
+        from illm_tools.probe import action_annotator
+
         self.lm, self.builder, self.calibration = lm, builder, calibration
+        self.annotator = action_annotator(lm, builder)  # once: the policy scores a state every step
         self.memo: dict[StateRecord, np.ndarray] = {}
 
     def __call__(self, record: StateRecord, rng: np.random.Generator) -> int:
@@ -136,7 +139,7 @@ class RankingPolicy:
 
         scores = self.memo.get(record)
         if scores is None:
-            sums, counts, neutral = score_records(self.lm, self.builder, [record])
+            sums, counts, neutral = score_records(self.lm, self.builder, [record], annotator=self.annotator)
             scores = self.memo[record] = action_scores(sums, counts, neutral, self.calibration)[0]
         best = np.flatnonzero(scores >= scores.max() - 1e-9)
         return int(rng.choice(best))

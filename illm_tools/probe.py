@@ -207,19 +207,27 @@ class ProbeResult:
         return {**self.__dict__, "actions": list(self.actions), "best": self.best}
 
 
+def action_annotator(lm, builder, batch_size: int = 8):
+    """The annotation engine scoring the action task of `builder`'s setup with `lm`, no cache."""
+    from illm_tools.annotate.engine import Annotator
+
+    return Annotator(lm, None, model=builder.model, tasks=("action",), history_len=builder.history_len,
+                     layout=builder.layout, batch_size=batch_size)
+
+
 def score_records(lm, builder, records, *, batch_size: int = 8, chunk: int = 64,
-                  on_progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  on_progress: Callable[[int, int], None] | None = None,
+                  annotator=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The action task's raw scores of these states, computed by the annotation engine itself
     (`Annotator.annotate`, no cache: the rows `illm annotate` would write), each distinct record
     once. Returns per record the summed log-probs [N, A], token counts [N, A] and neutral-prompt
     sums [N, A]; `on_progress(done, total)` after each chunk of distinct states. States go to the
     engine `chunk` at a time, as the annotator's chunks of 64 do: the backend batches by length
     within a call, and in bfloat16 a different batching moves scores by rounding (a near tie can
-    flip)."""
-    from illm_tools.annotate.engine import Annotator, Job
+    flip). `annotator`: an `action_annotator` made once by a caller that scores state after state."""
+    from illm_tools.annotate.engine import Job
 
-    annotator = Annotator(lm, None, model=builder.model, tasks=("action",), history_len=builder.history_len,
-                          layout=builder.layout, batch_size=batch_size)
+    annotator = annotator or action_annotator(lm, builder, batch_size)
     distinct = list(dict.fromkeys(records))
     rows: list[dict] = []
     for i in range(0, len(distinct), chunk):
