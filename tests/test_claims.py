@@ -125,3 +125,74 @@ def test_a_series_is_quoted_by_its_ends_only(tmp_path):
     held = numbers.values(path)
     assert {"0.111", "0.666", "0.777", "0.888", "0.999"} <= held
     assert not {"0.222", "0.333", "0.444", "0.555"} & held
+
+
+refs = _docs_module("refs")
+REF_PAGES = ["docs/index.md", "docs/experiments/suite.md", "docs/experiments/tables.md", "docs/measured.md",
+             "docs/concepts/fidelity.md"]
+
+
+def test_every_referenced_number_is_the_field_it_names():
+    found = [line for page in refs.pages() for line in refs.check(page)]
+    assert not found, "\n".join(found[:5])
+    assert refs.main(["--check"]) == 0
+
+
+def _one_digit_off(number: str) -> str:
+    """`number` with its last digit changed by one (9 -> 8)."""
+    i = max(i for i, c in enumerate(number) if c.isdigit())
+    return number[:i] + str((int(number[i]) + 1) % 10 if number[i] != "9" else 8) + number[i + 1:]
+
+
+@pytest.mark.parametrize("page", REF_PAGES)
+def test_a_referenced_number_edited_by_one_digit_fails_on_each_kind_of_page(page):
+    """Every kind of page: the site's front page, an experiment's, the measured figures, a concept's.
+    Eight references spread over each page, each edited alone in its last digit."""
+    path = ROOT / page
+    text = path.read_text()
+    matches = list(refs.REF.finditer(text))
+    assert matches and not refs.check(path, text)
+    for match in matches[::max(1, len(matches) // 8)][:8]:
+        shown = match.group(1)
+        head = shown.split(" [")[0]
+        edited = text[:match.start()] + _one_digit_off(head) + shown[len(head):] + text[match.end(1):]
+        (line,) = refs.check(path, edited)
+        assert page in line and f"holds {shown}" in line
+
+
+def test_a_reference_that_names_no_field_fails_in_one_line(tmp_path):
+    page = ROOT / "docs" / "experiments" / "suite.md"
+    text = "illm 0.901 [0.767, 0.953]<!--= suite-report/results.json aggregate.rows[label=illm-typo].iqm -->\n"
+    (line,) = refs.check(page, text)
+    assert "matches 0 elements, not one" in line
+    assert refs.check(page, text.replace("suite-report/", "no-such-report/")) != []
+
+
+@pytest.mark.parametrize("value, like, expected", [
+    (0.9725, "98%", "97%"), (0.9725, "97.3%", "97.2%"), (204800, "1,000", "204,800"), (0.1345, "0.14", "0.13"),
+    (0.1345, "0.134", "0.135"), (-0.0001, "0.00", "0.00"), (27.0, "27", "27"),
+])
+def test_a_number_prints_at_the_precision_the_page_gives_it(value, like, expected):
+    assert refs.printed(value, like) == expected
+
+
+def test_annotate_references_the_one_field_that_holds_an_estimate(tmp_path, monkeypatch):
+    results = tmp_path / "docs" / "results"
+    (results / "r").mkdir(parents=True)
+    rows = [{"env_id": "A", "label": "illm", "final": {"iqm": 0.5, "ci_low": 0.25, "ci_high": 0.75}},
+            {"env_id": "B", "label": "illm", "final": {"iqm": 0.5, "ci_low": 0.25, "ci_high": 0.75}},
+            {"env_id": "A", "label": "ppo", "final": {"iqm": 0.125, "ci_low": 0.0, "ci_high": 0.25}}]
+    (results / "r" / "results.json").write_text(json.dumps({"rows": rows}))
+    page = tmp_path / "docs" / "page.md"
+    page.write_text("[report](results/r/report.md): ppo 0.125 [0.000, 0.250], illm 0.500 [0.250, 0.750].\n")
+    monkeypatch.setattr(refs, "RESULTS", results)
+    for cached in (refs.load, refs.fields, refs.estimate_fields):
+        cached.cache_clear()
+    try:
+        assert refs.annotate(page) == (1, 1)  # illm's estimate is held by two rows: left for a person
+        text = page.read_text()
+        assert "0.125 [0.000, 0.250]<!--= r/results.json rows[env_id=A,label=ppo].final.iqm -->" in text
+        assert refs.check(page, text) == []
+    finally:
+        for cached in (refs.load, refs.fields, refs.estimate_fields):
+            cached.cache_clear()

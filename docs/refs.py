@@ -1,0 +1,337 @@
+"""A number on a result page is a reference: it names the one field of a results file it shows.
+
+The form, which reads as text in plain markdown and vanishes in the built site:
+
+    0.941 [0.374, 0.999]<!--= seeds-candidate-report/results.json rows[env_id=MiniGrid-LavaCrossingS9N1-v0,label=illm].final -->
+    0.1345 ... 0.13<!--= suite-report/results.json rows[env_id=X,label=illm].diagnostics.int_ext_ratio -->
+
+FILE is a path under docs/results; PATH walks the JSON: `.key`, `[N]` (a list's Nth element),
+`[key=value,...]` (the one element of a list of objects whose fields print as the values; a value with
+`,` `=` or `]` in quotes), `[KEY]`
+(a key with characters a dotted step cannot hold). The number before the comment is written from the
+field at the precision the page prints it: an object with an estimate and its interval (`iqm`,
+`ci_low`, `ci_high`; `poi`...; `mean`...; `success_rate` with `success_interval`) prints as
+`illm report` prints it (`0.941 [0.374, 0.999]`); a number prints with the decimals, the thousands
+separators and the percent sign the page gave it (`97%` is the field 0.9725 as a percentage).
+
+`python docs/refs.py` rewrites every referenced number from its field; `--check` lists each that differs
+(and each reference that names no field) and exits 1, so a hand edit of a referenced number fails the test
+suite (tests/test_claims.py). `--annotate PAGE` adds a reference after each estimate with its interval
+on PAGE that exactly one field of the files PAGE links holds (of the files its paragraph links, first),
+and says how many it left (several fields hold it, or none). A single number gets its reference by hand:
+a 2-decimal value matches dozens of unrelated fields (a curve's window, another level's spread), so a
+unique match is no evidence that it is the field meant; `--fields FILE` lists a file's paths to choose from. Written by hand: a number's format is the page's, and no templating
+library keeps markdown readable as plain text while naming a JSON field beside each number.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+from functools import cache
+from pathlib import Path
+
+from illm_tools.report.markdown import num
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "docs" / "results"
+NUMBER = r"-?\d[\d,]*(?:\.\d+)?%?"
+ESTIMATE = r"\d+\.\d+ \[\d+\.\d+, \d+\.\d+\]"
+REF = re.compile(rf"({ESTIMATE}|{NUMBER})<!--= (\S+) (.+?) -->")
+"""A referenced number: the number as printed, its file (under docs/results) and its path."""
+STEP = re.compile(r'\.?([A-Za-z_][\w-]*)|\[((?:"[^"]*"|[^\]"])*)\]')
+SELECT = re.compile(r'([\w-]+)=("[^"]*"|[^,"]*)(?:,|$)')
+"""One `key=value` of a selector; a value holding `,` `]` or `=` is quoted: `[label="illm (a 1, b 2)"]`."""
+TRIPLES = (("iqm", "ci_low", "ci_high"), ("poi", "poi_low", "poi_high"), ("mean", "ci_low", "ci_high"))
+IDENTIFIERS = ("env_id", "label", "method", "name", "model", "calibration", "env", "level", "seed", "key")
+"""Fields that name a list's element, tried in this order when a path is written (`--annotate`)."""
+
+
+class BadRef(ValueError):
+    """A reference that names no field."""
+
+
+@cache
+def load(file: str):
+    path = RESULTS / file
+    if not path.is_file():
+        raise BadRef(f"{file} is not a file under docs/results")
+    return json.loads(path.read_text())
+
+
+def _printed(value) -> str:
+    return num(value) if isinstance(value, float) else str(value)
+
+
+def resolve(file: str, path: str):
+    """The field `path` names in docs/results/`file`."""
+    node, pos = load(file), 0
+    for step in STEP.finditer(path):
+        if step.start() != pos:
+            break
+        pos = step.end()
+        key, selector = step.groups()
+        if key is not None:
+            if not isinstance(node, dict) or key not in node:
+                raise BadRef(f"{file} {path}: no key {key!r} at {path[:step.start()] or 'the top'}")
+            node = node[key]
+        elif selector.isdigit() and isinstance(node, list):
+            node = node[int(selector)] if int(selector) < len(node) else None
+            if node is None:
+                raise BadRef(f"{file} {path}: index {selector} out of range")
+        elif "=" in selector and isinstance(node, list):
+            wanted = {k: v.strip('"') for k, v in SELECT.findall(selector)}
+            found = [e for e in node if isinstance(e, dict)
+                     and all(k in e and _printed(e[k]) == v for k, v in wanted.items())]
+            if len(found) != 1:
+                raise BadRef(f"{file} {path}: [{selector}] matches {len(found)} elements, not one")
+            node = found[0]
+        elif isinstance(node, dict) and selector in node:
+            node = node[selector]
+        else:
+            raise BadRef(f"{file} {path}: no element [{selector}]")
+    if pos != len(path):
+        raise BadRef(f"{file} {path}: cannot read the path from {path[pos:]!r}")
+    return node
+
+
+def estimate(file: str, path: str) -> tuple[float, float, float]:
+    """The estimate and interval a path ending at an estimate's key names (`...final.iqm`, `...poi`,
+    `...success_rate`): the key's value and its interval's ends, its siblings."""
+    head, _, key = path.rpartition(".")
+    parent = resolve(file, head) if head else load(file)
+    if isinstance(parent, dict):
+        for keys in TRIPLES:
+            if keys[0] == key and all(_is_number(parent.get(k)) for k in keys):
+                return tuple(parent[k] for k in keys)
+        interval = parent.get("success_interval")
+        if key == "success_rate" and _is_number(parent.get(key)) and isinstance(interval, list) and len(interval) == 2:
+            return parent[key], interval[0], interval[1]
+    raise BadRef(f"{file} {path}: not an estimate with its interval (end the path at iqm, poi, mean or success_rate)")
+
+
+def _estimates(path: str, node):
+    """The paths of the estimates an object holds (`PATH.iqm`, `PATH.poi`, ...)."""
+    if isinstance(node, dict):
+        held = [keys for keys in TRIPLES if all(_is_number(node.get(k)) for k in keys)]
+        for keys in held:
+            if keys[0] != "mean" or not any(k[0] == "iqm" for k in held):  # a report's mean is beside its IQM
+                yield f"{path}.{keys[0]}".lstrip(".")
+        interval = node.get("success_interval")
+        if _is_number(node.get("success_rate")) and isinstance(interval, list) and len(interval) == 2:
+            yield f"{path}.success_rate".lstrip(".")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def shown_as(file: str, path: str, like: str) -> str:
+    """The field `path` names, printed in the format of `like` (the number as the page gives it)."""
+    if re.fullmatch(ESTIMATE, like):
+        triple = estimate(file, path)
+        return f"{num(triple[0])} [{num(triple[1])}, {num(triple[2])}]"
+    return printed(resolve(file, path), like)
+
+
+def printed(node, like: str) -> str:
+    """A number printed in the format of `like`: its decimals, thousands separators and percent sign."""
+    if not _is_number(node):
+        raise BadRef(f"the field holds {type(node).__name__}, not a number")
+    percent = like.endswith("%")
+    body = like.rstrip("%")
+    decimals = len(body.split(".")[1]) if "." in body else 0
+    value = node * 100 if percent else node
+    text = f"{value:,.{decimals}f}" if "," in body else f"{value:.{decimals}f}"
+    if text.startswith("-") and float(text) == 0:
+        text = text[1:]
+    return text + ("%" if percent else "")
+
+
+def rewrite(text: str) -> tuple[str, list[str]]:
+    """`text` with each referenced number written from its field, and one line per reference that names no field."""
+    errors = []
+
+    def one(match: re.Match) -> str:
+        shown, file, path = match.groups()
+        try:
+            return f"{shown_as(file, path, shown)}<!--= {file} {path} -->"
+        except BadRef as exc:
+            errors.append(f"{shown}<!--= {file} {path} -->: {exc}")
+            return match.group(0)
+
+    return REF.sub(one, text), errors
+
+
+def pages() -> list[Path]:
+    """Every page that may quote a result."""
+    docs = ROOT / "docs"
+    return [ROOT / "README.md", *sorted(p for p in docs.rglob("*.md") if RESULTS not in p.parents)]
+
+
+def check(page: Path, text: str | None = None) -> list[str]:
+    """One line for each referenced number of `page` that differs from its field or names none."""
+    text = page.read_text() if text is None else text
+    wanted, errors = rewrite(text)
+    where = page.relative_to(ROOT) if ROOT in page.parents else page
+    out = [f"{where}: {e}" for e in errors]
+    for have, want in zip(REF.finditer(text), REF.finditer(wanted)):
+        if have.group(1) != want.group(1):
+            out.append(f"{where}: {have.group(1)} where {have.group(2)} {have.group(3)} holds {want.group(1)}")
+    return out
+
+
+# --annotate: write a reference for each number exactly one field holds.
+
+def _fields(node, path: str = "", series: bool = False):
+    """(path, node, in a series) for every node of a JSON value; a list's objects are named by their
+    identifying fields; a series is a list of more than 5 numbers (a curve's points)."""
+    yield path, node, series
+    if isinstance(node, dict):
+        for key, value in node.items():
+            step = f".{key}" if re.fullmatch(r"[A-Za-z_][\w-]*", str(key)) else f"[{key}]"
+            yield from _fields(value, (path + step).lstrip("."))
+    elif isinstance(node, list):
+        curve = len(node) > 5 and all(map(_is_number, node))
+        for i, value in enumerate(node):
+            yield from _fields(value, f"{path}[{_selector(node, i)}]", curve)
+
+
+def _selector(items: list, i: int) -> str:
+    """The `key=value,...` of IDENTIFIERS that picks out items[i] alone (a report row's env and label, and as
+    few more as it takes), else its index."""
+    item = items[i]
+    if not isinstance(item, dict):
+        return str(i)
+    keys = [k for k in IDENTIFIERS if k in item and isinstance(item[k], (str, int)) and not isinstance(item[k], bool)
+            and '"' not in str(item[k])]
+    base = [k for k in ("env_id", "label") if k in keys]  # a report's row by both, in a part as in the merged report
+    rest = [k for k in keys if k not in base]
+    for n in range(len(rest) + 1):
+        for start in range(max(len(rest) - n + 1, 1)):
+            chosen = base + rest[start:start + n]
+            if not chosen:
+                continue
+            sel = {k: _printed(item[k]) for k in chosen}
+            same = [e for e in items if isinstance(e, dict) and all(_printed(e.get(k)) == v for k, v in sel.items())]
+            if len(same) == 1:
+                return ",".join(f'{k}="{v}"' if set(v) & set(",=[]") else f"{k}={v}" for k, v in sel.items())
+    return str(i)
+
+
+@cache
+def fields(file: str) -> tuple[tuple[str, object], ...]:
+    """(path, number) of every number of docs/results/`file` but a series' points (no page quotes them
+    singly)."""
+    return tuple((path, node) for path, node, series in _fields(load(file)) if not series and _is_number(node))
+
+
+@cache
+def estimate_fields(file: str) -> tuple[tuple[str, str], ...]:
+    """(path, as printed) of every estimate with its interval in docs/results/`file`."""
+    out = []
+    for path, node, _ in _fields(load(file)):
+        for at in _estimates(path, node):
+            out.append((at, shown_as(file, at, "0.000 [0.000, 0.000]")))
+    return tuple(out)
+
+
+def candidates(files: list[str], shown: str) -> list[tuple[str, str]]:
+    """(file, path) of every field of `files` that prints as `shown`."""
+    if re.fullmatch(ESTIMATE, shown):
+        return [(file, path) for file in files for path, text in estimate_fields(file) if text == shown]
+    return [(file, path) for file in files for path, node in fields(file) if printed(node, shown) == shown]
+
+
+def linked_files(page: Path, text: str) -> list[str]:
+    """The results files `page` links, as paths under docs/results."""
+    found = set()
+    for link in re.findall(r"\(([^()\s#]+)\)", text):
+        target = (page.parent / link).resolve()
+        if RESULTS in target.parents:
+            if target.name == "report.md":
+                target = target.with_name("results.json")
+            if target.suffix == ".json" and target.is_file():
+                found.add(str(target.relative_to(RESULTS)))
+    return sorted(found)
+
+
+def annotate(page: Path) -> tuple[int, int]:
+    """Add a reference to each unreferenced estimate with its interval on `page`, outside its rendered
+    blocks, that one field holds: of the files its paragraph (or table row) links, else of the files the
+    page links; (numbers referenced, numbers left)."""
+    text = page.read_text()
+    files = linked_files(page, text)
+    done = left = 0
+    pattern = re.compile(rf"(?<![\d.\w\[-])({ESTIMATE})(?!<!--=)")
+    pieces, last, start = [], 0, 0
+    for unit in _units(text):
+        start = text.index(unit, start)
+        near = linked_files(page, unit)
+        for match in pattern.finditer(unit):
+            at = start + match.end()
+            if _inside_comment(text, start + match.start()) or _inside_block(text, start + match.start()):
+                continue
+            found = candidates(near, match.group(1)) if near else []
+            if len(found) != 1:
+                found = candidates(files, match.group(1))
+            if len({path for _, path in found}) == 1:  # one field in several reports (a part and the merged one)
+                found = sorted(found, key=lambda f: (len(f[0]), f[0]))[:1]
+            rows = [f for f in found if f[1].startswith("rows[")]
+            if len(found) > 1 and len(rows) == 1:  # a report's row, copied into its quality curve
+                found = rows
+            if len(found) == 1:
+                pieces += [text[last:at], f"<!--= {found[0][0]} {found[0][1]} -->"]
+                last, done = at, done + 1
+            else:
+                left += 1
+        start += len(unit)
+    page.write_text("".join(pieces) + text[last:])
+    return done, left
+
+
+def _units(text: str) -> list[str]:
+    """The page's paragraphs, a table's rows each on its own."""
+    out = []
+    for paragraph in re.split(r"\n\s*\n", text):
+        lines = paragraph.strip().splitlines()
+        out += lines if lines and all(line.startswith("|") for line in lines) else [paragraph]
+    return out
+
+
+def _inside_block(text: str, at: int) -> bool:
+    """Whether `at` lies in a block docs/render.py writes (between `<!-- NAME:begin -->` and its end)."""
+    begins = list(re.finditer(r"<!-- ([\w-]+):begin -->", text[:at]))
+    return bool(begins) and f"<!-- {begins[-1].group(1)}:end -->" not in text[begins[-1].end():at]
+
+
+def _inside_comment(text: str, at: int) -> bool:
+    return text.rfind("<!--", 0, at) > text.rfind("-->", 0, at)
+
+
+def main(argv: list[str]) -> int:
+    if argv[:1] == ["--annotate"]:
+        for name in argv[1:]:
+            done, left = annotate(Path(name).resolve())
+            print(f"{name}: {done} numbers referenced, {left} left (no field or several hold them)")
+        return 0
+    found = []
+    for page in pages():
+        text = page.read_text()
+        if "--check" in argv:
+            found += check(page, text)
+        else:
+            wanted, errors = rewrite(text)
+            found += [f"{page.relative_to(ROOT)}: {e}" for e in errors]
+            if wanted != text:
+                page.write_text(wanted)
+    for line in found:
+        print(line)
+    if found and "--check" in argv:
+        print("run `python docs/refs.py` to write each number from its field, or fix the reference")
+    return 1 if found else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
