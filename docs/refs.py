@@ -5,7 +5,7 @@ The form, which reads as text in plain markdown and vanishes in the built site:
     0.941 [0.374, 0.999]<!--= seeds-candidate-report/results.json rows[env_id=MiniGrid-LavaCrossingS9N1-v0,label=illm].final -->
     0.1345 ... 0.13<!--= suite-report/results.json rows[env_id=X,label=illm].diagnostics.int_ext_ratio -->
 
-FILE is a path under docs/results; PATH walks the JSON: `.key`, `[N]` (a list's Nth element),
+FILE is a path under docs/results; PATH walks the JSON: `.key`, `[N]` (a list's Nth element, `[-1]` its last),
 `[key=value,...]` (the one element of a list of objects whose fields print as the values; a value with
 `,` `=` or `]` in quotes), `[KEY]`
 (a key with characters a dotted step cannot hold). The number before the comment is written from the
@@ -76,10 +76,10 @@ def resolve(file: str, path: str):
             if not isinstance(node, dict) or key not in node:
                 raise BadRef(f"{file} {path}: no key {key!r} at {path[:step.start()] or 'the top'}")
             node = node[key]
-        elif selector.isdigit() and isinstance(node, list):
-            node = node[int(selector)] if int(selector) < len(node) else None
-            if node is None:
+        elif re.fullmatch(r"-?\d+", selector) and isinstance(node, list):
+            if not -len(node) <= int(selector) < len(node):
                 raise BadRef(f"{file} {path}: index {selector} out of range")
+            node = node[int(selector)]
         elif "=" in selector and isinstance(node, list):
             wanted = {k: v.strip('"') for k, v in SELECT.findall(selector)}
             found = [e for e in node if isinstance(e, dict)
