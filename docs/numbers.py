@@ -33,6 +33,19 @@ from pathlib import Path
 
 from illm_tools.report.markdown import num
 
+
+def _refs():
+    """docs/refs.py, loaded from its file (docs/ is no package)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("docs_refs", Path(__file__).with_name("refs.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+REFERENCED = _refs().REF
+"""A number that names its field: docs/refs.py holds it to that field; this check leaves it."""
+
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
 ESTIMATE = re.compile(r"(?<![\d.])(\d+\.\d{3}) \[(\d+\.\d{3}), (\d+\.\d{3})\]")
@@ -124,7 +137,7 @@ def problems(page: Path, text: str | None = None) -> list[str]:
     """The estimates on `page` (its text: `text`, default the file's) that no results.json it links
     holds, and the single numbers of its paragraphs that link a results file that no file it links
     holds, outside paragraphs marked `<!-- computed: ... -->`; one line each."""
-    text = page.read_text() if text is None else text
+    text = REFERENCED.sub("", page.read_text() if text is None else text)
     sources = sorted({n for n in SOURCE.findall(text) if (RESULTS / n / "results.json").is_file()})
     files = _json_files(page, text)
     known = frozenset().union(*(estimates(n) for n in sources), *(file_estimates(f) for f in files))
