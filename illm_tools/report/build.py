@@ -29,6 +29,7 @@ import numpy as np
 from illm_tools import provenance
 from illm_tools.errors import UsageError
 from illm_tools.report import plots, stats
+from illm_tools.report.achievements import final_achievements
 from illm_tools.report.aggregate import aggregate
 from illm_tools.report.curves import load_curve, summarise
 from illm_tools.report.diagnostics import diagnostics_png, row_diagnostics, seeds_diagnostics_png
@@ -91,6 +92,8 @@ def _row(env_id: str, label: str, group: dict, every: int, final_points: int, re
             "episode_length": episode_length(curves, group["frames"], final_points, reps, seed,
                                              curves[0].config if curves else {"env_id": env_id}),
             "coverage": group["coverage"] if group["reads_targets"] else None,
+            "achievements": final_achievements([c.run for c in curves], [c.seed for c in curves], group["frames"],
+                                               every, final_points),
             "provenance": {run: provenance.read(Path(run)) for run in [*group["runs"], *group["short_runs"]]}}
 
 

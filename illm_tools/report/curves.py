@@ -3,9 +3,9 @@
 Each run's `metrics.csv` gives, per update, the score of the episodes that finished in it (the
 suite's: success rate for BabyAI and MiniHack, Crafter score, Atari's mean return; runs written
 before the score column existed: their success rate) and how many there were; a curve point at
-frame F is the episode-weighted mean over the window (F - every, F]. For Crafter that is the mean
-of per-update Crafter scores, close to but not exactly the score of the window's episodes taken
-together (a geometric mean of success rates does not average).
+frame F is the episode-weighted mean over the window (F - every, F]. For Crafter it is the score of the
+window's episodes taken together, from the achievements' rates pooled over them (`achievements.py`: a
+geometric mean of success rates does not average).
 
 Grouping. Runs are seeds of one configuration when their config.json agree on everything but the
 settings that do not change what is learned (`NOT_LEARNED`: seed, folders, threads, resume). A
@@ -95,6 +95,7 @@ def in_window(steps: np.ndarray, end: int, every: int) -> np.ndarray:
 
 
 def load_curve(run_dir: Path, every: int) -> Curve:
+    from illm_tools.report.achievements import window_scores
     from illm_tools.rl.compare import comparable
     from illm_tools.rl.saved import read_run
 
@@ -119,6 +120,10 @@ def load_curve(run_dir: Path, every: int) -> Curve:
         timed = window & (eps > 0) & ~np.isnan(length)
         m = eps[timed].sum()
         lengths.append(float((length[timed] * eps[timed]).sum() / m) if m else float("nan"))
+    crafter = window_scores(run_dir, ends, every)  # a window's episodes pooled, where the run logs achievements
+    if crafter is not None:
+        points = crafter
+
     def mean_of(column: str) -> float:
         values = [float(r[column]) for r in rows if r.get(column)]
         return float(np.mean(values)) if values else 0.0

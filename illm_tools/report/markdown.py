@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from illm_tools import provenance
+from illm_tools.report.achievements import achievements_section
 
 
 def num(x) -> str:
@@ -71,6 +72,7 @@ def _env_section(env: str, rows: list[dict], settings: dict, curves_png: str | N
                    + ["-" if r.get("coverage") is None else f"{r['coverage']:.0%}"] * covered for r in rows])
     out += split_section(rows, settings)
     out += length_section(rows, k)
+    out += achievements_section(rows)
     split = [_split(r["label"]) for r in rows]
     from illm_tools.report.plots import setting_order
 

@@ -71,7 +71,8 @@ ROW = {"env_id": (_str, "a string"), "label": (_str, "a string"), "method": (_st
 ROW_OPTIONAL = {"settings": (_or_none(_dict), "a mapping"), "visitation": (_or_none(_dict), "a mapping or null"),
                 "bonus_map": (_or_none(_dict), "a mapping or null"), "diagnostics": (_or_none(_dict), "a mapping or null"),
                 "episode_length": (_or_none(_dict), "a mapping or null"), "coverage": (_maybe_number, "a number or null"),
-                "provenance": (_or_none(_dict_of(_entries)), "a mapping run -> list of entries")}
+                "provenance": (_or_none(_dict_of(_entries)), "a mapping run -> list of entries"),
+                "achievements": (_or_none(_dict), "a mapping or null")}
 SCORES = {"n": (_int, "a whole number"), "iqm": (_maybe_number, "a number or null"),
           "ci_low": (_maybe_number, "a number or null"), "ci_high": (_maybe_number, "a number or null"),
           "mean": (_maybe_number, "a number or null"), "std": (_maybe_number, "a number or null")}
@@ -86,6 +87,7 @@ DIAGNOSTICS = {"frames": (_list_of(_int), "a list of whole numbers"),
                **{name: (_numbers, "a list of numbers") for name in SERIES},
                "paid_solved": (_maybe_number, "a number or null"), "paid_unsolved": (_maybe_number, "a number or null")}
 DIAGNOSTICS_OPTIONAL = {"per_seed": (_entries, "a list of mappings")}
+ACHIEVEMENTS = {"mean": (_dict_of(_number), "a mapping achievement -> rate"), "per_seed": (_entries, "a list of mappings")}
 HEATMAP = {"png": (_str, "a file name"), "runs": (_list_of(_str), "a list of strings")}
 SETTINGS = {"every": (_int, "a whole number"), "final_points": (_int, "a whole number"),
             "bootstrap_reps": (_int, "a whole number"), "bootstrap_seed": (_int, "a whole number")}
@@ -128,6 +130,8 @@ def _row(row: Any, where: str, envs: list, path: Path, refuse: Callable[[str], N
         _as_long(curve, ("points",), len(row["frames"]), f"{where}.final.seed_curves[{i}]", refuse)
     if row.get("episode_length"):
         _fields(row["episode_length"], LENGTH, LENGTH_OPTIONAL, f"{where}.episode_length", refuse)
+    if row.get("achievements"):
+        _fields(row["achievements"], ACHIEVEMENTS, {}, f"{where}.achievements", refuse)
     if row.get("diagnostics"):
         d = row["diagnostics"]
         _fields(d, DIAGNOSTICS, DIAGNOSTICS_OPTIONAL, f"{where}.diagnostics", refuse)
