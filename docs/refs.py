@@ -14,6 +14,10 @@ field at the precision the page prints it: an object with an estimate and its in
 `illm report` prints it (`0.941 [0.374, 0.999]`); a number prints with the decimals, the thousands
 separators and the percent sign the page gave it (`97%` is the field 0.9725 as a percentage).
 
+A verdict word is checked the same way: `above<!--? FILE A vs B -->` (or *clear of*, *overlaps*, *below*,
+*tie*: `holds`), A and B paths to estimates in FILE, is true by the tie rule or the check fails; a count,
+`three<!--?# above: FILE A vs B; C vs D; ... -->`, is the number of comparisons it holds for.
+
 `python docs/refs.py` rewrites every referenced number from its field; `--check` lists each that differs
 (and each reference that names no field) and exits 1, so a hand edit of a referenced number fails the test
 suite (tests/test_claims.py). `--annotate PAGE` adds a reference after each estimate with its interval
@@ -32,7 +36,7 @@ import sys
 from functools import cache
 from pathlib import Path
 
-from illm_tools.report.markdown import num
+from illm_tools.report.markdown import beats, num
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
@@ -171,14 +175,73 @@ def pages() -> list[Path]:
 
 
 def check(page: Path, text: str | None = None) -> list[str]:
-    """One line for each referenced number of `page` that differs from its field or names none."""
+    """One line for each referenced number of `page` that differs from its field or names none, and for
+    each verdict word its estimates contradict (`verdicts`)."""
     text = page.read_text() if text is None else text
     wanted, errors = rewrite(text)
     where = page.relative_to(ROOT) if ROOT in page.parents else page
-    out = [f"{where}: {e}" for e in errors]
+    out = [f"{where}: {e}" for e in errors + verdicts(text)]
     for have, want in zip(REF.finditer(text), REF.finditer(wanted)):
         if have.group(1) != want.group(1):
             out.append(f"{where}: {have.group(1)} where {have.group(2)} {have.group(3)} holds {want.group(1)}")
+    return out
+
+
+# Verdict words: "above", "clear of", "overlaps", "below" between two estimates, computed by the tie rule.
+
+VERDICT = re.compile(r"(\w+(?: of)?)<!--\? (\S+) (.+?) -->")
+"""A verdict word and the comparisons it states: `above<!--? FILE A vs B -->` (A and B paths to estimates;
+`A vs B & A vs C`: every one of them)."""
+COUNT = re.compile(r"(\w+)<!--\?# ([a-z ]+?): (\S+) (.+?) -->")
+"""A count of the groups a verdict holds for: `three<!--?# above: FILE A vs B; C vs D; E vs F; G vs H -->` (a
+group `A vs B & A vs C` counts where every comparison holds)."""
+WORDS = ("zero", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
+
+
+def holds(word: str, mine: tuple, other: tuple) -> bool:
+    """Whether `word` is true of estimate `mine` against `other` ((value, low, high) each) by the tie rule
+    (`beats`: as printed, at 3 decimals): *above*/*below* compare the values, *clear of* the intervals
+    (mine's low end above the other's high end), *overlap*, *overlaps*, *overlapping* neither interval clear of the
+    other, *tie* the values equal as printed."""
+    clear, under = beats(mine[1], other[2]), beats(other[1], mine[2])
+    table = {"above": beats(mine[0], other[0]), "below": beats(other[0], mine[0]), "clear of": clear,
+             "clear below": under, "overlaps": not clear and not under, "overlap": not clear and not under,
+             "overlapping": not clear and not under,
+             "tie": num(mine[0]) == num(other[0])}
+    if word not in table:
+        raise BadRef(f"{word!r} is no verdict word: one of {', '.join(table)}")
+    return table[word]
+
+
+def _pair(file: str, pair: str) -> tuple[tuple, tuple]:
+    mine, sep, other = pair.partition(" vs ")
+    if not sep:
+        raise BadRef(f"{file} {pair}: a comparison is `A vs B`")
+    return estimate(file, mine.strip()), estimate(file, other.strip())
+
+
+def verdicts(text: str) -> list[str]:
+    """One line per verdict word (or count of them) that its estimates contradict, or that names no field."""
+    out = []
+    def all_hold(word: str, file: str, group: str) -> bool:
+        return all(holds(word, *_pair(file, pair)) for pair in group.split(" & "))
+
+    for match in VERDICT.finditer(text):
+        word, file, group = match.groups()
+        try:
+            if not all_hold(word, file, group):
+                out.append(f"{word!r} is not what {file} {group} says")
+        except BadRef as exc:
+            out.append(f"{match.group(0)}: {exc}")
+    for match in COUNT.finditer(text):
+        said, word, file, groups = match.groups()
+        try:
+            n = sum(all_hold(word, file, group) for group in groups.split("; "))
+        except BadRef as exc:
+            out.append(f"{match.group(0)}: {exc}")
+            continue
+        if said not in (str(n), WORDS[n] if n < len(WORDS) else None):
+            out.append(f"{said!r} where {word} holds for {n} of {len(groups.split('; '))} in {file}")
     return out
 
 

@@ -24,7 +24,8 @@ level when its IQM is higher, *clear of* it when its 95% interval lies wholly ab
 Bold marks only the levels where illm is clear of both ppo and the shuffled control.
 
 The tie rule, the one place it is written (docs/experiments/suite.md quotes it): values are compared as
-printed, at 3 decimals (`beats`), for *above* (the IQMs) and *clear* (illm's lower end against the
+printed, at 3 decimals (`beats`, illm_tools/report/markdown.py; docs/refs.py checks the pages' verdict words
+with it), for *above* (the IQMs) and *clear* (illm's lower end against the
 control's upper end) alike; two values that print the same are a tie, which is neither. One verdict
 turns on it: PutNextLocal, illm 0.011699 against the shuffled control's 0.011668, both 0.012 printed,
 is a tie; compared as raw floats it would be *above*, and the count 7 of 8 instead of 6. (In the tune
@@ -38,7 +39,7 @@ import json
 import sys
 from pathlib import Path
 
-from illm_tools.report.markdown import iqm_cell, num
+from illm_tools.report.markdown import beats, iqm_cell, num
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
@@ -60,11 +61,6 @@ def _load(name: str) -> dict:
 
 def _short(env_id: str) -> str:
     return env_id.split("-", 1)[1].rsplit("-v", 1)[0]
-
-
-def beats(mine: float, other: float) -> bool:
-    """The tie rule (module docstring): `mine` beats `other` when it is higher as printed (3 decimals)."""
-    return float(num(mine)) > float(num(other))
 
 
 def counts(suite: dict) -> dict:

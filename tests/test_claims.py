@@ -23,7 +23,7 @@ def _docs_module(name: str):
     return module
 
 
-render, numbers, refs = _docs_module("render"), _docs_module("numbers"), _docs_module("refs")
+render, claims, refs = _docs_module("render"), _docs_module("claims"), _docs_module("refs")
 
 
 def test_readme_table_is_rendered():
@@ -75,9 +75,9 @@ def test_splice_without_markers_is_one_line():
 def test_every_result_on_the_result_pages_is_in_a_results_file_the_page_links():
     """README, docs/index.md and docs/experiments/*.md: each `0.901 [0.767, 0.953]` is held by a
     results.json the page links, or sits in a paragraph marked `<!-- computed: ... -->`."""
-    found = [line for page in numbers.pages() for line in numbers.problems(page)]
+    found = [line for page in claims.pages() for line in claims.problems(page)]
     assert not found, "\n".join(found[:5])
-    assert numbers.main() == 0
+    assert claims.main() == 0
 
 
 @pytest.mark.parametrize("page, estimate", [
@@ -87,13 +87,13 @@ def test_every_result_on_the_result_pages_is_in_a_results_file_the_page_links():
 ])
 def test_a_result_edited_by_hand_fails_on_each_kind_of_page(page, estimate):
     """Whether the estimate names its field (docs/refs.py holds it to that field) or not yet (the
-    looser check of docs/numbers.py), an edit fails one of the two checks."""
+    looser check of docs/claims.py), an edit fails one of the two checks."""
     path = ROOT / page
     text = path.read_text()
-    assert estimate in text and not numbers.problems(path, text) and not refs.check(path, text)
+    assert estimate in text and not claims.problems(path, text) and not refs.check(path, text)
     value, rest = estimate.split(" ", 1)
     edited = text.replace(estimate, f"{float(value) + 0.01:.3f} {rest}", 1)
-    (line,) = numbers.problems(path, edited) + refs.check(path, edited)
+    (line,) = claims.problems(path, edited) + refs.check(path, edited)
     assert page in line
 
 
@@ -102,7 +102,7 @@ def test_the_loose_check_leaves_a_referenced_number_to_its_reference():
     text = path.read_text()
     assert "0.716 [0.619, 0.804]<!--= " in text
     edited = text.replace("0.716 [0.619, 0.804]<!--= ", "0.726 [0.619, 0.804]<!--= ", 1)
-    assert numbers.problems(path, edited) == [] and len(refs.check(path, edited)) == 1
+    assert claims.problems(path, edited) == [] and len(refs.check(path, edited)) == 1
 
 
 @pytest.mark.parametrize("page, single, edited", [
@@ -113,17 +113,17 @@ def test_a_single_number_edited_by_hand_fails(page, single, edited):
     """A number with 2-3 decimals in a paragraph that links a results file is one that file holds."""
     path = ROOT / page
     text = path.read_text()
-    assert single in text and not numbers.problems(path, text)
-    (line,) = numbers.problems(path, text.replace(single, edited, 1))
-    assert page in line and f"{numbers.SINGLE.search(edited)[1]} is in none of the results files the page links" in line
+    assert single in text and not claims.problems(path, text)
+    (line,) = claims.problems(path, text.replace(single, edited, 1))
+    assert page in line and f"{claims.SINGLE.search(edited)[1]} is in none of the results files the page links" in line
 
 
 def test_a_number_under_a_computed_marker_is_not_read(tmp_path):
     page = ROOT / "docs" / "experiments" / "distil.md"
     text = page.read_text()
-    assert "0.782 on GoToLocal" in text and not numbers.problems(page, text)
+    assert "0.782 on GoToLocal" in text and not claims.problems(page, text)
     unmarked = "\n".join(line for line in text.splitlines() if not line.startswith("<!-- computed:"))
-    assert any("0.782 is in none" in line for line in numbers.problems(page, unmarked))
+    assert any("0.782 is in none" in line for line in claims.problems(page, unmarked))
 
 
 def test_a_series_is_quoted_by_its_ends_only(tmp_path):
@@ -132,7 +132,7 @@ def test_a_series_is_quoted_by_its_ends_only(tmp_path):
     curve = [0.111, 0.222, 0.333, 0.444, 0.555, 0.666]
     path = tmp_path / "results.json"
     path.write_text(json.dumps({"curve": curve, "final": {"iqm": 0.777}, "short": [0.888, 0.999]}))
-    held = numbers.values(path)
+    held = claims.values(path)
     assert {"0.111", "0.666", "0.777", "0.888", "0.999"} <= held
     assert not {"0.222", "0.333", "0.444", "0.555"} & held
 
@@ -205,3 +205,27 @@ def test_annotate_references_the_one_field_that_holds_an_estimate(tmp_path, monk
     finally:
         for cached in (refs.load, refs.fields, refs.estimate_fields):
             cached.cache_clear()
+
+
+@pytest.mark.parametrize("said, edited", [
+    ("three<!--?# above: ", "two<!--?# above: "),    # the report half: illm above ppo on three of four
+    ("it overlaps<!--? ", "it clear of<!--? "),       # the report half's aggregate overlaps ppo's
+    ("clear of<!--? suite-report/results.json ", "overlaps<!--? suite-report/results.json "),
+])
+def test_a_verdict_word_that_contradicts_its_numbers_fails(said, edited):
+    path = ROOT / "docs" / "experiments" / "suite.md"
+    text = path.read_text()
+    assert text.count(said) == 1 and not refs.check(path, text)
+    (line,) = refs.check(path, text.replace(said, edited))
+    assert "suite.md" in line
+
+
+def test_verdict_words_follow_the_tie_rule():
+    # PutNextLocal (suite-report): illm 0.011699 and the shuffled control's 0.011668 print 0.012 both
+    illm, shuffled = (0.011699, 0.001, 0.023), (0.011668, 0.008, 0.018)
+    assert refs.holds("tie", illm, shuffled) and not refs.holds("above", illm, shuffled)
+    assert refs.holds("overlaps", illm, shuffled) and not refs.holds("clear of", illm, shuffled)
+    assert refs.holds("clear of", (0.9, 0.8, 1.0), (0.1, 0.0, 0.2))
+    assert refs.holds("below", (0.1, 0.0, 0.2), (0.9, 0.8, 1.0))
+    with pytest.raises(refs.BadRef, match="no verdict word"):
+        refs.holds("beats", illm, shuffled)

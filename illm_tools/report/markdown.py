@@ -13,6 +13,12 @@ def num(x) -> str:
     return f"{x:.3f}" if abs(x) < 100 else f"{x:.1f}"
 
 
+def beats(mine: float, other: float) -> bool:
+    """The tie rule of the pages' verdict words (docs/render.py says why): `mine` beats `other` when it is
+    higher as printed (`num`, 3 decimals); two values that print the same are a tie, which neither beats."""
+    return float(num(mine)) > float(num(other))
+
+
 def steps(x) -> str:
     """An episode length: 1 decimal."""
     return "-" if x is None else f"{x:.1f}"

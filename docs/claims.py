@@ -16,7 +16,8 @@ docs/results), each must be a value some results file the page links holds, at t
 page prints, or the paragraph carries the marker. (A number in a paragraph without such a link is
 not read: "λ 0.8" is a setting, not a result.)
 
-`python docs/numbers.py` lists what no linked file holds and exits 1 if anything is listed;
+(The file is not named numbers.py: a script run from docs/ would shadow the standard library's `numbers`,
+which numpy imports.) `python docs/claims.py` lists what no linked file holds and exits 1 if anything is listed;
 tests/test_claims.py runs the same check, so a number edited by hand fails the test suite.
 README's results table is rendered from the files besides (`docs/render.py`). This check is the loose one:
 a number that names its field (`docs/refs.py`, `0.941 [0.374, 0.999]<!--= FILE PATH -->`) is held to that
