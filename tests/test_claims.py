@@ -229,3 +229,17 @@ def test_verdict_words_follow_the_tie_rule():
     assert refs.holds("below", (0.1, 0.0, 0.2), (0.9, 0.8, 1.0))
     with pytest.raises(refs.BadRef, match="no verdict word"):
         refs.holds("beats", illm, shuffled)
+
+
+def test_the_audit_counts_an_edit_the_checks_catch_and_names_one_they_do_not(capsys):
+    audit = _docs_module("audit")
+    checks = (refs, claims, render)
+    page = ROOT / "docs" / "experiments" / "suite.md"
+    text = page.read_text()
+    referenced = next(m for m in audit.numbers(text) if text.startswith("<!--= ", m.end()))
+    assert audit.caught(page, audit.edited(text, referenced), checks)
+    unlinked = "A sentence that links no results file says 0.37 here.\n"
+    (m,) = audit.numbers(unlinked)
+    assert not audit.caught(page, text + "\n" + audit.edited(unlinked, m), checks)
+    assert audit.main(["5", "--seed", "1"]) in (0, 1)
+    assert "of 5 one-digit edits caught" in capsys.readouterr().out

@@ -1,0 +1,86 @@
+"""How many result numbers on the pages a hand edit could change unnoticed: the checks' own audit.
+
+`python docs/audit.py [N] [--seed S]` draws N numbers (default 60) at random from the result pages
+(README, docs/index.md, docs/experiments/*, docs/measured.md, docs/scale.md, docs/commands/serve.md): every
+decimal number and percentage outside code, links and HTML comments. It edits each alone by one digit
+(its last) and runs the checks a commit meets (`refs.check`: a number that names its field, and the verdict
+words; `claims.problems`: the looser check; `render`: the rendered tables), then prints how many edits a
+check caught, and each one none caught with its page and line, so that the next reference to write is
+named. Exit 0 when at least 95% were caught (issue 72's bar), 1 otherwise.
+
+Written by hand: it composes this folder's checks; no library audits markdown against JSON fields.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import random
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+NUMBER = re.compile(r"(?<![\w.\-/#=])\d[\d,]*\.\d+%?(?![\w.\-/])|(?<![\w.\-/#=])\d+%(?![\w\-/])")
+SKIP = re.compile(r"```.*?```|`[^`\n]*`|<!--.*?-->|\]\([^)]*\)|!\[[^\]]*\]", re.S)
+"""Code, HTML comments (a reference's own path), link targets and image alt texts: not results as read."""
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"docs_{name}", ROOT / "docs" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def pages() -> list[Path]:
+    docs = ROOT / "docs"
+    return [ROOT / "README.md", docs / "index.md", *sorted((docs / "experiments").glob("*.md")), docs / "measured.md",
+            docs / "scale.md", docs / "commands" / "serve.md"]
+
+
+def numbers(text: str) -> list[re.Match]:
+    """The result numbers of a page's text (see the module docstring)."""
+    hidden = [m.span() for m in SKIP.finditer(text)]
+    return [m for m in NUMBER.finditer(text) if not any(a <= m.start() < b for a, b in hidden)]
+
+
+def edited(text: str, match: re.Match) -> str:
+    """`text` with the number's last digit changed by one."""
+    number = match.group(0)
+    i = max(i for i, c in enumerate(number) if c.isdigit())
+    digit = int(number[i])
+    new = number[:i] + str(digit - 1 if digit else 1) + number[i + 1:]
+    return text[:match.start()] + new + text[match.end():]
+
+
+def caught(page: Path, text: str, checks) -> bool:
+    refs, claims, render = checks
+    if refs.check(page, text) or claims.problems(page, text):
+        return True
+    for name, (where, make) in render.blocks().items():
+        if where.resolve() == page.resolve() and render.splice(text, make(), name) != text:
+            return True
+    return False
+
+
+def main(argv: list[str]) -> int:
+    n = int(argv[0]) if argv and argv[0].isdigit() else 60
+    seed = int(argv[argv.index("--seed") + 1]) if "--seed" in argv else 0
+    checks = (_load("refs"), _load("claims"), _load("render"))
+    drawn = [(page, m) for page in pages() for m in numbers(page.read_text())]
+    sample = random.Random(seed).sample(drawn, min(n, len(drawn)))
+    missed = []
+    for page, match in sample:
+        text = page.read_text()
+        if not caught(page, edited(text, match), checks):
+            line = text.count("\n", 0, match.start()) + 1
+            missed.append(f"  {page.relative_to(ROOT)}:{line}: {match.group(0)}")
+    share = 1 - len(missed) / len(sample)
+    print(f"{len(sample) - len(missed)} of {len(sample)} one-digit edits caught ({share:.0%}; {len(drawn):,} result "
+          f"numbers on {len(pages())} pages, seed {seed}); not caught:")
+    print("\n".join(missed) or "  none")
+    return 0 if share >= 0.95 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
