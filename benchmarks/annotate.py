@@ -32,6 +32,8 @@ from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+from record import options, record, settings  # noqa: E402
+
 CASES = {"gotolocal-h0": ("BabyAI-GoToLocal-v0", 0), "gotolocal-h3": ("BabyAI-GoToLocal-v0", 3),
          "crafter-h3": ("CrafterReward-v1", 3), "minihack-h3": ("MiniHack-River-Monster-v0", 3)}
 """Case name -> (env id, history length)."""
@@ -158,8 +160,9 @@ def measure(lm, annotator_of, plan, device: str) -> tuple[float, float, list]:
     return len(plan) / seconds, peak, rows
 
 
-def engine_table(args, lm, rate: float, params: int) -> None:
-    """Part 2: the before/after table over the cases and batch sizes."""
+def engine_table(args, lm, rate: float, params: int) -> dict:
+    """Part 2: the before/after table over the cases and batch sizes; returns its figures (the record's),
+    each named "CASE batch N:WHAT"."""
     import dataclasses
 
     import torch
@@ -174,6 +177,7 @@ def engine_table(args, lm, rate: float, params: int) -> None:
     print("| case | prompt tokens | batch | before: states/s | before: peak MB | after: states/s | after: peak MB "
           "| after: same top action as batch 1 | after: prefill % of matmul |")
     print("|---|---|---|---|---|---|---|---|---|")
+    figures = {}
     for name in args.cases.split(","):
         env_id, history = CASES[name]
         with tempfile.TemporaryDirectory() as tmp:
@@ -201,7 +205,25 @@ def engine_table(args, lm, rate: float, params: int) -> None:
                 share = 2 * params * counter.tokens / max(counter.seconds, 1e-9) / 1e9 / rate
                 print(f"| {name} | {tokens:.0f} | {batch} | {old_rate:.2f} | {old_peak:.0f} | {new_rate:.2f} | "
                       f"{new_peak:.0f} | {same}/{len(best1)} | {100 * share:.0f}% |", flush=True)
+                figures.update({f"{name} batch {batch}:{k}": v for k, v in (
+                    ("prompt_tokens", tokens), ("before_states_per_s", old_rate), ("before_peak_mb", old_peak),
+                    ("after_states_per_s", new_rate), ("after_peak_mb", new_peak),
+                    ("after_same_top_action_share", same / max(len(best1), 1)), ("after_prefill_share_of_matmul", share))})
                 torch.cuda.empty_cache() if args.device.startswith("cuda") else None
+    return figures
+
+
+def headline(figures: dict) -> dict | None:
+    """The record's ratio: part 1's speedup over the naive loop (target 8x) where it ran, else part 2's
+    lowest prefill rate as a share of the matmul rate (target 0.5)."""
+    if "speedup_over_naive" in figures:
+        return {"name": "illm annotate / naive loop states/s", "value": figures["speedup_over_naive"], "target": 8.0}
+    shares = {k.split(":")[0]: v for k, v in figures.items() if k.endswith(":after_prefill_share_of_matmul")}
+    if not shares:
+        return None
+    low = min(shares, key=shares.get)
+    return {"name": f"prefill rate / matmul rate, the lowest over the cases ({low})",
+            "value": shares[low], "target": 0.5}
 
 
 def main() -> None:
@@ -218,6 +240,7 @@ def main() -> None:
     parser.add_argument("--history", type=int, default=3, help="Part 1's history pairs (the paper's: 3).")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (as `illm annotate`).")
     parser.add_argument("--quant", default="none", help="none, 4bit or 8bit (bitsandbytes; CUDA).")
+    options(parser)
     args = parser.parse_args()
 
     import torch
@@ -239,6 +262,7 @@ def main() -> None:
     print(f"model {args.model} ({args.dtype}, quant {args.quant}) on {args.device}, {torch.get_num_threads()} threads; "
           f"{args.dtype} matmul rate {rate:.0f} GFLOP/s measured")
     print(describe(lm, 1000, 16))
+    figures = {"matmul_gflops": rate}
     if args.naive_states:
         with tempfile.TemporaryDirectory() as tmp:
             records = babyai_states(args.states, args.history, Path(tmp))
@@ -265,8 +289,12 @@ def main() -> None:
         print(f"speedup           {illm_rate / naive_rate:6.1f}x  (target >= 8x)")
         print(f"summaries         {sum(lengths) / len(lengths):6.1f} tokens on average (limit {SUMMARY_TOKENS}); "
               f"{ended}/{len(lengths)} ended at end-of-text")
+        figures.update(naive_states_per_s=naive_rate, illm_states_per_s=illm_rate, speedup_over_naive=illm_rate / naive_rate,
+                       prompt_tokens_mean=prompt_tokens, summary_tokens_mean=sum(lengths) / len(lengths))
     if args.cases:
-        engine_table(args, lm, rate, params)
+        figures.update(engine_table(args, lm, rate, params))
+    if not args.no_record:
+        record("annotate", figures, ratio=headline(figures), out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

@@ -39,6 +39,7 @@ from illm_tools.rl.ppo import Trainer  # noqa: E402
 from illm_tools.rl.providers import provider_class  # noqa: E402
 from illm_tools.rl.run import make_pool  # noqa: E402
 from illm_tools.rl.threads import torch_threads  # noqa: E402
+from record import options, record, settings  # noqa: E402
 
 PHASES = ("time/rollout_s", "time/targets_s", "time/update_s")
 
@@ -104,6 +105,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--methods", default="", help="Comma-separated methods to time (default: all registered).")
     parser.add_argument("--skip", default="", help="Comma-separated methods not to time.")
+    options(parser)
     args = parser.parse_args()
     chosen = [m for m in (args.methods.split(",") if args.methods else METHODS) if m and m != "ppo"]
     skip = set(filter(None, args.skip.split(",")))
@@ -119,6 +121,7 @@ def main() -> None:
               f"{args.threads} thread(s)", flush=True)
         sps_ppo, last = run(config("ppo", "ppo"), Path(tmp) / "unused")
         print(f"{'ppo':<14} {sps_ppo:8,.0f} steps/s  ratio  1.00  per update: {last['phases']}", flush=True)
+        figures = {"ppo_steps_per_s": sps_ppo}
         for mode in chosen:
             if mode in skip:
                 print(f"{mode:<14} skipped: --skip", flush=True)
@@ -135,6 +138,19 @@ def main() -> None:
             hit = f"  (cache hit rate {last['charts/cache_hit_rate']:.3f})" if method.needs_targets else ""
             print(f"{mode:<14} {sps:8,.0f} steps/s  ratio {sps / sps_ppo:5.2f}  per update: {last['phases']}{hit}",
                   flush=True)
+            figures.update({f"{mode}_steps_per_s": sps, f"{mode}_over_ppo": sps / sps_ppo})
+    if not args.no_record:
+        record("bonus", figures, ratio=headline(figures), out=args.record, settings=settings(args))
+
+
+def headline(figures: dict) -> dict | None:
+    """The record's ratio: illm's steps/s over ppo's where illm was timed, else the first method timed
+    (no target: the figures say what each method costs)."""
+    timed = [k.removesuffix("_over_ppo") for k in figures if k.endswith("_over_ppo")]
+    if not timed:
+        return None
+    mode = "illm" if "illm" in timed else timed[0]
+    return {"name": f"{mode} / ppo steps/s", "value": figures[f"{mode}_over_ppo"]}
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from test_cache_store import make_rows  # noqa: E402 - the tests' valid rows (ac
 
 from illm_tools.cache.store import AnnotationCache  # noqa: E402
 from illm_tools.keys import make_key  # noqa: E402
+from record import options, record, settings  # noqa: E402
 
 ACTION = ["cand_logprob_sum", "cand_token_count", "neutral_logprob_sum"]
 
@@ -58,13 +59,20 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=4800)
     parser.add_argument("--shards", type=int, nargs="+", default=[1, 100, 600])
     parser.add_argument("--dim", type=int, default=576, help="Embedding width (SmolLM2-135M's: 576; Llama-3-8B's: 4096).")
+    options(parser)
     args = parser.parse_args()
     base = None
+    figures = {}
     print(f"{args.rows:,} rows, embeddings {args.dim} wide, 2,048 keys looked up per task")
     for shards in args.shards:
         ms = lookup_ms(args.rows, shards, dim=args.dim)
         base = base or ms
+        figures[f"lookup_ms_{shards}_shards"] = ms
         print(f"{shards:5d} shards: {ms:7.1f} ms per rollout's look-up ({ms / base:5.1f}x one shard)")
+    if not args.no_record:  # the headline: the most shards against the first (one shard by default)
+        record("cache_lookup", figures, ratio={"name": f"{args.shards[-1]}-shard / {args.shards[0]}-shard look-up time",
+                                               "value": ms / base, "target": 10.0, "direction": "at_most"},
+               out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

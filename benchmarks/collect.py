@@ -26,6 +26,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from illm_tools.collect import CollectConfig, collect  # noqa: E402
 from illm_tools.envs import make_env  # noqa: E402
+from record import options, record, settings  # noqa: E402
 
 DEFAULT_STEPS = {"BabyAI-GoToLocal-v0": 20_000, "MiniGrid-MultiRoom-N6-v0": 20_000,
                  "MiniHack-River-Monster-v0": 5_000, "CrafterReward-v1": 2_000, "ALE/MontezumaRevenge-v5": 5_000}
@@ -57,8 +58,10 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="Steps per env id (default: per suite).")
     parser.add_argument("--num-envs", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=2, help="Best of N for each side.")
+    options(parser)
     args = parser.parse_args()
 
+    figures, ratios = {}, {}
     for env_id in args.env or list(DEFAULT_STEPS):
         steps = args.steps or DEFAULT_STEPS.get(env_id, 5_000)
         raw, logged = [], []
@@ -74,6 +77,14 @@ def main() -> None:
         print(f"{env_id}: {steps:,} steps, {args.num_envs} envs, best of {args.repeats}: raw stepping "
               f"{steps / t_raw:,.0f} steps/s, illm collect {steps / t_log:,.0f} steps/s, "
               f"collect/raw time ratio {t_log / t_raw:.2f}x (target <= 2.0x)", flush=True)
+        figures.update({f"{env_id}:steps": steps, f"{env_id}:raw_steps_per_s": steps / t_raw,
+                        f"{env_id}:collect_steps_per_s": steps / t_log, f"{env_id}:collect_over_raw_time": t_log / t_raw})
+        ratios[env_id] = t_log / t_raw
+    if not args.no_record:  # the headline: the suite whose collection costs the most against its raw stepping
+        worst = max(ratios, key=ratios.get)
+        record("collect", figures, ratio={"name": f"collect / raw stepping time, the largest over the envs ({worst})",
+                                          "value": ratios[worst], "target": 2.0, "direction": "at_most"},
+               out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

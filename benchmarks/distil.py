@@ -26,12 +26,16 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from record import options, record, settings  # noqa: E402
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=8, help="States per step (illm distil's --batch-size).")
     parser.add_argument("--repeats", type=int, default=3, help="Steps timed per path (the fastest is kept).")
+    options(parser)
     args = parser.parse_args()
 
     import torch
@@ -94,6 +98,13 @@ def main() -> None:
     print(f"plain LoRA LM step on the same states (no shared prefix, {len(sequences)} sequences): {plain_tokens:,} "
           f"tokens in {best['plain']:.2f} s, {plain_tokens / best['plain']:,.0f} tokens/s")
     print(f"step time illm/plain: {best['illm'] / best['plain']:.2f}; load average {os.getloadavg()[0]:.1f}")
+    if not args.no_record:
+        record("distil", {"illm_tokens": tokens, "illm_step_s": best["illm"], "illm_tokens_per_s": tokens / best["illm"],
+                          "illm_s_per_state": best["illm"] / args.batch, "plain_tokens": plain_tokens,
+                          "plain_step_s": best["plain"], "plain_tokens_per_s": plain_tokens / best["plain"]},
+               ratio={"name": "illm distil / plain LoRA step time", "value": best["illm"] / best["plain"],
+                      "direction": "at_most"},
+               out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

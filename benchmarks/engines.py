@@ -30,6 +30,7 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from annotate import babyai_states  # noqa: E402  (benchmarks/annotate.py: distinct states of a collection)
+from record import options, record, settings  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = "BabyAI-GoToLocal-v0"
@@ -58,6 +59,7 @@ def main() -> None:
     parser.add_argument("--history", type=int, default=0)
     parser.add_argument("--dtype", default="auto", help="auto: what `illm annotate` picks on this machine.")
     parser.add_argument("--engine-threads", type=int, default=2, help="vLLM's torch threads (OMP_NUM_THREADS).")
+    options(parser)
     args = parser.parse_args()
 
     import numpy as np
@@ -98,10 +100,14 @@ def main() -> None:
     print(f"SmolLM2-135M in {dtype}, {ENV} states, history {args.history}; in-process {torch.get_num_threads()} "
           f"threads, vLLM ({remote.fingerprint['engine']}) {args.engine_threads} threads "
           f"(servers started in {t_start:.0f} s, both runners at once)")
+    figures = {"servers_start_s": t_start}
     for what, n, t_local, t_remote in (("ranking alone", len(ranked), t_local_rank, t_remote_rank),
                                        ("ranking + summaries", len(both), t_local_both, t_remote_both)):
         print(f"{what:22s} in-process {n / t_local:6.2f} states/s   vLLM {n / t_remote:6.2f} states/s   "
               f"ratio vLLM/in-process {t_local / t_remote:5.2f}  ({n} states)")
+        part = what.replace(" + ", "_and_").replace(" ", "_")
+        figures.update({f"{part}:states": n, f"{part}:in_process_states_per_s": n / t_local,
+                        f"{part}:vllm_states_per_s": n / t_remote, f"{part}:vllm_over_in_process": t_local / t_remote})
     actions = [k for k in local_rank if k in remote_rank]
     same = sum(local_rank[k]["chosen_index"] == remote_rank[k]["chosen_index"] for k in actions)
     diffs = [abs(a - b) for k in actions
@@ -123,6 +129,16 @@ def main() -> None:
           f"median {np.median(c_text):.4f}")
     print(f"                       (b) in-process embedding of its own summary read with its prompt: min "
           f"{c_paper.min():.4f}, median {np.median(c_paper):.4f}")
+    figures.update({"top_action_equal_share": same / max(len(actions), 1),
+                    "logprob_sum_difference_median_nats": statistics.median(diffs),
+                    "logprob_sum_difference_max_nats": max(diffs),
+                    "summaries_equal_share": words / max(len(summaries), 1),
+                    "pooled_cosine_same_text_min": float(c_text.min()), "pooled_cosine_same_text_median": float(np.median(c_text)),
+                    "pooled_cosine_paper_min": float(c_paper.min()), "pooled_cosine_paper_median": float(np.median(c_paper))})
+    if not args.no_record:
+        record("engines", figures, ratio={"name": "vLLM / in-process states/s, ranking alone",
+                                          "value": figures["ranking_alone:vllm_over_in_process"]},
+               out=args.record, settings={**settings(args), "dtype_resolved": dtype})
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import numpy as np
 from illm_tools.envs.pool import EnvPool
 from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.state import HistoryTracker
+from record import options, record, settings
 
 
 def records(env: str, steps: int, num_envs: int = 16) -> list:
@@ -46,6 +47,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="BabyAI-GoToLocal-v0")
     parser.add_argument("--steps", type=int, default=4096)
+    options(parser)
     args = parser.parse_args()
     recs = records(args.env, args.steps)
     tasks = ("action", "summary")
@@ -62,6 +64,11 @@ def main() -> None:
     print(f"{len(recs):,} states of {args.env} ({len(set(recs)):,} distinct), history 3, two keys each")
     print(f"rendered and keyed: {slow:.2f} us a state; state_keys: {fast:.2f} us a state; "
           f"ratio {slow / fast:.2f}x (target >= 3x)")
+    if not args.no_record:
+        record("keys", {"rendered_and_keyed_us_per_state": slow, "state_keys_us_per_state": fast, "states": len(recs),
+                        "distinct_states": len(set(recs))},
+               ratio={"name": "rendered and keyed / state_keys, time a state", "value": slow / fast, "target": 3.0},
+               out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

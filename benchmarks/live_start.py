@@ -27,6 +27,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from record import options, record, settings
+
 SETTINGS = dict(env_id="BabyAI-GoToRedBallNoDists-v0", method="illm", history_len=0, total_steps=8192,
                 live_mode="async", live_budget=8, seed=0)
 OPTIONS = ["--env", SETTINGS["env_id"], "--method", "illm", "--history", "0", "--frames", "8192",
@@ -62,6 +64,7 @@ def seconds(value) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=3, help="Runs of each way, alternated.")
+    options(parser)
     args = parser.parse_args()
     print(f"{SETTINGS['env_id']}, {SETTINGS['total_steps']:,} frames, an empty cache, --live-mode async "
           f"--live-budget 8, the SmolLM2-135M worker; {os.cpu_count()} cores", flush=True)
@@ -78,6 +81,16 @@ def main() -> None:
               f"(range {min(counts)}-{max(counts)}) of {len(counts)} runs")
     print("target: every illm train run lands answers during its rollouts: "
           + ("met" if min(during["illm train"]) > 0 else "not met"))
+    if not args.no_record:  # the baseline's median is often 0: the headline is the target's share, the baseline's beside it
+        figures = {}
+        for way, counts in during.items():
+            name = way.replace(" ", "_")
+            figures.update({f"{name}:landed_states_median": statistics.median(counts),
+                            f"{name}:landed_states_min": min(counts), f"{name}:landed_states_max": max(counts),
+                            f"{name}:runs_landing_share": sum(c > 0 for c in counts) / len(counts)})
+        record("live_start", figures, ratio={"name": "illm train runs that landed answers during their rollouts / runs",
+                                             "value": figures["illm_train:runs_landing_share"], "target": 1.0},
+               out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

@@ -19,6 +19,8 @@ import time
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+from record import options, record, settings  # noqa: E402
+
 ACTIONS = ["turn left", "turn right", "go forward", "pick up", "drop", "toggle"]
 COLOURS = ["red", "green", "blue", "purple", "yellow", "grey"]
 OBJECTS = ["ball", "box", "key", "door"]
@@ -91,6 +93,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--cache-dir", default=None, help="illm cache; default: a fresh temporary folder")
     parser.add_argument("--skip", default="", help="comma list of sections to skip: load,score,generate")
+    options(parser)
     args = parser.parse_args()
     skip = set(filter(None, args.skip.split(",")))
     if args.threads:
@@ -140,6 +143,11 @@ def main() -> None:
                 input_ids=input_ids, attention_mask=mask, generation_config=config))
     out["matmul_bf16_gflops_after"] = matmul_gflops("bfloat16")
     print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}, indent=1))
+    if not args.no_record:
+        figures = {k: v for k, v in out.items() if isinstance(v, (int, float))}
+        ratio = {"name": "scoring states/s, context KV reused (batch 8) / one forward per candidate",
+                 "value": out["score_kv_bs8_vs_plain"]} if "score_kv_bs8_vs_plain" in out else None
+        record("llm_backend", figures, ratio=ratio, out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

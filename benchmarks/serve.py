@@ -28,6 +28,8 @@ import psutil
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from record import options, record, settings  # noqa: E402
+
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "PYTHONWARNINGS": "ignore"}
 
 
@@ -123,6 +125,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=16384, help="per trainer (the model loads take the first ~15 s)")
     parser.add_argument("--budget", type=int, default=16, help="missed states sent per rollout")
     parser.add_argument("--server-threads", type=int, default=0, help="torch threads of the server (0: every core)")
+    options(parser)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         own = own_workers(Path(tmp) / "own", args)
@@ -135,6 +138,14 @@ def main() -> None:
     print(f"throughput ratio (one server / own workers): {ratio}; memory saved: "
           f"{own['peak_rss_mb'] - shared['peak_rss_mb']:.0f} MB ({1 - shared['peak_rss_mb'] / own['peak_rss_mb']:.0%}); "
           f"{os.cpu_count()} cores, model {args.model} ({args.backend}), {args.frames} frames per trainer")
+    if not args.no_record:
+        figures = {f"{name}:{k}": r[k] for name, r in (("own_workers", own), ("one_server", shared)) for k in r}
+        figures.update({"own_workers:states_per_s": own["states"] / own["wall_s"],
+                        "one_server:states_per_s": shared["states"] / shared["wall_s"],
+                        "memory_saved_mb": own["peak_rss_mb"] - shared["peak_rss_mb"]})
+        value = figures["one_server:states_per_s"] / figures["own_workers:states_per_s"] if own["states"] else None
+        record("serve", figures, ratio={"name": "one server / own workers, states annotated per second", "value": value},
+               out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

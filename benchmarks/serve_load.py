@@ -50,6 +50,8 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
+from record import cpu_name, options, record, settings  # noqa: E402
+
 ENV_ID = "BabyAI-GoToLocal-v0"
 
 
@@ -238,6 +240,7 @@ def main() -> None:
     parser.add_argument("--restart-at", type=float, default=0.5, help="share of the load phase; 0: no restart")
     parser.add_argument("--restart-signal", choices=("kill", "term"), default="kill")
     parser.add_argument("--drain-minutes", type=float, default=5.0, help="at most this long for the last lists to land")
+    options(parser)
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING, format="  [trainer client] %(message)s")
 
@@ -249,8 +252,7 @@ def main() -> None:
     args.dtype = llm.dtype
     setup = AnnotationSetup(ENV_ID, renderer_of(ENV_ID), history_len=0)
     token = secrets.token_urlsafe(32)
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), "unknown CPU")
+    cpu = cpu_name()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         began = time.monotonic()
@@ -265,7 +267,13 @@ def main() -> None:
             for server in servers:
                 if server.proc.poll() is None:
                     server.stop("term")
-        report(args, run, cache, cpu)
+        figures = report(args, run, cache, cpu)
+    if not args.no_record:  # lost states are the figure a restart must keep at 0 (unknown without a finished drain)
+        asked = figures["asked_at_the_end"]
+        value = figures["lost"] / asked if figures["lost"] is not None and asked else (0.0 if asked == 0 else None)
+        record("serve_load", figures, ratio={"name": "states lost / states asked for at the end", "value": value,
+                                             "target": 0.0, "direction": "at_most"},
+               out=args.record, settings=settings(args))
 
 
 class Run:
@@ -342,8 +350,8 @@ class Run:
             t.live.close()
 
 
-def report(args, run: Run, cache: Path, cpu: str) -> None:
-    """Print the figures (module docstring)."""
+def report(args, run: Run, cache: Path, cpu: str) -> dict:
+    """Print the figures (module docstring); returns them as the record keeps them."""
     from illm_tools.cache import AnnotationCache, verify
 
     trainers, restart, final, servers = run.trainers, run.restart, run.final, run.servers
@@ -403,6 +411,21 @@ def report(args, run: Run, cache: Path, cpu: str) -> None:
     print(f"cache: {AnnotationCache(cache).tasks()} rows by task, {check.rows:,} rows in the manifest, "
           f"{rows:,} distinct keys: {'verifies' if check.ok else 'DAMAGED'}, "
           f"{'nothing stored twice' if check.rows == rows else 'ROWS STORED TWICE'}")
+    figures = {"load_minutes": minutes, "drain_s": drain_end - load_end, "drained": int(drained),
+               "landed_states_per_s_in_load": in_load / (load_end - t0), "distinct_states_landed_in_load": in_load,
+               "server_states_per_s_annotating": final.get("states_per_s", 0.0),
+               "landed_p50_s": waits[int(0.5 * len(waits))] if waits else None,
+               "landed_p99_s": waits[min(len(waits) - 1, int(0.99 * len(waits)))] if waits else None,
+               "errors": errors + max(late_unanswered, 0), "requests_sent": counts["sent"],
+               "requests_backed_off": counts["busy"], "unanswered_in_outage": outage_unanswered,
+               "asked_at_the_end": len(final_lists), "lost": len(unlanded) if drained else None,
+               "cache_rows": check.rows, "cache_distinct_keys": rows, "cache_verifies": int(check.ok)}
+    for n, server in enumerate(servers):
+        until = restart["at"] if n == 0 and restart else drain_end
+        mb = [rss / 2**20 for t, rss in server.samples if t <= until]
+        figures.update({f"server_{n + 1}:rss_start_mb": mb[0], f"server_{n + 1}:rss_end_mb": mb[-1],
+                        f"server_{n + 1}:rss_peak_mb": max(mb)} if mb else {})
+    return figures
 
 
 

@@ -26,6 +26,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from annotate import babyai_states  # noqa: E402  (benchmarks/annotate.py: distinct states of a collection)
+from record import options, record, settings  # noqa: E402
 
 
 def main() -> None:
@@ -37,6 +38,7 @@ def main() -> None:
     parser.add_argument("--dtype", default="float32", help="float32 (a CPU without bf16), bfloat16 or auto.")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (as `illm annotate`).")
+    options(parser)
     args = parser.parse_args()
 
     import torch
@@ -77,6 +79,14 @@ def main() -> None:
         print(f"{name:17s} {rate:9.2f} states/s  ({model}){said}")
     base, student = results[1][2], results[2][2]
     print(f"student / base    {student / base:9.2f}x  (same states, dtype and batch)")
+    if not args.no_record:
+        figures = {"states": len(records)}
+        for (name, _, rate, lengths), key in zip(results, ("teacher", "base", "student")):
+            figures[f"{key}_states_per_s"] = rate
+            if lengths:
+                figures[f"{key}_summary_tokens_mean"] = sum(lengths) / len(lengths)
+        record("student", figures, ratio={"name": "student / base states/s", "value": student / base},
+               out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

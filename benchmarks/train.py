@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import queue
 import statistics
 import tempfile
@@ -70,6 +69,7 @@ from illm_tools.rl.ppo import Trainer
 from illm_tools.rl.run import build_run, make_pool
 from illm_tools.rl.threads import torch_threads
 from illm_tools.rl.targets import CachedTargets
+from record import cpu_name, machine, options, record, settings
 
 DIM = 576  # SmolLM2-135M's hidden size: the f^hc head is as large as with the embedded model
 
@@ -278,37 +278,58 @@ def phase_text(runs: list[dict]) -> str:
 
 
 def write_json(args, rows: dict) -> None:
-    """The levels form's record: its command, date, machine (lscpu's lines) and figures."""
+    """The levels form's `--json` file: its command, date, machine (lscpu's lines, `record.machine`) and
+    figures (the form docs/results/measured/train-levels-issue70.json holds)."""
     import datetime
+    import importlib.util
     import json
-    import subprocess
     import sys
 
-    lscpu = subprocess.run(["lscpu"], capture_output=True, text=True).stdout if Path("/usr/bin/lscpu").exists() else ""
-    keep = ("Model name", "CPU family", "Model:", "CPU(s):", "Thread(s) per core", "Flags")
-    machine = {line.split(":", 1)[0].strip(): line.split(":", 1)[1].strip() for line in lscpu.splitlines()
-               if line.startswith(keep)}
-    if "Flags" in machine:  # the vector extensions that decide the kernels' speed
-        machine["Flags"] = " ".join(f for f in machine["Flags"].split() if f.startswith(("avx", "amx", "fma")))
-    import importlib.util
-
-    settings = {k: os.environ[k] for k in ("NUMBA_DISABLE_JIT", "PYTHONPATH", "OMP_NUM_THREADS") if k in os.environ}
-    record = {"command": " ".join(["python", *sys.argv]), "environment": settings,
-              "numba": importlib.util.find_spec("numba") is not None and os.environ.get("NUMBA_DISABLE_JIT") != "1",
-              "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "load_average_at_end": os.getloadavg() if hasattr(os, "getloadavg") else None,
-              "machine": machine or {"cpu": cpu_name()}, "cores": os.cpu_count(), "threads": args.threads,
-              "frames": args.frames, "pairs": args.pairs, "num_envs": args.num_envs, "num_steps": args.num_steps,
-              "levels": rows}
-    args.json.write_text(json.dumps(record, indent=2) + "\n")
+    environment = {k: os.environ[k] for k in ("NUMBA_DISABLE_JIT", "PYTHONPATH", "OMP_NUM_THREADS") if k in os.environ}
+    levels_file = {"command": " ".join(["python", *sys.argv]), "environment": environment,
+                   "numba": importlib.util.find_spec("numba") is not None and os.environ.get("NUMBA_DISABLE_JIT") != "1",
+                   "date": datetime.datetime.now().isoformat(timespec="seconds"),
+                   "load_average_at_end": os.getloadavg() if hasattr(os, "getloadavg") else None,
+                   "machine": machine(), "cores": os.cpu_count(), "threads": args.threads,
+                   "frames": args.frames, "pairs": args.pairs, "num_envs": args.num_envs, "num_steps": args.num_steps,
+                   "levels": rows}
+    args.json.write_text(json.dumps(levels_file, indent=2) + "\n")
     print(f"wrote {args.json}")
 
 
-def cpu_name() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else ():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown CPU"
+def levels_figures(rows: dict, reference: str) -> tuple[dict, dict]:
+    """The levels form's record: each level's medians (steps/s, ratio, the env alone, ppo's target), and
+    the headline: the lowest ppo rate over its target among the levels other than the reference."""
+    names = {"ppo": "ppo_steps_per_s", "illm": "illm_steps_per_s", "ratio": "illm_over_ppo",
+             "env_alone": "env_alone_steps_per_s", "target": "ppo_target_steps_per_s"}
+    figures = {f"{env_id}:{name}": row[k] for env_id, row in rows.items() for k, name in names.items()
+               if row.get(k) is not None}
+    shares = {env_id: row["ppo"] / row["target"] for env_id, row in rows.items() if env_id != reference}
+    low = min(shares, key=shares.get)
+    return figures, {"name": f"ppo steps/s / its target, the lowest over the levels ({low})", "value": shares[low],
+                     "target": 1.0}
+
+
+def case_figures(case: str, out: list[dict]) -> dict:
+    """A case's figures over its pairs (`pairs`): the ratio's median and range, each method's median
+    steps/s, and what illm adds to an update in ms."""
+    ratios = [p["ratio"] for p in out]
+    return {f"{case}:illm_over_ppo_median": statistics.median(ratios), f"{case}:illm_over_ppo_min": min(ratios),
+            f"{case}:illm_over_ppo_max": max(ratios),
+            f"{case}:ppo_steps_per_s_median": statistics.median(p["ppo_sps"] for p in out),
+            f"{case}:illm_steps_per_s_median": statistics.median(p["illm_sps"] for p in out),
+            f"{case}:illm_added_ms_per_update_median": 1e3 * statistics.median(p["added"] for p in out)}
+
+
+TARGETS = {"cached": 0.85, "async": 0.75}
+"""Each case's target for the median illm/ppo ratio (issue 57)."""
+
+
+def case_headline(figures: dict) -> dict:
+    """The record's ratio: the cached case's median where it ran, else the async case's."""
+    case = "cached" if "cached:illm_over_ppo_median" in figures else "async"
+    return {"name": f"illm / ppo steps/s, {case} case, median over the pairs",
+            "value": figures[f"{case}:illm_over_ppo_median"], "target": TARGETS[case]}
 
 
 def deterministic_cuda() -> None:
@@ -380,12 +401,14 @@ def pairs(args, config, cached: Path | None, label: str, tmp: Path) -> list[dict
     return out
 
 
-def profile(config, cached: Path, top: int) -> None:
-    """cProfile's top entries by own time of one cached illm run and one ppo run."""
+def profile(config, cached: Path, top: int) -> dict:
+    """cProfile's top entries by own time of one cached illm run and one ppo run; returns each one's
+    steps/s under the profiler."""
     import cProfile
     import io
     import pstats
 
+    rates = {}
     for method in ("illm", "ppo"):
         profiler = cProfile.Profile()
         profiler.enable()
@@ -397,6 +420,8 @@ def profile(config, cached: Path, top: int) -> None:
         print(f"--- {method}: {sps:,.0f} steps/s under the profiler; per update "
               f"{phase_text([last])}")
         print(body[body.index("ncalls"):].rstrip())
+        rates[method] = sps
+    return rates
 
 
 def main() -> None:
@@ -417,6 +442,7 @@ def main() -> None:
     parser.add_argument("--dtype", default="bfloat16", help="hop: the LLM's compute dtype (float32 is faster on some CPUs).")
     parser.add_argument("--head-hidden", type=int, help="iLLM's heads' width (default: the run's, the paper's 1,024): "
                         "what another width would cost, for the choice of it.")
+    options(parser)
     args = parser.parse_args()
     args.env = args.env or ["BabyAI-GoToLocal-v0"]
     several = len(args.env) > 1
@@ -454,6 +480,8 @@ def main() -> None:
             rows = levels(args, config_of, Path(tmp))
             if args.json:
                 write_json(args, rows)
+            figures, ratio = levels_figures(rows, args.env[0])
+            keep(args, figures, ratio)
             return
         if args.mode == "hop":
             hop = {"obs_mode": "hop", "history_len": args.history, "model_dtype": args.dtype}
@@ -468,20 +496,34 @@ def main() -> None:
                   f"(cache hit rate {last['charts/cache_hit_rate']:.3f})")
             print(f"hop cost per step: {1e3 / sps_ppo_hop - 1e3 / sps_ppo:.2f} ms (ppo hop/ppo ratio "
                   f"{sps_ppo_hop / sps_ppo:.3f}); illm hop/ppo ratio {sps_illm / sps_ppo:.3f}")
+            keep(args, {"ppo_steps_per_s": sps_ppo, "ppo_hop_steps_per_s": sps_ppo_hop, "illm_hop_steps_per_s": sps_illm,
+                        "hop_cost_ms_per_step": 1e3 / sps_ppo_hop - 1e3 / sps_ppo,
+                        "illm_hop_cache_hit_rate": last["charts/cache_hit_rate"]},
+                 {"name": "illm hop (cached) / ppo steps/s", "value": sps_illm / sps_ppo})
             return
         cached = Path(tmp) / "ann"
         if args.only != "async" or args.profile:
             run(config("illm", "fill", 10**9), cached)  # pass 1: fills the cache
         if args.profile:
-            profile(config, cached, 20)
+            rates = profile(config, cached, 20)
+            keep(args, {f"{m}_steps_per_s_profiled": v for m, v in rates.items()},
+                 {"name": "illm / ppo steps/s under the profiler", "value": rates["illm"] / rates["ppo"]})
             return
+        figures = {}
         if args.only != "async":
-            print("every target cached (target: median >= 0.85)", flush=True)
-            pairs(args, config, cached, "cached", Path(tmp))
+            print(f"every target cached (target: median >= {TARGETS['cached']})", flush=True)
+            figures.update(case_figures("cached", pairs(args, config, cached, "cached", Path(tmp))))
         if args.only != "cached":
             print("async live annotation: history 0, an empty cache each run, the SmolLM2-135M worker (1 thread) "
-                  "beside the trainer (target: median >= 0.75)", flush=True)
-            pairs(args, config, None, "async", Path(tmp))
+                  f"beside the trainer (target: median >= {TARGETS['async']})", flush=True)
+            figures.update(case_figures("async", pairs(args, config, None, "async", Path(tmp))))
+        keep(args, figures, case_headline(figures))
+
+
+def keep(args, figures: dict, ratio: dict) -> None:
+    """The run's record (benchmarks/record.py), unless `--no-record`."""
+    if not args.no_record:
+        record("train", figures, ratio=ratio, out=args.record, settings=settings(args))
 
 
 if __name__ == "__main__":

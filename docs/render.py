@@ -2,9 +2,9 @@
 probe's table (docs/experiments/prior-probe.md).
 
 `python docs/render.py` rewrites each page's block between `<!-- NAME:begin -->` and `<!-- NAME:end -->`
-(`BLOCKS`: README.md's `results`, prior-probe.md's `probe`); `python docs/render.py --check` exits 1 when
-a block differs from what the files say (tests/test_claims.py runs the same comparison, so a
-hand-edited number fails the test suite).
+(`blocks()`: README.md's `results`, prior-probe.md's `probe`, measured.md's `measured`, ...); `python
+docs/render.py --check` exits 1 when a block differs from what the files say (tests/test_claims.py and
+tests/test_benchmark_records.py run the same comparison, so a hand-edited number fails the test suite).
 
 Sources (docs/results/, written by `illm report`):
 - suite-report/results.json: each level's final success rate per method (IQM [95% CI], 5 seeds) and
@@ -16,7 +16,9 @@ Sources (docs/results/, written by `illm report`):
 - seeds-candidate/results.json and seeds-candidate-report/results.json: the default since issue 71 (cap 1)
   per level, docs/experiments/suite.md's `default` block;
 - oracle/acting/ENV.json (`illm act --out`): the oracles acting on their own rankings, one row per env
-  (docs/experiments/oracle-acting.md's `acting` block).
+  (docs/experiments/oracle-acting.md's `acting` block);
+- measured/records/*.json (benchmarks/record.py, written by every script in benchmarks/): one row per
+  benchmark run, newest first, its headline ratio met or missed (docs/measured.md's `measured` block).
 
 Numbers are printed with the report's own formatting (`illm_tools.report.markdown.num`, 3 decimals),
 so README and report.md read the same digits. Two words, two counts: illm is *above* a control on a
@@ -47,6 +49,9 @@ README = ROOT / "README.md"
 PROBE_PAGE = ROOT / "docs" / "experiments" / "prior-probe.md"
 ACTING_PAGE = ROOT / "docs" / "experiments" / "oracle-acting.md"
 SUITE_PAGE = ROOT / "docs" / "experiments" / "suite.md"
+MEASURED_PAGE = ROOT / "docs" / "measured.md"
+RECORDS = RESULTS / "measured" / "records"
+"""The benchmarks' records (benchmarks/record.py), docs/measured.md's `measured` block."""
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 PROBE_MODELS = (("SmolLM2-135M", "smollm2-135m"), ("Gemma-3-270M", "gemma3-270m"))
 """The prior probe's rows: the name a page prints, and the file's model (oracle/probes/GoToLocal-MODEL.json)."""
@@ -182,10 +187,74 @@ def render_default() -> str:
     return "\n".join(lines)
 
 
+def figure(value) -> str:
+    """A benchmark's figure as the measured block prints it: whole numbers with separators, three
+    significant digits or so otherwise; n/a for a figure the run could not take."""
+    if value is None:
+        return "n/a"
+    if isinstance(value, int):
+        return f"{value:,}"
+    size = abs(value)
+    return f"{value:,.0f}" if size >= 100 else f"{value:.1f}" if size >= 10 else f"{value:.2f}" if size >= 1 else f"{value:.3g}"
+
+
+def machine_cell(entry: dict) -> str:
+    """The record's machine in short: model name, CPU family and model, the AVX-512/AMX flags, cores,
+    and the load average when the run ended."""
+    m = entry["machine"]
+    flags = set(m.get("Flags", "").split())
+    vector = [name for name, found in (("AVX512-BF16", "avx512_bf16" in flags),
+                                       ("AVX-512", "avx512f" in flags and "avx512_bf16" not in flags),
+                                       ("AMX", any(f.startswith("amx") for f in flags)),
+                                       ("AVX2 only", "avx2" in flags and "avx512f" not in flags)) if found]
+    parts = [m.get("Model name", m.get("cpu", "unknown CPU"))]
+    if "CPU family" in m:
+        parts.append(f"family {m['CPU family']} model {m.get('Model', '?')}")
+    parts += vector + [f"{entry['cores']} cores"]
+    load = entry.get("load_average_at_end")
+    return ", ".join(parts) + (f"; load {load[0]:.1f} at the end" if load else "")
+
+
+def ratio_cells(ratio: dict | None) -> list[str]:
+    """The headline ratio, its target and the verdict: **met** or **missed** (a miss is shown, never
+    dropped); blank where the benchmark states no target."""
+    if ratio is None:
+        return ["(none recorded)", "", ""]
+    target = "" if ratio["target"] is None else f"{'≥' if ratio['direction'] == 'at_least' else '≤'} {ratio['target']:g}"
+    verdict = {True: "**met**", False: "**missed**", None: ""}[ratio["met"]]
+    return [f"{ratio['name']}: **{figure(ratio['value'])}**", target, verdict]
+
+
+def measured_row(path: Path, entry: dict) -> str:
+    """One record's row (cells' pipes escaped: a command may hold one)."""
+    code = entry.get("code") or {}
+    commit = f" at {code['commit'][:7]}{', dirty' if code.get('dirty') else ''}" if code.get("commit") else ""
+    figures = "; ".join(f"{name} {figure(v)}" for name, v in entry["figures"].items())
+    cells = [f"[{entry['benchmark']}](results/measured/records/{path.name})", f"{entry['date']}{commit}",
+             machine_cell(entry), *ratio_cells(entry["ratio"]), figures, f"`{entry['command']}`"]
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+
+def render_measured() -> str:
+    """docs/measured.md's recorded benchmark outputs: one row per record in `RECORDS`, newest first."""
+    entries = []
+    for path in RECORDS.glob("*.json"):
+        try:
+            entries.append((path, json.loads(path.read_text())))
+        except ValueError as e:
+            raise SystemExit(f"{path}: not a benchmark record ({e})") from None
+    if not entries:
+        return "no record yet"
+    entries.sort(key=lambda pe: (pe[1]["date"], pe[0].name), reverse=True)
+    lines = ["| benchmark | date, code | machine | headline ratio | target | verdict | figures | command |",
+             "|---|---|---|---|---|---|---|---|"]
+    return "\n".join(lines + [measured_row(path, entry) for path, entry in entries])
+
+
 def blocks() -> dict:
     """Each rendered block: name -> (the page, the block's rendering)."""
     return {"results": (README, render), "probe": (PROBE_PAGE, render_probe), "acting": (ACTING_PAGE, render_acting),
-            "default": (SUITE_PAGE, render_default)}
+            "default": (SUITE_PAGE, render_default), "measured": (MEASURED_PAGE, render_measured)}
 
 
 def splice(text: str, block: str, name: str = "results") -> str:

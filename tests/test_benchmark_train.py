@@ -17,8 +17,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_cached_pairs_in_lockstep_meet_the_fill_pass_states_and_print_the_ratio():
     """Two processes taking their updates in turn: the illm one reads every target from the cache
     its parent filled (training is deterministic), and both report a rate over their own updates."""
-    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "train.py"), "--only", "cached", "--frames", "2048",
-                          "--num-envs", "4", "--num-steps", "128", "--pairs", "2"],
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "train.py"), "--no-record", "--only", "cached",
+                          "--frames", "2048", "--num-envs", "4", "--num-steps", "128", "--pairs", "2"],
                          capture_output=True, text=True, timeout=600, cwd=ROOT,
                          env={**os.environ, "HF_HUB_OFFLINE": "1"})
     assert out.returncode == 0, out.stderr[-2000:]
