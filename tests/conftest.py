@@ -13,7 +13,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 # answer on every CPU kind (an AVX2-only CPU runs bf16 30x slower), and no probe line in outputs.
 # tests/test_machine_choices.py measures the real probe and simulates both answers.
 os.environ.setdefault("ILLM_DTYPE_PROBE", "float32")
-# The tests' fake hubs (tests/fakes.py `fake_hub`) answer from a thread of the test's own process: on a
+# The tests' fake hubs (tests/fakes/ `fake_hub`) answer from a thread of the test's own process: on a
 # loaded machine one answer took over the hub client's 10 s default (a ReadTimeout under a CPU hog).
 # A generous per-request timeout, set before huggingface_hub reads it, keeps the verdict off the speed.
 os.environ.setdefault("HF_HUB_ETAG_TIMEOUT", "300")

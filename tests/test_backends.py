@@ -18,16 +18,10 @@ from illm_tools.errors import UsageError
 from illm_tools.llm.backend import BACKENDS, Backend, backend_fingerprint, backend_hidden_size, load_backend
 from illm_tools.llm.stub import StubBackend
 from illm_tools.tasks.state import StateRecord
-from fakes import TinyBackend
+from fakes import TinyBackend, cli_ok as ok
 
 runner = CliRunner()
 ACTIONS = ("turn left", "turn right", "go forward")
-
-
-def ok(args):
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 0, result.output
-    return result.output
 
 
 def test_an_unknown_backend_is_refused_in_one_line(tmp_path):
@@ -60,10 +54,10 @@ def test_a_backend_registered_from_a_test_file_annotates_and_trains(tmp_path):
         stats = Annotator(lm, cache, model="m:16", history_len=0).annotate_states(records, "BabyAI-GoToLocal-v0",
                                                                                  "babyai-text@1")
         assert stats.annotated_states == 4 and len(cache) == 8
-        ok(["collect", "--env", "BabyAI-GoToLocal-v0", "--steps", 64, "--num-envs", 2, "--out", tmp_path / "traj"])
-        ok(["train", "--env", "BabyAI-GoToLocal-v0", "--method", "illm", "--cache", tmp_path / "ann", "--backend",
-            "tiny", "--model", "m:16", "--history", 0, "--num-envs", 2, "--num-steps", 16, "--frames", 32,
-            "--live-budget", 4, "--live-mode", "sync", "--out", tmp_path / "run"])
+        ok("collect", "--env", "BabyAI-GoToLocal-v0", "--steps", 64, "--num-envs", 2, "--out", tmp_path / "traj")
+        ok("train", "--env", "BabyAI-GoToLocal-v0", "--method", "illm", "--cache", tmp_path / "ann", "--backend",
+           "tiny", "--model", "m:16", "--history", 0, "--num-envs", 2, "--num-steps", 16, "--frames", 32,
+           "--live-budget", 4, "--live-mode", "sync", "--out", tmp_path / "run")
         with open(tmp_path / "run" / "metrics.csv", newline="") as fh:
             assert float(next(csv.DictReader(fh))["live_annotations"]) == 4
     finally:

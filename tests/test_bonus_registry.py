@@ -15,10 +15,10 @@ from cli.main import app
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic import BonusRewards, IntrinsicBonus, NoBonus
 from illm_tools.intrinsic.registry import METHODS, Method, get_method, register
-from illm_tools.rl import TrainConfig, Trainer, load_checkpoint
+from illm_tools.rl import TrainConfig, load_checkpoint
 
 from illm_tools.rl.networks import GRID_CHANNEL_SIZES, GridMissionNet
-from fakes import FakePool, one_update_seen
+from fakes import make_trainer, one_update_seen
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -79,12 +79,6 @@ def count_method():
     METHODS.pop(method.name)
 
 
-def trainer_for(tmp_path, mode, updates=2, **kw):
-    cfg = TrainConfig.from_dict(dict(run_dir=tmp_path / "run", method=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
-                      tensorboard=False, update_epochs=2, num_minibatches=2, **kw))
-    return Trainer(cfg.resolved(), FakePool(cfg.num_envs))
-
-
 # --- the registry -----------------------------------------------------------------------------
 def test_methods_and_what_each_declares():
     assert list(METHODS)[:4] == ["illm", "illm-noreward", "ppo", "rnd"]
@@ -133,7 +127,7 @@ def test_bonus_options_are_typed_and_checked():
 
 # --- the trainer side -------------------------------------------------------------------------
 def test_the_rollout_hands_bonuses_the_next_observations(tmp_path):
-    trainer = trainer_for(tmp_path, "ppo", updates=1)
+    trainer, _ = make_trainer(tmp_path, "ppo", updates=1)
     ro, _, _, _ = trainer.collect_rollout()
     assert torch.equal(ro.next_images[:-1], ro.images[1:]) and torch.equal(ro.next_missions[:-1], ro.missions[1:])
     last_images, last_missions = trainer._policy_inputs(trainer.obs)  # where the next rollout starts
@@ -148,7 +142,7 @@ def test_the_rollout_hands_bonuses_the_next_observations(tmp_path):
 
 
 def test_a_bonus_defined_outside_plugs_in_and_reaches_the_advantages(tmp_path, monkeypatch, count_method):
-    trainer = trainer_for(tmp_path, "count-toy", updates=3, checkpoint_every=1, bonus_options={"scale": 2.0})
+    trainer, _ = make_trainer(tmp_path, "count-toy", updates=3, checkpoint_every=1, bonus_options={"scale": 2.0})
     bonus = trainer.bonus
     assert isinstance(bonus, CountBonus) and bonus.scale == 2.0 and not trainer.net.has_heads
     assert trainer.provider is None and trainer.cfg.pays_bonus
@@ -167,10 +161,10 @@ def test_a_bonus_defined_outside_plugs_in_and_reaches_the_advantages(tmp_path, m
     trainer.train()
     assert bonus.updates == 3 and bonus.observed == 3 * cfg.num_steps
     assert load_checkpoint(cfg.run_dir)["bonus"] == bonus.state_dict()
-    resumed = trainer_for(tmp_path, "count-toy", updates=4, resume=True, bonus_options={"scale": 2.0})
+    resumed, _ = make_trainer(tmp_path, "count-toy", updates=4, resume=True, bonus_options={"scale": 2.0})
     assert resumed.bonus.updates == 3 and resumed.bonus.observed == 3 * cfg.num_steps
     with pytest.raises(UsageError, match="bonus_options"):
-        trainer_for(tmp_path, "count-toy", updates=4, resume=True, bonus_options={"scale": 3.0})
+        make_trainer(tmp_path, "count-toy", updates=4, resume=True, bonus_options={"scale": 3.0})
 
 
 # --- a policy network plugged in from this file ------------------------------------------------
@@ -197,7 +191,7 @@ class TinyNet(GridMissionNet):
 def test_a_network_registered_from_a_test_file_trains_without_trainer_changes(tmp_path):
     method = register(Method("tiny-net", "a tiny torso", None, pays_reward=False, network=TinyNet))
     try:
-        trainer = trainer_for(tmp_path, "tiny-net", network_options={"width": "6"})
+        trainer, _ = make_trainer(tmp_path, "tiny-net", network_options={"width": "6"})
         assert isinstance(trainer.net, TinyNet) and trainer.net.feature_dim == 6 + 4
         trainer.train()
         state = load_checkpoint(tmp_path / "run")["model"]

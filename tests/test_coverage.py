@@ -30,11 +30,10 @@ from illm_tools.data.trajectories import open_table
 from illm_tools.errors import CacheError
 from illm_tools.rl.live import AsyncLive, SyncLive, WorkerSpec
 from illm_tools.rl.targets import CachedTargets
-from illm_tools.tasks.prompts import PromptBuilder
-from illm_tools.tasks.state import TABLE_COLUMNS, StateRecord, records_from_table
+from illm_tools.tasks.state import TABLE_COLUMNS, records_from_table
+from fakes import cli_ok as ok, prompt_builder, serve_state as state
 
 ENV = "BabyAI-GoToLocal-v0"
-ACTIONS = ("turn left", "turn right", "go forward")
 runner = CliRunner()
 
 
@@ -51,13 +50,9 @@ def config(trajectories, cache, tiny_lm, **kw) -> AnnotateConfig:
                           batch_size=4, chunk=4, **kw)
 
 
-def state(k: int) -> StateRecord:
-    return StateRecord("go to the red ball", (), f"You see a red ball {k} steps forward", ACTIONS)
-
-
 def test_states_are_counted_most_visited_first():
     records = [state(1), state(2), state(2), state(3), state(3), state(3), state(4)]
-    b = PromptBuilder(env_id=ENV, renderer="babyai-text@1", model_fingerprint="x", model="m", history_len=0)
+    b = prompt_builder(model_fingerprint="x", model="m", history_len=0)
     visited = VisitedStates.count(records, [ENV] * 7, ["babyai-text@1"] * 7, lambda e, r: b, ("action", "summary"))
     assert visited.records == [state(3), state(2), state(1), state(4)]  # ties keep first visits first
     assert visited.steps.tolist() == [3, 2, 1, 1] and visited.total_steps == 7
@@ -116,10 +111,9 @@ def test_data_coverage_reports_costs_and_what_the_cache_answers(trajectories, tm
     assert 0 < rows[0]["cached_step_share"] <= rows[0]["top_k_step_share"]["100"] <= 1
     held = rows[0]["heldout_top_k_step_share"]
     assert 0 <= held["100"] <= held["all"] <= 1 and held["all"] < rows[0]["top_k_step_share"]["10000"]
-    out = runner.invoke(app, ["data", "coverage", str(trajectories), "--cache", str(cache), "--history", "0",
-                              "--model", tiny_lm.spec.path, "--dtype", "float32", "--json"])
-    assert out.exit_code == 0, out.output
-    assert json.loads(out.output)[0]["cached_states"] == 5
+    out = ok("data", "coverage", trajectories, "--cache", cache, "--history", 0, "--model", tiny_lm.spec.path,
+             "--dtype", "float32", "--json")
+    assert json.loads(out)[0]["cached_states"] == 5
     table = runner.invoke(app, ["data", "coverage", str(trajectories), "--history", "0", "--history", "1",
                                 "--model", tiny_lm.spec.path, "--dtype", "float32"]).output
     assert "| 0 |" in table and "| 1 |" in table and "top 1,000" in table and "new episodes" in table
@@ -141,29 +135,18 @@ def test_coverage_says_in_one_line_when_annotating_ahead_will_not_help():
 def test_data_coverage_warns_on_a_collection_a_run_will_not_meet(trajectories, tiny_lm):
     rows = measure_coverage(trajectories, histories=[3], llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"))
     assert rows[0]["episodes"] > 1 and rows[0]["heldout_top_k_step_share"]["all"] < 0.1  # history 3: all new
-    out = runner.invoke(app, ["data", "coverage", str(trajectories), "--history", "3", "--model", tiny_lm.spec.path,
-                              "--dtype", "float32"])
-    assert out.exit_code == 0, out.output
-    warned = [line for line in out.output.splitlines() if line.startswith("warning: annotating ahead")]
-    assert len(warned) == 1 and "--live-budget" in warned[0], out.output
+    out = ok("data", "coverage", trajectories, "--history", 3, "--model", tiny_lm.spec.path, "--dtype", "float32")
+    warned = [line for line in out.splitlines() if line.startswith("warning: annotating ahead")]
+    assert len(warned) == 1 and "--live-budget" in warned[0], out
     quiet = runner.invoke(app, ["data", "coverage", str(trajectories), "--history", "3", "--model", tiny_lm.spec.path,
                                 "--dtype", "float32", "--json"])
     assert "warning" not in quiet.output and json.loads(quiet.output)[0]["history"] == 3
 
 
-def _builder(lm, history: int = 0) -> PromptBuilder:
-    from illm_tools.keys import fingerprint_hash
-
-    return PromptBuilder(env_id=ENV, renderer="babyai-text@1", model=lm.spec.path,
-                         model_fingerprint=fingerprint_hash(lm.fingerprint), history_len=history)
-
-
 def test_cache_info_names_each_setup_with_the_options_that_select_it(trajectories, tmp_path, tiny_lm):
     cache = tmp_path / "ann"
     annotate_dataset(config(trajectories, cache, tiny_lm, limit=3))
-    out = runner.invoke(app, ["cache", "info", str(cache), "--json"])
-    assert out.exit_code == 0, out.output
-    setups = json.loads(out.output)["setups"]
+    setups = json.loads(ok("cache", "info", cache, "--json"))["setups"]
     assert {u["task"] for u in setups} == {"action", "summary"} and all(u["entries"] == 3 for u in setups)
     assert all(u["model_options"] == f"--model {tiny_lm.spec.path} --dtype float32 --quant none" for u in setups)
     assert all(u["history_len"] == 0 and "shared" in u["layouts"] for u in setups)
@@ -174,7 +157,7 @@ def test_sync_live_budget_goes_to_the_states_visited_most_over_the_run(tmp_path,
     cache = AnnotationCache(tmp_path / "ann")
     annotator = Annotator(tiny_lm, cache, model=tiny_lm.spec.path, history_len=0, batch_size=4)
     live = SyncLive(annotator, AnnotationSetup(ENV, "babyai-text@1"), budget=1)
-    targets = CachedTargets(cache, _builder(tiny_lm), calibration="sum", num_actions=3,
+    targets = CachedTargets(cache, prompt_builder(lm=tiny_lm, history_len=0), calibration="sum", num_actions=3,
                             embedding_dim=tiny_lm.hidden_size, live=live)
     targets._count_visits([state(2)] * 5)  # earlier rollouts visited state 2 most
     got = targets.targets([state(1), state(1), state(2)])  # in this rollout state 1 comes first and twice
@@ -185,15 +168,14 @@ def test_the_cache_refuses_a_run_of_another_setup_naming_what_differs(trajectori
     cache = tmp_path / "ann"
     annotate_dataset(config(trajectories, cache, tiny_lm, limit=3))
     ann = AnnotationCache(cache)
-    check_setup(ann, _builder(tiny_lm, 0), llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"))
+    llm = LLMSpec(model=tiny_lm.spec.path, dtype="float32")
+    check_setup(ann, prompt_builder(lm=tiny_lm, history_len=0), llm=llm)
     with pytest.raises(CacheError, match=r"holds --history 0 annotations .*this run asks for --history 3"):
-        check_setup(ann, _builder(tiny_lm, 3), llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"))
-    from dataclasses import replace
-
-    paper = replace(_builder(tiny_lm, 0), layout="paper")
+        check_setup(ann, prompt_builder(lm=tiny_lm, history_len=3), llm=llm)
+    paper = prompt_builder(lm=tiny_lm, history_len=0, layout="paper")
     with pytest.raises(CacheError, match=r"holds no action annotations .*--layout shared.*asks for --layout paper"):
-        check_setup(ann, paper, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"))
-    other = replace(_builder(tiny_lm, 0), model_fingerprint="f" * 64)
+        check_setup(ann, paper, llm=llm)
+    other = prompt_builder(lm=tiny_lm, history_len=0, model_fingerprint="f" * 64)
     with pytest.raises(CacheError, match=r"--dtype float32 --quant none annotations.*--new-setup"):
         check_setup(ann, other, llm=LLMSpec(model=tiny_lm.spec.path, dtype="bfloat16"))
 
@@ -206,9 +188,9 @@ def test_train_refuses_another_setup_in_one_line_and_new_setup_accepts_it(trajec
     out = runner.invoke(app, [str(a) for a in [*train, "--out", tmp_path / "run"]])
     assert out.exit_code == 1 and "--history 0" in out.output and "--history 3" in out.output
     assert len(out.output.strip().splitlines()) == 1 and not (tmp_path / "run" / "checkpoint.pt").exists()
-    out = runner.invoke(app, [str(a) for a in [*train, "--out", tmp_path / "run", "--new-setup"]])
-    assert out.exit_code == 0, out.output
-    assert "steps with an LLM target 0% on average" in out.output
+    ok(*train, "--out", tmp_path / "run", "--new-setup")
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert rows and all(r["charts/target_coverage"] == 0 for r in rows)  # the new setup: no cached target
 
 
 def _wait(predicate, seconds: float = 120.0) -> bool:
@@ -226,7 +208,7 @@ def test_async_worker_rows_reach_a_later_rollout_and_a_killed_worker_leaves_the_
     spec = WorkerSpec(cache=str(cache.root), llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"),
                       setup=AnnotationSetup(ENV, "babyai-text@1", history_len=0), threads=1, batch_size=4, chunk=2)
     live = AsyncLive(spec, budget=6, max_restarts=1)
-    targets = CachedTargets(cache, _builder(tiny_lm), calibration="sum", num_actions=3,
+    targets = CachedTargets(cache, prompt_builder(lm=tiny_lm, history_len=0), calibration="sum", num_actions=3,
                             embedding_dim=tiny_lm.hidden_size, live=live)
     try:
         rollout = [state(k) for k in range(1, 7)] * 2
@@ -282,21 +264,19 @@ def test_train_with_async_live_annotation_logs_its_queue(tmp_path, tiny_lm):
     collect(CollectConfig(env_id=ENV, out=traj, steps=64, num_envs=4, seed=1))
     annotate_dataset(AnnotateConfig(data=traj, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), setup=PromptSetup(history_len=0),
                                     limit=4, batch_size=4))
-    out = runner.invoke(app, [str(a) for a in [
-        "train", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype", "float32", "--history", 0,
-        "--num-envs", 4, "--num-steps", 32, "--frames", 640, "--live-mode", "async", "--out", tmp_path / "run"]])
-    assert out.exit_code == 0, out.output
+    out = ok("train", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype", "float32",
+             "--history", 0, "--num-envs", 4, "--num-steps", 32, "--frames", 640, "--live-mode", "async",
+             "--out", tmp_path / "run")
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 5 and all("charts/live_queue" in r for r in rows)
-    assert "steps with an LLM target" in out.output and verify(cache).ok
-    assert "--live-budget all" not in out.output  # a number: no promise of every step to take back
+    assert "steps with an LLM target" in out and verify(cache).ok
+    assert "--live-budget all" not in out  # a number: no promise of every step to take back
 
 
 @pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_live_budget_all_with_async_says_before_it_starts_that_only_sync_promises_every_step(tmp_path):
-    out = runner.invoke(app, ["train", "--env", ENV, "--method", "illm", "--backend", "oracle", "--history", "0",
-                              "--live-budget", "all", "--new-setup", "--cache", str(tmp_path / "ann"),
-                              "--num-envs", "2", "--num-steps", "8", "--frames", "16", "--out", str(tmp_path / "run")])
-    assert out.exit_code == 0, out.output
-    said = [line for line in out.output.splitlines() if line.startswith("--live-budget all")]
+    out = ok("train", "--env", ENV, "--method", "illm", "--backend", "oracle", "--history", 0, "--live-budget", "all",
+             "--new-setup", "--cache", tmp_path / "ann", "--num-envs", 2, "--num-steps", 8, "--frames", 16,
+             "--out", tmp_path / "run")
+    said = [line for line in out.splitlines() if line.startswith("--live-budget all")]
     assert len(said) == 1 and "--live-mode sync" in said[0]

@@ -30,9 +30,8 @@ from illm_tools.intrinsic import BonusContext, Targets
 from illm_tools.intrinsic.ellm import ELLMBonus, ELLMConfig
 from illm_tools.intrinsic.registry import get_method
 from illm_tools.tasks.goals import parse_goals
-from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.registry import LANGUAGE_TASKS
-from illm_tools.tasks.state import StateRecord
+from fakes import cli_ok as ok, prompt_builder as builder, state_record
 
 SNAPSHOTS = Path(__file__).parent / "snapshots" / "babyai_captions.json"
 CASES = [("BabyAI-PickupLoc-v0", 2), ("BabyAI-OpenDoor-v0", 3), ("BabyAI-UnlockLocal-v0", 1)]
@@ -42,18 +41,12 @@ runner = CliRunner()
 
 
 # ---- the goal task ---------------------------------------------------------------------------
-
-def builder(**kw) -> PromptBuilder:
-    args = dict(env_id=ENV, renderer="babyai-text@1", model_fingerprint="f" * 16, model="smollm2-135m")
-    return PromptBuilder(**{**args, **kw})
-
-
-def record(obs="You see a red ball 1 step forward") -> StateRecord:
-    return StateRecord("go to the red ball", (("You see a wall 2 steps forward", "turn left"),), obs, ACTIONS)
+STATE = state_record(history=[("You see a wall 2 steps forward", "turn left")])
+"""A state one step in, of the augmented actions: what the goal task's prompt and keys are checked on."""
 
 
 def test_goal_prompt_is_the_papers_d2_prompt_in_both_layouts():
-    p = builder().render("goal", record())
+    p = builder().render("goal", STATE)
     assert p.text.startswith("You are an expert player playing BabyAI. The goal is: go to the red ball.\n"
                              "Recent player's history: \nObservation 0: You see a wall 2 steps forward\n")
     assert ("Suggest the next goal to reach based on the things you see and previous actions. A goal should "
@@ -62,27 +55,27 @@ def test_goal_prompt_is_the_papers_d2_prompt_in_both_layouts():
             "object you are facing or that the agent has not achieved before.\nGoals:") in p.text
     assert p.text.endswith("\nGoals:") and p.candidates is None
     paper = builder(layout="paper")
-    assert paper.render("goal", record()).text == p.text
-    assert paper.task_key("goal", record()) == builder().task_key("goal", record())  # one goal row for both
+    assert paper.render("goal", STATE).text == p.text
+    assert paper.task_key("goal", STATE) == builder().task_key("goal", STATE)  # one goal row for both
 
 
 def test_goal_keys_carry_the_template_and_parser_versions(monkeypatch):
     b = builder()
-    key = b.task_key("goal", record())
-    assert key not in b.state_keys(record()) and key == builder().task_key("goal", record())
+    key = b.task_key("goal", STATE)
+    assert key not in b.state_keys(STATE) and key == builder().task_key("goal", STATE)
     assert b.setup("goal")["decoding"] == ('{"embedding":"mean-last-hidden@1","max_new_tokens":32,"method":"greedy",'
                                           '"parse":"goals@1"}')
-    assert builder().task_key("goal", record("You see a blue key 1 step forward")) != key
+    assert builder().task_key("goal", state_record("You see a blue key 1 step forward", STATE.history)) != key
     goal = LANGUAGE_TASKS["goal"]
     monkeypatch.setitem(LANGUAGE_TASKS, "goal", dataclasses.replace(goal, templates={**goal.templates,
                                                                                       "shared": ("goal", 2)}))
-    assert builder().setup("goal")["template_version"] == 2 and builder().task_key("goal", record()) != key
+    assert builder().setup("goal")["template_version"] == 2 and builder().task_key("goal", STATE) != key
     monkeypatch.undo()
     monkeypatch.setitem(LANGUAGE_TASKS, "goal", dataclasses.replace(goal, decoding_extra={
         **goal.decoding_extra, "parse": "goals@2"}))
-    assert builder().task_key("goal", record()) != key
+    assert builder().task_key("goal", STATE) != key
     monkeypatch.undo()
-    assert builder().task_key("goal", record()) == key
+    assert builder().task_key("goal", STATE) == key
 
 
 @pytest.mark.parametrize("text,goals", [
@@ -333,9 +326,7 @@ def test_annotate_goal_then_train_ellm(tmp_path, tiny_lm, monkeypatch):
     collect(CollectConfig(env_id=ENV, out=traj, steps=32, num_envs=4, seed=1))
     annotate = ["annotate", str(traj), "--cache", str(cache), "--model", tiny_lm.spec.path, "--dtype", "float32",
                 "--history", "0", "--tasks", "goal", "--batch-size", "4"]
-    out = runner.invoke(app, annotate)
-    assert out.exit_code == 0, out.output
-    assert "goal" in out.output
+    ok(*annotate)
     ann = AnnotationCache(cache)
     assert ann.tasks() == {"goal": len(ann)} and len(ann) > 0
     table = pa.concat_tables(pa.ipc.open_stream(p.read_bytes()).read_all() for p in sorted(cache.glob("shard-*")))
@@ -344,17 +335,13 @@ def test_annotate_goal_then_train_ellm(tmp_path, tiny_lm, monkeypatch):
     assert all(r["prompt"].endswith("\nGoals:") and json.loads(r["decoding"])["parse"] == "goals@1" for r in rows)
     assert all(len(r["embedding"]) == r["embedding_dim"] == tiny_lm.hidden_size and r["cand_logprob_sum"] is None
                for r in rows)  # the text's embedding: the goal head of iLLM (--tasks goal) learns it
-    again = runner.invoke(app, annotate)
-    assert again.exit_code == 0 and "nothing to annotate" in again.output, again.output
+    assert "nothing to annotate" in ok(*annotate)
     assert len(AnnotationCache(cache)) == len(ann)
 
     run = tmp_path / "run"
-    out = runner.invoke(app, [str(a) for a in [
-        "train", "--method", "ellm", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype",
-        "float32", "--history", 0, "--num-envs", 4, "--num-steps", 32, "--frames", 256, "--live-mode", "sync",
-        "--live-budget", 4, "--bonus-option", "threshold=0.5", "--out", run]])
-    assert out.exit_code == 0, out.output
-    assert "trained ellm" in out.output
+    ok("train", "--method", "ellm", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype", "float32",
+       "--history", 0, "--num-envs", 4, "--num-steps", 32, "--frames", 256, "--live-mode", "sync", "--live-budget", 4,
+       "--bonus-option", "threshold=0.5", "--out", run)
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 2 and all("charts/ellm_paid_steps" in r and "charts/target_coverage" in r for r in rows)
     assert sum(r["charts/live_annotations"] for r in rows) > 0  # the live fallback annotated goals
@@ -362,8 +349,7 @@ def test_annotate_goal_then_train_ellm(tmp_path, tiny_lm, monkeypatch):
     assert after.tasks() == {"goal": len(after)} and len(after) > len(ann)
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["method"] == "ellm" and cfg["bonus_options"] == {"threshold": 0.5}
-    out = runner.invoke(app, ["eval", str(run), "--episodes", "2", "--json"])
-    assert out.exit_code == 0 and json.loads(out.output)[0]["method"] == "ellm", out.output
+    assert json.loads(ok("eval", run, "--episodes", 2, "--json"))[0]["method"] == "ellm"
     # a goal-only cache has nothing for iLLM, and says how to annotate it
     out = runner.invoke(app, [str(a) for a in [
         "train", "--method", "illm", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype", "float32",

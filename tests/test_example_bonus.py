@@ -8,18 +8,16 @@ checkpointed."""
 from __future__ import annotations
 
 import importlib
-from pathlib import Path
 
 import pytest
 import torch
 
 from illm_tools.intrinsic import BonusContext
 from illm_tools.intrinsic.registry import METHODS, Method, register
-from test_methods import bonus_reaches_the_advantages, trains_end_to_end
+from fakes import EXAMPLES, bonus_reaches_the_advantages, trains_end_to_end
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "docs" / "examples"
 OWN = ("exponent=1.0", "charts/count_distinct", "reward_norm")  # test_methods.OWN's entry for it
 
 

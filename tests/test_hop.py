@@ -8,23 +8,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from typer.testing import CliRunner
 
-from cli.main import app
 from illm_tools.hop.context import HopContext, HopTracker, hop_records_from_table
 from illm_tools.tasks.setup import hop_renderer
 from illm_tools.hop.translate import FrozenHopfield
 from illm_tools.tasks.prompts import PromptBuilder
 
-runner = CliRunner()
 pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")
 ACTIONS = ("left", "right", "forward")
-
-
-def ok(args):
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 0, result.output
-    return result.output
 
 
 def test_translation_is_deterministic_for_a_seed_and_lies_in_the_span_of_the_embeddings():

@@ -10,46 +10,28 @@ import numpy as np
 import pyarrow as pa
 import pytest
 import torch
-from typer.testing import CliRunner
 
-from cli.main import app
 from illm_tools.cache import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.intrinsic.illm import ILLMBonus, summary_disagreement
 from illm_tools.rl.checkpoint import load_checkpoint
 from illm_tools.rl.config import TrainConfig
-from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.registry import LANGUAGE_TASKS, LanguageTask, parse_tasks, register_task
-from illm_tools.tasks.state import StateRecord
+from fakes import SHORT_ACTIONS, cli_ok as ok, prompt_builder, state_record
 
-runner = CliRunner()
 ENV = "BabyAI-GoToLocal-v0"
-ACTIONS = ("turn left", "turn right", "go forward")
-
-
-def ok(args) -> str:
-    out = runner.invoke(app, [str(a) for a in args])
-    assert out.exit_code == 0, out.output
-    return out.output
-
-
-def record(obs="You see a red ball 1 step forward") -> StateRecord:
-    return StateRecord("go to the red ball", (("You see a wall 2 steps left", "turn left"),), obs, ACTIONS)
-
-
-def builder() -> PromptBuilder:
-    return PromptBuilder(env_id=ENV, renderer="babyai-text@1", model_fingerprint="f" * 16, model="m", history_len=1)
 
 
 def test_the_plan_task_asks_d2s_question_and_keys_apart_from_the_others():
-    b = builder()
-    prompt = b.render("plan", record())
+    b = prompt_builder(model="m", history_len=1)
+    state = state_record(history=[("You see a wall 2 steps left", "turn left")], actions=SHORT_ACTIONS)
+    prompt = b.render("plan", state)
     assert prompt.text.startswith("You are an expert player playing BabyAI. The goal is: go to the red ball.\n"
                                   "Recent player's history: \nObservation 0: You see a wall 2 steps left")
     assert "What do you do (include 2-7 actions)?\nPlan:" in prompt.text and prompt.candidates is None
     assert json.loads(b.setup("plan")["decoding"]) == {"method": "greedy", "max_new_tokens": 48}
-    keys = b.state_keys(record(), ("action", "summary", "goal", "plan"))
-    assert len(set(keys)) == 4 and keys[:2] == b.state_keys(record())  # the default two are unchanged
+    keys = b.state_keys(state, ("action", "summary", "goal", "plan"))
+    assert len(set(keys)) == 4 and keys[:2] == b.state_keys(state)  # the default two are unchanged
     assert parse_tasks("plan+summary") == parse_tasks(["plan", "summary"]) == ("plan", "summary")
     with pytest.raises(UsageError, match="unknown --tasks riddle: choose any of action,summary,goal,plan"):
         parse_tasks("summary,riddle")
@@ -85,9 +67,9 @@ def test_task_settings_are_checked():
 @pytest.mark.slow  # 6 s: the fast tier's time is spent
 def test_every_task_annotates_and_trains_in_any_combination(tmp_path):
     traj, ann = tmp_path / "traj", tmp_path / "ann"
-    ok(["collect", "--env", ENV, "--steps", 48, "--num-envs", 2, "--out", traj])
+    ok("collect", "--env", ENV, "--steps", 48, "--num-envs", 2, "--out", traj)
     llm = ["--backend", "stub", "--model", "stub:16", "--history", 0]
-    out = ok(["annotate", traj, "--cache", ann, *llm, "--tasks", "action,summary,goal,plan", "--limit", 5])
+    out = ok("annotate", traj, "--cache", ann, *llm, "--tasks", "action,summary,goal,plan", "--limit", 5)
     assert "annotated 5 states (20 rows: action 5, goal 5, plan 5, summary 5)" in out
     assert AnnotationCache(ann).tasks() == {"action": 5, "summary": 5, "goal": 5, "plan": 5}
     rows = pa.concat_tables(pa.ipc.open_stream(p.read_bytes()).read_all() for p in sorted(ann.glob("shard-*")))
@@ -96,17 +78,17 @@ def test_every_task_annotates_and_trains_in_any_combination(tmp_path):
             assert row["text"] and len(row["embedding"]) == row["embedding_dim"] == 16
         assert (row["candidates"] is not None) == (row["task"] in ("action", "goal"))
     run = tmp_path / "run"
-    ok(["train", "--env", ENV, "--method", "illm", "--cache", ann, *llm, "--tasks", "summary,plan",
-        "--task-weight", "plan=0.3", "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-mode", "sync",
-        "--live-budget", 8, "--out", run])
+    ok("train", "--env", ENV, "--method", "illm", "--cache", ann, *llm, "--tasks", "summary,plan",
+       "--task-weight", "plan=0.3", "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-mode", "sync",
+       "--live-budget", 8, "--out", run)
     last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
     assert {"charts/intrinsic_reward_hc", "charts/intrinsic_reward_plan"} <= set(last)
     assert "charts/intrinsic_reward_a" not in last and last["charts/target_coverage"] > 0
     weights = load_checkpoint(run)["model"]
     assert "f_plan.2.weight" in weights and "f_hc.2.weight" in weights and "f_a.2.weight" not in weights
     assert weights["f_plan.2.weight"].shape[0] == 16
-    ok(["train", "--out", run, "--resume", "--frames", 64])  # resumes with its own tasks
-    (result,) = json.loads(ok(["eval", run, "--episodes", 1, "--json"]))
+    ok("train", "--out", run, "--resume", "--frames", 64)  # resumes with its own tasks
+    (result,) = json.loads(ok("eval", run, "--episodes", 1, "--json"))
     assert result["episodes"] == 1
 
 
@@ -125,13 +107,13 @@ def hint_task(tmp_path):
 
 def test_a_task_registered_from_the_test_file_runs_through_annotate_and_train(tmp_path, hint_task):
     traj, ann = tmp_path / "traj", tmp_path / "ann"
-    ok(["collect", "--env", ENV, "--steps", 32, "--num-envs", 2, "--out", traj])
+    ok("collect", "--env", ENV, "--steps", 32, "--num-envs", 2, "--out", traj)
     llm = ["--backend", "stub", "--model", "stub:8", "--history", 0]
-    assert "annotated 4 states (8 rows: action 4, hint 4)" in ok(
-        ["annotate", traj, "--cache", ann, *llm, "--tasks", "action,hint", "--limit", 4])
+    ok("annotate", traj, "--cache", ann, *llm, "--tasks", "action,hint", "--limit", 4)
+    assert AnnotationCache(ann).tasks() == {"action": 4, "hint": 4}
     run = tmp_path / "run"
-    ok(["train", "--env", ENV, "--method", "illm", "--cache", ann, *llm, "--tasks", "action,hint",
-        "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-mode", "sync", "--live-budget", 8, "--out", run])
+    ok("train", "--env", ENV, "--method", "illm", "--cache", ann, *llm, "--tasks", "action,hint",
+       "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-mode", "sync", "--live-budget", 8, "--out", run)
     last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
     assert {"charts/intrinsic_reward_a", "charts/intrinsic_reward_hint"} <= set(last)
     assert "f_hint.2.weight" in load_checkpoint(run)["model"]
@@ -140,9 +122,9 @@ def test_a_task_registered_from_the_test_file_runs_through_annotate_and_train(tm
 
 def test_hop_mode_asks_every_task_with_the_translated_window(tmp_path):
     traj, ann = tmp_path / "traj", tmp_path / "ann"
-    ok(["collect", "--env", "MiniGrid-MultiRoom-N6-v0", "--steps", 32, "--num-envs", 2, "--out", traj])
+    ok("collect", "--env", "MiniGrid-MultiRoom-N6-v0", "--steps", 32, "--num-envs", 2, "--out", traj)
     llm = ["--backend", "stub", "--model", "stub:16", "--history", 0, "--mode", "hop"]
-    out = ok(["annotate", traj, "--cache", ann, *llm, "--tasks", "action,summary,goal,plan", "--limit", 3])
-    assert "annotated 3 states (12 rows: action 3, goal 3, plan 3, summary 3)" in out
-    ok(["train", "--env", "MiniGrid-MultiRoom-N6-v0", "--method", "illm", "--cache", ann, *llm, "--tasks", "goal+plan",
-        "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-budget", 0, "--out", tmp_path / "run"])
+    ok("annotate", traj, "--cache", ann, *llm, "--tasks", "action,summary,goal,plan", "--limit", 3)
+    assert AnnotationCache(ann).tasks() == {"action": 3, "summary": 3, "goal": 3, "plan": 3}
+    ok("train", "--env", "MiniGrid-MultiRoom-N6-v0", "--method", "illm", "--cache", ann, *llm, "--tasks", "goal+plan",
+       "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-budget", 0, "--out", tmp_path / "run")

@@ -13,14 +13,10 @@ from cli.main import app
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.llm import dtype as dtypes
+from illm_tools.tasks.setup import adopt_model
+from fakes import cli_ok as ok
 
 runner = CliRunner()
-
-
-def ok(*args, env=None):
-    result = runner.invoke(app, [str(a) for a in args], env=env)
-    assert result.exit_code == 0, result.output
-    return result.output
 
 
 def test_auto_is_measured_once_per_machine_and_resolves_to_a_concrete_dtype(tmp_path, monkeypatch):
@@ -51,7 +47,8 @@ def traj(tmp_path):
 def test_the_resolved_dtype_is_in_the_keys_and_the_run_records_its_choices(traj, tmp_path, monkeypatch):
     monkeypatch.setenv("ILLM_DTYPE_PROBE", "float32")  # a machine where float32 is the faster
     ok("annotate", traj, "--cache", tmp_path / "ann", "--backend", "stub", "--history", 0, "--limit", 4)
-    assert "--backend stub --model stub --dtype float32 --quant none" in ok("cache", "info", tmp_path / "ann")
+    assert adopt_model(AnnotationCache(tmp_path / "ann")) == {"backend": "stub", "model": "stub", "dtype": "float32",
+                                                              "quant": "none"}  # the keys' fingerprint: float32
     ok("train", "--env", "BabyAI-GoToLocal-v0", "--method", "illm", "--cache", tmp_path / "ann", "--backend", "stub",
        "--history", 0, "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-budget", 0, "--out", tmp_path / "run")
     config = json.loads((tmp_path / "run" / "config.json").read_text())
@@ -89,8 +86,6 @@ def test_a_run_adopts_its_caches_setup_and_its_live_rows_land_in_it(traj, tmp_pa
 
 
 def test_a_server_adopts_its_caches_model_setup(traj, tmp_path, monkeypatch):
-    from illm_tools.tasks.setup import adopt_model
-
     monkeypatch.setenv("ILLM_DTYPE_PROBE", "bfloat16")
     assert adopt_model(AnnotationCache(tmp_path / "empty")) is None
     ok("annotate", traj, "--cache", tmp_path / "ann", "--backend", "stub", "--model", "stub:32", "--history", 0,

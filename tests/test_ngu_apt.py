@@ -30,7 +30,7 @@ from illm_tools.rl import TrainConfig, Trainer, load_checkpoint
 from illm_tools.rl.live import SyncLive
 from illm_tools.rl.targets import CachedTargets
 from illm_tools.tasks.state import StateRecord
-from fakes import ACTIONS, FakePool
+from fakes import ACTIONS, FakePool, make_trainer
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -124,12 +124,6 @@ def test_apt_pays_nothing_for_a_batch_of_one_state_and_more_for_spread_states():
 
 
 # --- both, through the trainer --------------------------------------------------------------------
-def trainer_for(tmp_path, mode, updates=2, name="run", **kw):
-    cfg = TrainConfig.from_dict(dict(run_dir=tmp_path / name, method=mode, num_envs=4, num_steps=32, total_steps=4 * 32 * updates,
-                      tensorboard=False, update_epochs=2, num_minibatches=2, **kw))
-    return Trainer(cfg.resolved(), FakePool(cfg.num_envs))
-
-
 def _comparable(metrics: dict) -> dict:
     return {k: v for k, v in metrics.items() if not k.startswith("time/") and k != "charts/sps"}
 
@@ -139,21 +133,21 @@ def test_a_run_is_deterministic_for_a_seed(tmp_path, mode):
     runs = []
     for name in ("a", "b"):
         rows = []
-        trainer = trainer_for(tmp_path, mode, name=name, seed=3)
+        trainer, _ = make_trainer(tmp_path, mode, name=name, seed=3)
         trainer.on_metrics = rows.append
         trainer.train()
         runs.append([_comparable(r) for r in rows])
     assert len(runs[0]) == 2 and runs[0] == runs[1]
-    other = trainer_for(tmp_path, mode, name="c", seed=4)
+    other, _ = make_trainer(tmp_path, mode, name="c", seed=4)
     assert _comparable(other.train()) != runs[0][-1]
 
 
 @pytest.mark.parametrize("mode", ["ngu", "apt"])
 def test_checkpoints_resume_the_bonus_state(tmp_path, mode):
-    trainer = trainer_for(tmp_path, mode, updates=2, checkpoint_every=1)
+    trainer, _ = make_trainer(tmp_path, mode, updates=2, checkpoint_every=1)
     trainer.train()
     saved = load_checkpoint(trainer.cfg.run_dir)["bonus"]
-    resumed = trainer_for(tmp_path, mode, updates=3, resume=True, checkpoint_every=1)
+    resumed, _ = make_trainer(tmp_path, mode, updates=3, resume=True, checkpoint_every=1)
     before, state = trainer.bonus.state_dict(), resumed.bonus.state_dict()
     assert set(state) == set(before) == set(saved)
     assert all(torch.equal(state["embedding"][k], before["embedding"][k]) for k in before["embedding"])
@@ -178,7 +172,8 @@ def test_bad_settings_are_refused_in_one_line(tmp_path):
         (lambda: TrainConfig(method="ngu", bonus_options={"k": 0}), "must be positive"),
         (lambda: TrainConfig(method="ngu", bonus_options={"max_modulation": 0.5}), ">= 1"),
         (lambda: TrainConfig(method="apt", bonus_options={"k": 0}), "must be positive"),
-        (lambda: trainer_for(tmp_path, "apt", bonus_options={"k": 128}), "larger than the 127 other states of a rollout"),
+        (lambda: make_trainer(tmp_path, "apt", bonus_options={"k": 128}),
+         "larger than the 127 other states of a rollout"),
         (lambda: TrainConfig(method="rnd", bonus_options={"k": 5}), "rnd has no bonus option k"),
         (lambda: TrainConfig(method="ppo", bonus_options={"k": 5}), "ppo has no bonus option k"),
         (lambda: TrainConfig(method="ngu", bonus_options={"knn_clip": 0.1}), "ngu has no bonus option knn_clip"),
@@ -189,7 +184,8 @@ def test_bad_settings_are_refused_in_one_line(tmp_path):
         with pytest.raises(UsageError, match=match) as err:
             make()
         assert "\n" not in str(err.value)
-    assert trainer_for(tmp_path, "apt", name="ok", bonus_options={"k": 127}).bonus.config.k == 127
+    trainer, _ = make_trainer(tmp_path, "apt", name="ok", bonus_options={"k": 127})
+    assert trainer.bonus.config.k == 127
     result = CliRunner().invoke(app, ["train", "--method", "apt", "--bonus-option", "kernel_epsilon=1",
                                       "--out", str(tmp_path / "cli")])
     assert result.exit_code == 1 and "no bonus option kernel_epsilon" in result.output

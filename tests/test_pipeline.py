@@ -21,6 +21,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
+from fakes import cli_ok as ok
 
 runner = CliRunner()
 pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")
@@ -30,12 +31,6 @@ OWN = ("illm_tools", "cli", "illm")
 LIBRARIES = ("transformers", "datasets", "accelerate", "peft", "torch", "gymnasium", "huggingface_hub")
 """Their loggers, some of which (transformers, datasets) keep their own handler and do not propagate:
 the strict cases listen to each directly."""
-
-
-def ok(*args) -> str:
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 0, (args[0], result.output, result.exception)
-    return result.output
 
 
 def metrics(run) -> list[dict]:
@@ -121,10 +116,11 @@ def test_collect_annotate_train_eval(name, tmp_path, request, caplog):
     traj, ann, run = tmp_path / "traj", tmp_path / "ann", tmp_path / "illm"
     shape = ["--num-envs", case.num_envs, "--num-steps", case.num_steps, "--seed", 0]
     with no_foreign_warnings(caplog) if case.strict else nullcontext():
-        assert f"collected {case.steps} steps" in ok("collect", *env, "--steps", case.steps, "--num-envs",
-                                                     case.num_envs, "--out", traj)
+        ok("collect", *env, "--steps", case.steps, "--num-envs", case.num_envs, "--out", traj)
+        collected = json.loads(ok("data", "info", traj, "--json"))
+        assert collected["rows"] == case.steps
         if case.backend is None:
-            return _no_text(case, env, shape, traj, tmp_path)
+            return _no_text(case, env, shape, traj, collected, tmp_path)
         setup = [*model, "--mode", case.mode, "--history", case.history]
         said = ok("annotate", traj, "--cache", ann, *setup, "--limit", case.limit, "--batch-size", 4)
         assert f"annotated {case.limit} states ({2 * case.limit} rows" in said
@@ -163,8 +159,8 @@ def test_collect_annotate_train_eval(name, tmp_path, request, caplog):
 def _babyai_extras(env, run, tmp_path) -> None:
     """A trained policy collects; eval and report compare runs of two methods."""
     ppo = tmp_path / "ppo"
-    out = ok("collect", *env, "--policy", ppo, "--steps", 32, "--num-envs", 4, "--out", tmp_path / "traj-ppo")
-    assert "with policy run:ppo@256" in out
+    ok("collect", *env, "--policy", ppo, "--steps", 32, "--num-envs", 4, "--out", tmp_path / "traj-ppo")
+    assert json.loads(ok("data", "info", tmp_path / "traj-ppo", "--json"))["policies"] == ["run:ppo@256"]
     (result,) = json.loads(ok("eval", run, "--episodes", 4, "--json"))
     assert result["episodes"] == 4 and 0.0 <= result["success_rate"] <= 1.0
     table = ok("eval", run, ppo, "--episodes", 2)
@@ -175,10 +171,10 @@ def _babyai_extras(env, run, tmp_path) -> None:
     assert "| illm |" in table and "| ppo |" in table
 
 
-def _no_text(case, env, shape, traj, tmp_path) -> None:
-    """A suite without text observations: collected and trained, annotate and chibit refused in one line."""
-    info = json.loads(ok("data", "info", traj, "--json"))
-    assert info["rows"] == case.steps and info["env_ids"] == [case.env]
+def _no_text(case, env, shape, traj, collected, tmp_path) -> None:
+    """A suite without text observations (`collected`: `data info` of `traj`): collected and trained,
+    annotate and chibit refused in one line."""
+    assert collected["env_ids"] == [case.env]
     refused = runner.invoke(app, ["annotate", str(traj), "--cache", str(tmp_path / "ann")])
     assert refused.exit_code == 1 and "no text observation" in refused.output and "Traceback" not in refused.output
     assert not (tmp_path / "ann").exists()

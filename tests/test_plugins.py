@@ -7,6 +7,7 @@ any registry; and the one `Registry` shape: lazy entries, a type check, one unkn
 from __future__ import annotations
 
 import csv
+import json
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -18,6 +19,7 @@ from cli.main import app
 import numpy as np
 from torch import nn
 
+from illm_tools.cache import AnnotationCache
 from illm_tools.envs.observations import Observation
 from illm_tools.envs.suite import ObsSpec
 from illm_tools.errors import UsageError
@@ -28,7 +30,8 @@ from illm_tools.rl.providers import TARGET_PROVIDERS, kind_name, provider_class
 from illm_tools.rl.targets import CachedTargets
 from illm_tools.registry import Registry
 from illm_tools.tasks.registry import LanguageTask
-from fakes import TINY, TinyBackend, TinySuite, plugins_installed
+from illm_tools.tasks.setup import adopt_model
+from fakes import TINY, TinyBackend, TinySuite, cli_ok as ok, plugins_installed
 
 runner = CliRunner()
 
@@ -165,20 +168,16 @@ def plugins(tmp_path, monkeypatch):
         yield added[:4]
 
 
-def ok(*args):
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 0, result.output
-    return result.output
-
-
 @pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_a_plugin_of_each_kind_loads_through_its_entry_point_and_runs(plugins, tmp_path):
     assert plugins == [["flat", "told"], ["verdict"], ["echo"], ["tiny", "ruler"]]
     ok("collect", "--env", TINY, "--steps", 48, "--num-envs", 2, "--out", tmp_path / "traj")
-    said = ok("annotate", tmp_path / "traj", "--cache", tmp_path / "ann", "--backend", "echo", "--history", 0,
-              "--tasks", "action,verdict")
-    assert "(" in said and "verdict" in said
-    assert "--backend echo --model echo:8" in ok("cache", "info", tmp_path / "ann")
+    ok("annotate", tmp_path / "traj", "--cache", tmp_path / "ann", "--backend", "echo", "--history", 0,
+       "--tasks", "action,verdict")
+    cache = AnnotationCache(tmp_path / "ann")
+    assert set(cache.tasks()) == {"action", "verdict"}  # the plug-in task annotated beside the action task
+    found = adopt_model(cache)  # the rows' fingerprint reproduced by the plug-in backend
+    assert (found["backend"], found["model"]) == ("echo", "echo:8")
     ok("train", "--env", TINY, "--method", "illm", "--backend", "echo", "--cache", tmp_path / "ann", "--history", 0,
        "--tasks", "action,verdict", "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-budget", "all",
        "--live-mode", "sync", "--out", tmp_path / "illm")
@@ -208,8 +207,8 @@ def test_a_suite_with_a_new_kind_of_observation_trains_with_every_bonus(plugins,
     assert len(rows) == 2 and all(np.isfinite(float(r["policy_loss"])) for r in rows)
     if method != "ppo":
         assert float(rows[-1]["adv_int_abs"]) > 0  # the bonus read the new kind and reached the advantages
-    said = ok("eval", tmp_path / "run", "--episodes", 4)
-    assert "success" in said
+    (result,) = json.loads(ok("eval", tmp_path / "run", "--episodes", 4, "--json"))
+    assert result["env_id"] == RULER and result["episodes"] == 4
 
 
 def test_one_registry_shape_lazy_checked_and_one_message():
@@ -304,9 +303,8 @@ def test_a_collection_policy_is_one_factory_and_one_registry_entry(tmp_path):
 
     POLICIES.register("first", lambda config, pool: FirstActionPolicy(pool))
     try:
-        out = ok("collect", "--env", "BabyAI-GoToLocal-v0", "--policy", "first", "--steps", 32, "--num-envs", 2,
-                 "--out", tmp_path / "traj")
-        assert "32" in out
+        ok("collect", "--env", "BabyAI-GoToLocal-v0", "--policy", "first", "--steps", 32, "--num-envs", 2,
+           "--out", tmp_path / "traj")
         actions = open_table(tmp_path / "traj", columns=["action"])["action"].to_pylist()
         assert len(actions) == 32 and set(actions) == {0}
     finally:

@@ -1,7 +1,7 @@
 """`illm report`: curve points are episode-weighted windows, aligned by frame across seeds.
 
 Over 400 lines: the report's tests share rliable's IQM by hand (`iqm_by_hand`); split, the second
-file would import it from the first (the fake runs, `fake_run`, are tests/fakes.py's)."""
+file would import it from the first (the fake runs, `fake_run`, are tests/fakes/' own)."""
 
 from __future__ import annotations
 

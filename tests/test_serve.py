@@ -284,7 +284,7 @@ def test_the_token_is_required_on_every_request(tmp_path, start_server):
     status, stats = call(url + "/stats", token=TOKEN)
     assert status == 200 and stats["unauthorized"] == 4 and stats["queue"] == 0
     headers = {}
-    status, answer = call(url + "/annotate", request([(state(i), 1) for i in range(3)]), token=TOKEN, headers=headers)
+    status, answer = call(url + "/annotate", request([(state(i), 1) for i in range(3)]), token=TOKEN, answer_headers=headers)
     assert status == 503 and int(headers["Retry-After"]) >= 1 and "--max-queue 2" in answer["error"]
     out = runner.invoke(app, ["train", "--env", ENV, "--method", "illm", "--cache", str(tmp_path / "ann"),
                               "--backend", "stub", "--model", MODEL, "--history", "0", "--num-envs", "2",

@@ -14,14 +14,10 @@ import secrets
 import socket
 import threading
 import time
-import urllib.error
-import urllib.request
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from cli.main import app
 from illm_tools.cache import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
@@ -30,32 +26,9 @@ from illm_tools.serve import AnnotationServer, RequestError, ServeLimits, record
 from illm_tools.tasks.state import StateRecord
 from fakes import SHORT_ACTIONS as ACTIONS, STUB_LLM as LLM, STUB_MODEL as MODEL, hop_states, wait_for
 from fakes import running_server as running, serve_request as request, serve_state as state
-from fakes import QuietHandler
+from fakes import QuietHandler, call, cli_ok as ok, server_stats as stats, stub_server as make
 
 HOP = {"renderer": "hop@2:seed=0:beta=100.0:window=2", "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
-
-
-def post(url: str, body=None, *, raw: bytes | None = None, headers: dict | None = None) -> tuple[int, dict, dict]:
-    """(status, JSON answer, headers) of a POST to /annotate."""
-    data = raw if raw is not None else json.dumps(body).encode()
-    sent = {"Content-Type": "application/json", **(headers or {})}
-    try:
-        with urllib.request.urlopen(urllib.request.Request(url + "/annotate", data=data, headers=sent), timeout=30) as r:
-            return r.status, json.loads(r.read()), dict(r.headers)
-    except urllib.error.HTTPError as e:
-        return e.code, json.loads(e.read()), dict(e.headers)
-
-
-def stats(url: str) -> dict:
-    with urllib.request.urlopen(url + "/stats", timeout=30) as r:
-        return json.loads(r.read())
-
-
-def make(tmp_path, lm=None, llm: LLMSpec = LLM, history_len: int = 0, **limits) -> AnnotationServer:
-    from illm_tools.tasks.prompt_setup import PromptSetup
-
-    return AnnotationServer(lm or StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=llm,
-                            prompt=PromptSetup(history_len=history_len), chunk=8, limits=ServeLimits(**limits))
 
 
 def frame_json(array: np.ndarray) -> dict:
@@ -99,7 +72,7 @@ def test_every_field_is_bounded_and_checked_on_arrival(tmp_path, kind, status, s
     hop = kind.startswith(("frame", "hop"))
     server = make(tmp_path, history_len=1 if hop else 0, llm=LLMSpec(backend="oracle") if kind == "hop_on_oracle" else LLM)
     with running(server) as url:
-        code, answer, _ = post(url, oversized(kind))
+        code, answer = call(url + "/annotate", oversized(kind))
         assert (code, says in answer["error"]) == (status, True), answer
         assert len(answer["error"].splitlines()) == 1
         assert stats(url)["queue"] == 0
@@ -150,15 +123,15 @@ def test_a_state_failing_in_the_engine_costs_no_other_state(tmp_path):
     server.chunk = 16
     poison = StateRecord("go to the POISON ball", (), "You see POISON", ACTIONS)
     with running(server) as url:
-        assert post(url, request([(state(0), 1)], client="first"))[0] == 202
+        assert call(url + "/annotate", request([(state(0), 1)], client="first"))[0] == 202
         wait_for(lambda: stats(url)["annotating"] == 1, 30, "the first batch in the engine")
-        assert post(url, request([(poison, 10**9)], client="bad"))[0] == 202
-        assert post(url, request([(state(i), 1) for i in range(1, 11)], client="good"))[0] == 202
+        assert call(url + "/annotate", request([(poison, 10**9)], client="bad"))[0] == 202
+        assert call(url + "/annotate", request([(state(i), 1) for i in range(1, 11)], client="good"))[0] == 202
         EngineStub.gate.set()
         wait_for(lambda: stats(url)["queue"] == 0 and stats(url)["batches"] == 2, 30, "the queue drained")
         assert "go to the POISON ball: You see POISON" in server.batches[1] and len(server.batches[1]) == 11  # together
-        assert post(url, request([], client="good"))[1]["landed"] == 10
-        answer = post(url, request([], client="bad"))[1]
+        assert call(url + "/annotate", request([], client="good"))[1]["landed"] == 10
+        answer = call(url + "/annotate", request([], client="bad"))[1]
         assert answer["failed"] == 1 and "the engine cannot take this state" in answer["failure"]
         s = stats(url)
         assert (s["annotated_states"], s["failed_states"]) == (11, 1)
@@ -167,15 +140,17 @@ def test_a_state_failing_in_the_engine_costs_no_other_state(tmp_path):
 def test_one_client_flooding_sessions_cannot_starve_another(tmp_path):
     server = held_engine(tmp_path)
     with running(server) as url:
-        assert post(url, request([(state(0), 1)], client="first"))[0] == 202
+        assert call(url + "/annotate", request([(state(0), 1)], client="first"))[0] == 202
         wait_for(lambda: stats(url)["annotating"] == 1, 30, "the first batch in the engine")
         for n in range(4):  # the flooder's sessions, most visited states
             states = [(StateRecord(f"flood {n} {i}", (), "", ACTIONS), 10**6) for i in range(16)]
-            assert post(url, request(states, client="flood", session=f"s{n}"))[0] == 202
+            assert call(url + "/annotate", request(states, client="flood", session=f"s{n}"))[0] == 202
         more = [(StateRecord("flood more", (), "", ACTIONS), 10**6)]
-        code, answer, headers = post(url, request(more, client="flood", session="s4"))
+        headers = {}
+        code, answer = call(url + "/annotate", request(more, client="flood", session="s4"), answer_headers=headers)
         assert code == 429 and "--max-sessions" in answer["error"] and int(headers["Retry-After"]) >= 1
-        assert post(url, request([(StateRecord("the fair one", (), "", ACTIONS), 1)], client="fair"))[0] == 202
+        fair = [(StateRecord("the fair one", (), "", ACTIONS), 1)]
+        assert call(url + "/annotate", request(fair, client="fair"))[0] == 202
         EngineStub.gate.set()
         wait_for(lambda: any("the fair one: " in b for b in server.batches), 60, "the fair client's state annotated")
     assert next(i for i, b in enumerate(server.batches) if "the fair one: " in b) <= 1  # within two batches
@@ -184,7 +159,9 @@ def test_one_client_flooding_sessions_cannot_starve_another(tmp_path):
 def test_a_client_holds_at_most_its_share_of_the_queue(tmp_path):
     server = make(tmp_path, max_queue=10, max_client_share=0.5)
     with running(server) as url:
-        code, answer, headers = post(url, request([(state(i), 1) for i in range(6)], client="greedy"))
+        headers = {}
+        code, answer = call(url + "/annotate", request([(state(i), 1) for i in range(6)], client="greedy"),
+                            answer_headers=headers)
         assert code == 429 and "beyond its share 5" in answer["error"] and "Retry-After" in headers
 
 
@@ -228,14 +205,15 @@ def test_cross_origin_text_plain_and_other_host_posts_are_refused(tmp_path):
     server = make(tmp_path)
     with running(server) as url:
         body = request([(state(1), 1)])
-        code, answer, _ = post(url, body, headers={"Content-Type": "text/plain", "Origin": "http://evil.example"})
+        code, answer = call(url + "/annotate", body,
+                            headers={"Content-Type": "text/plain", "Origin": "http://evil.example"})
         assert code == 403 and "cross-origin" in answer["error"]
-        code, answer, _ = post(url, body, headers={"Content-Type": "text/plain"})
+        code, answer = call(url + "/annotate", body, headers={"Content-Type": "text/plain"})
         assert code == 415 and "application/json" in answer["error"]
-        code, answer, _ = post(url, body, headers={"Host": "evil.example:80"})  # DNS rebinding
+        code, answer = call(url + "/annotate", body, headers={"Host": "evil.example:80"})  # DNS rebinding
         assert code == 403 and "Host" in answer["error"]
         assert stats(url)["queue"] == 0
-        assert post(url, body)[0] == 202  # the server's own trainer
+        assert call(url + "/annotate", body)[0] == 202  # the server's own trainer
 
 
 def test_a_wrong_token_without_a_body_is_disconnected(tmp_path):
@@ -255,15 +233,14 @@ def test_a_wrong_token_without_a_body_is_disconnected(tmp_path):
 def test_a_request_declaring_another_setup_is_refused_and_the_cache_keeps_one_setup(tmp_path):
     server = make(tmp_path)
     with running(server) as url:
-        assert post(url, request([(state(1), 1)]))[0] == 202
+        assert call(url + "/annotate", request([(state(1), 1)]))[0] == 202
         wait_for(lambda: stats(url)["annotated_states"] == 1, 30, "the state annotated")
-        code, answer, _ = post(url, request([(state(2), 1)], client="other", history_len=3, layout="paper"))
+        code, answer = call(url + "/annotate", request([(state(2), 1)], client="other", history_len=3, layout="paper"))
         assert code == 409 and "--history 0 (the request's 3)" in answer["error"]
         assert "--layout shared (the request's 'paper')" in answer["error"]
         assert len(answer["error"].splitlines()) == 1
-    out = CliRunner().invoke(app, ["cache", "info", str(tmp_path / "ann"), "--json"])
-    assert out.exit_code == 0, out.output
-    assert sorted(u["task"] for u in json.loads(out.output)["setups"]) == ["action", "summary"]  # one row per task
+    setups = json.loads(ok("cache", "info", tmp_path / "ann", "--json"))["setups"]
+    assert sorted(u["task"] for u in setups) == ["action", "summary"]  # one row per task
     from illm_tools.tasks.setup import cache_setups
 
     assert len(cache_setups(AnnotationCache(tmp_path / "ann"), ("action", "summary"))) == 1
@@ -282,7 +259,7 @@ def test_a_request_declaring_another_setup_is_refused_and_the_cache_keeps_one_se
 def test_malformed_json_of_any_shape_answers_400_in_one_line(tmp_path, caplog, raw, says):
     server = make(tmp_path)
     with caplog.at_level(logging.INFO), running(server) as url:
-        code, answer, _ = post(url, raw=raw)
+        code, answer = call(url + "/annotate", raw=raw)
     assert code == 400 and says in answer["error"] and len(answer["error"].splitlines()) == 1, answer
     assert not [r for r in caplog.records if r.exc_info or "Traceback" in r.getMessage()]
     assert sum("refused a request" in r.getMessage() for r in caplog.records) == 1
@@ -298,9 +275,9 @@ def test_the_server_checks_a_frame_against_its_own_env_not_the_clients_word(tmp_
     server = make(tmp_path, history_len=1)
     body = json.loads(json.dumps(request([(r, 1) for r in hop_states(1)], **HOP)))
     with running(server) as url:
-        assert post(url, body)[0] == 202
+        assert call(url + "/annotate", body)[0] == 202
         body["states"][0]["frames"][0]["data"] = body["states"][0]["frames"][0]["data"][:-4]  # bytes short of its shape
-        code, answer, _ = post(url, {**body, "client": "other"})
+        code, answer = call(url + "/annotate", {**body, "client": "other"})
         assert code == 400 and "a hop frame of this env is [7, 7, 3] uint8" in answer["error"]
 
 
@@ -314,7 +291,8 @@ def test_the_hop_projections_the_server_keeps_are_bounded(tmp_path):
         for n in range(2, 9):  # each number of valid actions asks for a projection of its own
             (record,) = HopTracker(1, 1, [f"act {i}" for i in range(n)]).records(
                 ["get to the green goal square"], [rng.integers(0, 9, (7, 7, 3), dtype=np.uint8)])
-            assert post(url, json.loads(json.dumps(request([(record, 1)], client=f"c{n}", **HOP))))[0] == 202
+            body = json.loads(json.dumps(request([(record, 1)], client=f"c{n}", **HOP)))
+            assert call(url + "/annotate", body)[0] == 202
             wait_for(lambda: stats(url)["queue"] == 0 and stats(url)["annotating"] == 0, 30, "annotated")
         assert stats(url)["annotated_states"] == 7
     assert len(server.annotator._hop) <= MAX_HOP_CONTEXTS
@@ -455,14 +433,14 @@ def test_peers_are_counted_by_group_headers_have_their_own_timeout_and_nothing_i
         bomb = packer.compress(b"[") + b"".join(packer.compress(b" " * 2**20) for _ in range(256))
         bomb += packer.compress(b"]") + packer.flush()
         before = stats(url)["resident_mb"]
-        code, answer, _ = post(url, raw=bomb, headers={"Content-Encoding": "deflate"})
+        code, answer = call(url + "/annotate", raw=bomb, headers={"Content-Encoding": "deflate"})
         assert code == 415 and "must not be compressed" in answer["error"]
         assert stats(url)["resident_mb"] - before < 64  # nothing was inflated
         body = request([(state(1), 1)])
         for field, value, said in (("model_fingerprint", ["f"] * 10_000, "model_fingerprint must be a string"),
                                    ("wait", "1e400", "1e400 is not a finite number")):
             raw = json.dumps({**body, field: value}).replace('"1e400"', "1e400").encode()
-            code, answer, _ = post(url, raw=raw)
+            code, answer = call(url + "/annotate", raw=raw)
             assert code == 400 and said in answer["error"], answer
 
 

@@ -10,9 +10,10 @@ import pytest
 
 from illm_tools.errors import UsageError
 from illm_tools.tasks.calibration import action_distribution
-from illm_tools.tasks.prompts import PromptBuilder, format_history, template_sha
+from illm_tools.tasks.prompts import format_history, template_sha
 from illm_tools.tasks.registry import LANGUAGE_TASKS
 from illm_tools.tasks.state import HistoryTracker, StateRecord, records_from_table
+from fakes import ACTIONS, prompt_builder as builder, state_record as record
 
 # Changing a template's text must bump its version in VERSIONS and the hash here.
 PINNED = {
@@ -23,18 +24,6 @@ PINNED = {
     ("plan", 1): "4395f3ba8de9e629",
 }
 
-ACTIONS = ("turn left", "turn right", "go forward", "pick up", "drop", "toggle")
-
-
-def builder(**kw) -> PromptBuilder:
-    args = dict(env_id="BabyAI-GoToLocal-v0", renderer="babyai-text@1", model_fingerprint="f" * 16,
-                model="smollm2-135m")
-    args.update(kw)
-    return PromptBuilder(**args)
-
-
-def record(obs="You see a red ball 1 step forward", history=()):
-    return StateRecord("go to the red ball", tuple(history), obs, ACTIONS)
 
 
 @pytest.mark.parametrize("name,version", sorted({tv for t in LANGUAGE_TASKS.values() for tv in t.templates.values()}))

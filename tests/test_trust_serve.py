@@ -16,43 +16,17 @@ import subprocess
 import sys
 import threading
 import time
-import urllib.error
-import urllib.request
 
 import pytest
 
-from illm_tools.cache import AnnotationCache
 from illm_tools.llm.stub import StubBackend
-from illm_tools.serve import AnnotationServer, RequestError, ServeLimits, record_to_json
+from illm_tools.serve import RequestError, ServeLimits, record_to_json
 from illm_tools.tasks.state import StateRecord
-from fakes import SHORT_ACTIONS as ACTIONS, SLOW_SERVER, STUB_LLM as LLM, STUB_MODEL as MODEL, wait_for
+from fakes import SHORT_ACTIONS as ACTIONS, SLOW_SERVER, STUB_MODEL as MODEL, wait_for
 from fakes import running_server as running, serve_request as request, serve_state as state
+from fakes import call, server_stats as stats, stub_server as make
 
 V4, V6, THIRD = "203.0.113.0/24", "2001:db8:1::/64", "198.51.100.0/24"  # one dual-stack host's two groups, another
-
-
-def post(url: str, body=None, *, raw: bytes | None = None, token: str | None = None) -> tuple[int, dict]:
-    data = raw if raw is not None else json.dumps(body).encode()
-    headers = {"Content-Type": "application/json", **({"Authorization": f"Bearer {token}"} if token else {})}
-    try:
-        with urllib.request.urlopen(urllib.request.Request(url + "/annotate", data=data, headers=headers),
-                                    timeout=60) as r:
-            return r.status, json.loads(r.read())
-    except urllib.error.HTTPError as e:
-        return e.code, json.loads(e.read())
-
-
-def stats(url: str, token: str | None = None) -> dict:
-    headers = {"Authorization": f"Bearer {token}"} if token else {}
-    with urllib.request.urlopen(urllib.request.Request(url + "/stats", headers=headers), timeout=60) as r:
-        return json.loads(r.read())
-
-
-def make(tmp_path, lm=None, **limits) -> AnnotationServer:
-    from illm_tools.tasks.prompt_setup import PromptSetup
-
-    return AnnotationServer(lm or StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM,
-                            prompt=PromptSetup(history_len=0), chunk=8, limits=ServeLimits(**limits))
 
 
 class HeldStub(StubBackend):
@@ -83,10 +57,10 @@ def raw_post(port: int, body: bytes) -> socket.socket:
 def test_fields_the_server_does_not_read_are_refused_in_one_line(tmp_path):
     server = make(tmp_path)
     with running(server) as url:
-        code, answer = post(url, {**request([(state(1), 1)]), "pad": "x" * 1000})
+        code, answer = call(url + "/annotate", {**request([(state(1), 1)]), "pad": "x" * 1000})
         assert (code, "the request has fields this server does not read ('pad')" in answer["error"]) == (400, True)
         one = {**record_to_json(state(1)), "visits": 1, "junk": [0] * 1000}
-        code, answer = post(url, {**request([]), "states": [one]})
+        code, answer = call(url + "/annotate", {**request([]), "states": [one]})
         assert (code, "a state has fields this server does not read ('junk')" in answer["error"]) == (400, True)
         assert len(answer["error"].splitlines()) == 1 and stats(url)["queue"] == 0
 
@@ -124,7 +98,8 @@ def test_one_waiter_per_trainer_and_a_peers_waiters_capped(tmp_path):
     answers: dict = {}
 
     def waiting_post(name: str, body: dict) -> threading.Thread:
-        thread = threading.Thread(target=lambda: answers.__setitem__(name, (post(url, body), time.monotonic())))
+        thread = threading.Thread(
+            target=lambda: answers.__setitem__(name, (call(url + "/annotate", body), time.monotonic())))
         thread.start()
         return thread
 
@@ -132,7 +107,8 @@ def test_one_waiter_per_trainer_and_a_peers_waiters_capped(tmp_path):
         with running(server) as url:
             first = waiting_post("first", request([(state(1), 1)], wait=60))
             wait_for(lambda: len(server._waiters) == 1 and server.annotating == 1, 30, "the first waiting")
-            code, answer = post(url, request([(state(2), 1)], client="other", wait=60))  # the peer's one waiter is taken
+            # the peer's one waiter is taken
+            code, answer = call(url + "/annotate", request([(state(2), 1)], client="other", wait=60))
             assert code == 429 and "requests waiting" in answer["error"], answer
             second = waiting_post("second", request([(state(1), 1)], wait=60))  # the same trainer again
             first.join(30)
@@ -202,13 +178,13 @@ def test_quotas_are_checked_before_any_state_is_read(tmp_path, monkeypatch):
     many = [(StateRecord("flood", (), f"{i}", ACTIONS), 1) for i in range(1000)]
     try:
         with running(server) as url:
-            assert post(url, request([(state(0), 1)], client="engine"))[0] == 202
+            assert call(url + "/annotate", request([(state(0), 1)], client="engine"))[0] == 202
             wait_for(lambda: server.annotating == 1, 30, "the engine held")  # so the next list stays queued
-            assert post(url, request([(state(1), 1)], client="flood", session="s0"))[0] == 202
+            assert call(url + "/annotate", request([(state(1), 1)], client="flood", session="s0"))[0] == 202
             parsed.clear(), measured.clear()
-            code, answer = post(url, request(many, client="flood", session="s1"))
+            code, answer = call(url + "/annotate", request(many, client="flood", session="s1"))
             assert (code, "--max-sessions" in answer["error"], parsed, measured) == (429, True, [], [])
-            code, answer = post(url, request(many, client="other"))
+            code, answer = call(url + "/annotate", request(many, client="other"))
             assert (code, "--max-queue" in answer["error"], len(parsed), measured) == (503, True, 1000, [])
             HeldStub.gate.set()
     finally:
@@ -247,7 +223,7 @@ def test_idle_connections_without_the_token_make_room_for_a_trainer(tmp_path):
         idle = [socket.create_connection(("127.0.0.1", port)) for _ in range(3)]  # never send a byte
         try:
             wait_for(lambda: server.connections == 3, 10, "the idle connections counted")
-            assert post(url, request([(state(1), 1)]), token=token)[0] == 202  # not a 503
+            assert call(url + "/annotate", request([(state(1), 1)]), token=token)[0] == 202  # not a 503
             idle[0].settimeout(10)
             assert idle[0].recv(1) == b""  # the longest idle one was closed
             assert stats(url, token)["connections_evicted"] >= 1
@@ -280,7 +256,8 @@ def test_stats_is_answered_while_a_large_request_is_measured(tmp_path):
     try:
         with running(server) as url:
             done: dict = {}
-            big = threading.Thread(target=lambda: done.update(answer=post(url, request(many, client="big"))))
+            big = threading.Thread(
+                target=lambda: done.update(answer=call(url + "/annotate", request(many, client="big"))))
             big.start()
             wait_for(lambda: HeldTokens.calls > 0, 30, "the large request being measured")
             assert stats(url)["queue"] == 0 and HeldTokens.calls == 1  # answered while its first measure is held
@@ -312,7 +289,8 @@ def test_clients_that_leave_while_waiting_keep_the_servers_memory_within_its_bou
         found = re.search(r"http://127\.0\.0\.1:(\d+)", proc.stderr.readline())
         assert found
         url, port = f"http://127.0.0.1:{found.group(1)}", int(found.group(1))
-        assert post(url, request([(state(0), 1)], client="engine"))[0] == 202  # holds the engine for the test
+        # holds the engine for the test
+        assert call(url + "/annotate", request([(state(0), 1)], client="engine"))[0] == 202
         wait_for(lambda: stats(url)["annotating"] == 1, 30, "the engine busy")
         long = "go to the red ball and then " * 290  # 8,120 characters
         one = StateRecord(long, (), long, ACTIONS)

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from illm_tools.report.stats import in_window
+
 PREFIX = "charts/achievement_"
 
 
@@ -63,7 +65,6 @@ def score(rates: dict[str, float]) -> float:
 def window_scores(run_dir: Path, ends: list[int], every: int) -> list[float] | None:
     """Per curve point (window ending at each of `ends`), the Crafter score of its episodes pooled (NaN where
     none ended); None where the run logs no achievements."""
-    from illm_tools.report.curves import in_window
 
     updates = read_updates(run_dir)
     if updates is None:
@@ -79,7 +80,6 @@ def final_achievements(runs: list[str], seeds: list[int], frames: list[int], eve
                        final_points: int) -> dict | None:
     """A row's achievements: {"points": the final windows' ends, "per_seed": [{"seed", "run", "rates"}],
     "mean": {achievement: mean over seeds}}; None where no run logs achievements."""
-    from illm_tools.report.curves import in_window
 
     used = frames[-final_points:]
     per_seed = []

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from illm_tools.errors import UsageError
+from illm_tools.report import stats
 
 
 NOT_LEARNED = frozenset({"seed", "run_dir", "resume", "threads", "device", "llm_device", "llm_threads", "new_setup", "heads_bf16", "cache"})
@@ -87,13 +88,6 @@ def _score(row: dict) -> float:
     return float(value) if value else 0.0
 
 
-def in_window(steps: np.ndarray, end: int, every: int) -> np.ndarray:
-    """Which updates (by their global step) fall in the curve point ending at frame `end`: the window
-    (F - every, end] with F the window's start on the `every` grid (a last, shorter window ends at the
-    run's last step)."""
-    return (steps > (end - 1) // every * every) & (steps <= end)
-
-
 def load_curve(run_dir: Path, every: int) -> Curve:
     from illm_tools.report.achievements import window_scores
     from illm_tools.rl.compare import comparable
@@ -113,7 +107,7 @@ def load_curve(run_dir: Path, every: int) -> Curve:
     if last_step % every and last_step > every // 2:  # a last, shorter window up to the run's end
         ends.append(last_step)
     for end in ends:
-        window = in_window(steps, end, every)
+        window = stats.in_window(steps, end, every)
         n = eps[window].sum()
         frames.append(end)
         points.append(float((succ[window] * eps[window]).sum() / n) if n else float("nan"))

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from illm_tools.report.curves import in_window
+from illm_tools.report.stats import in_window
 
 SERIES = {  # name -> (metrics.jsonl column(s), axis label)
     "success": ("charts/success_rate", "success rate"),

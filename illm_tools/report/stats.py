@@ -127,3 +127,10 @@ def seeds_split(scores, score_name: str) -> bool:
     scores = scores[~np.isnan(scores)]
     return bool(score_name == "success rate" and len(scores) >= 2 and
                 scores.min() <= SPLIT_LOW and scores.max() >= SPLIT_HIGH)
+
+
+def in_window(steps: np.ndarray, end: int, every: int) -> np.ndarray:
+    """Which updates (by their global step) fall in the curve point ending at frame `end`: the window
+    (F - every, end] with F the window's start on the `every` grid (a last, shorter window ends at the
+    run's last step)."""
+    return (steps > (end - 1) // every * every) & (steps <= end)
