@@ -41,7 +41,7 @@ def main() -> None:
     import torch
 
     from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
-    from illm_tools.tasks.prompt_setup import PromptSetup
+    from illm_tools.tasks.prompt_config import PromptConfig
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.collect import CollectConfig, collect
     from illm_tools.distil.lessons import COLUMNS, lessons_of, tokenise
@@ -55,7 +55,7 @@ def main() -> None:
         for env in ("BabyAI-UnlockLocal-v0", "BabyAI-GoToLocal-v0"):
             data = Path(tmp) / env
             collect(CollectConfig(env_id=env, out=data, steps=200, num_envs=4, seed=1_000_000, policy="bot"))
-            annotate_dataset(AnnotateConfig(data=data, cache=Path(tmp) / "ann", llm=LLMSpec(backend="oracle"), setup=PromptSetup(history_len=0)))
+            annotate_dataset(AnnotateConfig(data=data, cache=Path(tmp) / "ann", llm=LLMSpec(backend="oracle"), setup=PromptConfig(history_len=0)))
         rows = AnnotationCache(Path(tmp) / "ann").table(COLUMNS).to_pylist()
     lm = load_model("smollm2-135m", dtype="float32")
     lessons = lessons_of(rows, ("action", "summary"))[:args.batch]

@@ -246,7 +246,7 @@ def main() -> None:
 
     from illm_tools.envs import renderer_of
     from illm_tools.llm.spec import LLMSpec
-    from illm_tools.tasks.setup import AnnotationSetup
+    from illm_tools.tasks.annotation_setup import AnnotationSetup
 
     llm = LLMSpec(backend=args.backend, model=args.model, dtype=args.dtype).placed()
     args.dtype = llm.dtype

@@ -33,7 +33,7 @@ def info(
 
     if not (path / "manifest.json").is_file():
         raise UsageError(f"no annotation cache at {path}: run `illm annotate DATA --cache {path}` first")
-    from illm_tools.tasks.setup import listed_setups
+    from illm_tools.tasks.annotation_setup import listed_setups
 
     cache = AnnotationCache(path)
     stats = cache.info()

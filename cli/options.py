@@ -11,7 +11,7 @@ beside the field's own; a tuple replaces it); dict fields are repeatable
 flags; `arguments` are positional (a list field: several). A field whose type is itself a dataclass
 (a stage's `llm: LLMSpec`, a run's `ppo: PPOConfig`) is flattened: its fields are options of their
 own (`--model`, `--dtype`), gathered back into it by `config_from_options`, with the defaults of the
-field's own default (a probe's `PromptSetup(history_len=0)`); `exclude` leaves out a nested field by
+field's own default (a probe's `PromptConfig(history_len=0)`); `exclude` leaves out a nested field by
 its dotted name (`"llm.offline"`).
 """
 

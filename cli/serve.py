@@ -42,7 +42,7 @@ def register(app: typer.Typer) -> None:
         from illm_tools.serve import AnnotationServer, ServeConfig, serve as run
 
         from illm_tools.tasks.served import REACHED
-        from illm_tools.tasks.setup import adopt_model
+        from illm_tools.tasks.annotation_setup import adopt_model
 
         # what names the model; where a served one is reached (REACHED) is the user's alone, never the cache's
         chosen = [f.name for f in dataclasses.fields(LLMSpec) if f.name not in ("device", *REACHED)]

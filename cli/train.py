@@ -61,7 +61,7 @@ def cache_holds(path: Path) -> str:
 def warn_empty_cache(cfg) -> None:
     """One line before a run whose --cache holds nothing (a mistyped path, a new folder): its targets
     come only from live annotation. (A cache holding annotations of another setup is refused by
-    `illm_tools.tasks.setup.check_setup`; an empty one with --live-budget 0 by `make_provider`.) Not with
+    `illm_tools.tasks.annotation_setup.check_setup`; an empty one with --live-budget 0 by `make_provider`.) Not with
     --annotator: a fresh cache that the server fills is how a run with a server starts."""
     if not cfg.needs_targets or cfg.targets.cache is None or cfg.resume or cfg.targets.live_budget == 0 or cfg.targets.annotator:
         return

@@ -29,7 +29,7 @@ from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.settings import setting
 from illm_tools.tasks.calibration import CALIBRATIONS, action_scores
-from illm_tools.tasks.prompt_setup import PromptSetup
+from illm_tools.tasks.prompt_config import PromptConfig
 from illm_tools.tasks.state import StateRecord
 
 POLICIES = ("annotator", "random")
@@ -45,7 +45,7 @@ class ActConfig:
     """The annotator that acts (`illm_tools.llm.spec`; `--backend oracle` for the oracle of the env's game)."""
     episodes: int = 100
     """Episodes each policy plays."""
-    setup: PromptSetup = field(default_factory=lambda: PromptSetup(history_len=0))
+    setup: PromptConfig = field(default_factory=lambda: PromptConfig(history_len=0))
     """How the states become prompts, as `illm annotate` (--history, default 0 here; --layout)."""
     calibration: str = "sum"
     """How the raw scores rank the actions (sum | mean | pmi), as training reads them."""

@@ -30,7 +30,7 @@ import numpy as np
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.settings import setting
-from illm_tools.tasks.prompt_setup import PromptSetup
+from illm_tools.tasks.prompt_config import PromptConfig
 from illm_tools.tasks.calibration import CALIBRATIONS, action_distribution, action_scores
 from illm_tools.tasks.state import StateRecord
 
@@ -166,7 +166,7 @@ class ProbeConfig:
     """The LLM probed (`illm_tools.llm.spec`)."""
     states: int = 400
     """States to probe, from the bot's episodes."""
-    setup: PromptSetup = field(default_factory=lambda: PromptSetup(history_len=0))
+    setup: PromptConfig = field(default_factory=lambda: PromptConfig(history_len=0))
     """How the states become prompts, as `illm annotate` (--history, default 0 here; --layout): text
     states only."""
     seed: int = 0

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import collect_babyai
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 from illm_tools.cache.store import AnnotationCache

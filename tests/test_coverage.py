@@ -17,8 +17,8 @@ from typer.testing import CliRunner
 
 from conftest import collect_babyai
 from cli.main import app
-from illm_tools.tasks.prompt_setup import PromptSetup
-from illm_tools.tasks.setup import AnnotationSetup, check_setup
+from illm_tools.tasks.prompt_config import PromptConfig
+from illm_tools.tasks.annotation_setup import AnnotationSetup, check_setup
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 from illm_tools.annotate.coverage import VisitedStates, ahead_warning, heldout_curve, measure_coverage
@@ -46,7 +46,7 @@ def trajectories(tmp_path_factory):
 
 
 def config(trajectories, cache, tiny_lm, **kw) -> AnnotateConfig:
-    return AnnotateConfig(data=trajectories, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), setup=PromptSetup(history_len=0),
+    return AnnotateConfig(data=trajectories, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), setup=PromptConfig(history_len=0),
                           batch_size=4, chunk=4, **kw)
 
 
@@ -262,7 +262,7 @@ def test_a_worker_started_before_its_spec_answers_once_configured_and_one_never_
 def test_train_with_async_live_annotation_logs_its_queue(tmp_path, tiny_lm):
     traj, cache = tmp_path / "traj", tmp_path / "ann"
     collect(CollectConfig(env_id=ENV, out=traj, steps=64, num_envs=4, seed=1))
-    annotate_dataset(AnnotateConfig(data=traj, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), setup=PromptSetup(history_len=0),
+    annotate_dataset(AnnotateConfig(data=traj, cache=cache, llm=LLMSpec(model=tiny_lm.spec.path, dtype="float32"), setup=PromptConfig(history_len=0),
                                     limit=4, batch_size=4))
     out = ok("train", "--env", ENV, "--cache", cache, "--model", tiny_lm.spec.path, "--dtype", "float32",
              "--history", 0, "--num-envs", 4, "--num-steps", 32, "--frames", 640, "--live-mode", "async",

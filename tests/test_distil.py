@@ -16,7 +16,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
-from illm_tools.tasks.prompt_setup import PromptSetup
+from illm_tools.tasks.prompt_config import PromptConfig
 
 runner = CliRunner()
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -42,7 +42,7 @@ def oracle_cache(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("distil-data")
     collect(CollectConfig(env_id="BabyAI-UnlockLocal-v0", out=tmp / "traj", steps=400, num_envs=4, seed=1000,
                           policy="bot"))
-    annotate_dataset(AnnotateConfig(data=tmp / "traj", cache=tmp / "ann", llm=LLMSpec(backend="oracle"), setup=PromptSetup(history_len=0)))
+    annotate_dataset(AnnotateConfig(data=tmp / "traj", cache=tmp / "ann", llm=LLMSpec(backend="oracle"), setup=PromptConfig(history_len=0)))
     return tmp / "ann"
 
 
@@ -488,7 +488,7 @@ def test_bad_inputs_get_one_line(oracle_cache, tiny_folder, tmp_path):
     _refused([str(tmp_path), *student], out, "is not an annotation cache")
     collect(CollectConfig(env_id="BabyAI-GoToLocal-v0", out=tmp_path / "traj", steps=40, num_envs=2))
     annotate_dataset(AnnotateConfig(data=tmp_path / "traj", cache=tmp_path / "summaries", llm=LLMSpec(backend="oracle"),
-                                    setup=PromptSetup(history_len=0), tasks=("summary",)))
+                                    setup=PromptConfig(history_len=0), tasks=("summary",)))
     _refused([str(tmp_path / "summaries"), *student], out, "holds no action rows", "--tasks action,summary")
     _refused([str(oracle_cache), "--student", str(tmp_path / "no-model")], out, "no-model")
     (tmp_path / "not-a-model").mkdir()

@@ -18,7 +18,7 @@ from illm_tools.annotate.engine import Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.llm.budget import token_batches, token_bytes
 from illm_tools.llm.scoring import plan_tokens, plan_state, score_candidates
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 pytestmark = pytest.mark.usefixtures("model_cache_in_tmp")
@@ -119,11 +119,11 @@ def test_the_server_answers_413_for_a_state_longer_than_its_models_context(tiny_
     from fakes import serve_request
     from illm_tools.llm.spec import LLMSpec
     from illm_tools.serve import AnnotationServer, RequestError
-    from illm_tools.tasks.prompt_setup import PromptSetup
+    from illm_tools.tasks.prompt_config import PromptConfig
 
     lm = dataclasses.replace(tiny_lm, context_length=256)
     server = AnnotationServer(lm, AnnotationCache(tmp_path / "ann"), llm=LLMSpec(model=lm.spec.path, dtype="float32"),
-                              prompt=PromptSetup(history_len=0))
+                              prompt=PromptConfig(history_len=0))
     short = StateRecord("go to the red ball", (), "You see a red ball 2 steps forward", ACTIONS)
     body = json.loads(json.dumps(serve_request([(short, 1), (_long_state(1, 60), 1)],
                                                model_fingerprint=server.fingerprint)))

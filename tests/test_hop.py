@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from illm_tools.hop.context import HopContext, HopTracker, hop_records_from_table
-from illm_tools.tasks.setup import hop_renderer
+from illm_tools.tasks.annotation_setup import hop_renderer
 from illm_tools.hop.translate import FrozenHopfield
 from illm_tools.tasks.prompts import PromptBuilder
 

@@ -13,7 +13,7 @@ from cli.main import app
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.llm import dtype as dtypes
-from illm_tools.tasks.setup import adopt_model
+from illm_tools.tasks.annotation_setup import adopt_model
 from fakes import cli_ok as ok
 
 runner = CliRunner()

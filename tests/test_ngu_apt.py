@@ -17,7 +17,7 @@ import torch
 from typer.testing import CliRunner
 
 from cli.main import app
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 from illm_tools.annotate.engine import Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError

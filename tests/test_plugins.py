@@ -30,7 +30,7 @@ from illm_tools.rl.providers import TARGET_PROVIDERS, kind_name, provider_class
 from illm_tools.rl.targets import CachedTargets
 from illm_tools.registry import Registry
 from illm_tools.tasks.registry import LanguageTask
-from illm_tools.tasks.setup import adopt_model
+from illm_tools.tasks.annotation_setup import adopt_model
 from fakes import TINY, TinyBackend, TinySuite, cli_ok as ok, plugins_installed
 
 runner = CliRunner()

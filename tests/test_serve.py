@@ -30,7 +30,7 @@ from cli.main import app
 from illm_tools.cache import AnnotationCache, verify
 from illm_tools.llm.stub import StubBackend
 from illm_tools.serve import AnnotationServer, RequestError, ServeConfig, ServeLimits, record_to_json
-from illm_tools.tasks.prompt_setup import PromptSetup
+from illm_tools.tasks.prompt_config import PromptConfig
 from fakes import STUB_LLM as LLM, STUB_MODEL as MODEL
 from fakes import SLOW_SERVER, call, hop_states, serve_request as request, serve_state as state, wait_for
 
@@ -42,7 +42,7 @@ ENV_OFFLINE.pop("ILLM_SERVE_TOKEN", None)
 
 
 def test_the_scheduler_takes_the_most_visited_states_across_clients_once(tmp_path):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptSetup(history_len=0), chunk=3)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptConfig(history_len=0), chunk=3)
     assert server.submit(request([(state(1), 5), (state(2), 1)], client="a"))["queued"] == 2
     assert server.submit(request([(state(2), 9), (state(3), 2), (state(4), 1)], client="b"))["queue"] == 4
     batch = server.next_batch()  # round-robin: a's most visited, b's, then a's next (state 2, b's too) is taken
@@ -67,7 +67,7 @@ def test_the_scheduler_takes_the_most_visited_states_across_clients_once(tmp_pat
     ({"states": [{**record_to_json(state(1)), "visits": "many"}]}, 400, "visits must be"),
 ])
 def test_malformed_requests_are_refused_with_their_reason(tmp_path, change, status, message):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptSetup(history_len=0))
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptConfig(history_len=0))
     with pytest.raises(RequestError, match=message) as e:
         server.submit(request([(state(1), 1)], **change))
     assert e.value.status == status and server.queue_size() == 0
@@ -188,9 +188,9 @@ def test_a_trainer_of_another_model_setup_is_refused_by_the_server_in_one_line(t
 
 
 def test_hop_states_travel_with_their_window_and_a_forged_one_is_refused(tmp_path):
-    from illm_tools.tasks.setup import hop_renderer
+    from illm_tools.tasks.annotation_setup import hop_renderer
 
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptSetup(history_len=1))
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptConfig(history_len=1))
     records = hop_states()
     hop = {"renderer": hop_renderer(0, 100.0, 2), "history_len": 1, "env_id": "MiniGrid-MultiRoom-N6-v0"}
     body = request([(r, 1) for r in records], **hop)
@@ -228,7 +228,7 @@ def test_a_hop_run_annotates_through_the_server(tmp_path, served):
 
 
 def test_a_trainer_cannot_replace_or_withdraw_another_trainers_list(tmp_path):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptSetup(history_len=0), chunk=8)
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptConfig(history_len=0), chunk=8)
     server.submit(request([(state(1), 1), (state(2), 1)], client="runs/a", session="first"))
     # the same client name from another trainer (a stranger, a resumed copy of the run): a list of its own
     assert server.submit(request([(state(3), 1)], client="runs/a", session="other"))["queue"] == 3
@@ -237,7 +237,7 @@ def test_a_trainer_cannot_replace_or_withdraw_another_trainers_list(tmp_path):
 
 
 def test_limits_answer_413_and_503_with_retry_after_as_documented(tmp_path):
-    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptSetup(history_len=0),
+    server = AnnotationServer(StubBackend(MODEL), AnnotationCache(tmp_path / "ann"), llm=LLM, prompt=PromptConfig(history_len=0),
                               limits=ServeLimits(max_clients=2, max_states=3, max_queue=4, max_client_share=1.0,
                                                  max_peer_share=1.0))
     with pytest.raises(RequestError, match=r"at most 3 states \(the server's --max-states\), this one 4") as e:
@@ -353,7 +353,7 @@ def test_sigterm_exits_within_the_batch_deadline_when_the_engine_is_stuck(tmp_pa
 @pytest.mark.slow  # among the fast tier's longest on a 2-core EPYC: the tier keeps under 2 minutes
 def test_a_remote_trainer_backs_off_a_full_server_and_says_so_once(tmp_path, start_server, caplog):
     from illm_tools.rl.live_remote import RemoteLive
-    from illm_tools.tasks.setup import AnnotationSetup
+    from illm_tools.tasks.annotation_setup import AnnotationSetup
 
     url, _ = start_server("--max-queue", 2, env={"ILLM_SERVE_TOKEN": TOKEN})
     setup = AnnotationSetup(ENV, "babyai-text@1", history_len=0)

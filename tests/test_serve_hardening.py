@@ -241,7 +241,7 @@ def test_a_request_declaring_another_setup_is_refused_and_the_cache_keeps_one_se
         assert len(answer["error"].splitlines()) == 1
     setups = json.loads(ok("cache", "info", tmp_path / "ann", "--json"))["setups"]
     assert sorted(u["task"] for u in setups) == ["action", "summary"]  # one row per task
-    from illm_tools.tasks.setup import cache_setups
+    from illm_tools.tasks.annotation_setup import cache_setups
 
     assert len(cache_setups(AnnotationCache(tmp_path / "ann"), ("action", "summary"))) == 1
 
@@ -300,7 +300,7 @@ def test_the_hop_projections_the_server_keeps_are_bounded(tmp_path):
 
 def test_a_trainer_rechecks_the_servers_model_after_a_reconnect(tmp_path, caplog):
     from illm_tools.rl.live_remote import RemoteLive
-    from illm_tools.tasks.setup import AnnotationSetup
+    from illm_tools.tasks.annotation_setup import AnnotationSetup
 
     with running(make(tmp_path)) as url:
         port = int(url.rsplit(":", 1)[1])
@@ -322,7 +322,7 @@ def test_a_trainer_rechecks_the_servers_model_after_a_reconnect(tmp_path, caplog
 
 def test_a_trainer_says_once_which_of_its_states_the_engine_could_not_annotate(tmp_path, caplog):
     from illm_tools.rl.live_remote import RemoteLive
-    from illm_tools.tasks.setup import AnnotationSetup
+    from illm_tools.tasks.annotation_setup import AnnotationSetup
 
     server = held_engine(tmp_path)
     EngineStub.gate.set()
@@ -349,7 +349,7 @@ def test_the_trainers_client_clamps_retry_after_follows_no_redirect_and_survives
 
     from illm_tools.annotate.wire import PROTOCOL
     from illm_tools.rl.live_remote import RETRY_AFTER, RemoteLive, retry_after
-    from illm_tools.tasks.setup import AnnotationSetup
+    from illm_tools.tasks.annotation_setup import AnnotationSetup
 
     assert [retry_after(v) for v in ("inf", "1e9", "nan", "-3", "x", None, "7")] == [60.0, 60.0, 1.0, 1.0, 5.0, 5.0, 7.0]
     elsewhere: list = []  # requests that reached the redirect's target

@@ -173,7 +173,7 @@ def test_one_setup_module_makes_the_keys_reads_a_caches_setups_adopts_and_checks
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.errors import CacheError
     from illm_tools.llm.spec import LLMSpec
-    from illm_tools.tasks.setup import AnnotationSetup, HeldSetup, adopt, cache_setups, check_setup
+    from illm_tools.tasks.annotation_setup import AnnotationSetup, SetupOptions, adopt, cache_setups, check_setup
 
     llm = LLMSpec(backend="stub", dtype="float32", quant="none", device="cpu")
     setup = AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", ("action", "summary"), history_len=1)
@@ -183,7 +183,7 @@ def test_one_setup_module_makes_the_keys_reads_a_caches_setups_adopts_and_checks
     assert adopt(tmp_path / "ann", setup.tasks, setup.renderer) is None  # no cache in the folder yet
     annotator.annotate_states([record(), record("You see a wall 1 step forward")], setup.env_id, setup.renderer)
     held = cache_setups(tmp_path / "ann", setup.tasks, setup.renderer)  # a cache's folder, or the cache
-    assert held == [HeldSetup("stub", llm.model, "float32", "none", 1, "shared", "babyai-text@1", entries=2,
+    assert held == [SetupOptions("stub", llm.model, "float32", "none", 1, "shared", "babyai-text@1", entries=2,
                               model_fingerprint=llm.fingerprint(), served_at=(llm.model,))]
     assert held[0].options().endswith("--history 1 --layout shared") and held[0].fields()["model_dtype"] == "float32"
     assert adopt(cache, setup.tasks, setup.renderer) == held[0] and cache_setups(cache, setup.tasks, "other@1") == []

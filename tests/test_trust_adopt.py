@@ -85,7 +85,7 @@ def test_train_never_reaches_the_address_a_caches_rows_name(tmp_path, monkeypatc
 
 @pytest.mark.parametrize("suffix,var", KEYS)
 def test_serve_never_reaches_the_address_a_caches_rows_name(tmp_path, monkeypatch, listener, suffix, var):
-    from illm_tools.tasks.setup import adopt_model
+    from illm_tools.tasks.annotation_setup import adopt_model
 
     monkeypatch.setenv(var, SECRET)
     cache = victim_cache(tmp_path / "victim", f"m@http://127.0.0.1:{listener.port}/v1{suffix}")
@@ -107,7 +107,7 @@ def test_the_users_own_endpoint_and_key_reach_an_adopted_model(tmp_path, monkeyp
     from illm_tools.llm.openai_wire import parse_spec
     from illm_tools.llm.spec import LLMSpec
     from illm_tools.rl.build import run_config
-    from illm_tools.tasks.setup import adopt_model
+    from illm_tools.tasks.annotation_setup import adopt_model
 
     monkeypatch.setenv("SECRET_VAR", SECRET)
     cache = victim_cache(tmp_path / "victim", f"m@http://127.0.0.1:{listener.port}/v1#SECRET_VAR")
@@ -133,7 +133,7 @@ def test_the_users_own_endpoint_and_key_reach_an_adopted_model(tmp_path, monkeyp
 
 
 def test_a_listing_of_several_setups_suggests_no_address(tmp_path, listener):
-    from illm_tools.tasks.setup import adopt, adopt_model, listed_setups
+    from illm_tools.tasks.annotation_setup import adopt, adopt_model, listed_setups
 
     cache = victim_cache(tmp_path / "victim", f"m@http://127.0.0.1:{listener.port}/v1#SECRET_VAR")
     Annotator(StubBackend("stub:32"), cache, model="stub:32", history_len=0).annotate_states(

@@ -41,10 +41,10 @@ def _hop_records(mission: str, n: int = 2):
 def _hop_server(lm, tmp_path):
     from illm_tools.llm.spec import LLMSpec
     from illm_tools.serve import AnnotationServer
-    from illm_tools.tasks.prompt_setup import PromptSetup
+    from illm_tools.tasks.prompt_config import PromptConfig
 
     return AnnotationServer(lm, AnnotationCache(tmp_path / "ann"), llm=LLMSpec(model=lm.spec.path, dtype="float32"),
-                            prompt=PromptSetup(history_len=1))
+                            prompt=PromptConfig(history_len=1))
 
 
 def _expected_hop_tokens(lm, annotator, record) -> int:

@@ -93,7 +93,7 @@ def test_an_export_names_a_served_model_without_its_address_and_the_import_takes
     """A cache annotated through an engine shares as its served model's name: the export writes
     "openai:m" (";embed" where a pooling endpoint embedded), never the address or key variable, so
     the import takes every row, its keys unchanged, and adopting it asks for the user's --endpoint."""
-    from illm_tools.tasks.setup import adopt_model
+    from illm_tools.tasks.annotation_setup import adopt_model
 
     rows = shared()
     for r, spec in zip(rows, ["m@http://127.0.0.1:9/v1#SECRET_VAR", "m@http://127.0.0.2:8000/v1;embed=http://127.0.0.2:8001/v1"]

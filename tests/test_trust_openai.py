@@ -231,7 +231,7 @@ def _illm_server(post, limits=None):
 def _client(url, **kw):
     from fakes import STUB_LLM
     from illm_tools.rl.live_remote import RemoteLive
-    from illm_tools.tasks.setup import AnnotationSetup
+    from illm_tools.tasks.annotation_setup import AnnotationSetup
 
     return RemoteLive(url, client="run", llm=STUB_LLM, budget=8,
                       setup=AnnotationSetup("BabyAI-GoToLocal-v0", "babyai-text@1", history_len=0), **kw)

@@ -9,7 +9,7 @@ from pathlib import Path
 from illm_tools.annotate.engine import Annotator, Stats
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
-from illm_tools.tasks.prompt_setup import PromptSetup
+from illm_tools.tasks.prompt_config import PromptConfig
 from illm_tools.tasks.prompts import DEFAULT_TASKS
 from illm_tools.tasks.registry import get_task, parse_tasks
 
@@ -35,8 +35,8 @@ class AnnotateConfig:
     """Language tasks (`illm_tools.tasks.registry`): action (next-action ranking), summary (64-token
     history compression), goal (suggested goals: ELLM's, and a head of iLLM's), plan (a 2-7 action
     plan); any combination."""
-    setup: PromptSetup = field(default_factory=PromptSetup)
-    """How states become prompts (`illm_tools.tasks.prompt_setup`): --history, --layout, and --mode hop
+    setup: PromptConfig = field(default_factory=PromptConfig)
+    """How states become prompts (`illm_tools.tasks.prompt_config`): --history, --layout, and --mode hop
     (the raw observations translated into the LLM's embedding space, iLLM(hop), `illm_tools.hop`; any
     suite, Atari included) with the training run's --hop-seed and --hop-beta."""
     batch_size: int = 8

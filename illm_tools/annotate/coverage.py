@@ -29,7 +29,7 @@ import numpy as np
 
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.tasks.prompts import PromptBuilder
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 TOP_K = (100, 1_000, 10_000)

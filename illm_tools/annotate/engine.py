@@ -26,7 +26,7 @@ from illm_tools.cache.store import AnnotationCache
 from illm_tools.errors import UsageError
 from illm_tools.tasks.prompts import DEFAULT_TASKS, Prompt, PromptBuilder, format_history, neutral_prompt
 from illm_tools.tasks.registry import get_task, parse_tasks
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)
@@ -124,7 +124,7 @@ class Annotator:
     def of_setup(cls, lm, cache: AnnotationCache | None, llm, setup, *, tasks: Sequence[str] | None = None,
                  **options) -> Annotator:
         """The annotator of a loaded `llm` (its `LLMSpec`) for a setup's history and layout: a stage's
-        `PromptSetup` with its `tasks`, or an `AnnotationSetup` (its own tasks); `options`:
+        `PromptConfig` with its `tasks`, or an `AnnotationSetup` (its own tasks); `options`:
         batch_size, chunk. How every stage makes its annotator (annotate, serve, probe, the live
         fallback)."""
         return cls(lm, cache, model=llm.model, tasks=setup.tasks if tasks is None else tasks,
@@ -299,7 +299,7 @@ class Annotator:
     def hop_context(self, renderer: str, obs_dim: int, num_actions: int):
         """The `HopContext` (translation over this model's input embeddings) of a hop renderer."""
         from illm_tools.hop.context import HopContext
-        from illm_tools.tasks.setup import parse_hop_renderer
+        from illm_tools.tasks.annotation_setup import parse_hop_renderer
 
         settings = parse_hop_renderer(renderer)
         key = (obs_dim, num_actions, settings["seed"], settings["beta"])

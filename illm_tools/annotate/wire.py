@@ -1,7 +1,7 @@
 """The JSON form of a state that a trainer sends `illm serve` (`POST /annotate`): its text fields, and
 for a hop state its window, each raw observation as shape, dtype and base64 bytes with its previous
 action. `record_to_json` writes it (the trainer's `RemoteLive`); the server reads and checks it
-(`illm_tools.serve.ServerSetup.parse_state`). Both sides also share the protocol's version and how a request
+(`illm_tools.serve.ServerTerms.parse_state`). Both sides also share the protocol's version and how a request
 proves it may be served: `Authorization: Bearer TOKEN`, the token from `illm serve --token` and
 `illm train --annotator-token`, or from the environment variable `TOKEN_ENV` on either side."""
 

@@ -9,5 +9,5 @@ reads the translated steps as input embeddings (`context.HopContext`):
   written history (`illm_tools.annotate.engine`'s hop path), so the cache answers with the LLM's
   next-action ranking and 64-token summary exactly as in text mode;
 - cache keys hash what determines the translation: the window's raw observation bytes and
-  previous actions, the projection's seed, beta, the window and the model (`illm_tools.tasks.setup.hop_renderer`).
+  previous actions, the projection's seed, beta, the window and the model (`illm_tools.tasks.annotation_setup.hop_renderer`).
 """

@@ -54,7 +54,7 @@ def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None
     """
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.tasks.served import REACHED
-    from illm_tools.tasks.setup import ADOPTED
+    from illm_tools.tasks.annotation_setup import ADOPTED
 
     settings = dict(settings)
     given = set(settings) if given is None else set(given)
@@ -101,12 +101,12 @@ def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) 
 
 def adopt_setup(cfg: TrainConfig, given: Collection[str], say: Callable[[str], None] | None = None,
                 reach: Mapping[str, str] | None = None) -> TrainConfig:
-    """`cfg` with its cache's annotation setup adopted (`illm_tools.tasks.setup.adopt`) when the run
+    """`cfg` with its cache's annotation setup adopted (`illm_tools.tasks.annotation_setup.adopt`) when the run
     reads targets from a cache holding annotations and none of the setup's options was `given`;
     `say` hears which, in one line. `reach`: the user's own --endpoint, --api-key-env and
     --embed-endpoint, set on the model either way: an adopted served model is reached only there (a
     cache's rows never say where a request goes; without --endpoint it is refused in one line)."""
-    from illm_tools.tasks.setup import ADOPTED, adopt
+    from illm_tools.tasks.annotation_setup import ADOPTED, adopt
 
     reach = dict(reach or {})
 

@@ -4,7 +4,7 @@ of its parts as vLLM's `VllmConfig` is of sub-configs.
 The run's own settings are fields (the env, the method, the rollout's size, devices and
 bookkeeping); the rest are its parts, each a dataclass declared and validated once where it lives:
 `ppo` (`PPOConfig`), `bonus` (`BonusConfig`: how the bonus is paid and iLLM's heads trained),
-`targets` (`TargetsConfig`: the cache and the live fallback), `setup` (`PromptSetup`: how a state
+`targets` (`TargetsConfig`: the cache and the live fallback), `setup` (`PromptConfig`: how a state
 becomes a prompt, as `illm annotate`, `illm serve` and `illm probe` hold it), `llm` (`LLMSpec`) and
 `illm` (`ILLMConfig`). Every setting also has one flat name, its field's (`PART_NAMES` gives the two
 the LLM's part renames: model_dtype, llm_device), which is its option (`cli.options`), its key in
@@ -29,8 +29,8 @@ from illm_tools.intrinsic.registry import get_method
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.rl.run_parts import BonusConfig, PPOConfig, TargetsConfig
 from illm_tools.settings import setting
-from illm_tools.tasks.prompt_setup import PromptSetup
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.prompt_config import PromptConfig
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 
 
 def parse_seeds(value) -> tuple[int, ...]:
@@ -112,8 +112,8 @@ class TrainConfig:
     """How the bonus reaches the advantages and iLLM's heads are trained (`BonusConfig`)."""
     targets: TargetsConfig = field(default_factory=TargetsConfig)
     """Where the LLM targets come from: the cache and the live fallback (`TargetsConfig`)."""
-    setup: PromptSetup = field(default_factory=PromptSetup)
-    """How a state becomes a prompt (`illm_tools.tasks.prompt_setup.PromptSetup`): --history, --layout,
+    setup: PromptConfig = field(default_factory=PromptConfig)
+    """How a state becomes a prompt (`illm_tools.tasks.prompt_config.PromptConfig`): --history, --layout,
     --mode, --hop-seed, --hop-beta, as in `illm annotate`."""
     llm: LLMSpec = field(default_factory=LLMSpec)
     """The LLM whose annotations are the targets (its fingerprint is part of every cache key), the live
@@ -284,7 +284,7 @@ class TrainConfig:
         return text_tasks(self.illm.tasks) if get_method(self.method).policy_heads else ()
 
 
-PARTS = {"ppo": PPOConfig, "bonus": BonusConfig, "targets": TargetsConfig, "setup": PromptSetup, "llm": LLMSpec,
+PARTS = {"ppo": PPOConfig, "bonus": BonusConfig, "targets": TargetsConfig, "setup": PromptConfig, "llm": LLMSpec,
          "illm": ILLMConfig}
 """TrainConfig's parts: field -> its config class."""
 PART_NAMES = {("llm", "dtype"): "model_dtype", ("llm", "device"): "llm_device"}

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.signals import ctrl_c_deferred
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger(__name__)

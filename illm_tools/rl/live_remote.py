@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from illm_tools.llm.spec import LLMSpec
 from illm_tools.web import NO_REDIRECTS
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 log = logging.getLogger("illm_tools.rl.live")

@@ -47,7 +47,7 @@ def make_provider(cfg: TrainConfig, num_actions: int, started=None):
     from illm_tools.rl.providers import provider_class
     from illm_tools.tasks.registry import get_task
     from illm_tools.tasks.served import model_identity
-    from illm_tools.tasks.setup import check_setup
+    from illm_tools.tasks.annotation_setup import check_setup
 
     method = get_method(cfg.method)
     cache = AnnotationCache(cfg.targets.cache)

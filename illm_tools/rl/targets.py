@@ -7,7 +7,7 @@ over the run so far first, go to the live annotator (`illm_tools.rl.live`): `syn
 first `live_budget` of them now and this rollout uses them; `async` hands them to a worker
 process and a later rollout finds its answers in the shared cache. States still missing get no
 target (and so no bonus) and are counted. (A cache that holds annotations but none for this run's
-setup is refused before, by `illm_tools.tasks.setup.check_setup`.)
+setup is refused before, by `illm_tools.tasks.annotation_setup.check_setup`.)
 
 `CachedTargets` serves iLLM (the rows of the run's language tasks: action and summary by default,
 any of `illm_tools.tasks.registry`'s); `GoalTargets` serves ELLM (the

@@ -12,7 +12,7 @@ The package, one concern a module:
 - `config`: `ServeConfig` (the options) and `ServeLimits` (every limit, each an option), the
   listening address and token checks (a token carries at least 128 bits);
 - `protocol`: a request read and checked whole on arrival against the server's own setup
-  (`ServerSetup`: text sizes, history, valid actions, a hop frame's shape and dtype, the backend's
+  (`ServerTerms`: text sizes, history, valid actions, a hop frame's shape and dtype, the backend's
   own check; a declared setup other than the server's is refused naming the difference);
 - `quotas`: who may be queued, wait or add states (per client name and peer, per peer, in all, room
   kept for new peers, a session tied to its peer while it has states queued or waiting), checked
@@ -52,7 +52,7 @@ from __future__ import annotations
 from illm_tools.annotate.wire import record_to_json  # noqa: F401  (the request format)
 from illm_tools.serve.config import ServeConfig, ServeLimits, token_bits  # noqa: F401
 from illm_tools.serve.http import serve  # noqa: F401
-from illm_tools.serve.protocol import RequestError, ServerSetup  # noqa: F401
+from illm_tools.serve.protocol import RequestError, ServerTerms  # noqa: F401
 from illm_tools.serve.scheduler import AnnotationServer  # noqa: F401
 
 MAX_REQUEST_BYTES = ServeLimits().max_request_bytes

@@ -12,7 +12,7 @@ from pathlib import Path
 from illm_tools.annotate.wire import TOKEN_ENV, check_token
 from illm_tools.errors import UsageError
 from illm_tools.llm.spec import LLMSpec
-from illm_tools.tasks.prompt_setup import PromptSetup
+from illm_tools.tasks.prompt_config import PromptConfig
 
 MIN_TOKEN_BITS = 128
 """Least entropy a server's token must carry (`token_bits`)."""
@@ -170,7 +170,7 @@ class ServeConfig:
     """Annotation cache the answers go to (the trainers' --cache)."""
     llm: LLMSpec = field(default_factory=LLMSpec)
     """The LLM that answers; none of its options given: the cache's one model setup (`adopt_model`)."""
-    setup: PromptSetup = field(default_factory=PromptSetup)
+    setup: PromptConfig = field(default_factory=PromptConfig)
     """How states become prompts: the trainers' --history, --layout and, for hop trainers, --hop-seed
     and --hop-beta (a request declaring another is refused, naming the difference; the server answers
     text and hop states alike, so it takes no --mode). Every row the server writes carries its setup."""

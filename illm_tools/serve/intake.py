@@ -3,7 +3,7 @@ whichever way the request comes:
 
 1. `admit`: its fields, its model and setup, its wait, its number of states, and the quotas of
    trainers (`quotas.check_trainer`), before any state is read;
-2. `parse_states`: each state checked against the server's setup (`ServerSetup.parse_state`), the
+2. `parse_states`: each state checked against the server's setup (`ServerTerms.parse_state`), the
    request's own list of them dropped;
 3. `quotas.check_queue`: the queue's quotas, before any state is measured;
 4. `measure`: each state measured in tokens against the model's context (413);
@@ -29,7 +29,7 @@ from illm_tools.serve.memory import release_free_memory
 from illm_tools.serve.protocol import (MAX_ID_CHARS, REQUEST_FIELDS, RequestError, read_json, requested_wait, text,
                                        trainer_of, unknown_fields)
 from illm_tools.serve.quotas import LOOPBACK, Asked, check_queue, check_trainer
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 LARGE = 2**20
@@ -133,7 +133,7 @@ class Intake:
         return ask
 
     def parse_states(self, ask: Asked) -> dict[tuple, Pending]:
-        """The request's states, each checked (`ServerSetup.parse_state`), one entry per distinct state;
+        """The request's states, each checked (`ServerTerms.parse_state`), one entry per distinct state;
         the request's own list of them dropped (blocking: the checking thread runs it)."""
         states, ask.states = ask.states, None
         entries: dict[tuple, Pending] = {}

@@ -1,5 +1,5 @@
 """A request to `illm serve`, read and checked whole on arrival against the server's own setup
-(`ServerSetup`): the JSON (any shape: 400 in one line), each field's type and size (`ServeLimits`),
+(`ServerTerms`): the JSON (any shape: 400 in one line), each field's type and size (`ServeLimits`),
 the setup the request declares (it must be the server's: 409 naming the difference), the env and
 the backend's own check of it, and a hop state's window (its frames' shape and dtype are the
 env's, decided here, never by the client). What passes is a list of (record, visits) under the
@@ -16,8 +16,8 @@ import numpy as np
 
 from illm_tools.errors import IllmError
 from illm_tools.serve.config import ServeLimits
-from illm_tools.tasks.prompt_setup import PromptSetup
-from illm_tools.tasks.setup import WIRE_FIELDS, AnnotationSetup
+from illm_tools.tasks.prompt_config import PromptConfig
+from illm_tools.tasks.annotation_setup import WIRE_FIELDS, AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
 MAX_ID_CHARS = 256
@@ -99,11 +99,11 @@ def whole(value, name: str, low: int, high: int) -> int:
     return value
 
 
-class ServerSetup:
+class ServerTerms:
     """The setup a server annotates under (its model's options, history, layout, tasks, hop
     settings) and the request checks that follow from it and from its limits."""
 
-    def __init__(self, llm, *, prompt: PromptSetup, tasks: tuple[str, ...], limits: ServeLimits):
+    def __init__(self, llm, *, prompt: PromptConfig, tasks: tuple[str, ...], limits: ServeLimits):
         self.llm, self.prompt, self.tasks, self.limits = llm, prompt, tuple(tasks), limits
         self.history_len, self.layout = prompt.history_len, prompt.layout
         self._envs: dict[tuple[str, bool], tuple[AnnotationSetup, tuple | None]] = {}  # one per known env and mode

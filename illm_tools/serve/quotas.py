@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from illm_tools.serve.protocol import RequestError
-from illm_tools.tasks.setup import AnnotationSetup
+from illm_tools.tasks.annotation_setup import AnnotationSetup
 
 LOOPBACK = "loopback"
 """The peer of every loopback address (`config.peer_group`), and of requests handed in-process."""

@@ -41,9 +41,9 @@ from illm_tools.serve.config import ServeConfig, ServeLimits
 from illm_tools.serve.batch import annotate_batch, in_thread, one_line, take_turns
 from illm_tools.serve.intake import Intake, Pending
 from illm_tools.serve.memory import resident_mb
-from illm_tools.serve.protocol import ServerSetup
+from illm_tools.serve.protocol import ServerTerms
 from illm_tools.serve.quotas import LOOPBACK
-from illm_tools.tasks.prompt_setup import PromptSetup
+from illm_tools.tasks.prompt_config import PromptConfig
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +54,7 @@ MAX_RETRY_AFTER = 60
 class AnnotationServer:
     """The queue, the scheduler and the model behind `illm serve` (module docstring)."""
 
-    def __init__(self, lm, cache, *, llm: LLMSpec, prompt: PromptSetup | None = None,
+    def __init__(self, lm, cache, *, llm: LLMSpec, prompt: PromptConfig | None = None,
                  tasks: Sequence[str] = ("action", "summary"), batch_size: int = ServeConfig.batch_size, chunk: int = ServeConfig.chunk,
                  limits: ServeLimits | None = None):
         from illm_tools.annotate.engine import Annotator
@@ -65,7 +65,7 @@ class AnnotationServer:
         self.llm = llm  # the model as it was loaded (placed: its device and dtype resolved)
         self.model = llm.model
         self.limits = limits or ServeLimits()
-        self.setup = ServerSetup(llm, prompt=prompt or PromptSetup(), tasks=tuple(tasks), limits=self.limits)
+        self.setup = ServerTerms(llm, prompt=prompt or PromptConfig(), tasks=tuple(tasks), limits=self.limits)
         """The setup every row this server writes carries, and the request checks."""
         self.batch_size, self.chunk = batch_size, chunk
         # one annotator: the server's tasks, history and layout (the backend's ranking check runs here, at start)

@@ -7,7 +7,7 @@ A row passes when:
   or `HOST:PORT`: `ADDRESS`): a row's model is an identity, and a dataset from a stranger must not
   decide where a request goes or which secret rides with it (a merge takes caches from this disk,
   whose served models' rows keep the spec they were annotated through, "NAME@URL": adopting one
-  reads its served name only, `illm_tools.tasks.setup`);
+  reads its served name only, `illm_tools.tasks.annotation_setup`);
 - it holds its task's answer: a ranking row its candidates (at least one) with their scores and
   `chosen_index`, a text row its text and an embedding of `embedding_dim` >= 1 values (a row
   without one would be looked up as found, with NaN targets);

@@ -4,7 +4,7 @@ user's own --endpoint, --api-key-env and --embed-endpoint only; a row's spec is 
 address to contact), the options that select a held setup with the address left for the user
 (`held_options`), the addresses its rows were annotated at (`served_addresses`, a record only), and the
 model's fingerprint read from the rows of the same served model when its engine is stopped
-(`cached_identity`, `model_identity`). `illm_tools.tasks.setup` lists and adopts a cache's setups with
+(`cached_identity`, `model_identity`). `illm_tools.tasks.annotation_setup` lists and adopts a cache's setups with
 these."""
 
 from __future__ import annotations

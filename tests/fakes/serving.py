@@ -56,10 +56,10 @@ def stub_server(tmp_path, lm=None, llm: LLMSpec = STUB_LLM, history_len: int = 0
     defaults: for `running_server`, or a test that drives its scheduler directly."""
     from illm_tools.cache import AnnotationCache
     from illm_tools.serve import AnnotationServer, ServeLimits
-    from illm_tools.tasks.prompt_setup import PromptSetup
+    from illm_tools.tasks.prompt_config import PromptConfig
 
     return AnnotationServer(lm or StubBackend(STUB_MODEL), AnnotationCache(tmp_path / "ann"), llm=llm,
-                            prompt=PromptSetup(history_len=history_len), chunk=8, limits=ServeLimits(**limits))
+                            prompt=PromptConfig(history_len=history_len), chunk=8, limits=ServeLimits(**limits))
 
 
 @contextmanager

@@ -1,6 +1,6 @@
 """An annotation setup, in one place: what, besides the state and the model, decides an
 annotation's keys (`AnnotationSetup`), how the setups a cache holds are read back as the options
-that select them (`cache_setups`, `HeldSetup`), adopted by a run or a server that names none
+that select them (`cache_setups`, `SetupOptions`), adopted by a run or a server that names none
 (`adopt`, `adopt_model`) and checked against a run's own (`check_setup`).
 
 `AnnotationSetup` is the env and its text renderer (or the hop translation's settings), the
@@ -150,7 +150,7 @@ def _model_options(model: str, fingerprint: str) -> str:
 
 
 @dataclass(frozen=True)
-class HeldSetup:
+class SetupOptions:
     """One setup a cache holds, as the options that select it."""
 
     backend: str
@@ -236,7 +236,7 @@ def _open(cache):
     return AnnotationCache(cache) if (Path(cache) / "manifest.json").is_file() else None
 
 
-def cache_setups(cache, tasks: Sequence[str], renderer: str | None = None) -> list[HeldSetup]:
+def cache_setups(cache, tasks: Sequence[str], renderer: str | None = None) -> list[SetupOptions]:
     """The setups `cache` (an `AnnotationCache` or its folder) holds for every one of `tasks` (see
     the module docstring), most entries first; `renderer`: the run's text renderer, or a hop
     renderer's "hop@" prefix for any hop setup (None: any)."""
@@ -271,12 +271,12 @@ def cache_setups(cache, tasks: Sequence[str], renderer: str | None = None) -> li
             continue
         backend, fingerprint, dtype, quant, history, layout, renderer = key
         served = tuple(sorted(specs[key], key=lambda m: -specs[key][m]))
-        held.append(HeldSetup(backend, served[0], dtype, quant, history, layout, renderer, entries=min(counts.values()),
+        held.append(SetupOptions(backend, served[0], dtype, quant, history, layout, renderer, entries=min(counts.values()),
                               model_fingerprint=fingerprint, served_at=served))
     return sorted(held, key=lambda s: -s.entries)
 
 
-def adopt(cache, tasks: Sequence[str], renderer: str | None) -> HeldSetup | None:
+def adopt(cache, tasks: Sequence[str], renderer: str | None) -> SetupOptions | None:
     """The one setup `cache` (an `AnnotationCache`, or its folder) holds for `tasks`, or None when
     it holds none (or the folder holds no cache yet); several are refused in one line naming each."""
     setups = cache_setups(cache, tasks, renderer)

@@ -1,7 +1,7 @@
 """How a state becomes a prompt, as the user chooses it: the history length, the template layout
 and the observation mode (the suite's text, or hop's translation with its seed and beta).
 
-Every stage that prompts an LLM holds one `PromptSetup` (`illm annotate`, `illm serve`, `illm
+Every stage that prompts an LLM holds one `PromptConfig` (`illm annotate`, `illm serve`, `illm
 probe`, a training run's `setup`), so that each of these settings is declared once, under one name
 and one flag (`--history`, `--layout`, `--mode`, `--hop-seed`, `--hop-beta`), and the renderer
 field of a state's keys is derived in one place (`renderer`). With the env and the tasks it makes
@@ -15,13 +15,13 @@ from dataclasses import dataclass
 from illm_tools.errors import UsageError
 from illm_tools.settings import setting
 from illm_tools.tasks.prompts import LAYOUTS
-from illm_tools.tasks.setup import AnnotationSetup, hop_renderer
+from illm_tools.tasks.annotation_setup import AnnotationSetup, hop_renderer
 
 OBS_MODES = ("obs", "hop")
 
 
 @dataclass(frozen=True)
-class PromptSetup:
+class PromptConfig:
     """The prompt settings of a stage (see the module docstring)."""
 
     history_len: int = setting(3, flag="--history")
