@@ -17,7 +17,7 @@ Tokens (`tokenise`): each task's prompt and its targets tokenised as the annotat
 (`illm_tools.llm.scoring.plan_state`: context and candidate together), a text target followed by
 the end-of-text token (the student learns to stop where the teacher stopped). The prompts of a
 state share their first part (the task line and the history, with the `shared` layout): that part
-is one `shared` token list, run once per state (not on sliding-window models, `can_share_prefix`).
+is one `shared` token list, run once per state (not on sliding-window models, `LoadedModel.sliding_window`).
 """
 
 from __future__ import annotations

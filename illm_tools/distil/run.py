@@ -223,9 +223,8 @@ def _new_plan(cache, config: DistilConfig):
 def _examples(lm, cache, plan, max_tokens: int):
     """The plan's lessons tokenised for the student; those longer than max_tokens left out."""
     from illm_tools.distil.lessons import lessons_from_plan, tokenise
-    from illm_tools.llm.joint import can_share_prefix
 
-    share = can_share_prefix(lm)
+    share = not lm.sliding_window
     out, long = [], 0
     for keys in (plan.train, plan.held_out):
         examples = [tokenise(lm, lesson, share=share) for lesson in lessons_from_plan(cache, keys)]

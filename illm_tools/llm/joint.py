@@ -14,12 +14,8 @@ from collections.abc import Sequence
 
 from illm_tools.llm.generation import Generation, greedy_from
 from illm_tools.llm.loading import LoadedModel
-from illm_tools.llm.scoring import (CandidateScores, common_prefix, extend, has_sliding_window, merge_states,
+from illm_tools.llm.scoring import (CandidateScores, common_prefix, extend, merge_states,
                                     packed_batches, plan_shape, plan_state, plan_tokens, score_continuations)
-
-
-def can_share_prefix(lm: LoadedModel) -> bool:
-    return not has_sliding_window(lm)
 
 
 def score_and_generate(lm: LoadedModel, contexts: Sequence[str], candidates: Sequence[Sequence[str]],

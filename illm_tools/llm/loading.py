@@ -18,6 +18,7 @@ changed) and refuses a damaged entry in one line that says to delete it.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -69,6 +70,19 @@ class LoadedModel:
     pack_candidates: bool = True
     """Score a state's candidates packed behind one copy of its prompt (`illm_tools.llm.packed`); False:
     behind a copy each (the reference path, and benchmarks/annotate.py's "before")."""
+
+    @functools.cached_property
+    def sliding_window(self) -> bool:
+        """Whether some attention layer sees only a window of recent columns (e.g. Gemma 3): the one
+        capability the engine asks of a model, under this one name. Such a model's candidates cannot be
+        packed behind one copy of the prompt (one custom mask would not apply its windows) and the
+        two tasks of a state cannot share their prompt's prefix (padding between prefix and suffix
+        would shift the window): `scoring.packs_candidates`, `joint`, the backend's `shares_prefix`."""
+        config = self.model.config.get_text_config()
+        types = getattr(config, "layer_types", None)
+        if types is not None:
+            return "sliding_attention" in types
+        return getattr(config, "sliding_window", None) is not None
 
     @property
     def device(self) -> Any:
@@ -324,8 +338,6 @@ def preload(name: str, *, cache_dir: str | os.PathLike | None = None) -> None:
 def _quiet_transformers() -> Iterator[None]:
     """Silence transformers' own progress bars and warnings (weight loading, GGUF de-quantising)
     while it loads: what a user reads is illm's output. Restores the previous settings."""
-    import functools
-
     import transformers.modeling_gguf_pytorch_utils as gguf_utils
     from transformers.utils import logging as hf_logging
 
@@ -387,12 +399,12 @@ def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
     bos_ids = _prepare_tokenizer(tokenizer)
     hidden = model.config.get_text_config().hidden_size
     from illm_tools.llm import budget
-    from illm_tools.llm.packed import packs_model
 
-    if not packs_model(model):
+    loaded = LoadedModel(spec.alias, model, tokenizer, fingerprint, int(hidden), spec,
+                         bos_ids=bos_ids, eos_ids=_eos_ids(model, tokenizer),
+                         batch_tokens=batch_tokens or budget.default_budget(model, model.device),
+                         context_length=budget.context_length(model))
+    if loaded.sliding_window:
         log.info("%s has sliding-window attention: a state's candidates are scored behind a copy of its prompt "
                  "each (a packed mask would not apply its windows), so its batches cost more memory", spec.alias)
-    return LoadedModel(spec.alias, model, tokenizer, fingerprint, int(hidden), spec,
-                       bos_ids=bos_ids, eos_ids=_eos_ids(model, tokenizer),
-                       batch_tokens=batch_tokens or budget.default_budget(model, model.device),
-                       context_length=budget.context_length(model))
+    return loaded

@@ -39,16 +39,6 @@ HEAD_ROWS = 128
 """Positions run through the output layer at a time (a [128, vocabulary] float32 slice: 25 MB at 49k)."""
 
 
-def packs_model(model: Any) -> bool:
-    """Whether a transformers model's candidates can be packed: every model but a sliding-window one
-    (e.g. Gemma 3), whose windows one custom mask for all layers would not apply."""
-    config = model.config.get_text_config()
-    types = getattr(config, "layer_types", None)
-    if types is not None:
-        return "sliding_attention" not in types
-    return getattr(config, "sliding_window", None) is None
-
-
 LEAD = -2
 """`packed_layout`'s owner of a row's lead tokens (seen by every candidate of the row); -1: padding."""
 

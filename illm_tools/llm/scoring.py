@@ -48,7 +48,6 @@ from typing import Any
 from illm_tools.errors import UsageError
 from illm_tools.llm.forward import cache_kwargs, forward_mode, returned_cache
 from illm_tools.llm.loading import LoadedModel
-from illm_tools.llm.packed import packs_model
 
 log = logging.getLogger(__name__)
 
@@ -150,11 +149,6 @@ def _left_pad(rows: Sequence[Sequence[int]], pad_id: int, device: Any) -> tuple[
     return ids.to(device), mask.to(device)
 
 
-def has_sliding_window(lm: LoadedModel) -> bool:
-    """Whether some attention layer sees only a window of recent columns (e.g. Gemma 3)."""
-    return not packs_model(lm.model)
-
-
 def extend(lm: LoadedModel, rows: Sequence[Sequence[int]], past: PrefixState | None = None, *,
            hidden: bool = False, embeds: Any = None, grad: bool = False) -> PrefixState:
     """Run `rows` (one token list per batch row, left-padded here) after `past` and return the
@@ -169,7 +163,7 @@ def extend(lm: LoadedModel, rows: Sequence[Sequence[int]], past: PrefixState | N
     if past is not None:
         if past.batch_size not in (1, len(rows)):
             raise ValueError(f"past has {past.batch_size} rows, got {len(rows)}")
-        if len({len(r) for r in rows}) > 1 and has_sliding_window(lm):
+        if len({len(r) for r in rows}) > 1 and lm.sliding_window:
             raise ValueError("rows continuing a cached prefix on a sliding-window model must have equal "
                              "lengths (padding between prefix and rows would shift the window)")
         past = past.select([0] * len(rows) if past.batch_size == 1 else range(len(rows)))
@@ -265,7 +259,7 @@ def continuation_logprobs(lm: LoadedModel, state: PrefixState, continuations: Se
 def packs_candidates(lm: LoadedModel) -> bool:
     """Whether a state's candidates are packed behind one copy of its prefix (`llm.packed`): every
     model but a sliding-window one, whose window a custom mask would not apply."""
-    return lm.pack_candidates and packs_model(lm.model)
+    return lm.pack_candidates and not lm.sliding_window
 
 
 def repeated_logprobs(lm: LoadedModel, state: PrefixState, index: Any, ids: Any, real: Any, first: Any,

@@ -67,9 +67,9 @@ class TransformersBackend:
     def score_and_generate(self, contexts, candidates, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
         """One pass over each state's shared prompt prefix where the model allows it (not on
         sliding-window models), else the two separate paths."""
-        from illm_tools.llm.joint import can_share_prefix, score_and_generate
+        from illm_tools.llm.joint import score_and_generate
 
-        if can_share_prefix(self.lm):
+        if self.shares_prefix:
             return score_and_generate(self.lm, contexts, candidates, prompts, max_new_tokens=max_new_tokens,
                                       batch_size=batch_size)
         return (self.score(contexts, candidates, batch_size=batch_size),
@@ -99,9 +99,8 @@ class TransformersBackend:
 
     @property
     def shares_prefix(self) -> bool:
-        from illm_tools.llm.joint import can_share_prefix
-
-        return can_share_prefix(self.lm)
+        """The backend contract's name for a model without a sliding window (`LoadedModel.sliding_window`)."""
+        return not self.lm.sliding_window
 
     def embed(self, texts, *, batch_size: int = 8):
         from illm_tools.llm.generation import embed_texts
