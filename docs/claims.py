@@ -44,7 +44,9 @@ def _refs():
     return module
 
 
-REFERENCED = _refs().REF
+_REFS = _refs()
+REFERENCED = _REFS.REF
+units = _REFS.units
 """A number that names its field: docs/refs.py holds it to that field; this check leaves it."""
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -123,15 +125,6 @@ def _json_files(page: Path, text: str) -> list[Path]:
     linked = [(page.parent / link).resolve() for link in JSON_LINK.findall(text)]
     return sorted({p for p in linked if p.is_file() and RESULTS in p.parents} |
                   {RESULTS / n / "results.json" for n in SOURCE.findall(text) if (RESULTS / n / "results.json").is_file()})
-
-
-def units(text: str) -> list[str]:
-    """The page's paragraphs, a table's rows each on its own (a row's marker covers that row)."""
-    out = []
-    for paragraph in re.split(r"\n\s*\n", text):
-        lines = paragraph.strip().splitlines()
-        out += lines if lines and all(line.startswith("|") for line in lines) else [paragraph]
-    return out
 
 
 def problems(page: Path, text: str | None = None) -> list[str]:

@@ -329,7 +329,7 @@ def annotate(page: Path) -> tuple[int, int]:
     done = left = 0
     pattern = re.compile(rf"(?<![\d.\w\[-])({ESTIMATE})(?!<!--=)")
     pieces, last, start = [], 0, 0
-    for unit in _units(text):
+    for unit in units(text):
         start = text.index(unit, start)
         near = linked_files(page, unit)
         for match in pattern.finditer(unit):
@@ -354,8 +354,8 @@ def annotate(page: Path) -> tuple[int, int]:
     return done, left
 
 
-def _units(text: str) -> list[str]:
-    """The page's paragraphs, a table's rows each on its own."""
+def units(text: str) -> list[str]:
+    """The page's paragraphs, a table's rows each on its own (a row's marker covers that row)."""
     out = []
     for paragraph in re.split(r"\n\s*\n", text):
         lines = paragraph.strip().splitlines()
