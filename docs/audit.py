@@ -13,7 +13,6 @@ Written by hand: it composes this folder's checks; no library audits markdown ag
 
 from __future__ import annotations
 
-import importlib.util
 import random
 import re
 import sys
@@ -23,13 +22,6 @@ ROOT = Path(__file__).resolve().parent.parent
 NUMBER = re.compile(r"(?<![\w.\-/#=])\d[\d,]*\.\d+%?(?![\w.\-/])|(?<![\w.\-/#=])\d+%(?![\w\-/])")
 SKIP = re.compile(r"```.*?```|`[^`\n]*`|<!--.*?-->|\]\([^)]*\)|!\[[^\]]*\]", re.S)
 """Code, HTML comments (a reference's own path), link targets and image alt texts: not results as read."""
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"docs_{name}", ROOT / "docs" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def pages() -> list[Path]:
@@ -66,7 +58,12 @@ def caught(page: Path, text: str, checks) -> bool:
 def main(argv: list[str]) -> int:
     n = int(argv[0]) if argv and argv[0].isdigit() else 60
     seed = int(argv[argv.index("--seed") + 1]) if "--seed" in argv else 0
-    checks = (_load("refs"), _load("claims"), _load("render"))
+    sys.path.insert(0, str(ROOT / "docs"))  # this folder's scripts (docs/ is no package)
+    import claims
+    import refs
+    import render
+
+    checks = (refs, claims, render)
     drawn = [(page, m) for page in pages() for m in numbers(page.read_text())]
     sample = random.Random(seed).sample(drawn, min(n, len(drawn)))
     missed = []

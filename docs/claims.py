@@ -35,19 +35,12 @@ from pathlib import Path
 from illm_tools.report.markdown import num
 
 
-def _refs():
-    """docs/refs.py, loaded from its file (docs/ is no package)."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("docs_refs", Path(__file__).with_name("refs.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # this folder's scripts (docs/ is no package)
+import refs as _REFS  # noqa: E402
 
-
-_REFS = _refs()
 REFERENCED = _REFS.REF
-units = _REFS.units
 """A number that names its field: docs/refs.py holds it to that field; this check leaves it."""
+units = _REFS.units
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"

@@ -20,11 +20,9 @@ A verdict word is checked the same way: `above<!--? FILE A vs B -->` (or *clear 
 
 `python docs/refs.py` rewrites every referenced number from its field; `--check` lists each that differs
 (and each reference that names no field) and exits 1, so a hand edit of a referenced number fails the test
-suite (tests/test_claims.py). `--annotate PAGE` adds a reference after each estimate with its interval
-on PAGE that exactly one field of the files PAGE links holds (of the files its paragraph links, first),
-and says how many it left (several fields hold it, or none). A single number gets its reference by hand:
-a 2-decimal value matches dozens of unrelated fields (a curve's window, another level's spread), so a
-unique match is no evidence that it is the field meant; `--fields FILE` lists a file's paths to choose from. Written by hand: a number's format is the page's, and no templating
+suite (tests/test_claims.py). docs/refs_annotate.py writes the references one field alone can mean.
+
+Written by hand: a number's format is the page's, and no templating
 library keeps markdown readable as plain text while naming a JSON field beside each number.
 """
 
@@ -48,8 +46,6 @@ STEP = re.compile(r'\.?([A-Za-z_][\w-]*)|\[((?:"[^"]*"|[^\]"])*)\]')
 SELECT = re.compile(r'([\w-]+)=("[^"]*"|[^,"]*)(?:,|$)')
 """One `key=value` of a selector; a value holding `,` `]` or `=` is quoted: `[label="illm (a 1, b 2)"]`."""
 TRIPLES = (("iqm", "ci_low", "ci_high"), ("poi", "poi_low", "poi_high"), ("mean", "ci_low", "ci_high"))
-IDENTIFIERS = ("env_id", "label", "method", "name", "model", "calibration", "env", "level", "seed", "key")
-"""Fields that name a list's element, tried in this order when a path is written (`--annotate`)."""
 
 
 class BadRef(ValueError):
@@ -245,115 +241,6 @@ def verdicts(text: str) -> list[str]:
     return out
 
 
-# --annotate: write a reference for each number exactly one field holds.
-
-def _fields(node, path: str = "", series: bool = False):
-    """(path, node, in a series) for every node of a JSON value; a list's objects are named by their
-    identifying fields; a series is a list of more than 5 numbers (a curve's points)."""
-    yield path, node, series
-    if isinstance(node, dict):
-        for key, value in node.items():
-            step = f".{key}" if re.fullmatch(r"[A-Za-z_][\w-]*", str(key)) else f"[{key}]"
-            yield from _fields(value, (path + step).lstrip("."))
-    elif isinstance(node, list):
-        curve = len(node) > 5 and all(map(_is_number, node))
-        for i, value in enumerate(node):
-            yield from _fields(value, f"{path}[{_selector(node, i)}]", curve)
-
-
-def _selector(items: list, i: int) -> str:
-    """The `key=value,...` of IDENTIFIERS that picks out items[i] alone (a report row's env and label, and as
-    few more as it takes), else its index."""
-    item = items[i]
-    if not isinstance(item, dict):
-        return str(i)
-    keys = [k for k in IDENTIFIERS if k in item and isinstance(item[k], (str, int)) and not isinstance(item[k], bool)
-            and '"' not in str(item[k])]
-    base = [k for k in ("env_id", "label") if k in keys]  # a report's row by both, in a part as in the merged report
-    rest = [k for k in keys if k not in base]
-    for n in range(len(rest) + 1):
-        for start in range(max(len(rest) - n + 1, 1)):
-            chosen = base + rest[start:start + n]
-            if not chosen:
-                continue
-            sel = {k: _printed(item[k]) for k in chosen}
-            same = [e for e in items if isinstance(e, dict) and all(_printed(e.get(k)) == v for k, v in sel.items())]
-            if len(same) == 1:
-                return ",".join(f'{k}="{v}"' if set(v) & set(",=[]") else f"{k}={v}" for k, v in sel.items())
-    return str(i)
-
-
-@cache
-def fields(file: str) -> tuple[tuple[str, object], ...]:
-    """(path, number) of every number of docs/results/`file` but a series' points (no page quotes them
-    singly)."""
-    return tuple((path, node) for path, node, series in _fields(load(file)) if not series and _is_number(node))
-
-
-@cache
-def estimate_fields(file: str) -> tuple[tuple[str, str], ...]:
-    """(path, as printed) of every estimate with its interval in docs/results/`file`."""
-    out = []
-    for path, node, _ in _fields(load(file)):
-        for at in _estimates(path, node):
-            out.append((at, shown_as(file, at, "0.000 [0.000, 0.000]")))
-    return tuple(out)
-
-
-def candidates(files: list[str], shown: str) -> list[tuple[str, str]]:
-    """(file, path) of every field of `files` that prints as `shown`."""
-    if re.fullmatch(ESTIMATE, shown):
-        return [(file, path) for file in files for path, text in estimate_fields(file) if text == shown]
-    return [(file, path) for file in files for path, node in fields(file) if printed(node, shown) == shown]
-
-
-def linked_files(page: Path, text: str) -> list[str]:
-    """The results files `page` links, as paths under docs/results."""
-    found = set()
-    for link in re.findall(r"\(([^()\s#]+)\)", text):
-        target = (page.parent / link).resolve()
-        if RESULTS in target.parents:
-            if target.name == "report.md":
-                target = target.with_name("results.json")
-            if target.suffix == ".json" and target.is_file():
-                found.add(str(target.relative_to(RESULTS)))
-    return sorted(found)
-
-
-def annotate(page: Path) -> tuple[int, int]:
-    """Add a reference to each unreferenced estimate with its interval on `page`, outside its rendered
-    blocks, that one field holds: of the files its paragraph (or table row) links, else of the files the
-    page links; (numbers referenced, numbers left)."""
-    text = page.read_text()
-    files = linked_files(page, text)
-    done = left = 0
-    pattern = re.compile(rf"(?<![\d.\w\[-])({ESTIMATE})(?!<!--=)")
-    pieces, last, start = [], 0, 0
-    for unit in units(text):
-        start = text.index(unit, start)
-        near = linked_files(page, unit)
-        for match in pattern.finditer(unit):
-            at = start + match.end()
-            if _inside_comment(text, start + match.start()) or _inside_block(text, start + match.start()):
-                continue
-            found = candidates(near, match.group(1)) if near else []
-            if len(found) != 1:
-                found = candidates(files, match.group(1))
-            if len({path for _, path in found}) == 1:  # one field in several reports (a part and the merged one)
-                found = sorted(found, key=lambda f: (len(f[0]), f[0]))[:1]
-            rows = [f for f in found if f[1].startswith("rows[")]
-            if len(found) > 1 and len(rows) == 1:  # a report's row, copied into its quality curve
-                found = rows
-            if len(found) == 1:
-                pieces += [text[last:at], f"<!--= {found[0][0]} {found[0][1]} -->"]
-                last, done = at, done + 1
-            else:
-                left += 1
-        start += len(unit)
-    page.write_text("".join(pieces) + text[last:])
-    return done, left
-
-
 def units(text: str) -> list[str]:
     """The page's paragraphs, a table's rows each on its own (a row's marker covers that row)."""
     out = []
@@ -363,22 +250,7 @@ def units(text: str) -> list[str]:
     return out
 
 
-def _inside_block(text: str, at: int) -> bool:
-    """Whether `at` lies in a block docs/render.py writes (between `<!-- NAME:begin -->` and its end)."""
-    begins = list(re.finditer(r"<!-- ([\w-]+):begin -->", text[:at]))
-    return bool(begins) and f"<!-- {begins[-1].group(1)}:end -->" not in text[begins[-1].end():at]
-
-
-def _inside_comment(text: str, at: int) -> bool:
-    return text.rfind("<!--", 0, at) > text.rfind("-->", 0, at)
-
-
 def main(argv: list[str]) -> int:
-    if argv[:1] == ["--annotate"]:
-        for name in argv[1:]:
-            done, left = annotate(Path(name).resolve())
-            print(f"{name}: {done} numbers referenced, {left} left (no field or several hold them)")
-        return 0
     found = []
     for page in pages():
         text = page.read_text()

@@ -185,25 +185,35 @@ def test_a_number_prints_at_the_precision_the_page_gives_it(value, like, expecte
     assert refs.printed(value, like) == expected
 
 
-def test_annotate_references_the_one_field_that_holds_an_estimate(tmp_path, monkeypatch):
+def test_annotate_references_the_one_field_that_holds_an_estimate_or_a_seeds_list(tmp_path, monkeypatch):
+    annotator = _docs_module("refs_annotate")
     results = tmp_path / "docs" / "results"
     (results / "r").mkdir(parents=True)
-    rows = [{"env_id": "A", "label": "illm", "final": {"iqm": 0.5, "ci_low": 0.25, "ci_high": 0.75}},
+    seeds = [{"seed": s, "score": v} for s, v in enumerate((0.9, 0.25, 1.0, 0.5, 0.0))]
+    rows = [{"env_id": "A", "label": "illm", "final": {"iqm": 0.5, "ci_low": 0.25, "ci_high": 0.75, "per_seed": seeds}},
             {"env_id": "B", "label": "illm", "final": {"iqm": 0.5, "ci_low": 0.25, "ci_high": 0.75}},
             {"env_id": "A", "label": "ppo", "final": {"iqm": 0.125, "ci_low": 0.0, "ci_high": 0.25}}]
     (results / "r" / "results.json").write_text(json.dumps({"rows": rows}))
     page = tmp_path / "docs" / "page.md"
-    page.write_text("[report](results/r/report.md): ppo 0.125 [0.000, 0.250], illm 0.500 [0.250, 0.750].\n")
-    monkeypatch.setattr(refs, "RESULTS", results)
-    for cached in (refs.load, refs.fields, refs.estimate_fields):
+    page.write_text("[report](results/r/report.md): ppo 0.125 [0.000, 0.250], illm 0.500 [0.250, 0.750], "
+                    "its seeds 0.90, 0.25, 1.00, 0.50, 0.00.\n")
+    monkeypatch.setattr(annotator.refs, "RESULTS", results)
+    monkeypatch.setattr(annotator, "RESULTS", results)
+    caches = (annotator.refs.load, annotator.fields, annotator.estimate_fields)
+    for cached in caches:
         cached.cache_clear()
     try:
-        assert refs.annotate(page) == (1, 1)  # illm's estimate is held by two rows: left for a person
+        assert annotator.annotate(page) == (1, 1)  # illm's estimate is held by two rows: left for a person
+        assert annotator.annotate_seeds(page) == (5, 0)
         text = page.read_text()
         assert "0.125 [0.000, 0.250]<!--= r/results.json rows[env_id=A,label=ppo].final.iqm -->" in text
+        assert "0.25<!--= r/results.json rows[env_id=A,label=illm].final.per_seed[seed=1].score -->" in text
+        monkeypatch.setattr(refs, "RESULTS", results)
+        refs.load.cache_clear()
         assert refs.check(page, text) == []
+        assert len(refs.check(page, text.replace("0.25<!--=", "0.26<!--="))) == 1
     finally:
-        for cached in (refs.load, refs.fields, refs.estimate_fields):
+        for cached in (*caches, refs.load):
             cached.cache_clear()
 
 
