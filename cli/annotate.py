@@ -95,10 +95,9 @@ def annotate_and_report(config) -> None:
         from illm_tools.llm.spec import LLMSpec
 
         model = "" if config.llm == LLMSpec(device=config.llm.device) else f" {config.llm.options()}"
-        layout = ("" if config.setup.layout == "shared" else f" --layout {config.setup.layout}") + \
-            ("" if config.tasks == ("action", "summary") else f" --tasks {','.join(config.tasks)}")
+        tasks = "" if config.tasks == ("action", "summary") else f" --tasks {','.join(config.tasks)}"
         typer.echo(f"a training run plays new episodes and finds fewer of its states here: `illm data coverage "
-                   f"{config.data} --cache {cache} --history {config.setup.history_len}{model}{layout}` estimates how many")
+                   f"{config.data} --cache {cache} {config.setup.options()}{model}{tasks}` estimates how many")
     if stop.requested and stats.stopped_early:
         raise typer.Exit(stop.exit_code)
 

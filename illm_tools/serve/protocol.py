@@ -109,7 +109,8 @@ class ServerTerms:
         self._envs: dict[tuple[str, bool], tuple[AnnotationSetup, tuple | None]] = {}  # one per known env and mode
 
     def options(self) -> str:
-        return f"--history {self.history_len} --layout {self.layout} --tasks {','.join(self.tasks)}"
+        """The flags that select what it serves ("--history 0 --layout shared --tasks action,summary")."""
+        return f"{self.prompt.options()} --tasks {','.join(self.tasks)}"
 
     def describe(self) -> dict:
         return {"history_len": self.history_len, "layout": self.layout, "tasks": list(self.tasks),

@@ -138,6 +138,13 @@ class AnnotationSetup:
 
 # ---- the setups a cache holds ------------------------------------------------------------------
 
+def prompt_options(history_len: int, layout: str, hop: Mapping | None = None) -> str:
+    """The flags that select prompt settings, the one place they are written: "--history 3 --layout
+    shared", and a hop window's "--mode hop --hop-seed S --hop-beta B" (`hop`: its seed and beta)."""
+    hops = f" --mode hop --hop-seed {hop['seed']} --hop-beta {hop['beta']:g}" if hop is not None else ""
+    return f"--history {history_len} --layout {layout}{hops}"
+
+
 ADOPTED = ("backend", "model", "model_dtype", "quant", "oracle_noise", "history_len", "layout", "hop_seed", "hop_beta")
 """The TrainConfig fields a run takes from its cache's setup (the CLI adopts when none was given)."""
 def _model_options(model: str, fingerprint: str) -> str:
@@ -176,11 +183,7 @@ class SetupOptions:
 
     def prompt_options(self) -> str:
         """The flags that select its prompts ("--history 0 --layout shared", and hop's)."""
-        hop = ""
-        settings = parse_hop_renderer(self.renderer)
-        if settings is not None:
-            hop = f" --mode hop --hop-seed {settings['seed']} --hop-beta {settings['beta']:g}"
-        return f"--history {self.history_len} --layout {self.layout}{hop}"
+        return prompt_options(self.history_len, self.layout, parse_hop_renderer(self.renderer))
 
     def fields(self, reach: Mapping[str, str | None] | None = None, where=None) -> dict:
         """The TrainConfig fields of the setup (`ADOPTED`), its model reached where the user's `reach`

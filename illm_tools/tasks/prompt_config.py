@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from illm_tools.errors import UsageError
 from illm_tools.settings import setting
 from illm_tools.tasks.prompts import LAYOUTS
-from illm_tools.tasks.annotation_setup import AnnotationSetup, hop_renderer
+from illm_tools.tasks.annotation_setup import AnnotationSetup, hop_renderer, prompt_options
 
 OBS_MODES = ("obs", "hop")
 
@@ -78,5 +78,5 @@ class PromptConfig:
 
     def options(self) -> str:
         """The flags that select these settings ("--history 3 --layout shared")."""
-        hop = f" --mode hop --hop-seed {self.hop_seed} --hop-beta {self.hop_beta:g}" if self.hop else ""
-        return f"--history {self.history_len} --layout {self.layout}{hop}"
+        hop = {"seed": self.hop_seed, "beta": self.hop_beta} if self.hop else None
+        return prompt_options(self.history_len, self.layout, hop)
