@@ -282,10 +282,16 @@ def repeated_logprobs(lm: LoadedModel, state: PrefixState, index: Any, ids: Any,
 
 
 @dataclass(frozen=True)
-class _Plan:
+class StatePlan:
+    """One state's scoring, tokenised (`plan_state`): what the engine's callers (scoring, the joint
+    pass of `joint`, hop's `spliced`) batch by tokens (`plan_tokens`, `plan_shape`, `packed_batches`)."""
+
     prefix: list[int]
+    """The context's tokens all candidates share (up to the boundary a candidate's first token may merge into)."""
     continuations: list[list[int]]
+    """Each candidate's tokens after the prefix."""
     skip: list[int]
+    """Per candidate, the leading tokens of its continuation that belong to the context (not scored)."""
 
 
 def common_prefix(a: Sequence[int], b: Sequence[int]) -> int:
@@ -297,7 +303,7 @@ def common_prefix(a: Sequence[int], b: Sequence[int]) -> int:
     return n
 
 
-def plan_state(lm: LoadedModel, context: str, candidates: Sequence[str]) -> _Plan:
+def plan_state(lm: LoadedModel, context: str, candidates: Sequence[str]) -> StatePlan:
     """Tokenise a context and its candidates together and split them at the boundary."""
     context_ids = lm.encode(context)
     joint = [lm.encode(context + cand) for cand in candidates]
@@ -305,10 +311,10 @@ def plan_state(lm: LoadedModel, context: str, candidates: Sequence[str]) -> _Pla
     shared = min(owns, default=len(context_ids))
     if shared < len(context_ids):
         log.debug("context and candidate share a token at the boundary; scoring from token %d", shared)
-    return _Plan(context_ids[:shared], [ids[shared:] for ids in joint], [o - shared for o in owns])
+    return StatePlan(context_ids[:shared], [ids[shared:] for ids in joint], [o - shared for o in owns])
 
 
-def plan_tokens(lm: LoadedModel, plan: _Plan) -> int:
+def plan_tokens(lm: LoadedModel, plan: StatePlan) -> int:
     """The tokens a planned state holds in the engine: its prefix and its candidates packed behind
     it (`llm.packed`), or, where candidates are not packed, a copy of the prefix per candidate."""
     if packs_candidates(lm):
@@ -316,7 +322,7 @@ def plan_tokens(lm: LoadedModel, plan: _Plan) -> int:
     return len(plan.prefix) * max(len(plan.continuations), 1) + sum(len(c) for c in plan.continuations)
 
 
-def plan_shape(plan: _Plan, cached: int | None = None) -> tuple[int, int]:
+def plan_shape(plan: StatePlan, cached: int | None = None) -> tuple[int, int]:
     """(prefix, fed): the tokens of a planned state's packed forward, behind the first `cached` of its
     prefix (all of it by default): the geometry of its candidates' mask (`budget.mask_bytes`)."""
     cached = len(plan.prefix) if cached is None else cached
