@@ -33,12 +33,14 @@ INT_LIMIT = 2**62
 
 
 def setting(default: Any = dataclasses.MISSING, *, flag: str | tuple[str, ...] | None = None,
-            factory: Any = dataclasses.MISSING, **field_options) -> Any:
-    """A config field that declares its command-line flag beside its default, so that every flag is
-    written once, where the setting is (`cli.options.dataclass_parameters` reads it): `flag` is the
-    documented flag when it is not `--` + the field's name (a string: kept beside the field's own
-    flag; a tuple: the only flags, as `--mode` for obs_mode, whose own name means another thing)."""
-    metadata = {} if flag is None else {"flag": flag}
+            resumes: bool = False, factory: Any = dataclasses.MISSING, **field_options) -> Any:
+    """A config field that declares, beside its default, the facts about it that other code asks, so
+    that each is written once, where the setting is: `flag`, the documented flag when it is not `--` +
+    the field's name (`cli.options.dataclass_parameters` reads it; a string: kept beside the field's
+    own flag; a tuple: the only flags, as `--mode` for obs_mode, whose own name means another thing);
+    `resumes`, whether a resumed training run may be given another value (its length, folder,
+    devices, checkpointing, live annotation: `illm_tools.rl.config.RESUMABLE_CHANGES` is derived from it)."""
+    metadata = ({} if flag is None else {"flag": flag}) | ({"resumes": True} if resumes else {})
     return dataclasses.field(default=default, default_factory=factory, metadata=metadata, **field_options)
 
 

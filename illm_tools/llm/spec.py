@@ -37,7 +37,7 @@ class LLMSpec:
     """bitsandbytes quantisation: none | 4bit (NF4) | 8bit | auto (on a CUDA device what the model's alias
     says: 4bit for llama3 and llama2, as the paper ran its annotator; else none). The resolved value is
     part of every cache key."""
-    device: str | None = None
+    device: str | None = setting(None, resumes=True)
     """Where the model runs: cpu | cuda | cuda:N | auto (a GPU where torch sees one, else the CPU; with
     several processes each takes its own GPU); unset: auto (a training run's: its --device)."""
     oracle_noise: float = 0.0

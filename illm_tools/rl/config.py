@@ -52,7 +52,7 @@ class TrainConfig:
     # --- run -------------------------------------------------------------------------------
     env_id: str = setting("BabyAI-GoToLocal-v0", flag="--env")
     """Id of the environment (BabyAI/MiniGrid, MiniHack, Crafter, Atari: `illm envs` lists them)."""
-    run_dir: Path = setting(Path("data/runs/default"), flag="--out")
+    run_dir: Path = setting(Path("data/runs/default"), flag="--out", resumes=True)
     """Folder for config.json, metrics.jsonl, TensorBoard events and checkpoint.pt."""
     method: str = "illm"
     """The method, a name in the registry `illm_tools.intrinsic.registry` (its bonus and network)."""
@@ -64,7 +64,7 @@ class TrainConfig:
     update_proportion; `--bonus-option KEY=VALUE`); unset ones keep their defaults."""
     seed: int = 0
     """Seed of the network initialisation, action sampling, minibatch order and env pool."""
-    total_steps: int = setting(200_000, flag="--frames")
+    total_steps: int = setting(200_000, flag="--frames", resumes=True)
     """Environment steps to train for, summed over the parallel envs."""
     num_envs: int = 16
     """Environments stepped side by side."""
@@ -78,21 +78,21 @@ class TrainConfig:
     """Distractor count for levels that take it; None keeps the level's default."""
     mission_max_len: int = 32
     """Mission words kept (longer missions are truncated)."""
-    threads: int = 1
+    threads: int = setting(1, resumes=True)
     """Torch threads for the policy (small nets run best on one)."""
-    device: str = "auto"
+    device: str = setting("auto", resumes=True)
     """Where the policy, the bonus's models and the rollout live: cpu, cuda, cuda:N or auto (a GPU
     where there is one; for many small runs side by side on one GPU machine, cpu). Actions are sampled on the CPU from the run's seeded generator; a run may
     resume on another device."""
     # --- bookkeeping -----------------------------------------------------------------------
-    checkpoint_every: int = 10
+    checkpoint_every: int = setting(10, resumes=True)
     """Save a checkpoint every this many updates, after the first and the last one, and when a
     signal stops the run; 0: only those."""
-    checkpoint_minutes: float = 5.0
+    checkpoint_minutes: float = setting(5.0, resumes=True)
     """Also save a checkpoint when this many minutes have passed since the last one."""
-    resume: bool = False
+    resume: bool = setting(False, resumes=True)
     """Continue from run_dir/checkpoint.pt instead of starting fresh."""
-    tensorboard: bool = True
+    tensorboard: bool = setting(True, resumes=True)
     """Also write TensorBoard events beside metrics.jsonl."""
     env_seeds: tuple[int, ...] = ()
     """Episode seeds the envs cycle through instead of a new seed every episode: a fixed set of
@@ -101,7 +101,7 @@ class TrainConfig:
     env_options: dict = setting(factory=dict, flag="--env-option")
     """Options of the environment, its suite's (`--env-option KEY=VALUE`, e.g. max_episode_steps;
     `illm envs` lists the suites)."""
-    vector: str = "auto"
+    vector: str = setting("auto", resumes=True)
     """How the envs step: sync (all in this process), async (a process each: slow envs such as
     Crafter), auto (the suite's choice)."""
 
@@ -341,11 +341,20 @@ def flat_settings(data: Mapping) -> dict:
     return {**out, **TrainConfig.from_dict(known).flat()}
 
 
-RESUMABLE_CHANGES = frozenset({"total_steps", "resume", "device", "llm_device", "checkpoint_every", "checkpoint_minutes",
-                               "tensorboard", "live_budget", "threads", "llm_threads", "live_mode", "new_setup",
-                               "heads_bf16", "run_dir", "cache", "vector", "annotator"})
-"""Settings (flat names) a resumed run may change: its folder, devices, length, checkpointing and live
-annotation; any other difference is refused (`check_resumable`)."""
+def declared(fact: str, parts: Mapping[str, type] | None = None, own: type | None = None) -> frozenset[str]:
+    """The flat names of the settings whose field declares `fact` (`illm_tools.settings.setting`, e.g.
+    resumes=True): TrainConfig's own fields (`own`) and its parts' (`parts`, default `PARTS`)."""
+    parts = PARTS if parts is None else parts
+    own = TrainConfig if own is None else own
+    found = {f.name for f in dataclasses.fields(own) if f.name not in parts and f.metadata.get(fact)}
+    found |= {PART_NAMES.get((part, f.name), f.name) for part, cls in parts.items() for f in dataclasses.fields(cls)
+              if (part, f.name) not in NOT_SETTINGS and f.metadata.get(fact)}
+    return frozenset(found)
+
+
+RESUMABLE_CHANGES = declared("resumes")
+"""Settings (flat names) a resumed run may change, as their fields declare (`setting(resumes=True)`): its
+folder, devices, length, checkpointing and live annotation; any other difference is refused (`check_resumable`)."""
 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:

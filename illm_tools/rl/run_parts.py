@@ -14,6 +14,7 @@ from pathlib import Path
 from illm_tools.errors import UsageError
 from illm_tools.rl.presets import BONUS_PRESETS, DEFAULT_PRESET, PRESET_DEFAULTS
 from illm_tools.tasks.calibration import ACTION_TARGETS, CALIBRATIONS
+from illm_tools.settings import setting
 
 LIVE_MODES = ("sync", "async")
 
@@ -68,7 +69,7 @@ class BonusConfig:
     distill_epochs: int = 1
     """Epochs of each update that train the heads (the 2 x 1024-unit heads cost as much as the rest
     of the update on CPU; later epochs train the policy alone)."""
-    heads_bf16: bool | None = None
+    heads_bf16: bool | None = setting(None, resumes=True)
     """Run the heads' matmuls in bfloat16 on CPU (float32 parameters and losses); None: when a
     timed matmul says bf16 is faster on this CPU (it is on some, not on others; `illm_tools.llm.dtype`).
     The run records the answer in config.json and keeps it on resume, on any machine."""
@@ -128,26 +129,26 @@ class TargetsConfig:
     """Where a run's LLM targets come from: the annotation cache, and the live fallback for the
     states it has not seen (an annotator of the run's own, or an `illm serve` server)."""
 
-    cache: Path | None = None
+    cache: Path | None = setting(None, resumes=True)
     """Annotation cache the targets are read from (and live annotations written back to)."""
     action_score: str = "sum"
     """Calibration of the stored action log-probs: sum (paper), mean per token, or pmi."""
-    live_budget: int | str = 16
+    live_budget: int | str = setting(16, resumes=True)
     """Missed states handed to the live LLM after each rollout, most visited first: sync annotates
     them before the update; async gives them to the worker in place of its queue. 0: cache only;
     all: every missed state (with sync, a target on every step: for fast annotators such as the
     oracle, or an LLM on a GPU)."""
-    live_mode: str = "async"
+    live_mode: str = setting("async", resumes=True)
     """sync: annotate in the trainer's process, which waits (with --annotator: the server answers once
     the rollout's states have landed); async: a worker process (or the server) beside the rollouts,
     whose answers later rollouts use (the trainer never waits)."""
-    annotator: str | None = None
+    annotator: str | None = setting(None, resumes=True)
     """URL of an `illm serve` server (http://127.0.0.1:PORT) that annotates the run's missed states,
     shared with other runs, instead of the run's own worker; `live_budget` states per rollout."""
-    new_setup: bool = False
+    new_setup: bool = setting(False, resumes=True)
     """Accept a cache that holds annotations, none of them for this run's setup (model, dtype,
     quantisation, history length, layout, templates, renderer): live annotation starts it."""
-    llm_threads: int = 0
+    llm_threads: int = setting(0, resumes=True)
     """Torch threads for live annotation; 0: sync all cores, async the cores the policy leaves
     (one of 2). Give 1 when runs share the machine."""
 
