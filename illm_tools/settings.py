@@ -33,14 +33,18 @@ INT_LIMIT = 2**62
 
 
 def setting(default: Any = dataclasses.MISSING, *, flag: str | tuple[str, ...] | None = None,
-            resumes: bool = False, factory: Any = dataclasses.MISSING, **field_options) -> Any:
+            resumes: bool = False, adopted: bool = False, factory: Any = dataclasses.MISSING,
+            **field_options) -> Any:
     """A config field that declares, beside its default, the facts about it that other code asks, so
     that each is written once, where the setting is: `flag`, the documented flag when it is not `--` +
     the field's name (`cli.options.dataclass_parameters` reads it; a string: kept beside the field's
     own flag; a tuple: the only flags, as `--mode` for obs_mode, whose own name means another thing);
     `resumes`, whether a resumed training run may be given another value (its length, folder,
-    devices, checkpointing, live annotation: `illm_tools.rl.config.RESUMABLE_CHANGES` is derived from it)."""
-    metadata = ({} if flag is None else {"flag": flag}) | ({"resumes": True} if resumes else {})
+    devices, checkpointing, live annotation: `illm_tools.rl.config.RESUMABLE_CHANGES` is derived from it);
+    `adopted`, whether a training run takes it from its cache's one setup when no option that selects a
+    setup is given (the model's and the prompt's: `illm_tools.rl.config.ADOPTED`)."""
+    metadata = ({} if flag is None else {"flag": flag}) | ({"resumes": True} if resumes else {}) | \
+        ({"adopted": True} if adopted else {})
     return dataclasses.field(default=default, default_factory=factory, metadata=metadata, **field_options)
 
 

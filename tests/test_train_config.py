@@ -140,20 +140,23 @@ def test_every_shipped_spec_plans_the_runs_it_planned_before(tmp_path, monkeypat
     assert not changed, dict(list(changed.items())[:3])
 
 
-def test_whether_a_setting_may_change_on_resume_is_declared_on_its_field():
-    """`setting(resumes=True)` on a part's field is all it takes: the resumable settings are derived from
-    the fields (`declared`), for a part declared here as for the run's own."""
+def test_whether_a_setting_resumes_or_is_adopted_from_a_cache_is_declared_on_its_field():
+    """`setting(resumes=True)` or `setting(adopted=True)` on a part's field is all it takes: the tables are
+    derived from the fields (`declared`), for a part declared here as for the run's own."""
     import dataclasses
 
-    from illm_tools.rl.config import PARTS, RESUMABLE_CHANGES, TrainConfig, declared
+    from illm_tools.rl.config import ADOPTED, PARTS, RESUMABLE_CHANGES, TrainConfig, declared
     from illm_tools.settings import setting
 
     @dataclasses.dataclass(frozen=True)
     class Tiny:
         warmup: int = setting(3, resumes=True)
+        beam: int = setting(1, adopted=True)
         width: int = 8
 
-    found = declared("resumes", {**PARTS, "tiny": Tiny}, TrainConfig)
-    assert found == RESUMABLE_CHANGES | {"warmup"}
+    assert declared("resumes", {**PARTS, "tiny": Tiny}, TrainConfig) == RESUMABLE_CHANGES | {"warmup"}
+    assert declared("adopted", {**PARTS, "tiny": Tiny}, TrainConfig) == ADOPTED | {"beam"}
+    assert ADOPTED == {"backend", "model", "model_dtype", "quant", "oracle_noise", "history_len", "layout", "hop_seed",
+                       "hop_beta"}
     assert {"total_steps", "live_budget", "llm_device", "heads_bf16"} <= RESUMABLE_CHANGES  # its own, a part's, a renamed one
     assert not {"seed", "lambda_a", "history_len", "num_envs"} & RESUMABLE_CHANGES

@@ -22,25 +22,25 @@ from illm_tools.settings import setting
 class LLMSpec:
     """The LLM a stage loads (see the module docstring)."""
 
-    backend: str = "transformers"
+    backend: str = setting("transformers", adopted=True)
     """LLM backend: transformers | oracle (rule-based annotators that know BabyAI/MiniGrid, MiniHack and
     Crafter: the positive control) | openai (an OpenAI-compatible server: vLLM, ...; with --endpoint) | stub (deterministic
     answers from the prompt, no weights; for tests)."""
-    model: str | None = None
+    model: str | None = setting(None, adopted=True)
     """Alias (see `illm models`), hub id or local folder; default: the backend's (smollm2-135m for
     transformers, oracle for oracle)."""
-    dtype: str = setting("auto", flag="--dtype")
+    dtype: str = setting("auto", flag="--dtype", adopted=True)
     """Compute dtype: auto | bfloat16 | float32 | float16; auto: bfloat16 on CUDA, and on a CPU where a
     timed matmul says it is faster than float32, else float32 (measured once per machine). The resolved
     dtype is part of every cache key."""
-    quant: str = "auto"
+    quant: str = setting("auto", adopted=True)
     """bitsandbytes quantisation: none | 4bit (NF4) | 8bit | auto (on a CUDA device what the model's alias
     says: 4bit for llama3 and llama2, as the paper ran its annotator; else none). The resolved value is
     part of every cache key."""
     device: str | None = setting(None, resumes=True)
     """Where the model runs: cpu | cuda | cuda:N | auto (a GPU where torch sees one, else the CPU; with
     several processes each takes its own GPU); unset: auto (a training run's: its --device)."""
-    oracle_noise: float = 0.0
+    oracle_noise: float = setting(0.0, adopted=True)
     """oracle: the share of states (fixed, keyed by the state) answered at random; 1 is an annotator
     that knows nothing (part of every key)."""
     endpoint: str | None = None

@@ -54,7 +54,7 @@ def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None
     """
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.tasks.served import REACHED
-    from illm_tools.tasks.annotation_setup import ADOPTED
+    from illm_tools.rl.config import ADOPTED
 
     settings = dict(settings)
     given = set(settings) if given is None else set(given)
@@ -106,7 +106,8 @@ def adopt_setup(cfg: TrainConfig, given: Collection[str], say: Callable[[str], N
     `say` hears which, in one line. `reach`: the user's own --endpoint, --api-key-env and
     --embed-endpoint, set on the model either way: an adopted served model is reached only there (a
     cache's rows never say where a request goes; without --endpoint it is refused in one line)."""
-    from illm_tools.tasks.annotation_setup import ADOPTED, adopt
+    from illm_tools.rl.config import ADOPTED
+    from illm_tools.tasks.annotation_setup import adopt
 
     reach = dict(reach or {})
 

@@ -352,6 +352,10 @@ def declared(fact: str, parts: Mapping[str, type] | None = None, own: type | Non
     return frozenset(found)
 
 
+ADOPTED = declared("adopted")
+"""Settings (flat names) a run takes from its cache's one setup when none of them is given, as their fields
+declare (`setting(adopted=True)`): the model's (backend, model, its dtype, quant, the oracle's noise) and the
+prompt's (history, layout, hop's seed and beta); `illm_tools.rl.build.adopt_setup`."""
 RESUMABLE_CHANGES = declared("resumes")
 """Settings (flat names) a resumed run may change, as their fields declare (`setting(resumes=True)`): its
 folder, devices, length, checkpointing and live annotation; any other difference is refused (`check_resumable`)."""

@@ -145,8 +145,6 @@ def prompt_options(history_len: int, layout: str, hop: Mapping | None = None) ->
     return f"--history {history_len} --layout {layout}{hops}"
 
 
-ADOPTED = ("backend", "model", "model_dtype", "quant", "oracle_noise", "history_len", "layout", "hop_seed", "hop_beta")
-"""The TrainConfig fields a run takes from its cache's setup (the CLI adopts when none was given)."""
 def _model_options(model: str, fingerprint: str) -> str:
     """The options that select a cache row's model (`model_options`), a served model's address left
     for the user to give (`_options`)."""
@@ -186,7 +184,7 @@ class SetupOptions:
         return prompt_options(self.history_len, self.layout, parse_hop_renderer(self.renderer))
 
     def fields(self, reach: Mapping[str, str | None] | None = None, where=None) -> dict:
-        """The TrainConfig fields of the setup (`ADOPTED`), its model reached where the user's `reach`
+        """The TrainConfig fields of the setup (`illm_tools.rl.config.ADOPTED`), its model reached where the user's `reach`
         options say (`reached_model`: a served model without --endpoint is refused; `where`: the cache)."""
         out = {"backend": self.backend, **reached_model(self.backend, self.model, reach or {}, where),
                "model_dtype": self.dtype, "quant": self.quant,

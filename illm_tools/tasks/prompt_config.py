@@ -24,17 +24,17 @@ OBS_MODES = ("obs", "hop")
 class PromptConfig:
     """The prompt settings of a stage (see the module docstring)."""
 
-    history_len: int = setting(3, flag="--history")
+    history_len: int = setting(3, flag="--history", adopted=True)
     """(observation, action) pairs before the current observation in the prompts (paper B.1: 3)."""
-    layout: str = "shared"
+    layout: str = setting("shared", adopted=True)
     """Template layout: shared (history first, the prefix computed once) or paper (as printed)."""
     obs_mode: str = setting("obs", flag=("--mode",))
     """How the LLM sees a state: obs (the suite's text, written by its renderer) or hop (iLLM(hop):
     the raw observation translated into the LLM's embedding space by a frozen Hopfield layer; a
     policy also reads Z_h, the LLM's state after the translated window; paper Algorithm 1)."""
-    hop_seed: int = 0
+    hop_seed: int = setting(0, adopted=True)
     """hop: seed of the translation's fixed random projection P (part of every hop cache key)."""
-    hop_beta: float = 100.0
+    hop_beta: float = setting(100.0, adopted=True)
     """hop: inverse temperature of the Hopfield retrieval (not beta_hc; part of every hop cache key):
     HELM's 100; at 1 every observation translates to nearly the same embedding."""
 
