@@ -14,8 +14,8 @@ from collections.abc import Sequence
 
 from illm_tools.llm.generation import Generation, greedy_from
 from illm_tools.llm.loading import LoadedModel
-from illm_tools.llm.scoring import (CandidateScores, common_prefix, extend, merge_states,
-                                    packed_batches, plan_shape, plan_state, plan_tokens, score_continuations)
+from illm_tools.llm.scoring import (CandidateScores, common_prefix, extend, merge_states, packed_batches, plan_shape,
+                                    plan_state, plan_tokens, score_plans)
 
 
 def score_and_generate(lm: LoadedModel, contexts: Sequence[str], candidates: Sequence[Sequence[str]],
@@ -51,10 +51,9 @@ def score_and_generate(lm: LoadedModel, contexts: Sequence[str], candidates: Seq
     shapes = [plan_shape(p, cached=n) for p, n in zip(plans, shared)]  # the action prompt's end fed with its candidates
     for batch in packed_batches(lm, costs, shapes, batch_size):
         prefix = extend(lm, [plans[i].prefix[:shared[i]] for i in batch])
-        logps = score_continuations(lm, prefix, [plans[i].continuations for i in batch], [plans[i].skip for i in batch],
-                                    leads=[plans[i].prefix[shared[i]:] for i in batch])  # the action prompt's own end
-        for i, lp in zip(batch, logps):
-            scores[i] = CandidateScores.from_logprobs(lp)
+        leads = [plans[i].prefix[shared[i]:] for i in batch]  # the action prompt's own end
+        for i, scored in zip(batch, score_plans(lm, prefix, [plans[i] for i in batch], leads=leads)):
+            scores[i] = scored
         pending.append((batch, extend(lm, [summary_ids[i][shared[i]:] for i in batch], past=prefix)))
         held = [i for b, _ in pending for i in b]
         if len(held) >= decode_batch or (budget is not None and len(held) * max(decode_tokens[i] for i in held) >= budget):

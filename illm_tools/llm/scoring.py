@@ -342,6 +342,15 @@ def packed_batches(lm: LoadedModel, costs: Sequence[int], shapes: Sequence[tuple
     return token_batches(costs, batch_size, lm.batch_tokens, shapes, functools.partial(mask_tokens, lm.model))
 
 
+def score_plans(lm: LoadedModel, state: PrefixState, plans: Sequence[StatePlan],
+                leads: Sequence[Sequence[int]] | None = None) -> list[CandidateScores]:
+    """Each plan's candidates scored after its row of `state` (its prefix, or the part of it `leads` does
+    not hold: `score_continuations`), as `CandidateScores`: the step every caller of the engine shares
+    (scoring, the joint pass, hop's spliced prompts)."""
+    scored = score_continuations(lm, state, [p.continuations for p in plans], [p.skip for p in plans], leads=leads)
+    return [CandidateScores.from_logprobs(logprobs) for logprobs in scored]
+
+
 def score_candidates(lm: LoadedModel, contexts: Sequence[str], candidates: Sequence[Sequence[str]], *,
                      batch_size: int = 8) -> list[CandidateScores]:
     """log P(candidate | context) for each state's candidates (joint tokenisation, KV reuse), in
@@ -354,8 +363,6 @@ def score_candidates(lm: LoadedModel, contexts: Sequence[str], candidates: Seque
     costs, shapes = [plan_tokens(lm, p) for p in plans], [plan_shape(p) for p in plans]
     for batch in packed_batches(lm, costs, shapes, batch_size):
         state = extend(lm, [plans[i].prefix for i in batch])
-        scored = score_continuations(lm, state, [plans[i].continuations for i in batch],
-                                     [plans[i].skip for i in batch])
-        for i, logprobs in zip(batch, scored):
-            results[i] = CandidateScores.from_logprobs(logprobs)
+        for i, scores in zip(batch, score_plans(lm, state, [plans[i] for i in batch])):
+            results[i] = scores
     return results  # type: ignore[return-value]

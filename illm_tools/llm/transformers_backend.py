@@ -138,8 +138,7 @@ class TransformersBackend:
         import torch
 
         from illm_tools.llm.generation import Generation, greedy_from
-        from illm_tools.llm.scoring import (CandidateScores, extend, packed_batches, plan_shape, plan_state,
-                                           score_continuations)
+        from illm_tools.llm.scoring import extend, packed_batches, plan_shape, plan_state, score_plans
 
         lm = self.lm
         embed = lm.model.get_input_embeddings()
@@ -170,11 +169,9 @@ class TransformersBackend:
                 state = extend(lm, [], embeds=torch.stack([items[n][0] for n in batch]))
                 scored = [i for i, n in enumerate(batch) if items[n][1] is not None]
                 if scored:
-                    logprobs = score_continuations(lm, state.select(scored),
-                                                   [items[batch[i]][1].continuations for i in scored],
-                                                   [items[batch[i]][1].skip for i in scored])
-                    for i, lp in zip(scored, logprobs):
-                        results[batch[i]] = CandidateScores.from_logprobs(lp)
+                    for i, scores in zip(scored, score_plans(lm, state.select(scored),
+                                                             [items[batch[i]][1] for i in scored])):
+                        results[batch[i]] = scores
                 decoded = [i for i, n in enumerate(batch) if items[n][1] is None]
                 if decoded:
                     pending.append(([batch[i] for i in decoded], state.select(decoded)))
