@@ -305,14 +305,14 @@ def quiet_libraries():
     warnings and log lines are held back while the fine-tuning libraries load and run."""
     import warnings
 
-    from illm_tools.llm.loading import _quiet_transformers
+    from illm_tools.llm.quiet import quiet_transformers
 
     names = ("bitsandbytes", "peft", "accelerate", "torch")
     levels = {n: logging.getLogger(n).level for n in names}
     for n in names:
         logging.getLogger(n).setLevel(logging.ERROR)
     try:
-        with warnings.catch_warnings(), _quiet_transformers():
+        with warnings.catch_warnings(), quiet_transformers():
             warnings.simplefilter("ignore")
             yield
     finally:

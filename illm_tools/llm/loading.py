@@ -26,14 +26,13 @@ import os
 import shutil
 import time
 import uuid
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from illm_tools import durable
 from illm_tools.errors import DamagedFileError, UsageError
+from illm_tools.llm.quiet import quiet_transformers
 from illm_tools.llm.registry import ModelSpec, locate, resolve
 
 log = logging.getLogger(__name__)
@@ -214,7 +213,7 @@ def dequantised_folder(spec: ModelSpec, root: Path) -> tuple[Path, str]:
         log.info("de-quantising %s once (about 20 s; later loads take about a second) into %s",
                  spec.gguf_file, target)
         started = time.monotonic()
-        with _quiet_transformers():
+        with quiet_transformers():
             model = AutoModelForCausalLM.from_pretrained(gguf_folder, gguf_file=spec.gguf_file, dtype=torch.float32)
             tokenizer = AutoTokenizer.from_pretrained(gguf_folder, gguf_file=spec.gguf_file)
             model.hf_quantizer = None  # save_pretrained refuses a model that still carries its GGUF quantizer
@@ -334,31 +333,6 @@ def preload(name: str, *, cache_dir: str | os.PathLike | None = None) -> None:
         return
 
 
-@contextmanager
-def _quiet_transformers() -> Iterator[None]:
-    """Silence transformers' own progress bars and warnings (weight loading, GGUF de-quantising)
-    while it loads: what a user reads is illm's output. Restores the previous settings."""
-    import transformers.modeling_gguf_pytorch_utils as gguf_utils
-    from transformers.utils import logging as hf_logging
-
-    bars, verbosity = hf_logging.is_progress_bar_enabled(), hf_logging.get_verbosity()
-    hf_logging.disable_progress_bar()
-    hf_logging.set_verbosity_error()
-    # the GGUF de-quantiser calls tqdm directly, past transformers' switch: its name there is
-    # bound to a silenced tqdm for the load (there is no setting for it)
-    own_tqdm = getattr(gguf_utils, "tqdm", None)
-    if own_tqdm is not None:
-        gguf_utils.tqdm = functools.partial(own_tqdm, disable=True)
-    try:
-        yield
-    finally:
-        if own_tqdm is not None:
-            gguf_utils.tqdm = own_tqdm
-        hf_logging.set_verbosity(verbosity)
-        if bars:
-            hf_logging.enable_progress_bar()
-
-
 def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
                cache_dir: str | os.PathLike | None = None, device: str = "cpu",
                batch_tokens: int | None = None) -> LoadedModel:
@@ -385,7 +359,7 @@ def load_model(name: str, *, dtype: str = "bfloat16", quant: str = "none",
         log.info("loading %s quantised to %s through bitsandbytes on %s, computing in %s (--quant none loads it "
                  "unquantised)", spec.model_id, "4-bit NF4" if quant == "4bit" else "8-bit", device, dtype)
     try:
-        with _quiet_transformers():
+        with quiet_transformers():
             model = AutoModelForCausalLM.from_pretrained(folder, **kwargs)
             tokenizer = AutoTokenizer.from_pretrained(folder)
     except (OSError, ValueError, RuntimeError, KeyError) as e:  # safetensors' and json's errors among them

@@ -76,14 +76,14 @@ class SentenceEmbedder:
         import torch
         from transformers import AutoModel, AutoTokenizer
 
-        from illm_tools.llm.loading import _quiet_transformers
+        from illm_tools.llm.quiet import quiet_transformers
 
         folder = model_dir()
         settings = json.loads((folder / "sentence_bert_config.json").read_text()) \
             if (folder / "sentence_bert_config.json").is_file() else {}
         self.max_length = int(settings.get("max_seq_length", 256))
         """Inputs are truncated to this many tokens (sentence-transformers' max_seq_length)."""
-        with _quiet_transformers():
+        with quiet_transformers():
             self.tokenizer = AutoTokenizer.from_pretrained(folder)
             self.model = AutoModel.from_pretrained(folder, dtype=torch.float32).eval()
         self.dim = int(self.model.config.hidden_size)

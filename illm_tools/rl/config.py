@@ -342,10 +342,8 @@ def flat_settings(data: Mapping) -> dict:
 
 
 def declared(fact: str, parts: Mapping[str, type] | None = None, own: type | None = None) -> frozenset[str]:
-    """The flat names of the settings whose field declares `fact` (`illm_tools.settings.setting`, e.g.
-    resumes=True): TrainConfig's own fields (`own`) and its parts' (`parts`, default `PARTS`)."""
-    parts = PARTS if parts is None else parts
-    own = TrainConfig if own is None else own
+    """Flat names of the settings whose field declares `fact` (`setting(resumes=True)`): the run's own and its parts'."""
+    parts, own = (PARTS if parts is None else parts), (TrainConfig if own is None else own)
     found = {f.name for f in dataclasses.fields(own) if f.name not in parts and f.metadata.get(fact)}
     found |= {PART_NAMES.get((part, f.name), f.name) for part, cls in parts.items() for f in dataclasses.fields(cls)
               if (part, f.name) not in NOT_SETTINGS and f.metadata.get(fact)}
@@ -353,12 +351,11 @@ def declared(fact: str, parts: Mapping[str, type] | None = None, own: type | Non
 
 
 ADOPTED = declared("adopted")
-"""Settings (flat names) a run takes from its cache's one setup when none of them is given, as their fields
-declare (`setting(adopted=True)`): the model's (backend, model, its dtype, quant, the oracle's noise) and the
-prompt's (history, layout, hop's seed and beta); `illm_tools.rl.build.adopt_setup`."""
+"""Settings a run takes from its cache's one setup when none is given (`setting(adopted=True)`: the model's
+and the prompt's; `illm_tools.rl.build.adopt_setup`)."""
 RESUMABLE_CHANGES = declared("resumes")
-"""Settings (flat names) a resumed run may change, as their fields declare (`setting(resumes=True)`): its
-folder, devices, length, checkpointing and live annotation; any other difference is refused (`check_resumable`)."""
+"""Settings a resumed run may change (`setting(resumes=True)`): folder, devices, length, checkpoints, live
+annotation; any other difference is refused (`check_resumable`)."""
 
 
 def check_resumable(state: dict, cfg, action_names: list[str]) -> None:
