@@ -6,7 +6,9 @@ decimal number and percentage outside code, links and HTML comments. It edits ea
 (its last) and runs the checks a commit meets (`refs.check`: a number that names its field, and the verdict
 words; `claims.problems`: the looser check; `render`: the rendered tables), then prints how many edits a
 check caught, and each one none caught with its page and line, so that the next reference to write is
-named. Exit 0 when at least 95% were caught (issue 72's bar), 1 otherwise.
+named. A number no file holds counts as caught only where a marker pins it (`<!-- computed: HOW, DATE;
+numbers: ... -->`, docs/refs.py), which refs.check holds to the numbers it lists. Exit 0 when at least
+95% were caught (issue 72's bar), 1 otherwise.
 
 Written by hand: it composes this folder's checks; no library audits markdown against JSON fields.
 """
@@ -19,9 +21,12 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-NUMBER = re.compile(r"(?<![\w.\-/#=])\d[\d,]*\.\d+%?(?![\w.\-/])|(?<![\w.\-/#=])\d+%(?![\w\-/])")
-SKIP = re.compile(r"```.*?```|`[^`\n]*`|<!--.*?-->|\]\([^)]*\)|!\[[^\]]*\]", re.S)
-"""Code, HTML comments (a reference's own path), link targets and image alt texts: not results as read."""
+sys.path.insert(0, str(ROOT / "docs"))  # this folder's scripts (docs/ is no package)
+import refs as _refs  # noqa: E402
+
+NUMBER, SKIP = _refs.RESULT, _refs.HIDDEN
+"""A result number, and what hides one (code, comments, link targets): docs/refs.py's, which its pinning
+markers count by."""
 
 
 def pages() -> list[Path]:
@@ -32,8 +37,7 @@ def pages() -> list[Path]:
 
 def numbers(text: str) -> list[re.Match]:
     """The result numbers of a page's text (see the module docstring)."""
-    hidden = [m.span() for m in SKIP.finditer(text)]
-    return [m for m in NUMBER.finditer(text) if not any(a <= m.start() < b for a, b in hidden)]
+    return _refs.numbers(text)
 
 
 def edited(text: str, match: re.Match) -> str:
@@ -58,7 +62,6 @@ def caught(page: Path, text: str, checks) -> bool:
 def main(argv: list[str]) -> int:
     n = int(argv[0]) if argv and argv[0].isdigit() else 60
     seed = int(argv[argv.index("--seed") + 1]) if "--seed" in argv else 0
-    sys.path.insert(0, str(ROOT / "docs"))  # this folder's scripts (docs/ is no package)
     import claims
     import refs
     import render

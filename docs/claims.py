@@ -52,8 +52,9 @@ JSON_LINK = re.compile(r"\(([^()\s#]+\.json)\)")
 """A markdown link to a .json file (a probe's, a report's)."""
 SINGLE = re.compile(r"(?<![\d.\[\w])(\d+\.\d{2,3})(?![\d\]%])")
 """A single number with two or three decimals, not a percentage and not part of an interval."""
-COMPUTED = re.compile(r"<!-- computed: [^>]*\d{4}-\d{2}-\d{2}[^>]*-->")
-"""A paragraph's marker for numbers no file holds: how they were made, and when."""
+COMPUTED = re.compile(r"<!-- (?:computed|quoted): [^>]*\d{4}-\d{2}-\d{2}[^>]*-->")
+"""A paragraph's marker for numbers no file holds: how they were made (or what source they are quoted
+from), and when."""
 SERIES = 5
 """A list of more numbers than this is a series (a curve), whose points no page quotes singly."""
 KEYS = (("iqm", "ci_low", "ci_high"), ("poi", "poi_low", "poi_high"), ("mean", "ci_low", "ci_high"))

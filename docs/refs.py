@@ -10,13 +10,23 @@ FILE is a path under docs/results; PATH walks the JSON: `.key`, `[N]` (a list's 
 `,` `=` or `]` in quotes), `[KEY]`
 (a key with characters a dotted step cannot hold). The number before the comment is written from the
 field at the precision the page prints it: an object with an estimate and its interval (`iqm`,
-`ci_low`, `ci_high`; `poi`...; `mean`...; `success_rate` with `success_interval`) prints as
-`illm report` prints it (`0.941 [0.374, 0.999]`); a number prints with the decimals, the thousands
+`ci_low`, `ci_high`; `poi`...; `mean`...; `success_rate` with `success_interval`) prints each of its
+three numbers at the decimals the page gives it, as `illm report` prints it (`0.941 [0.374, 0.999]`) or
+otherwise (an episode length's `77.6 [58.4, 95.0]`); a number prints with the decimals, the thousands
 separators and the percent sign the page gave it (`97%` is the field 0.9725 as a percentage).
 
 A verdict word is checked the same way: `above<!--? FILE A vs B -->` (or *clear of*, *overlaps*, *below*,
 *tie*: `holds`), A and B paths to estimates in FILE, is true by the tie rule or the check fails; a count,
 `three<!--?# above: FILE A vs B; C vs D; ... -->`, is the number of comparisons it holds for.
+
+A number no results file holds (a run whose output was not kept, a figure copied from a paper) is
+pinned instead, by the marker that says how and when it was made listing the numbers it covers:
+`<!-- computed: HOW, DATE; numbers: 0.02 0.03 88% -->` (`quoted: SOURCE, DATE; ...` for a source's
+figures) covers the result numbers (`RESULT`: decimals and percentages, outside code, links and comments;
+a referenced number is its field's) before it in its paragraph or table row, back to the previous such
+marker, and each must be the one it lists in that place, so an edit of one of them alone fails. It pins
+the page's text, not a source: the marker says where the numbers came from, and numbers traced to
+nothing are only as good as that.
 
 `python docs/refs.py` rewrites every referenced number from its field; `--check` lists each that differs
 (and each reference that names no field) and exits 1, so a hand edit of a referenced number fails the test
@@ -42,6 +52,13 @@ NUMBER = r"-?\d[\d,]*(?:\.\d+)?%?"
 ESTIMATE = r"\d+\.\d+ \[\d+\.\d+, \d+\.\d+\]"
 REF = re.compile(rf"({ESTIMATE}|{NUMBER})<!--= (\S+) (.+?) -->")
 """A referenced number: the number as printed, its file (under docs/results) and its path."""
+RESULT = re.compile(r"(?<![\w.\-/#=])\d[\d,]*\.\d+%?(?![\w.\-/])|(?<![\w.\-/#=])\d+%(?![\w\-/])")
+"""A result number as a page prints it: a decimal number or a percentage (`0.25`, `1,234.5`, `88%`)."""
+HIDDEN = re.compile(r"```.*?```|`[^`\n]*`|<!--.*?-->|\]\([^)]*\)|!\[[^\]]*\]", re.S)
+"""Code, HTML comments (a reference's own path), link targets and image alt texts: not results as read."""
+PIN = re.compile(r"<!-- (computed|quoted): ([^>]*?); numbers: ([^>]*?) -->")
+"""A marker that pins the numbers before it (see the module docstring): how and when, then the numbers;
+`quoted:` where they are a source's (the paper's figures), not made here."""
 STEP = re.compile(r'\.?([A-Za-z_][\w-]*)|\[((?:"[^"]*"|[^\]"])*)\]')
 SELECT = re.compile(r'([\w-]+)=("[^"]*"|[^,"]*)(?:,|$)')
 """One `key=value` of a selector; a value holding `,` `]` or `=` is quoted: `[label="illm (a 1, b 2)"]`."""
@@ -130,8 +147,8 @@ def _is_number(value) -> bool:
 def shown_as(file: str, path: str, like: str) -> str:
     """The field `path` names, printed in the format of `like` (the number as the page gives it)."""
     if re.fullmatch(ESTIMATE, like):
-        triple = estimate(file, path)
-        return f"{num(triple[0])} [{num(triple[1])}, {num(triple[2])}]"
+        (value, low, high), parts = estimate(file, path), re.findall(r"\d+\.\d+", like)
+        return f"{printed(value, parts[0])} [{printed(low, parts[1])}, {printed(high, parts[2])}]"
     return printed(resolve(file, path), like)
 
 
@@ -171,12 +188,13 @@ def pages() -> list[Path]:
 
 
 def check(page: Path, text: str | None = None) -> list[str]:
-    """One line for each referenced number of `page` that differs from its field or names none, and for
-    each verdict word its estimates contradict (`verdicts`)."""
+    """One line for each referenced number of `page` that differs from its field or names none, for
+    each verdict word its estimates contradict (`verdicts`) and for each pinning marker its numbers
+    contradict (`pinned`)."""
     text = page.read_text() if text is None else text
     wanted, errors = rewrite(text)
     where = page.relative_to(ROOT) if ROOT in page.parents else page
-    out = [f"{where}: {e}" for e in errors + verdicts(text)]
+    out = [f"{where}: {e}" for e in errors + verdicts(text) + pinned(text)]
     for have, want in zip(REF.finditer(text), REF.finditer(wanted)):
         if have.group(1) != want.group(1):
             out.append(f"{where}: {have.group(1)} where {have.group(2)} {have.group(3)} holds {want.group(1)}")
@@ -238,6 +256,29 @@ def verdicts(text: str) -> list[str]:
             continue
         if said not in (str(n), WORDS[n] if n < len(WORDS) else None):
             out.append(f"{said!r} where {word} holds for {n} of {len(groups.split('; '))} in {file}")
+    return out
+
+
+def numbers(text: str) -> list[re.Match]:
+    """The result numbers of `text` (`RESULT`) outside code, links and comments (`HIDDEN`)."""
+    hidden = [m.span() for m in HIDDEN.finditer(text)]
+    return [m for m in RESULT.finditer(text) if not any(a <= m.start() < b for a, b in hidden)]
+
+
+def pinned(text: str) -> list[str]:
+    """One line per pinning marker (`PIN`) whose numbers are not the ones before it in its paragraph or
+    table row, back to the previous marker (a referenced number left out: its field holds it)."""
+    out = []
+    for unit in units(text):
+        last = 0
+        for marker in PIN.finditer(unit):
+            kind, how, listed = marker.groups()
+            have = [m.group(0) for m in numbers(REF.sub("", unit[last:marker.start()]))]
+            if not re.search(r"\d{4}-\d{2}-\d{2}", how):
+                out.append(f"<!-- {kind}: {how}; ... -->: a pinning marker names how and the date")
+            elif have != listed.split():
+                out.append(f"the numbers {' '.join(have) or 'none'} where the marker `{how}` lists {listed}")
+            last = marker.end()
     return out
 
 

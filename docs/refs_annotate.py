@@ -19,6 +19,7 @@ import sys
 from functools import cache
 from pathlib import Path
 
+from illm_tools.report.markdown import num
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # this folder's scripts (docs/ is no package)
 import refs  # noqa: E402
@@ -77,11 +78,13 @@ def fields(file: str) -> tuple[tuple[str, object], ...]:
 
 @cache
 def estimate_fields(file: str) -> tuple[tuple[str, str], ...]:
-    """(path, as printed) of every estimate with its interval in docs/results/`file`."""
+    """(path, as printed) of every estimate with its interval in docs/results/`file`, as `illm report`
+    prints it."""
     out = []
     for path, node, _ in _fields(load(file)):
         for at in _estimates(path, node):
-            out.append((at, shown_as(file, at, "0.000 [0.000, 0.000]")))
+            value, low, high = refs.estimate(file, at)
+            out.append((at, f"{num(value)} [{num(low)}, {num(high)}]"))
     return tuple(out)
 
 

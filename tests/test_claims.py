@@ -253,3 +253,38 @@ def test_the_audit_counts_an_edit_the_checks_catch_and_names_one_they_do_not(cap
     assert not audit.caught(page, text + "\n" + audit.edited(unlinked, m), checks)
     assert audit.main(["5", "--seed", "1"]) in (0, 1)
     assert "of 5 one-digit edits caught" in capsys.readouterr().out
+
+
+def test_an_estimate_prints_at_the_precision_the_page_gives_it():
+    """An episode length's estimate at one decimal, as the page prints it, is held to its field at that
+    precision; a success rate's at three as before."""
+    page = ROOT / "docs" / "experiments" / "paper-literal.md"
+    row = 'suite-literal/results.json rows[env_id=BabyAI-UnlockLocal-v0,label="illm-setting=paper"]'
+    text = f"77.6 [58.4, 95.0]<!--= {row}.episode_length.iqm --> and 0.974 [0.953, 0.994]<!--= {row}.final.iqm -->\n"
+    assert refs.check(page, text) == []
+    for edited in ("77.7 [58.4, 95.0]", "77.6 [58.4, 95.1]"):
+        (line,) = refs.check(page, text.replace("77.6 [58.4, 95.0]", edited))
+        assert "holds 77.6 [58.4, 95.0]" in line
+
+
+def test_a_pinned_number_no_file_holds_fails_when_edited_alone():
+    """A marker `<!-- computed: HOW, DATE; numbers: ... -->` lists the numbers before it in its paragraph or
+    table row (back to the previous marker; a referenced number is its field's): an edit of one fails,
+    and the audit counts it caught; a number after the last marker is not pinned."""
+    audit = _docs_module("audit")
+    page = ROOT / "docs" / "experiments" / "coverage.md"
+    row = ("| ppo | 0.02 ± 0.03 | 88% | 0.716<!--= suite-literal/results.json aggregate.rows[label=illm-setting=paper].iqm"
+           " --> |<!-- computed: illm report's output, not kept, 2026-11-22; numbers: 0.02 0.03 88% -->\n")
+    text = f"| method | end | share | ref |\n|---|---|---|---|\n{row}\nAfter it 0.37 is not pinned.\n"
+    assert refs.check(page, text) == []
+    for match in audit.numbers(text):
+        edited = audit.edited(text, match)
+        if match.group(0) == "0.37":
+            assert refs.check(page, edited) == []
+            continue
+        (line,) = refs.check(page, edited)
+        assert "coverage.md" in line
+        assert audit.caught(page, edited, (refs, claims, render))
+    assert refs.check(page, text.replace("| 88% |", "| 88% | 0.5 |")) != []      # a number the marker misses
+    (line,) = refs.check(page, text.replace(", 2026-11-22;", ";"))                # a marker with no date
+    assert "names how and the date" in line
