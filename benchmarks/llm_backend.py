@@ -79,9 +79,9 @@ def matmul_gflops(dtype_name: str) -> float:
 def main() -> None:
     import torch
 
-    from illm_tools.llm.generation import generate
+    from illm_tools.llm.driver import generate
     from illm_tools.llm.loading import load_model
-    from illm_tools.llm.scoring import score_candidates
+    from illm_tools.llm.driver import score_candidates
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="smollm2-135m")

@@ -16,9 +16,7 @@ from illm_tools.annotate.bulk import AnnotateConfig, annotate_dataset
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.cache.verify import verify
 from illm_tools.collect import RandomPolicy
-from illm_tools.llm.generation import generate
-from illm_tools.llm.joint import score_and_generate
-from illm_tools.llm.scoring import score_candidates
+from illm_tools.llm.driver import generate, score_and_generate, score_candidates
 from illm_tools.rl.live import SyncLive
 from illm_tools.tasks.prompts import PromptBuilder
 from illm_tools.tasks.state import HistoryTracker, StateRecord

@@ -122,9 +122,9 @@ def test_the_training_forward_is_the_annotators_scoring(tiny_folder, oracle_cach
 
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.distil.lessons import COLUMNS, lessons_of, text_target, tokenise
-    from illm_tools.distil.loss import _continuation_sums
+    from illm_tools.distil.loss import example_work
     from illm_tools.llm.loading import load_model
-    from illm_tools.llm.scoring import extend, score_candidates
+    from illm_tools.llm.driver import branch_sums, run_batch, score_candidates
     from conftest import plain_scores
 
     tiny_lm = load_model(str(tiny_folder), dtype="float32", cache_dir=tmp_path)
@@ -133,11 +133,12 @@ def test_the_training_forward_is_the_annotators_scoring(tiny_folder, oracle_cach
     lessons = lessons_of(rows, ("action", "summary"))[:5]
     examples = [tokenise(tiny_lm, lesson) for lesson in lessons]
     assert all(e.shared for e in examples)
-    shared = extend(tiny_lm, [list(e.shared) for e in examples], grad=True)
+    works = [example_work(e) for e in examples]
+    run = run_batch(tiny_lm, works, grad=True)  # the training forward
     for task, n in (("action", 0), ("summary", 1)):
-        branches = [e.branches[n] for e in examples]
-        state = extend(tiny_lm, [list(b.suffix) for b in branches], past=shared, grad=True)
-        sums = _continuation_sums(tiny_lm, state, branches, grad=True)
+        rows, values = run.scored[task]
+        assert rows == list(range(len(examples)))
+        sums = branch_sums(values, [w.branches[task] for w in works])
         assert all(s.requires_grad for s in sums)
         targets = [lesson.targets[n] for lesson in lessons]
         if task == "action":
@@ -160,10 +161,11 @@ def test_the_argmax_target_is_the_cross_entropy_of_the_teachers_top_action(tiny_
 
     from illm_tools.cache.store import AnnotationCache
     from illm_tools.distil.lessons import COLUMNS, lessons_of, tokenise
-    from illm_tools.distil.loss import _continuation_sums, lesson_loss
+    from illm_tools.distil.loss import lesson_loss
     from illm_tools.distil.config import DistilConfig
     from illm_tools.llm.loading import load_model
-    from illm_tools.llm.scoring import extend
+    from illm_tools.llm.driver import branch_sums
+    from illm_tools.llm.scoring import StatePlan, continuation_logprobs, extend
 
     lm = load_model(str(tiny_folder), dtype="float32", cache_dir=tmp_path)
     rows = AnnotationCache(oracle_cache).table(COLUMNS).to_pylist()
@@ -173,7 +175,9 @@ def test_the_argmax_target_is_the_cross_entropy_of_the_teachers_top_action(tiny_
     assert hard.ranking_kl == pytest.approx(soft.ranking_kl) and hard.text_nll == pytest.approx(soft.text_nll)
     shared = extend(lm, [list(e.shared) for e in examples])
     branches = [e.branches[0] for e in examples]
-    sums = _continuation_sums(lm, extend(lm, [list(b.suffix) for b in branches], past=shared), branches, False)
+    plans = [StatePlan(list(b.suffix), [list(c) for c in b.continuations], list(b.skip)) for b in branches]
+    state = extend(lm, [list(b.suffix) for b in branches], past=shared)  # the suffix run apart: a reference
+    sums = branch_sums(continuation_logprobs(lm, state, [p.continuations for p in plans]), plans)
     cross_entropy = torch.stack([-torch.log_softmax(s, 0)[b.best] for s, b in zip(sums, branches)]).mean()
     assert float(hard.loss) == pytest.approx(float(cross_entropy) + 0.5 * hard.text_nll, rel=1e-4)
     assert float(soft.loss) == pytest.approx(soft.ranking_kl + 0.5 * soft.text_nll, rel=1e-4)
@@ -276,7 +280,7 @@ def test_blocks_keeps_evenly_spaced_blocks_and_saves_a_model_of_that_many(oracle
     from conftest import _tiny_model, _train_tokenizer, plain_scores
     from illm_tools.distil.training import keep_blocks, kept_indices
     from illm_tools.llm.loading import load_model
-    from illm_tools.llm.scoring import score_candidates
+    from illm_tools.llm.driver import score_candidates
 
     assert kept_indices(30, 10) == [0, 3, 6, 10, 13, 16, 19, 23, 26, 29] and kept_indices(4, 1) == [0]
     assert kept_indices(4, 4) == [0, 1, 2, 3]

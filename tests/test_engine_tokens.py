@@ -17,7 +17,8 @@ from cli.main import app
 from illm_tools.annotate.engine import Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.llm.budget import token_batches, token_bytes
-from illm_tools.llm.scoring import plan_tokens, plan_state, score_candidates
+from illm_tools.llm.driver import Work, score_candidates, work_tokens
+from illm_tools.llm.scoring import plan_state
 from illm_tools.tasks.annotation_setup import AnnotationSetup
 from illm_tools.tasks.state import StateRecord
 
@@ -61,8 +62,8 @@ def test_packed_candidates_score_as_behind_a_copy_each(fixture, request):
         assert _max_diff(p.token_logprobs, plain_scores(lm, context, cands)) < 1e-4
         assert p.token_counts == c.token_counts
     plan = plan_state(lm, contexts[0], CANDS)  # what a state holds in the engine, packed and not
-    assert plan_tokens(lm, plan) == len(plan.prefix) + sum(len(c) - 1 for c in plan.continuations)
-    assert plan_tokens(repeated, plan) > len(CANDS) * len(plan.prefix)
+    assert work_tokens(lm, Work.scoring(plan)) == len(plan.prefix) + sum(len(c) - 1 for c in plan.continuations)
+    assert work_tokens(repeated, Work.scoring(plan)) > len(CANDS) * len(plan.prefix)
 
 
 @pytest.mark.parametrize("fixture", ["tiny_lm", "tiny_lm_gpt2", "tiny_lm_sliding"])
@@ -178,7 +179,7 @@ def test_a_batch_of_long_prompts_stays_under_its_token_budget_in_memory(smollm2_
     states = [_crafter_like(i) for i in range(4)]
     contexts = [f"{s.mission}. {s.observation} Valid actions: {', '.join(s.valid_actions)}. Action:" for s in states]
     candidates = [[" " + a for a in s.valid_actions] for s in states]
-    widest = max(plan_tokens(lm, plan_state(lm, c, k)) for c, k in zip(contexts, candidates))
+    widest = max(work_tokens(lm, Work.scoring(plan_state(lm, c, k))) for c, k in zip(contexts, candidates))
     assert widest > 500
     lm = dataclasses.replace(lm, batch_tokens=4 * widest)  # all four in one batch
     allowed = lm.batch_tokens * token_bytes(lm.model)

@@ -11,7 +11,8 @@ import pytest
 from conftest import babyai_context
 
 from illm_tools.errors import UsageError
-from illm_tools.llm.generation import embed_texts, generate, greedy_from
+from illm_tools.llm.driver import generate
+from illm_tools.llm.generation import embed_texts, greedy_from
 from illm_tools.llm.scoring import extend
 
 PROMPTS = [babyai_context(i) for i in range(4)] + ["Go", "You see a wall"]

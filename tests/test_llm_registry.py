@@ -145,7 +145,7 @@ def test_tokenizer_conventions(tiny_lm, tiny_lm_bos):
 @pytest.mark.parametrize("quant", ["4bit", "8bit"])
 def test_quantisation_runs_on_cpu(quant, tiny_lm, tmp_path):
     pytest.importorskip("bitsandbytes")
-    from illm_tools.llm.scoring import score_candidates
+    from illm_tools.llm.driver import score_candidates
 
     lm = load_model(tiny_lm.spec.path, dtype="float32", quant=quant, cache_dir=tmp_path)
     assert lm.fingerprint["quant"] == quant

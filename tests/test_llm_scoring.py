@@ -8,7 +8,8 @@ import pytest
 from conftest import ACTIONS, babyai_context, plain_scores
 
 from illm_tools.errors import UsageError
-from illm_tools.llm.scoring import CandidateScores, extend, plan_state, score_candidates, score_continuations
+from illm_tools.llm.driver import score_candidates
+from illm_tools.llm.scoring import CandidateScores, extend, plan_state, score_continuations
 
 CANDS = [" " + a for a in ACTIONS]
 

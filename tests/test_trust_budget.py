@@ -17,7 +17,8 @@ from illm_tools.annotate.engine import HOP_MARK, Annotator
 from illm_tools.cache.store import AnnotationCache
 from illm_tools.llm.budget import mask_bytes, mask_tokens, token_batches, token_bytes
 from illm_tools.llm.packed import mask_groups, packed_mask
-from illm_tools.llm.scoring import packed_batches, plan_shape, plan_state, plan_tokens, score_candidates
+from illm_tools.llm.driver import Work, batches, score_candidates, work_shape, work_tokens
+from illm_tools.llm.scoring import plan_state
 from illm_tools.tasks.registry import get_task
 
 pytestmark = pytest.mark.usefixtures("model_cache_in_tmp", "one_torch_thread")
@@ -136,15 +137,16 @@ def test_a_batch_s_budget_counts_its_mask(tiny_lm):
     with their masks: they go in batches of their own; without packing (no mask) they share one."""
     cands = _many_long_candidates(tiny_lm)
     plans = [plan_state(tiny_lm, CONTEXT, cands), plan_state(tiny_lm, CONTEXT + " Now:", cands)]
-    costs, shapes = [plan_tokens(tiny_lm, p) for p in plans], [plan_shape(p) for p in plans]
+    works = [Work.scoring(p) for p in plans]
+    costs, shapes = [work_tokens(tiny_lm, w) for w in works], [work_shape(w) for w in works]
     prefix, fed = max(s[0] for s in shapes), max(s[1] for s in shapes)
     assert fed > 1000 and shapes[0][0] + shapes[0][1] == costs[0]
     padded = 2 * max(costs) + mask_tokens(tiny_lm.model, 2, fed, prefix)
     lm = dataclasses.replace(tiny_lm, batch_tokens=padded - 1)
     assert 2 * max(costs) <= lm.batch_tokens  # the tokens alone fit
     assert token_batches(costs, 8, lm.batch_tokens) == [[0, 1]]
-    assert packed_batches(lm, costs, shapes, 8) == [[0], [1]]
-    assert packed_batches(dataclasses.replace(lm, batch_tokens=padded), costs, shapes, 8) == [[0, 1]]
+    assert batches(lm, costs, shapes, 8) == [[0], [1]]
+    assert batches(dataclasses.replace(lm, batch_tokens=padded), costs, shapes, 8) == [[0, 1]]
     assert token_batches(costs, 8, padded - 1, shapes, lambda rows, f, p: mask_tokens(tiny_lm.model, rows, f, p)) \
         == [[0], [1]]
 
@@ -155,7 +157,7 @@ def test_a_state_whose_mask_alone_is_over_the_budget_is_scored_in_groups(tiny_lm
     memory is a group's, not the whole mask's."""
     cands = _many_long_candidates(tiny_lm, k=24, words=80)
     plan = plan_state(tiny_lm, CONTEXT, cands)
-    prefix, fed = plan_shape(plan)
+    prefix, fed = work_shape(Work.scoring(plan))
     whole = mask_tokens(tiny_lm.model, 1, fed, prefix)
     lm = dataclasses.replace(tiny_lm, batch_tokens=whole // 8)
     groups = mask_groups(lm, prefix, [plan.continuations])
@@ -178,7 +180,7 @@ def test_a_state_whose_mask_alone_is_over_the_budget_is_scored_in_groups(tiny_lm
 def test_the_shared_prefix_path_groups_a_states_candidates_with_its_lead(tiny_lm):
     """`score_and_generate` (the action prompt's own end fed with its candidates): with the budget
     under the state's mask, the same scores and the same summary as with room for the whole mask."""
-    from illm_tools.llm.joint import score_and_generate
+    from illm_tools.llm.driver import score_and_generate
 
     cands = _many_long_candidates(tiny_lm, k=16, words=40)
     contexts, prompts = [CONTEXT + " What do you do?\nAction:"], [CONTEXT + " Summarize the main points:"]
@@ -187,7 +189,7 @@ def test_the_shared_prefix_path_groups_a_states_candidates_with_its_lead(tiny_lm
     (wide,), (wide_gen,) = score_and_generate(roomy, contexts, [cands], prompts, max_new_tokens=8)
     (grouped,), (grouped_gen,) = score_and_generate(tight, contexts, [cands], prompts, max_new_tokens=8)
     plan = plan_state(tight, contexts[0], cands)
-    prefix, fed = plan_shape(plan)
+    prefix, fed = work_shape(Work.scoring(plan))
     assert mask_tokens(tight.model, 1, fed, prefix) > tight.batch_tokens  # its mask alone: grouped
     assert grouped.token_counts == wide.token_counts and grouped_gen.token_ids == wide_gen.token_ids
     assert max(abs(a - b) for x, y in zip(grouped.token_logprobs, wide.token_logprobs) for a, b in zip(x, y)) < 1e-5
@@ -198,7 +200,7 @@ def test_grouping_bounds_the_peak_memory_of_a_state_of_many_long_candidates(tiny
     eighth of it: the growth stays under a quarter of the whole mask."""
     cands = [" " + "é" * 200 + str(i) for i in range(16)]  # a byte a token: 16 x ~400 tokens
     plan = plan_state(tiny_lm, CONTEXT, cands)
-    prefix, fed = plan_shape(plan)
+    prefix, fed = work_shape(Work.scoring(plan))
     whole = mask_bytes(tiny_lm.model, 1, fed, prefix)
     assert whole > 100 * 2**20
     lm = dataclasses.replace(tiny_lm, batch_tokens=mask_tokens(tiny_lm.model, 1, fed, prefix) // 8)

@@ -1,8 +1,8 @@
 """The student's answers to a batch of lessons, and how far they are from the teacher's.
 
-One forward pass per batch through the annotator's own scoring path (`illm_tools.llm.scoring`:
-`extend` and `continuation_logprobs`, with autograd on while training): the states' shared prompt
-part once, then each task's branch, the rest of its prompt and what is scored after it.
+One forward pass per batch through the annotator's own engine (`illm_tools.llm.driver.run_batch`, with
+autograd on while training): the states' shared prompt part once, then each task's branch, the rest of
+its prompt and what is scored after it.
 
 - ranking task (`action`): the student's summed log-probability of each candidate, as the
   annotator sums it; its distribution over the candidates is their softmax (the `sum`
@@ -46,6 +46,15 @@ class BatchResult:
     student_best: list[int] = field(default_factory=list)
 
 
+def example_work(example: Example):
+    """A lesson's tokens as the engine's `Work`: its shared prompt part the head, a branch per task."""
+    from illm_tools.llm.driver import Work
+    from illm_tools.llm.scoring import StatePlan
+
+    return Work(example.shared, branches={b.task: StatePlan(list(b.suffix), [list(c) for c in b.continuations],
+                                                            list(b.skip)) for b in example.branches})
+
+
 def lesson_loss(lm, batch: Sequence[Example], *, text_weight: float = 1.0, grad: bool = False,
                 ranking_target: str = "distribution") -> BatchResult:
     """The loss of `batch` for the student `lm` (a `LoadedModel`, its `model` possibly wrapped with
@@ -53,22 +62,15 @@ def lesson_loss(lm, batch: Sequence[Example], *, text_weight: float = 1.0, grad:
     the teacher's) or argmax (cross-entropy of its top candidate)."""
     import torch
 
-    from illm_tools.llm.scoring import extend
+    from illm_tools.llm.driver import branch_sums, run_batch
 
-    shared = None
-    if all(e.shared for e in batch):
-        shared = extend(lm, [list(e.shared) for e in batch], grad=grad)
+    works = [example_work(e) for e in batch]
+    run = run_batch(lm, works, grad=grad)
     kl_terms, rank_terms, nll_terms = [], [], []
     out = BatchResult(loss=None, tokens=sum(e.tokens for e in batch))
-    tasks = list(dict.fromkeys(b.task for e in batch for b in e.branches))
-    for task in tasks:
-        rows = [i for i, e in enumerate(batch) if any(b.task == task for b in e.branches)]
+    for task, (rows, values) in run.scored.items():
         branches = [next(b for b in batch[i].branches if b.task == task) for i in rows]
-        if shared is not None:
-            state = extend(lm, [list(b.suffix) for b in branches], past=shared.select(rows), grad=grad)
-        else:
-            state = extend(lm, [[*batch[i].shared, *b.suffix] for i, b in zip(rows, branches)], grad=grad)
-        sums = _continuation_sums(lm, state, branches, grad)
+        sums = branch_sums(values, [works[i].branches[task] for i in rows])
         if branches[0].kind == "ranking":
             for b, s in zip(branches, sums):
                 student = torch.log_softmax(s, dim=0)
@@ -91,28 +93,6 @@ def lesson_loss(lm, batch: Sequence[Example], *, text_weight: float = 1.0, grad:
     nll = torch.stack(nll_terms).mean() if nll_terms else zero
     out.loss = ranking + text_weight * nll
     out.ranking_kl, out.text_nll = float(kl.detach()), float(nll.detach())
-    return out
-
-
-def _continuation_sums(lm, state, branches, grad: bool) -> list:
-    """Per branch, a tensor of its continuations' summed log-probs (the skipped tokens left out)."""
-    import torch
-
-    from illm_tools.llm.scoring import continuation_logprobs
-
-    logps = continuation_logprobs(lm, state, [list(map(list, b.continuations)) for b in branches], grad=grad)
-    width = logps.shape[1]
-    keep = torch.zeros_like(logps, dtype=torch.bool)
-    r = 0
-    for b in branches:
-        for cont, skip in zip(b.continuations, b.skip):
-            keep[r, skip:min(len(cont), width)] = True
-            r += 1
-    summed = torch.where(keep, logps, torch.zeros_like(logps)).sum(1)
-    out, r = [], 0
-    for b in branches:
-        out.append(summed[r:r + len(b.continuations)])
-        r += len(b.continuations)
     return out
 
 

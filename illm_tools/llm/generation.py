@@ -1,9 +1,9 @@
 """Greedy generation with summary embeddings, and text embeddings.
 
-Owns `generate()` (the history-compression task's summaries: temperature 0, batched, left-padded
-prompts sorted by length) and `embed_texts()`. Prompts run through `scoring.extend`, the
-package's one way of feeding tokens through a KV cache with padding, masks and position ids.
-The decoding steps (`greedy_from`) feed one token per row with the same masks and position ids,
+Owns `greedy_from()` (the history-compression task's summaries, temperature 0, after prompts the
+engine's driver prefilled: `illm_tools.llm.driver.generate`) and `embed_texts()`. Prompts run
+through `scoring.extend`, the package's one way of feeding tokens through a KV cache with padding,
+masks and position ids. The decoding steps (`greedy_from`) feed one token per row with the same masks and position ids,
 but on a private copy of the prompt cache preallocated for the new tokens (no copy of the whole
 cache per step), without log-softmax over the vocabulary, and with finished rows dropped from
 the batch rather than fed filler tokens.
@@ -45,11 +45,6 @@ class Generation:
     """True when the model emitted end-of-sequence; False when max_new_tokens cut it."""
     embedding: np.ndarray
     """float32 [hidden_size]: mean last hidden state over the generated tokens."""
-
-
-def _greedy(lm: LoadedModel, prompts: list[list[int]], max_new_tokens: int) -> list[tuple[list[int], bool, np.ndarray]]:
-    """Greedy decoding of one left-padded batch; per row: tokens, finished, embedding."""
-    return greedy_from(lm, extend(lm, prompts), max_new_tokens)
 
 
 @functools.cache
@@ -166,22 +161,6 @@ def greedy_from(lm: LoadedModel, state: PrefixState, max_new_tokens: int, *,
     counts = torch.tensor([max(len(t), 1) for t in tokens], dtype=torch.float64)[:, None]
     embeddings = (sums / counts).to(torch.float32).numpy()
     return [(tokens[i], finished[i], embeddings[i].copy()) for i in range(n)]
-
-
-def generate(lm: LoadedModel, prompts: Sequence[str], *, max_new_tokens: int = 64,
-             batch_size: int = 8) -> list[Generation]:
-    """Greedy (temperature 0) continuations of `prompts`, in order, with summary embeddings."""
-    if max_new_tokens < 1:
-        raise UsageError("max_new_tokens must be at least 1")
-    encoded = [lm.encode(p) for p in prompts]
-    if any(not ids for ids in encoded):
-        raise UsageError("cannot generate from an empty prompt")
-    results: list[Generation | None] = [None] * len(encoded)
-    for batch in token_batches([len(ids) + max_new_tokens for ids in encoded], batch_size, lm.batch_tokens):
-        for i, (ids, finished, emb) in zip(batch, _greedy(lm, [encoded[i] for i in batch], max_new_tokens)):
-            text = lm.tokenizer.decode(ids, skip_special_tokens=True)
-            results[i] = Generation(text, ids, finished, emb)
-    return results  # type: ignore[return-value]
 
 
 def embed_texts(lm: LoadedModel, texts: Sequence[str], *, batch_size: int = 8) -> np.ndarray:

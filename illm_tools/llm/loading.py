@@ -76,12 +76,18 @@ class LoadedModel:
         capability the engine asks of a model, under this one name. Such a model's candidates cannot be
         packed behind one copy of the prompt (one custom mask would not apply its windows) and the
         two tasks of a state cannot share their prompt's prefix (padding between prefix and suffix
-        would shift the window): `scoring.packs_candidates`, `joint`, the backend's `shares_prefix`."""
+        would shift the window): `packs_candidates`, the backend's `shares_prefix`."""
         config = self.model.config.get_text_config()
         types = getattr(config, "layer_types", None)
         if types is not None:
             return "sliding_attention" in types
         return getattr(config, "sliding_window", None) is not None
+
+    @property
+    def packs_candidates(self) -> bool:
+        """Whether a state's candidates are packed behind one copy of its prefix (`llm.packed`): every
+        model but a sliding-window one, unless `pack_candidates` is off."""
+        return self.pack_candidates and not self.sliding_window
 
     @property
     def device(self) -> Any:

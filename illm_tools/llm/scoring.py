@@ -1,15 +1,17 @@
 """Scoring candidate continuations: the one code path for log P(candidate | context).
 
 Owns `PrefixState` (a KV cache over a batch of token rows, left-padded, with the log-probs of the
-next token) and the three steps built on it:
+next token), the steps built on it, and a state's tokens (`plan_state`):
 
     extend(lm, rows, past=None)          run new tokens, optionally continuing a cached prefix
-    score_continuations(lm, state, ...)  per-token log-probs of K token continuations per row
-    score_candidates(lm, contexts, ...)  tokenise, batch states sorted by length, score
+    continuation_logprobs(lm, state, ...) per-token log-probs of K token continuations per row (a tensor)
+    score_continuations(lm, state, ...)  the same as lists, the skipped tokens left out
+    plan_state(lm, context, candidates)  tokenise a context and its candidates together
 
-`extend(..., grad=True)` and `continuation_logprobs` (the tensor under `score_continuations`) run
-the same computation with autograd on: `illm distil` trains a student through this path, so the
-scores it learns are the scores the annotator computes.
+The engine's driver (`illm_tools.llm.driver`) plans, batches, runs, decodes and wraps with these for
+every caller. `extend(..., grad=True)` and `continuation_logprobs(..., grad=True)` run the same
+computation with autograd on: `illm distil` trains a student through this path, so the scores it
+learns are the scores the annotator computes.
 
 Padding scheme. Each new segment is left-padded so that every row's last real token sits in the
 last column: its logits give the first candidate token's log-prob for all rows at once. Padding
@@ -233,7 +235,7 @@ def continuation_logprobs(lm: LoadedModel, state: PrefixState, continuations: Se
 
     if len(continuations) != state.batch_size:
         raise ValueError(f"{len(continuations)} candidate lists for {state.batch_size} rows")
-    if leads is not None and any(leads) and not packs_candidates(lm):
+    if leads is not None and any(leads) and not lm.packs_candidates:
         state, leads = extend(lm, leads, past=state, grad=grad), None
     if leads is not None and not any(leads):
         leads = None
@@ -246,7 +248,7 @@ def continuation_logprobs(lm: LoadedModel, state: PrefixState, continuations: Se
         ids[r, :len(cand)] = torch.as_tensor(cand, dtype=torch.long)
         real[r, :len(cand)] = True
     ids, real = ids.to(lm.device), real.to(lm.device)
-    if packs_candidates(lm) and (width > 1 or leads is not None):
+    if lm.packs_candidates and (width > 1 or leads is not None):
         from illm_tools.llm.packed import packed_logprobs
 
         return packed_logprobs(lm, state, continuations, ids, real, grad, leads)
@@ -254,12 +256,6 @@ def continuation_logprobs(lm: LoadedModel, state: PrefixState, continuations: Se
     if width == 1:
         return torch.where(real, first, torch.zeros_like(first))
     return repeated_logprobs(lm, state, index, ids, real, first, grad)
-
-
-def packs_candidates(lm: LoadedModel) -> bool:
-    """Whether a state's candidates are packed behind one copy of its prefix (`llm.packed`): every
-    model but a sliding-window one, whose window a custom mask would not apply."""
-    return lm.pack_candidates and not lm.sliding_window
 
 
 def repeated_logprobs(lm: LoadedModel, state: PrefixState, index: Any, ids: Any, real: Any, first: Any,
@@ -283,8 +279,8 @@ def repeated_logprobs(lm: LoadedModel, state: PrefixState, index: Any, ids: Any,
 
 @dataclass(frozen=True)
 class StatePlan:
-    """One state's scoring, tokenised (`plan_state`): what the engine's callers (scoring, the joint
-    pass of `joint`, hop's `spliced`) batch by tokens (`plan_tokens`, `plan_shape`, `packed_batches`)."""
+    """One state's scoring, tokenised (`plan_state`); the engine's driver (`illm_tools.llm.driver`)
+    also holds a task's branch after a shared head in one, its `prefix` then the lead after the head."""
 
     prefix: list[int]
     """The context's tokens all candidates share (up to the boundary a candidate's first token may merge into)."""
@@ -312,57 +308,3 @@ def plan_state(lm: LoadedModel, context: str, candidates: Sequence[str]) -> Stat
     if shared < len(context_ids):
         log.debug("context and candidate share a token at the boundary; scoring from token %d", shared)
     return StatePlan(context_ids[:shared], [ids[shared:] for ids in joint], [o - shared for o in owns])
-
-
-def plan_tokens(lm: LoadedModel, plan: StatePlan) -> int:
-    """The tokens a planned state holds in the engine: its prefix and its candidates packed behind
-    it (`llm.packed`), or, where candidates are not packed, a copy of the prefix per candidate."""
-    if packs_candidates(lm):
-        return len(plan.prefix) + sum(max(len(c) - 1, 0) for c in plan.continuations)
-    return len(plan.prefix) * max(len(plan.continuations), 1) + sum(len(c) for c in plan.continuations)
-
-
-def plan_shape(plan: StatePlan, cached: int | None = None) -> tuple[int, int]:
-    """(prefix, fed): the tokens of a planned state's packed forward, behind the first `cached` of its
-    prefix (all of it by default): the geometry of its candidates' mask (`budget.mask_bytes`)."""
-    cached = len(plan.prefix) if cached is None else cached
-    return cached, len(plan.prefix) - cached + sum(max(len(c) - 1, 0) for c in plan.continuations)
-
-
-def packed_batches(lm: LoadedModel, costs: Sequence[int], shapes: Sequence[tuple[int, int]],
-                   batch_size: int) -> list[list[int]]:
-    """`budget.token_batches` of states of these costs whose candidates are packed in forwards of
-    these `shapes` (`plan_shape`): each batch's mask counted in its budget where the model packs."""
-    import functools
-
-    from illm_tools.llm.budget import mask_tokens, token_batches
-
-    if not packs_candidates(lm):
-        return token_batches(costs, batch_size, lm.batch_tokens)
-    return token_batches(costs, batch_size, lm.batch_tokens, shapes, functools.partial(mask_tokens, lm.model))
-
-
-def score_plans(lm: LoadedModel, state: PrefixState, plans: Sequence[StatePlan],
-                leads: Sequence[Sequence[int]] | None = None) -> list[CandidateScores]:
-    """Each plan's candidates scored after its row of `state` (its prefix, or the part of it `leads` does
-    not hold: `score_continuations`), as `CandidateScores`: the step every caller of the engine shares
-    (scoring, the joint pass, hop's spliced prompts)."""
-    scored = score_continuations(lm, state, [p.continuations for p in plans], [p.skip for p in plans], leads=leads)
-    return [CandidateScores.from_logprobs(logprobs) for logprobs in scored]
-
-
-def score_candidates(lm: LoadedModel, contexts: Sequence[str], candidates: Sequence[Sequence[str]], *,
-                     batch_size: int = 8) -> list[CandidateScores]:
-    """log P(candidate | context) for each state's candidates (joint tokenisation, KV reuse), in
-    batches of at most `batch_size` states and `lm.batch_tokens` tokens, their masks counted
-    (`illm_tools.llm.budget`)."""
-    if len(contexts) != len(candidates):
-        raise UsageError(f"{len(contexts)} contexts but {len(candidates)} candidate lists")
-    plans = [plan_state(lm, ctx, cands) for ctx, cands in zip(contexts, candidates)]
-    results: list[CandidateScores | None] = [None] * len(plans)
-    costs, shapes = [plan_tokens(lm, p) for p in plans], [plan_shape(p) for p in plans]
-    for batch in packed_batches(lm, costs, shapes, batch_size):
-        state = extend(lm, [plans[i].prefix for i in batch])
-        for i, scores in zip(batch, score_plans(lm, state, [plans[i] for i in batch])):
-            results[i] = scores
-    return results  # type: ignore[return-value]

@@ -1,7 +1,7 @@
 """The transformers backend: a loaded causal LM (`illm_tools.llm.loading.LoadedModel`) behind the
-`Backend` protocol. Scoring, generation and their shared-prefix form are `scoring.py`,
-`generation.py` and `joint.py`; what is here is the iLLM(hop) side, prompts with input
-embeddings spliced in, and the thin delegation."""
+`Backend` protocol. Scoring, generation and their shared-prefix form run through the engine's one
+driver (`driver.py`); what is here is the iLLM(hop) side, prompts with input embeddings spliced in
+(run by the same driver), and the thin delegation."""
 from __future__ import annotations
 
 import os
@@ -15,6 +15,10 @@ from illm_tools.llm.registry import DEFAULT_MODEL
 class TransformersBackend:
     name = "transformers"
     default_model = DEFAULT_MODEL
+    quantises = True
+    """`--quant auto` takes the alias's 4-bit on CUDA (`backend.backend_quant`)."""
+    local_models = True
+    """Its models are files on this machine (`illm models`), which a dry run checks before a grid."""
 
     def __init__(self, lm: LoadedModel):
         self.lm = lm
@@ -55,19 +59,19 @@ class TransformersBackend:
 
     # --- text ----------------------------------------------------------------------------------
     def score(self, contexts, candidates, *, batch_size: int = 8):
-        from illm_tools.llm.scoring import score_candidates
+        from illm_tools.llm.driver import score_candidates
 
         return score_candidates(self.lm, contexts, candidates, batch_size=batch_size)
 
     def generate(self, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
-        from illm_tools.llm.generation import generate
+        from illm_tools.llm.driver import generate
 
         return generate(self.lm, prompts, max_new_tokens=max_new_tokens, batch_size=batch_size)
 
     def score_and_generate(self, contexts, candidates, prompts, *, max_new_tokens: int = 64, batch_size: int = 8):
         """One pass over each state's shared prompt prefix where the model allows it (not on
         sliding-window models), else the two separate paths."""
-        from illm_tools.llm.joint import score_and_generate
+        from illm_tools.llm.driver import score_and_generate
 
         if self.shares_prefix:
             return score_and_generate(self.lm, contexts, candidates, prompts, max_new_tokens=max_new_tokens,
@@ -131,51 +135,30 @@ class TransformersBackend:
 
     def spliced(self, prompts: Sequence[SplicedPrompt], *, max_new_tokens: int = 64, batch_size: int = 8) -> list:
         """Per prompt: `CandidateScores` (candidates given) or `Generation` (none). Each prompt runs
-        as one sequence of input embeddings (head tokens, the window, tail tokens); prompts of one
-        length form batches (no padding) within the token budget (`scoring.packed_batches`);
-        candidates are scored after the prompt with joint tokenisation of tail and candidate,
-        summaries decoded greedily from it."""
+        as one head of input embeddings (head tokens, the window, tail tokens) through the engine's
+        driver (prompts of one length batch together, unpadded); candidates are scored after it with
+        joint tokenisation of tail and candidate, summaries decoded greedily from it."""
         import torch
 
-        from illm_tools.llm.generation import Generation, greedy_from
-        from illm_tools.llm.scoring import extend, packed_batches, plan_shape, plan_state, score_plans
+        from illm_tools.llm.driver import Work, drive
+        from illm_tools.llm.scoring import StatePlan, plan_state
 
         lm = self.lm
         embed = lm.model.get_input_embeddings()
         bos = len(lm.bos_ids)
-        items = []  # (full embeddings [L, d], plan or None)
+        works = []
         for prompt in prompts:
-            plan = None
+            branches = {}
             if prompt.candidates is not None:
                 plan = plan_state(lm, prompt.tail, list(prompt.candidates))
                 tail_ids = plan.prefix[bos:]
+                branches["action"] = StatePlan([], plan.continuations, plan.skip)
             else:
                 tail_ids = lm.tokenizer(prompt.tail, add_special_tokens=False)["input_ids"]
             with torch.inference_mode():
                 parts = [embed(torch.as_tensor(ids, dtype=torch.long, device=lm.device)).float().cpu()
                          for ids in (lm.encode(prompt.head), tail_ids) if ids]
-            items.append((torch.cat([parts[0], prompt.window.float(), *parts[1:]]), plan))
-        results: list = [None] * len(prompts)
-        by_length: dict[int, list[int]] = {}
-        for n, (full, _plan) in enumerate(items):
-            by_length.setdefault(int(full.shape[0]), []).append(n)
-        pending = []
-        for members in by_length.values():  # batched within the token budget, candidates' masks counted
-            fed = [plan_shape(items[n][1])[1] if items[n][1] is not None else 0 for n in members]
-            length = int(items[members[0]][0].shape[0])
-            costs = [length + (f if items[n][1] is not None else max_new_tokens) for n, f in zip(members, fed)]
-            for chosen in packed_batches(lm, costs, [(length, f) for f in fed], batch_size):
-                batch = [members[i] for i in chosen]
-                state = extend(lm, [], embeds=torch.stack([items[n][0] for n in batch]))
-                scored = [i for i, n in enumerate(batch) if items[n][1] is not None]
-                if scored:
-                    for i, scores in zip(scored, score_plans(lm, state.select(scored),
-                                                             [items[batch[i]][1] for i in scored])):
-                        results[batch[i]] = scores
-                decoded = [i for i, n in enumerate(batch) if items[n][1] is None]
-                if decoded:
-                    pending.append(([batch[i] for i in decoded], state.select(decoded)))
-        for rows, state in pending:
-            for n, (ids, finished, emb) in zip(rows, greedy_from(lm, state, max_new_tokens)):
-                results[n] = Generation(lm.tokenizer.decode(ids, skip_special_tokens=True), ids, finished, emb)
-        return results
+            works.append(Work(embeds=torch.cat([parts[0], prompt.window.float(), *parts[1:]]), branches=branches,
+                              suffix=None if prompt.candidates is not None else ()))
+        answers = drive(lm, works, batch_size=batch_size, max_new_tokens=max_new_tokens)
+        return [a.scores["action"] if p.candidates is not None else a.generation for p, a in zip(prompts, answers)]
