@@ -35,8 +35,8 @@ def register(app: typer.Typer) -> None:
         most frequent action; mutual information between state and ranking; log-loss; pairwise
         AUROC."""
         from cli.options import config_from_options
+        from illm_tools.llm.backend import backend_class
         from illm_tools.probe import ProbeConfig, probe as run
-
         from illm_tools.settings import check_new_file
 
         as_json, out = options.pop("as_json"), options.pop("out")
@@ -57,7 +57,8 @@ def register(app: typer.Typer) -> None:
             return
         b = result.baselines
         resolved, quant = result.config["dtype"], result.config.get("quant", quant)  # as the probe resolved them
-        setup = f"{backend} backend" if backend != "transformers" else resolved if quant == "none" else f"{resolved}, {quant}"
+        computes = getattr(backend_class(backend), "computes", True)  # a dtype and quantisation of its own
+        setup = f"{backend} backend" if not computes else resolved if quant == "none" else f"{resolved}, {quant}"
         typer.echo(f"probe {model} ({setup}) on {env}: {result.states} states ({result.distinct_states} distinct) from "
                    f"{result.episodes} episodes of minigrid's BabyAI bot with {epsilon:.0%} random actions, "
                    f"history {history}"

@@ -9,6 +9,11 @@ class UsageError(IllmError):
     """An option or argument the user gave cannot be used as given."""
 
 
+class EngineUnreachableError(UsageError):
+    """No engine answers where a served model's spec says (its identity cannot be asked): a backend's
+    model only its engine can fingerprint (openai)."""
+
+
 class UnknownEnvError(IllmError):
     """The environment id is not one illm knows how to render."""
 

@@ -64,3 +64,46 @@ def test_a_backend_registered_from_a_test_file_annotates_and_trains(tmp_path):
         BACKENDS.pop("tiny")
 
 
+
+
+def test_a_plugged_backend_folds_its_own_options_into_its_spec_without_being_named(tmp_path):
+    """The hooks a backend class may carry (`model_options`/`model_spec`, `selecting_options`, `quantises`,
+    `setting_of`): the code around the registry asks the class, never the backend's name."""
+    from illm_tools.llm.backend import backend_quant, resolve_model, selecting_options
+    from illm_tools.rl.compare import comparable
+
+    class Knobbed(TinyBackend):
+        model_options = ("oracle_noise",)  # borrows the oracle's option: the owner named in refusals stays the oracle
+        quantises = False
+
+        @staticmethod
+        def model_spec(model, *, oracle_noise=0.0):  # a spec already is its own spec
+            return model if model and "~" in model else f"{model or 'm:16'}~{oracle_noise:g}"
+
+        @staticmethod
+        def selecting_options(model):
+            return f"--backend knobbed --model {model.split('~')[0]} --oracle-noise {model.split('~')[1]}"
+
+        @staticmethod
+        def setting_of(model):
+            return {"oracle_noise": float(model.split("~")[1])}
+
+    BACKENDS["knobbed"] = Knobbed
+    try:
+        assert resolve_model("knobbed", None, oracle_noise=0.25) == "m:16~0.25"
+        assert selecting_options("knobbed", "m:16~0.25", "float32", "none") == "--backend knobbed --model m:16 --oracle-noise 0.25"
+        assert backend_quant("knobbed", "m:16~0.25", "auto", "cuda") == "none"
+        assert backend_quant("transformers", "smollm2-135m", "auto", "cpu") == "none"
+        with pytest.raises(UsageError, match="^--endpoint is the openai backend's: add --backend openai .this command "
+                                             "uses --backend knobbed"):
+            resolve_model("knobbed", None, endpoint="http://127.0.0.1:9/v1")
+        ok("train", "--env", "BabyAI-GoToLocal-v0", "--method", "illm", "--backend", "knobbed", "--oracle-noise", 0.5,
+           "--history", 0, "--num-envs", 2, "--num-steps", 16, "--frames", 32, "--live-budget", "all",
+           "--live-mode", "sync", "--cache", tmp_path / "ann", "--out", tmp_path / "run")
+        import json
+
+        config = json.loads((tmp_path / "run" / "config.json").read_text())
+        assert config["llm"]["model"] == "m:16~0.5"
+        assert comparable(config)["oracle_noise"] == 0.5
+    finally:
+        BACKENDS.pop("knobbed")

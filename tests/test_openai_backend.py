@@ -228,8 +228,10 @@ def test_bad_endpoints_and_models_are_refused_in_one_line(server):
         load_backend("openai", resolve_model("openai", "tiny", endpoint="http://127.0.0.1:9/v1"))
     with pytest.raises(UsageError, match="--embed-endpoint must be an http"):
         resolve_model("openai", "tiny", endpoint=server.url, embed_endpoint="localhost:8001")
-    with pytest.raises(UsageError, match="--endpoint, --embed-endpoint and --api-key-env are the openai backend.s"):
+    with pytest.raises(UsageError, match="^--endpoint is the openai backend.s: add --backend openai"):
         resolve_model("transformers", None, endpoint=server.url)
+    with pytest.raises(UsageError, match="^--endpoint, --api-key-env are the openai backend.s"):
+        resolve_model("oracle", None, endpoint=server.url, api_key_env="KEY")
 
 
 @pytest.mark.parametrize("engine", [{"single": True}, {}])

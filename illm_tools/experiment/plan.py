@@ -207,12 +207,14 @@ def claim_results(spec: Spec, results: str | Path) -> Path:
 def unavailable_models(runs: list[Run]) -> dict[str, int]:
     """The model aliases the runs still to train would load that this machine cannot load offline
     (`illm models`), with how many runs each: a dry run names them before a grid fails on them."""
+    from illm_tools.llm.backend import backend_class
     from illm_tools.llm.registry import list_models
 
     missing = {m.alias for m in list_models() if not m.available}
     out: dict[str, int] = {}
     for run in runs:
         cfg = run.config
-        if run.status != "done" and cfg.uses_llm and cfg.llm.backend == "transformers" and cfg.llm.model in missing:
+        if (run.status != "done" and cfg.uses_llm and getattr(backend_class(cfg.llm.backend), "local_models", False)
+                and cfg.llm.model in missing):
             out[cfg.llm.model] = out.get(cfg.llm.model, 0) + 1
     return out

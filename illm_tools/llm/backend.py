@@ -18,10 +18,15 @@ name is refused in one line), `backend_fingerprint` / `backend_hidden_size` answ
 weights. `transformers` (the default: `illm_tools.llm.transformers_backend`) runs real models;
 `stub` (`illm_tools.llm.stub`) answers deterministically from the prompt, for tests and
 benchmarks of everything around the LLM; `oracle` (`illm_tools.llm.oracle`) answers the prompts
-of every game an oracle knows (`illm_tools.oracles`, one per suite: BabyAI and MiniGrid's today) as a
+of every game an oracle knows (`illm_tools.oracles`, one per suite: BabyAI and MiniGrid, MiniHack, Crafter) as a
 player who knows the game, the positive control. Another backend is one new file plus one entry here.
 
 Optional, on a backend class: `default_model` (the model when none is named: `resolve_model`),
+`model_options` and `model_spec(model, **options)` (options folded into its model spec, e.g. the oracle's
+noise: `resolve_model`; a spec given as `model` is returned as it is), `selecting_options(model)` (the options that select such a spec:
+`selecting_options`), `quantises` (`--quant auto` picks the alias's 4-bit on CUDA: `backend_quant`),
+`setting_of(model)` (a setting its spec holds, as reports name it: `rl.compare`), `local_models`
+(its models are this machine's files, which a dry run checks: `experiment.plan`),
 `check_use(env_id, renderer)` (refuse, in one line, envs or hop states it cannot read:
 `check_backend_use`) and `preload(model, cache_dir=)` (import what its `load` will, reading no
 weights: `preload_backend`, for a live worker started before its run is configured).
@@ -90,33 +95,28 @@ def backend_class(name: str) -> type:
     return BACKENDS.load(name)
 
 
+MODEL_OPTIONS = ("oracle_noise", "endpoint", "api_key_env", "embed_endpoint")
+"""The options a backend may fold into its model spec (a class's `model_options` names its own)."""
+
+
 def resolve_model(backend: str, model: str | None, *, oracle_noise: float = 0.0, endpoint: str | None = None,
                   api_key_env: str | None = None, embed_endpoint: str | None = None) -> str:
-    """The model spec a backend serves: `model`, or the backend's default when None (smollm2-135m
-    for transformers); the oracle's `--oracle-noise` goes into its spec ("oracle:noise=0.5"), an
-    endpoint's URL and key variable into the openai backend's ("NAME@URL#VAR")."""
+    """The model spec a backend serves: its class's `model_spec(model, **its options)` where it folds
+    options into the spec (the oracle's `--oracle-noise`: "oracle:noise=0.5"; an endpoint's URL and key
+    variable: "NAME@URL#VAR"), else `model` or the backend's default when None (smollm2-135m for
+    transformers). An option of another backend is refused in one line naming it."""
     cls = backend_class(backend)
-    if (endpoint or api_key_env or embed_endpoint) and backend != "openai":
-        raise UsageError(f"--endpoint, --embed-endpoint and --api-key-env are the openai backend's: add --backend openai (this command "
-                         f"uses --backend {backend})")
-    if backend == "openai":
-        from illm_tools.llm.openai_wire import openai_spec, parse_spec
-
-        if model is None:
-            raise UsageError("--backend openai needs --model, the model's name as the server serves it")
-        if "@" in model and endpoint is None:
-            parse_spec(model)
-            return model
-        return openai_spec(model, endpoint, api_key_env, embed_endpoint)
-    if oracle_noise and backend != "oracle":
-        raise UsageError(f"--oracle-noise is the oracle backend's quality knob: add --backend oracle "
-                         f"(this command uses --backend {backend})")
-    if backend == "oracle":
-        from illm_tools.llm.oracle import oracle_spec, parse_spec
-
-        if model is not None and parse_spec(model) and oracle_noise:
-            raise UsageError(f"--model {model} already sets the oracle's noise: leave --oracle-noise out")
-        return model if model is not None and parse_spec(model) else oracle_spec(oracle_noise)
+    given = {"oracle_noise": oracle_noise, "endpoint": endpoint, "api_key_env": api_key_env,
+             "embed_endpoint": embed_endpoint}
+    takes = getattr(cls, "model_options", ())
+    foreign = [k for k in MODEL_OPTIONS if given[k] and k not in takes]
+    if foreign:
+        owner = next(n for n in BACKENDS if foreign[0] in getattr(backend_class(n), "model_options", ()))
+        flags = ", ".join("--" + k.replace("_", "-") for k in foreign)
+        raise UsageError(f"{flags} {'is' if len(foreign) == 1 else 'are'} the {owner} backend's: add --backend "
+                         f"{owner} (this command uses --backend {backend})")
+    if hasattr(cls, "model_spec"):
+        return cls.model_spec(model, **{k: given[k] for k in takes})
     if model is not None:
         return model
     from illm_tools.llm.registry import DEFAULT_MODEL
@@ -139,10 +139,10 @@ def backend_quant(backend: str, model: str, quant: str, device: str = "cpu") -> 
     """The concrete quantisation: `quant`, or for auto what the model's alias asks on a CUDA device
     (`ModelSpec.gpu_quant`: 4bit for llama3/llama2, as the paper ran its annotator) and none elsewhere
     (on a CPU bfloat16 or float32 is faster than bitsandbytes' 4-bit kernels) or for a backend that
-    computes nothing here."""
+    computes nothing here (no `quantises` on its class)."""
     if quant != "auto":
         return quant
-    if backend != DEFAULT_BACKEND or not str(device).startswith("cuda"):
+    if not getattr(backend_class(backend), "quantises", False) or not str(device).startswith("cuda"):
         return "none"
     from illm_tools.errors import ModelNotFoundError
     from illm_tools.llm.registry import resolve
@@ -203,18 +203,9 @@ def selecting_options(backend: str, model: str, dtype: str, quant: str) -> str:
     """The options that select a model setup: "--backend oracle --oracle-noise 0.5", "--backend
     stub --model stub:64 --dtype float32 --quant none", "--model smollm2-135m --dtype bfloat16
     --quant none", "--backend openai --model NAME --endpoint URL"."""
-    if backend == "oracle":
-        from illm_tools.llm.oracle import parse_spec
-
-        noise = parse_spec(model)
-        return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
-    if backend == "openai":
-        from illm_tools.llm.openai_wire import address_of, embed_url, served_as
-
-        url = address_of(model)  # None: a shared file's identity, which names no address
-        name, pooled = served_as(model)
-        embed = (embed_url(model) if url else "URL") if pooled else None
-        return f"--backend openai --model {name} --endpoint {url or 'URL'}" + (f" --embed-endpoint {embed}" if embed else "")
+    options = getattr(backend_class(backend), "selecting_options", None)
+    if options is not None:  # a backend whose model spec holds its options (the oracle's noise, an engine's address)
+        return options(model)
     prefix = "" if backend == DEFAULT_BACKEND else f"--backend {backend} "
     return f"{prefix}--model {model} --dtype {dtype} --quant {quant}"
 

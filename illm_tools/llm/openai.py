@@ -48,8 +48,8 @@ import numpy as np
 
 from illm_tools.errors import UsageError
 from illm_tools.llm.openai_answers import candidate_logprobs, embedding_vectors, generated_text, ordered_choices
-from illm_tools.llm.openai_wire import (Client, check_ranking, describe_offline, embed_url, engine_probe, parse_spec,
-                                        served_fingerprint)
+from illm_tools.llm.openai_wire import (Client, address_of, check_ranking, describe_offline, embed_url, engine_probe,
+                                        identity, openai_spec, parse_spec, served_as, served_fingerprint)
 
 NAME = "openai"
 
@@ -64,6 +64,53 @@ class OpenAIBackend:
     """The dtype and quantisation are the server's: `--dtype`/`--quant` are ignored."""
     chunk_states = 256
     """States per written shard in bulk annotation (an engine answers hundreds a second on a GPU)."""
+
+    model_options = ("endpoint", "api_key_env", "embed_endpoint")
+    """Where the engine is and which variable holds its key go into the model spec (`model_spec`)."""
+
+    @staticmethod
+    def model_spec(model: str | None, *, endpoint: str | None = None, api_key_env: str | None = None,
+                   embed_endpoint: str | None = None) -> str:
+        """The spec "NAME@URL[#VAR][;embed=URL]" of `--model` and the options."""
+        if model is None:
+            raise UsageError("--backend openai needs --model, the model's name as the server serves it")
+        if "@" in model and endpoint is None:
+            parse_spec(model)
+            return model
+        return openai_spec(model, endpoint, api_key_env, embed_endpoint)
+
+    @staticmethod
+    def selecting_options(model: str) -> str:
+        url = address_of(model)  # None: a shared file's identity, which names no address
+        name, pooled = served_as(model)
+        embed = (embed_url(model) if url else "URL") if pooled else None
+        return f"--backend openai --model {name} --endpoint {url or 'URL'}" + (f" --embed-endpoint {embed}" if embed else "")
+
+    # --- a served model in a shared cache: an identity, never an address (`illm_tools.tasks.served`) ---------
+    identity = staticmethod(identity)
+    served_as = staticmethod(served_as)
+
+    @staticmethod
+    def address_of(spec: str) -> str | None:
+        """The engine URL a spec of this machine's annotator names; None for an identity or another
+        backend's model."""
+        return address_of(spec) if describe_offline(spec) is not None else None
+
+    @staticmethod
+    def reached_model(model: str, given: dict, where) -> dict:
+        """An adopted served model: its served name alone, reached where the user's own options
+        (`given`) say: the address and key variable of the spec its rows were written under are never
+        read, and without --endpoint it is refused in one line naming the options to give."""
+        name, pooled = served_as(model)
+        missing = [option for option, needed in (("--endpoint URL (your engine's OpenAI base)", "endpoint"),
+                                                 ("--embed-endpoint URL (its summaries were embedded by a pooling "
+                                                  "endpoint)", "embed_endpoint" if pooled else None))
+                   if needed and not given.get(needed)]
+        if missing:
+            raise UsageError(f"the cache {where} holds annotations of {name!r} served by an OpenAI-compatible engine, "
+                             f"and a cache never says where a request goes: give {' and '.join(missing)}, with "
+                             "--api-key-env VAR if it needs a key, or choose the model with --backend and --model")
+        return {"model": name}
 
     def __init__(self, spec: str, *, concurrency: int = 16, timeout: float = 120.0, retries: int = 4):
         self.model = spec

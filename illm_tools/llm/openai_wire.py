@@ -39,7 +39,7 @@ import urllib.error
 import urllib.request
 from dataclasses import dataclass
 
-from illm_tools.errors import IllmError, UsageError
+from illm_tools.errors import EngineUnreachableError, IllmError, UsageError
 from illm_tools.web import NO_REDIRECTS
 
 DEFAULT_KEY_ENV = "OPENAI_API_KEY"
@@ -68,10 +68,6 @@ MAX_ANSWER_BYTES = 256 * 2**20
 
 class EndpointError(IllmError):
     """The endpoint failed a request after its retries, or answered something illm cannot use."""
-
-
-class EngineUnreachableError(UsageError):
-    """No OpenAI-compatible server answers at a model spec's endpoint (its identity cannot be asked)."""
 
 
 def _one_line(text: str, limit: int = 200) -> str:

@@ -100,6 +100,26 @@ class OracleBackend:
     chunk_states = 2048
     """States per written shard in bulk annotation (an LLM's chunk of 32 would write a shard every 30 ms)."""
 
+    model_options = ("oracle_noise",)
+    """`--oracle-noise` goes into its model spec (`model_spec`)."""
+
+    @staticmethod
+    def model_spec(model: str | None, *, oracle_noise: float = 0.0) -> str:
+        """The spec of `--model` (None, "oracle" or "oracle:noise=P") and `--oracle-noise`."""
+        if model is not None and parse_spec(model) and oracle_noise:
+            raise UsageError(f"--model {model} already sets the oracle's noise: leave --oracle-noise out")
+        return model if model is not None and parse_spec(model) else oracle_spec(oracle_noise)
+
+    @staticmethod
+    def selecting_options(model: str) -> str:
+        noise = parse_spec(model)
+        return "--backend oracle" + (f" --oracle-noise {noise:g}" if noise else "")
+
+    @staticmethod
+    def setting_of(model: str) -> dict:
+        """Its noise as a setting of its own, as reports have always named it."""
+        return {"model": NAME, "oracle_noise": parse_spec(model)}
+
     def __init__(self, model: str = NAME):
         self.model = model
         self.noise = parse_spec(model)

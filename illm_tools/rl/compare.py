@@ -16,16 +16,16 @@ def comparable(data: Mapping) -> dict:
     method that reads no targets and is not in hop mode, and iLLM's settings for a method
     without its heads. The model is named as the backend's default names it (an LLMSpec's model), the
     oracle's noise apart (`oracle_noise`). A config this version cannot read is returned as it is."""
+    from illm_tools.llm.backend import backend_class
     from illm_tools.rl.config import TrainConfig
 
     try:
         cfg = TrainConfig.from_dict({k: v for k, v in upgrade_config(data).items()
                                      if k in TrainConfig.__dataclass_fields__} | {"resume": False})
         out = flat_settings({**data, "resume": False})
-        if cfg.llm.backend == "oracle":  # its noise as a setting of its own, as reports have always named it
-            from illm_tools.llm.oracle import NAME, parse_spec
-
-            out.update(model=NAME, oracle_noise=parse_spec(cfg.llm.model))
+        setting_of = getattr(backend_class(cfg.llm.backend), "setting_of", None)
+        if setting_of is not None:  # a setting its model spec holds (the oracle's noise), as reports name it
+            out.update(setting_of(cfg.llm.model))
     except Exception:  # noqa: BLE001 - another version's run: compared as written
         return dict(data)
     drop = set()
@@ -34,11 +34,8 @@ def comparable(data: Mapping) -> dict:
     if not cfg.uses_llm:
         drop |= {"model", "backend", "model_dtype", "quant", "oracle_noise", "history_len", "layout",
                  "action_score", "action_target", "tasks", "task_weights", "live_budget", "live_mode", "annotator"}
-    else:
-        from illm_tools.llm.backend import backend_class
-
-        if not getattr(backend_class(cfg.llm.backend), "computes", True):
-            drop |= {"model_dtype", "quant"}
+    elif not getattr(backend_class(cfg.llm.backend), "computes", True):
+        drop |= {"model_dtype", "quant"}
     if not cfg.uses_heads:
         drop |= {"lambda_a", "beta_hc", "distill_coef", "distill_epochs", "summary_loss", "action_similarity",
                  "head_hidden"}

@@ -387,7 +387,7 @@ def flag_of(name: str) -> str:
 def _hidden_size(backend: str, model: str, cache: str | None = None) -> int:
     """A model's hidden size, read once per process (`LLMSpec.hidden_size`); for a model only its
     engine can describe (openai) when none answers, the width of the embeddings `cache` holds of it."""
-    from illm_tools.llm.openai_wire import EngineUnreachableError
+    from illm_tools.errors import EngineUnreachableError
 
     try:
         return LLMSpec(backend=backend, model=model).hidden_size()

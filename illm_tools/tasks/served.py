@@ -1,5 +1,6 @@
-"""A cache's served models (the openai backend: a model only its engine can fingerprint), read from its
-rows without asking the engine: how an adopted served model is reached (`REACHED`, `reached_model`: by the
+"""A cache's served models (a backend's model only its engine can fingerprint: openai's), read from its
+rows without asking the engine, through the hooks of its backend's class (`identity`, `served_as`,
+`address_of`, `reached_model`; a backend without them serves no such model): how an adopted served model is reached (`REACHED`, `reached_model`: by the
 user's own --endpoint, --api-key-env and --embed-endpoint only; a row's spec is an identity, never an
 address to contact), the options that select a held setup with the address left for the user
 (`held_options`), the addresses its rows were annotated at (`served_addresses`, a record only), and the
@@ -13,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from illm_tools.errors import UsageError
+from illm_tools.llm.backend import backend_class
 
 REACHED = ("endpoint", "api_key_env", "embed_endpoint")
 """The `LLMSpec` options that say where a served model is reached and which variable holds its key:
@@ -27,20 +29,8 @@ def reached_model(backend: str, model: str, reach: Mapping[str, str | None], whe
     naming the options to give (`where`: the cache). Another backend's model is kept, with `reach` as
     given (which `LLMSpec` refuses in one line: those options are the openai backend's)."""
     given = {k: reach[k] for k in REACHED if reach.get(k)}
-    if backend != "openai":
-        return {"model": model, **given}
-    from illm_tools.llm.openai_wire import served_as
-
-    name, pooled = served_as(model)
-    missing = [option for option, needed in (("--endpoint URL (your engine's OpenAI base)", "endpoint"),
-                                             ("--embed-endpoint URL (its summaries were embedded by a pooling "
-                                              "endpoint)", "embed_endpoint" if pooled else None))
-               if needed and not given.get(needed)]
-    if missing:
-        raise UsageError(f"the cache {where} holds annotations of {name!r} served by an OpenAI-compatible engine, "
-                         f"and a cache never says where a request goes: give {' and '.join(missing)}, with "
-                         "--api-key-env VAR if it needs a key, or choose the model with --backend and --model")
-    return {"model": name, **given}
+    reached = getattr(backend_class(backend), "reached_model", None)
+    return {"model": model, **given} if reached is None else {**reached(model, given, where), **given}
 
 
 def held_options(backend: str, model: str, dtype: str, quant: str) -> str:
@@ -48,33 +38,30 @@ def held_options(backend: str, model: str, dtype: str, quant: str) -> str:
     left for the user to give (`--endpoint URL`): a cache's rows never suggest where a request goes."""
     from illm_tools.llm.backend import selecting_options
 
-    if backend == "openai":  # as a shared file names it: its identity, whose options say `--endpoint URL`
-        from illm_tools.llm.openai_wire import identity
-
-        model = identity(model)
-    return selecting_options(backend, model, dtype, quant)
+    identity = getattr(backend_class(backend), "identity", None)  # as a shared file names a served model
+    return selecting_options(backend, identity(model) if identity is not None else model, dtype, quant)
 
 
 def served_addresses(specs: Sequence[str]) -> list[str]:
     """The engine URLs of served model specs (openai's "NAME@URL"), in order; [] for other models and
     for a shared file's address-free identities ("openai:NAME")."""
-    from illm_tools.llm.openai_wire import address_of, describe_offline
+    from illm_tools.llm.backend import BACKENDS
 
-    return [url for m in specs if describe_offline(m) is not None and (url := address_of(m)) is not None]
+    readers = [cls.address_of for name in BACKENDS if hasattr(cls := backend_class(name), "address_of")]
+    return [url for m in specs for address_of in readers if (url := address_of(m)) is not None]
 
 
 def cached_identity(cache, backend: str, model: str) -> tuple[str, int | None] | None:
     """For a model only its engine can fingerprint (openai): the fingerprint hash and embedding width
-    the cache's rows carry for the same served model at any address (`openai_wire.served_as`),
+    the cache's rows carry for the same served model at any address (its backend's `served_as`),
     when they carry one; None when they carry none; several are refused in one line. A run that
     cannot reach the engine reads its keys from these, so training from the cache asks it nothing."""
     from illm_tools.cache.store import AnnotationCache
 
     root = cache.root if isinstance(cache, AnnotationCache) else cache
-    if backend != "openai" or root is None or not (Path(root) / "manifest.json").is_file():
+    served_as = getattr(backend_class(backend), "served_as", None)
+    if served_as is None or root is None or not (Path(root) / "manifest.json").is_file():
         return None
-    from illm_tools.llm.openai_wire import served_as
-
     cache = cache if isinstance(cache, AnnotationCache) else AnnotationCache(cache)
     rows = cache.setups()
     want = served_as(model)
@@ -104,7 +91,7 @@ def model_identity(llm, cache) -> tuple[str, str | None]:
     of the backend (no weights loaded); where only an engine can tell (openai) and none answers, read
     from the rows of the same served model in `cache` (`cached_identity`): a run trains from the
     cache with the engine stopped, under any address it was annotated at. Neither: one line."""
-    from illm_tools.llm.openai_wire import EngineUnreachableError
+    from illm_tools.errors import EngineUnreachableError
 
     try:
         return llm.fingerprint(), None
