@@ -8,7 +8,8 @@ results a source of the page): its rows' finals, its aggregates, the probabiliti
 rounded as the report rounds them (`illm_tools.report.markdown.num`). A number no file holds (one
 combined by hand from two reports, one from a run whose report was not kept) is allowed only in a
 paragraph (or table row) that says so in a marker naming how it was made: `<!-- computed: COMMAND,
-DATE -->`.
+DATE -->` (or `<!-- quoted: SOURCE, DATE -->`, a source's figures; docs/refs.py's form of either, with
+`; numbers: ...`, also pins them).
 
 Single numbers too (`0.195`, `0.83`: two or three decimals, not a percentage): in a paragraph that
 links a results file (a results folder's report or results.json, or any .json file under

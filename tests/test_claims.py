@@ -289,3 +289,5 @@ def test_a_pinned_number_no_file_holds_fails_when_edited_alone():
     assert refs.check(page, text.replace("| 88% |", "| 88% | 0.5 |")) != []      # a number the marker misses
     (line,) = refs.check(page, text.replace(", 2026-11-22;", ";"))                # a marker with no date
     assert "names how and the date" in line
+    quoted = text.replace("computed: illm report's output, not kept", "quoted: the paper's Table 1")  # a source's figures
+    assert refs.check(page, quoted) == [] and len(refs.check(page, quoted.replace("| 88% |", "| 87% |"))) == 1
