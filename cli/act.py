@@ -19,7 +19,7 @@ def _parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.acting import ActConfig
 
-    params = dataclass_parameters(ActConfig, dict_fields={"env_options"},
+    params = dataclass_parameters(ActConfig,
                                   exclude={"setup.obs_mode", "setup.hop_seed", "setup.hop_beta"},
                                   extra_help={"env_options": "E.g. length=2000 (Crafter), max_episode_steps=200."})
     extra = [("as_json", bool, typer.Option(False, "--json", help="Print the figures as JSON.")),
@@ -48,7 +48,7 @@ def register(app: typer.Typer) -> None:
         from illm_tools.settings import check_new_file
 
         as_json, out = options.pop("as_json"), options.pop("out")
-        config = config_from_options(ActConfig, options, {"env_options"})
+        config = config_from_options(ActConfig, options)
         check_new_file(out, "--out")  # before the episodes are played, not after
         with progress(len(POLICIES) * config.episodes, f"act {config.llm.model or config.llm.backend}",
                       unit="episodes") as advance:

@@ -20,7 +20,7 @@ def _parameters() -> list[inspect.Parameter]:
     from cli.options import dataclass_parameters
     from illm_tools.collect import CollectConfig
 
-    params = dataclass_parameters(CollectConfig, dict_fields={"env_options"}, exclude={"write"},
+    params = dataclass_parameters(CollectConfig, exclude={"write"},
                                   defaults={}, required={"env_id", "out"},
                                   extra_help={"env_options": "E.g. max_episode_steps=500."})
     flags = [("append", "--append", "Add to an existing dataset at --out."),
@@ -37,7 +37,7 @@ def register(app: typer.Typer) -> None:
         from illm_tools.collect import collect as run
 
         write = write_mode(options.pop("append"), options.pop("overwrite"))
-        config = config_from_options(CollectConfig, {**options, "write": write}, {"env_options"})
+        config = config_from_options(CollectConfig, {**options, "write": write})
         start = time.perf_counter()
         with progress(config.steps, f"collect {config.env_id}") as advance:
             done = [0]

@@ -57,15 +57,14 @@ def _optional(hint: Any) -> tuple[Any, bool]:
 
 def dataclass_parameters(cls: type, *, exclude: set[str] = frozenset(), defaults: dict[str, Any] | None = None,
                          required: set[str] = frozenset(), extra_help: dict[str, str] | None = None,
-                         arguments: set[str] = frozenset(), dict_fields: set[str] = frozenset(),
-                         names: dict[str, str] | None = None, _prefix: str = "",
+                         arguments: set[str] = frozenset(), names: dict[str, str] | None = None, _prefix: str = "",
                          _instance: Any = None) -> list[inspect.Parameter]:
     """One keyword parameter per field of `cls` (minus `exclude`) with a `typer.Option` default.
 
     defaults: CLI defaults that differ from the field's (e.g. None for "take it from a preset");
     required: fields the command needs; extra_help: appended to help; arguments: positional fields
-    (required); dict_fields: dict fields taken as repeatable KEY=VALUE options (their flag
-    declared, `--x-option` by default); names: a nested field's parameter name by its dotted name
+    (required); a dict field is a repeatable KEY=VALUE option (its flag declared, `--x-option` by
+    default: `pair_fields`); names: a nested field's parameter name by its dotted name
     where the command has another setting of its own name (a run's `llm.device` is `llm_device`,
     its flag `--llm-device`, beside the run's `--device`). All but `exclude` name a field by its
     parameter name."""
@@ -87,7 +86,7 @@ def dataclass_parameters(cls: type, *, exclude: set[str] = frozenset(), defaults
             # with the defaults its field gives (a probe's history 0), not what its class resolves them to
             given = own if f.default_factory not in (hint, dataclasses.MISSING) else None
             params += dataclass_parameters(hint, exclude=exclude, defaults=defaults, required=required,
-                                           extra_help=extra_help, dict_fields=dict_fields, names=renamed,
+                                           extra_help=extra_help, names=renamed,
                                            _prefix=dotted + ".", _instance=given)
             continue
         help_text = " ".join(filter(None, [docs.get(f.name, ""), extra_help.get(name, "")]))
@@ -97,7 +96,7 @@ def dataclass_parameters(cls: type, *, exclude: set[str] = frozenset(), defaults
                                             default=typer.Argument(..., help=help_text)))
             continue
         declared = f.metadata.get("flag")
-        if name in dict_fields:
+        if _is_pairs(hint):
             decls, annotation, default = [declared or flag(name.removesuffix("s"))], list[str], None
             help_text += " Repeatable KEY=VALUE."
         else:
@@ -126,7 +125,22 @@ def dataclass_parameters(cls: type, *, exclude: set[str] = frozenset(), defaults
     return params
 
 
-def config_from_options(cls: type, options: dict, dict_fields: set[str] = frozenset()):
+def _is_pairs(hint) -> bool:
+    """Whether a field of this type is taken as repeatable KEY=VALUE options: a dict."""
+    return hint is dict or typing.get_origin(hint) is dict
+
+
+def pair_fields(cls: type) -> set[str]:
+    """The names of `cls`'s dict fields, its nested configs' included: its repeatable KEY=VALUE options."""
+    hints = typing.get_type_hints(cls)
+    out = set()
+    for f in dataclasses.fields(cls):
+        hint, _ = _optional(hints[f.name])
+        out |= pair_fields(hint) if dataclasses.is_dataclass(hint) else {f.name} if _is_pairs(hint) else set()
+    return out
+
+
+def config_from_options(cls: type, options: dict):
     """The config `cls` from a generated command's options (`dataclass_parameters`): repeatable
     KEY=VALUE options parsed into their dict fields, comma-separated ones into tuples, a nested
     config's options gathered into it; `cls` validates the rest in its `__post_init__` (a bad
@@ -141,13 +155,12 @@ def config_from_options(cls: type, options: dict, dict_fields: set[str] = frozen
         name = f.name
         if dataclasses.is_dataclass(hint) and f.name not in fields:  # a nested config from its own options
             names = {g.name for g in _all_fields(hint)}
-            out[f.name] = config_from_options(hint, {k: fields.pop(k) for k in list(fields) if k in names},
-                                              dict_fields)
+            out[f.name] = config_from_options(hint, {k: fields.pop(k) for k in list(fields) if k in names})
             continue
         if name not in fields:
             continue
         value = fields.pop(name)
-        if name in dict_fields:
+        if _is_pairs(hint):
             value = parse_pairs(value, f.metadata.get("flag") or flag(name.removesuffix("s")))
         elif typing.get_origin(hint) is tuple and isinstance(value, str):
             value = tuple(v.strip() for v in value.split(",") if v.strip())

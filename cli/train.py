@@ -10,7 +10,6 @@ import typer
 
 from cli.common import emit_json, progress, stop_on_signals
 from cli.errors import friendly
-DICT_FIELDS = {"bonus_options", "network_options", "env_options", "task_weights"}  # repeatable KEY=VALUE options
 EXAMPLE = ("Example: illm train --env BabyAI-GoToLocal-v0 --cache data/ann --method illm --frames 200000 --seed 0 "
            "--out runs/gotolocal-illm")
 
@@ -33,10 +32,11 @@ def train_config(ctx: typer.Context, options: dict):
     from illm_tools.rl.build import run_config
     from illm_tools.settings import parse_pairs
 
-    from illm_tools.rl.config import flag_of
+    from cli.options import pair_fields
+    from illm_tools.rl.config import TrainConfig, flag_of
 
     settings = dict(options)
-    for name in DICT_FIELDS:
+    for name in pair_fields(TrainConfig):  # repeatable KEY=VALUE options
         settings[name] = parse_pairs(options.get(name), flag_of(name))
     settings["bonus_options"] = get_method(options["method"]).typed_options(settings["bonus_options"])
     return run_config(settings, _given(ctx), say=lambda line: typer.echo(line, err=True))
@@ -93,10 +93,11 @@ def _train_parameters() -> list[inspect.Parameter]:
     from illm_tools.intrinsic.registry import method_help  # light: names only, no torch
     from illm_tools.rl.config import NOT_SETTINGS, PART_NAMES, TrainConfig
     from illm_tools.rl.live_remote import AnnotatorAccess
-    from illm_tools.rl.presets import BONUS_PRESETS, PRESET_FIELDS as WEIGHTS, preset_text
+    from illm_tools.intrinsic.presets import BONUS_PRESETS, preset_text
+    from illm_tools.rl.declared import PRESET_FIELDS as WEIGHTS
 
     params = dataclass_parameters(
-        TrainConfig, dict_fields=DICT_FIELDS, exclude={".".join(n) for n in NOT_SETTINGS}, required={"run_dir"},
+        TrainConfig, exclude={".".join(n) for n in NOT_SETTINGS}, required={"run_dir"},
         names={".".join(k): v for k, v in PART_NAMES.items()}, defaults={w: None for w in WEIGHTS},
         extra_help={"method": "One of: " + method_help() + ".",
                     **{w: "Default: from --bonus-preset." for w in WEIGHTS},

@@ -33,18 +33,32 @@ INT_LIMIT = 2**62
 
 
 def setting(default: Any = dataclasses.MISSING, *, flag: str | tuple[str, ...] | None = None,
-            resumes: bool = False, adopted: bool = False, factory: Any = dataclasses.MISSING,
-            **field_options) -> Any:
+            resumes: bool = False, adopted: bool = False, auto: bool = False, machine: bool = False,
+            preset: bool = False, flat: str | None = None, run_setting: bool = True,
+            factory: Any = dataclasses.MISSING, **field_options) -> Any:
     """A config field that declares, beside its default, the facts about it that other code asks, so
-    that each is written once, where the setting is: `flag`, the documented flag when it is not `--` +
-    the field's name (`cli.options.dataclass_parameters` reads it; a string: kept beside the field's
-    own flag; a tuple: the only flags, as `--mode` for obs_mode, whose own name means another thing);
-    `resumes`, whether a resumed training run may be given another value (its length, folder,
-    devices, checkpointing, live annotation: `illm_tools.rl.config.RESUMABLE_CHANGES` is derived from it);
-    `adopted`, whether a training run takes it from its cache's one setup when no option that selects a
-    setup is given (the model's and the prompt's: `illm_tools.rl.config.ADOPTED`)."""
-    metadata = ({} if flag is None else {"flag": flag}) | ({"resumes": True} if resumes else {}) | \
-        ({"adopted": True} if adopted else {})
+    that each is written once, where the setting is (`illm_tools.rl.declared` derives a training run's
+    tables from them):
+
+    - `flag`: the documented flag when it is not `--` + the field's name (`cli.options.dataclass_parameters`
+      reads it; a string: kept beside the field's own flag; a tuple: the only flags, as `--mode` for
+      obs_mode, whose own name means another thing);
+    - `resumes`: a resumed training run may be given another value (its length, folder, devices,
+      checkpointing, live annotation: `RESUMABLE_CHANGES`);
+    - `adopted`: a training run takes it from its cache's one setup when no option that selects a setup
+      is given (the model's and the prompt's: `ADOPTED`);
+    - `auto`: its "auto" is resolved when a run starts and recorded; given again on resume, "auto" means
+      the recorded choice, not a change (`AUTO_CHOICES`);
+    - `machine`: a device the run resolves on the machine it starts on, chosen again on resume where the
+      machine lacks the recorded one (`MACHINE_CHOICES`);
+    - `preset`: a bonus preset names it (`--bonus-preset`: `PRESET_FIELDS`);
+    - `flat`: a part's field's name among a run's settings where the run has a setting of the field's
+      own name (the LLM's `dtype` is a run's `model_dtype`);
+    - `run_setting`: False for a field that is no setting of a training run (the LLM's `offline`)."""
+    metadata = {k: v for k, v in (("flag", flag), ("flat", flat)) if v is not None}
+    metadata |= {k: True for k, v in (("resumes", resumes), ("adopted", adopted), ("auto", auto),
+                                      ("machine", machine), ("preset", preset)) if v}
+    metadata |= {} if run_setting else {"run_setting": False}
     return dataclasses.field(default=default, default_factory=factory, metadata=metadata, **field_options)
 
 

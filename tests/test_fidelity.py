@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from illm_tools.collect import CollectConfig, collect
 from illm_tools.errors import UsageError
 from illm_tools.rl import Rollout, TrainConfig, load_checkpoint, two_stream_advantages
-from illm_tools.rl.presets import bonus_weights
+from illm_tools.intrinsic.presets import bonus_weights
 from illm_tools.rl.targets import CachedTargets
 from illm_tools.tasks.calibration import action_distribution, action_target
 from illm_tools.tasks.state import StateRecord

@@ -15,10 +15,10 @@ from illm_tools.errors import UsageError
 from illm_tools.experiment.plan import plan
 from illm_tools.experiment.spec import load_spec
 from illm_tools.rl.build import run_config
-from illm_tools.rl.config import check_resumable
+from illm_tools.rl.declared import check_resumable
 from illm_tools.rl.config import TrainConfig
 from illm_tools.rl.config import DERIVED, FLAT, PARTS
-from illm_tools.rl.presets import BONUS_PRESETS
+from illm_tools.intrinsic.presets import BONUS_PRESETS
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
 SPECS = Path(__file__).parents[1] / "experiments" / "specs"
@@ -145,7 +145,8 @@ def test_whether_a_setting_resumes_or_is_adopted_from_a_cache_is_declared_on_its
     derived from the fields (`declared`), for a part declared here as for the run's own."""
     import dataclasses
 
-    from illm_tools.rl.config import ADOPTED, PARTS, RESUMABLE_CHANGES, TrainConfig, declared
+    from illm_tools.rl.config import PARTS, TrainConfig
+    from illm_tools.rl.declared import ADOPTED, RESUMABLE_CHANGES, declared
     from illm_tools.settings import setting
 
     @dataclasses.dataclass(frozen=True)
@@ -160,3 +161,32 @@ def test_whether_a_setting_resumes_or_is_adopted_from_a_cache_is_declared_on_its
                        "hop_beta"}
     assert {"total_steps", "live_budget", "llm_device", "heads_bf16"} <= RESUMABLE_CHANGES  # its own, a part's, a renamed one
     assert not {"seed", "lambda_a", "history_len", "num_envs"} & RESUMABLE_CHANGES
+
+
+def test_the_other_facts_about_a_setting_are_declared_on_its_field_too():
+    """auto, machine, preset, flat and run_setting: each table of them derived from the fields; a preset's
+    settings are exactly the fields that declare `preset`, their defaults the default preset's."""
+    import dataclasses
+
+    from illm_tools.intrinsic.presets import BONUS_PRESETS, DEFAULT_SETTINGS, preset_settings
+    from illm_tools.rl.config import NOT_SETTINGS, PART_NAMES, PARTS, TrainConfig
+    from illm_tools.rl.declared import AUTO_CHOICES, MACHINE_CHOICES, PRESET_FIELDS, declared
+    from illm_tools.settings import setting
+
+    @dataclasses.dataclass(frozen=True)
+    class Tiny:
+        precision: str = setting("auto", auto=True)
+        gpu: str = setting("cpu", machine=True, flat="tiny_gpu")
+        temperature: float = setting(1.0, preset=True)
+
+    parts = {**PARTS, "tiny": Tiny}
+    assert declared("auto", parts, TrainConfig) == AUTO_CHOICES | {"precision"}
+    assert declared("machine", parts, TrainConfig) == MACHINE_CHOICES | {"tiny_gpu"}  # under its flat name
+    assert declared("preset", parts, TrainConfig) == PRESET_FIELDS | {"temperature"}
+    assert AUTO_CHOICES == {"model_dtype", "quant", "action_space"}
+    assert MACHINE_CHOICES == {"device", "llm_device"}
+    assert PART_NAMES == {("llm", "dtype"): "model_dtype", ("llm", "device"): "llm_device"}
+    assert NOT_SETTINGS == {("llm", "offline"), ("llm", "batch_tokens")}
+    assert all(set(preset_settings(p)) == PRESET_FIELDS for p in BONUS_PRESETS)
+    unset = TrainConfig().flat()
+    assert {k: unset[k] for k in PRESET_FIELDS} == DEFAULT_SETTINGS

@@ -43,10 +43,10 @@ def _apply(fields: dict, name: str, value: Any, spec: Spec, where: tuple) -> Non
         fields.setdefault("env_options", {})[name.split(".", 1)[1]] = value
         return
     if name == "bonus_preset":  # a preset stands for its settings (`run_config` expands it), as in `illm train`
-        from illm_tools.rl.presets import bonus_weights
+        from illm_tools.intrinsic.presets import preset_settings
 
         try:
-            bonus_weights(value)
+            preset_settings(value)
         except UsageError as e:
             raise UsageError(f"{spec.line(*where)}: {e}") from None
         fields[name] = value

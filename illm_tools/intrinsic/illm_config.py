@@ -1,7 +1,7 @@
 """`ILLMConfig`: iLLM's own settings (its heads' language tasks, the bonus's weights, its losses),
 declared and validated here once. A training run holds one as `TrainConfig.illm`; the options
 `illm train --lambda-a`, `--beta-hc`, `--tasks`, ... are its fields. Its defaults are the `small`
-preset's weights, the iLLM methods' default on the command line too (`illm_tools.rl.presets`).
+preset's weights, the iLLM methods' default on the command line too (`illm_tools.intrinsic.presets`).
 
 Kept apart from illm.py so that the command line reads it without importing torch.
 """
@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from illm_tools.errors import UsageError
+from illm_tools.intrinsic.presets import DEFAULT_SETTINGS
+from illm_tools.settings import setting
 
 SUMMARY_LOSSES = ("cosine", "mse")
 ACTION_SIMILARITIES = ("tv", "bhattacharyya")
@@ -25,10 +27,10 @@ class ILLMConfig:
     """The `TrainConfig` field holding this config (`illm_tools.intrinsic.registry`: a run's own
     setting, not a `--bonus-option`)."""
 
-    lambda_a: float = 0.08
+    lambda_a: float = setting(DEFAULT_SETTINGS["lambda_a"], preset=True)
     """Weight lambda of the action-generation bonus r^a (paper: 0.8; the default is the `small`
     preset's, the paper's / 10)."""
-    beta_hc: float = 0.05
+    beta_hc: float = setting(DEFAULT_SETTINGS["beta_hc"], preset=True)
     """Weight beta of the history-compression bonus r^hc (paper: 0.5; the default is the `small`
     preset's, the paper's / 10)."""
     tasks: tuple[str, ...] = ("action", "summary")

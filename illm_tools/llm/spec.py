@@ -29,15 +29,15 @@ class LLMSpec:
     model: str | None = setting(None, adopted=True)
     """Alias (see `illm models`), hub id or local folder; default: the backend's (smollm2-135m for
     transformers, oracle for oracle)."""
-    dtype: str = setting("auto", flag="--dtype", adopted=True)
+    dtype: str = setting("auto", flag="--dtype", adopted=True, auto=True, flat="model_dtype")
     """Compute dtype: auto | bfloat16 | float32 | float16; auto: bfloat16 on CUDA, and on a CPU where a
     timed matmul says it is faster than float32, else float32 (measured once per machine). The resolved
     dtype is part of every cache key."""
-    quant: str = setting("auto", adopted=True)
+    quant: str = setting("auto", adopted=True, auto=True)
     """bitsandbytes quantisation: none | 4bit (NF4) | 8bit | auto (on a CUDA device what the model's alias
     says: 4bit for llama3 and llama2, as the paper ran its annotator; else none). The resolved value is
     part of every cache key."""
-    device: str | None = setting(None, resumes=True)
+    device: str | None = setting(None, resumes=True, machine=True, flat="llm_device")
     """Where the model runs: cpu | cuda | cuda:N | auto (a GPU where torch sees one, else the CPU; with
     several processes each takes its own GPU); unset: auto (a training run's: its --device)."""
     oracle_noise: float = setting(0.0, adopted=True)
@@ -51,9 +51,9 @@ class LLMSpec:
     embed_endpoint: str | None = None
     """openai: the OpenAI base URL of a pooling server of the same weights (vLLM `--runner pooling`)
     that embeds the summaries; unset: the endpoint's own /v1/embeddings, else a local sentence model."""
-    offline: bool = dataclasses.field(default=False, compare=False)
+    offline: bool = setting(False, compare=False, run_setting=False)
     """Never download a hub model: use only what is in the Hugging Face cache (as HF_HUB_OFFLINE=1)."""
-    batch_tokens: int | None = dataclasses.field(default=None, compare=False)
+    batch_tokens: int | None = setting(None, compare=False, run_setting=False)
     """transformers: tokens one engine batch may hold (its states' prompts, packed candidates and summary
     tokens; --batch-size stays the most states); default: a quarter of the memory free when the model
     loads (RAM on a CPU, device memory on CUDA) over what a token holds."""

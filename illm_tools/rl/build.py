@@ -16,17 +16,8 @@ from typing import Any
 
 from illm_tools.errors import UsageError
 from illm_tools.rl.config import TrainConfig, flag_of
-from illm_tools.rl.presets import PRESET_FIELDS, bonus_weights
-
-AUTO_CHOICES = ("model_dtype", "quant", "action_space")
-"""Settings a run resolves when it starts (`TrainConfig.resolved`) that a resumed run keeps: their
-`auto`, given again on resume, is the choice the run made, not a change."""
-MACHINE_CHOICES = ("device", "llm_device")
-"""Settings a run resolves when it starts that a resumed run chooses again when they are not given and
-the machine it resumes on lacks the recorded one (a grid begun on a GPU machine resumes on a CPU one:
-its recorded "cuda" would there refuse to start); a recorded device the machine has is kept (runs put
-on the CPU of a GPU machine stay there). What the run learns does not depend on them."""
-
+from illm_tools.intrinsic.presets import bonus_weights
+from illm_tools.rl.declared import ADOPTED, AUTO_CHOICES, MACHINE_CHOICES, PRESET_FIELDS, RESUMABLE_CHANGES
 
 def _missing_here(device) -> bool:
     """Whether `device` names a CUDA device this machine does not have."""
@@ -54,7 +45,6 @@ def run_config(settings: Mapping[str, Any], given: Collection[str] | None = None
     """
     from illm_tools.intrinsic.registry import get_method
     from illm_tools.tasks.served import REACHED
-    from illm_tools.rl.config import ADOPTED
 
     settings = dict(settings)
     given = set(settings) if given is None else set(given)
@@ -78,7 +68,6 @@ def resumed(run_dir: Path, settings: Mapping[str, Any], given: Collection[str]) 
     --live-budget, threads, ...; the folder may have moved) and its devices chosen again where not
     given and this machine lacks them (MACHINE_CHOICES). Any other given setting that differs
     from the run's is refused in one line naming its option."""
-    from illm_tools.rl.config import RESUMABLE_CHANGES
     from illm_tools.rl.saved import read_run
 
     own = {**read_run(run_dir).settings, "run_dir": str(run_dir), "resume": True}  # the folder may have moved
@@ -106,7 +95,6 @@ def adopt_setup(cfg: TrainConfig, given: Collection[str], say: Callable[[str], N
     `say` hears which, in one line. `reach`: the user's own --endpoint, --api-key-env and
     --embed-endpoint, set on the model either way: an adopted served model is reached only there (a
     cache's rows never say where a request goes; without --endpoint it is refused in one line)."""
-    from illm_tools.rl.config import ADOPTED
     from illm_tools.tasks.annotation_setup import adopt
 
     reach = dict(reach or {})

@@ -70,7 +70,7 @@ class TrainConfig:
     """Environments stepped side by side."""
     num_steps: int = 128
     """Steps per env in one rollout; a rollout holds num_envs * num_steps transitions."""
-    action_space: str = "auto"
+    action_space: str = setting("auto", auto=True)
     """Action vocabulary: BabyAI's original (3), augmented (6) or irrelevant (9), paper Table 5
     (other suites offer one each, `illm envs`); auto: the suite's default (BabyAI: original for the
     GoTo levels, paper Tables 1 and 5, augmented otherwise). The run records the resolved name."""
@@ -80,7 +80,7 @@ class TrainConfig:
     """Mission words kept (longer missions are truncated)."""
     threads: int = setting(1, resumes=True)
     """Torch threads for the policy (small nets run best on one)."""
-    device: str = setting("auto", resumes=True)
+    device: str = setting("auto", resumes=True, machine=True)
     """Where the policy, the bonus's models and the rollout live: cpu, cuda, cuda:N or auto (a GPU
     where there is one; for many small runs side by side on one GPU machine, cpu). Actions are sampled on the CPU from the run's seeded generator; a run may
     resume on another device."""
@@ -287,11 +287,14 @@ class TrainConfig:
 PARTS = {"ppo": PPOConfig, "bonus": BonusConfig, "targets": TargetsConfig, "setup": PromptConfig, "llm": LLMSpec,
          "illm": ILLMConfig}
 """TrainConfig's parts: field -> its config class."""
-PART_NAMES = {("llm", "dtype"): "model_dtype", ("llm", "device"): "llm_device"}
-"""The flat names of the part fields whose own name a run's other settings take (--dtype, --device)."""
-NOT_SETTINGS = {("llm", "offline"), ("llm", "batch_tokens")}
-"""`LLMSpec` fields that are no run setting: a run never downloads what it lacks, and its live
-annotator's batches take the default budget."""
+PART_NAMES = {(part, f.name): f.metadata["flat"] for part, cls in PARTS.items() for f in dataclasses.fields(cls)
+              if "flat" in f.metadata}
+"""The flat names of the part fields whose own name a run's other settings take (`setting(flat=...)`: the LLM's
+dtype and device, model_dtype and llm_device)."""
+NOT_SETTINGS = {(part, f.name) for part, cls in PARTS.items() for f in dataclasses.fields(cls)
+                if f.metadata.get("run_setting") is False}
+"""Part fields that are no run setting (`setting(run_setting=False)`: a run never downloads what it lacks,
+and its live annotator's batches take the default budget)."""
 FLAT = {f.name: (None, f.name) for f in dataclasses.fields(TrainConfig) if f.name not in PARTS and f.name != "illm"}
 FLAT.update({PART_NAMES.get((part, f.name), f.name): (part, f.name) for part, cls in PARTS.items()
              for f in dataclasses.fields(cls) if (part, f.name) not in NOT_SETTINGS})
@@ -339,38 +342,6 @@ def flat_settings(data: Mapping) -> dict:
     out = upgrade_config(data)
     known = {k: out.pop(k) for k in list(out) if k in TrainConfig.__dataclass_fields__}
     return {**out, **TrainConfig.from_dict(known).flat()}
-
-
-def declared(fact: str, parts: Mapping[str, type] | None = None, own: type | None = None) -> frozenset[str]:
-    """Flat names of the settings whose field declares `fact` (`setting(resumes=True)`): the run's own and its parts'."""
-    parts, own = (PARTS if parts is None else parts), (TrainConfig if own is None else own)
-    found = {f.name for f in dataclasses.fields(own) if f.name not in parts and f.metadata.get(fact)}
-    found |= {PART_NAMES.get((part, f.name), f.name) for part, cls in parts.items() for f in dataclasses.fields(cls)
-              if (part, f.name) not in NOT_SETTINGS and f.metadata.get(fact)}
-    return frozenset(found)
-
-
-ADOPTED = declared("adopted")
-"""Settings a run takes from its cache's one setup when none is given (`setting(adopted=True)`: the model's
-and the prompt's; `illm_tools.rl.build.adopt_setup`)."""
-RESUMABLE_CHANGES = declared("resumes")
-"""Settings a resumed run may change (`setting(resumes=True)`): folder, devices, length, checkpoints, live
-annotation; any other difference is refused (`check_resumable`)."""
-
-
-def check_resumable(state: dict, cfg, action_names: list[str]) -> None:
-    """Refuse to resume a checkpoint (`state`, a saved run's) under other settings than it was
-    trained with (but `RESUMABLE_CHANGES`) or another action list."""
-    # compared under the flat names: a checkpoint of any version; a setting added after it was written counts at
-    # its default value
-    saved, now = flat_settings(state["config"]), cfg.flat()
-    changed = sorted(k for k in now if saved.get(k) != now[k] and k not in RESUMABLE_CHANGES)
-    if changed:
-        raise UsageError(f"cannot resume with changed settings {changed}; "
-                         "only total_steps and checkpointing may change")
-    if state["action_names"] != list(action_names):
-        raise UsageError(f"the checkpoint was trained with actions {state['action_names']}, "
-                         f"the environment offers {list(action_names)}; use the same action space")
 
 
 def flag_of(name: str) -> str:

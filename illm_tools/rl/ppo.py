@@ -29,7 +29,8 @@ from illm_tools.intrinsic.base import BonusContext, BonusRewards, TargetProvider
 from illm_tools.intrinsic.registry import get_method
 from illm_tools.rl.bonus_schedule import BonusSchedule
 from illm_tools.rl.checkpoint import CHECKPOINT_NAME, CheckpointWriter
-from illm_tools.rl.config import TrainConfig, check_resumable
+from illm_tools.rl.config import TrainConfig
+from illm_tools.rl.declared import check_resumable
 from illm_tools.rl.metrics_log import Means, MetricsLog
 from illm_tools.rl.policy import policy_network
 from illm_tools.rl.saved import read_run, write_config

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from illm_tools.errors import UsageError
-from illm_tools.rl.presets import BONUS_PRESETS, DEFAULT_PRESET, PRESET_DEFAULTS
+from illm_tools.intrinsic.presets import DEFAULT_SETTINGS
 from illm_tools.tasks.calibration import ACTION_TARGETS, CALIBRATIONS
 from illm_tools.settings import setting
 
@@ -73,25 +73,25 @@ class BonusConfig:
     """Run the heads' matmuls in bfloat16 on CPU (float32 parameters and losses); None: when a
     timed matmul says bf16 is faster on this CPU (it is on some, not on others; `illm_tools.llm.dtype`).
     The run records the answer in config.json and keeps it on resume, on any machine."""
-    action_target: str = PRESET_DEFAULTS["action_target"]
+    action_target: str = setting(DEFAULT_SETTINGS["action_target"], preset=True)
     """f^a's target: distribution (softmax of the calibrated scores) or argmax (the one-hot of the
     best one: the paper's Algorithm 1 line 7 and Appendix A select the highest log-probability)."""
     int_gamma: float = 0.99
     """Discount of the intrinsic return and of its normaliser (RND uses 0.99)."""
     int_episodic: bool = False
     """Cut the intrinsic return at episode ends; False is RND's non-episodic stream."""
-    ext_coef: float = BONUS_PRESETS[DEFAULT_PRESET]["ext_coef"]
+    ext_coef: float = setting(DEFAULT_SETTINGS["ext_coef"], preset=True)
     """Weight of the extrinsic advantage in the summed advantage."""
-    int_coef: float = BONUS_PRESETS[DEFAULT_PRESET]["int_coef"]
+    int_coef: float = setting(DEFAULT_SETTINGS["int_coef"], preset=True)
     """Weight of the intrinsic advantage (summed with the extrinsic one; two streams, see `reward_streams`)."""
-    reward_streams: int = PRESET_DEFAULTS["reward_streams"]
+    reward_streams: int = setting(DEFAULT_SETTINGS["reward_streams"], preset=True)
     """2: the bonus has its own value head and GAE (RND's two streams; `int_gamma`, `int_episodic`);
     1: the paper's Algorithm 1, r* = ext_coef r + int_coef b in one episodic stream with one critic."""
-    bonus_schedule: str = PRESET_DEFAULTS["bonus_schedule"]
+    bonus_schedule: str = setting(DEFAULT_SETTINGS["bonus_schedule"], preset=True)
     """The intrinsic advantage's weight over the run (`illm_tools.rl.bonus_schedule`): constant,
     anneal (linear to 0 over the run), or success (1 - the running success rate: it fades as the
     level is solved)."""
-    int_ext_cap: float = BONUS_PRESETS[DEFAULT_PRESET]["int_ext_cap"]
+    int_ext_cap: float = setting(DEFAULT_SETTINGS["int_ext_cap"], preset=True)
     """Cap the intrinsic advantage at this multiple of the extrinsic one (mean |.| per rollout) where
     the task paid anything in the rollout; 0: no cap (the bonus alone steers until a reward is found)."""
 

@@ -184,7 +184,7 @@ class SetupOptions:
         return prompt_options(self.history_len, self.layout, parse_hop_renderer(self.renderer))
 
     def fields(self, reach: Mapping[str, str | None] | None = None, where=None) -> dict:
-        """The TrainConfig fields of the setup (`illm_tools.rl.config.ADOPTED`), its model reached where the user's `reach`
+        """The TrainConfig fields of the setup (`illm_tools.rl.declared.ADOPTED`), its model reached where the user's `reach`
         options say (`reached_model`: a served model without --endpoint is refused; `where`: the cache)."""
         out = {"backend": self.backend, **reached_model(self.backend, self.model, reach or {}, where),
                "model_dtype": self.dtype, "quant": self.quant,

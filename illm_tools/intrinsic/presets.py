@@ -1,9 +1,10 @@
 """Bonus presets (`illm train --bonus-preset`, a spec's `bonus_preset`): how the bonus enters the
 advantages, in one name. A method names its own (`Method.preset`); `illm_tools.rl.build.run_config`
-expands it for the command line, the experiment grid and the Python API alike.
+expands it for the command line, the experiment grid and the Python API alike. The settings a preset
+gives are the fields that declare `setting(preset=True)` (`illm_tools.rl.declared.PRESET_FIELDS`).
 
 The iLLM methods' own preset, `small`, is also `TrainConfig`'s default: `TrainConfig()` trains what
-`illm train` with no weight option trains.
+`illm train` with no weight option trains (the fields' defaults are `DEFAULT_SETTINGS`).
 """
 
 from __future__ import annotations
@@ -29,21 +30,26 @@ DEFAULT_PRESET = "small"
 """The preset whose values are `TrainConfig`'s defaults (the default method's, illm's)."""
 PRESET_DEFAULTS = {"reward_streams": 2, "action_target": "distribution", "bonus_schedule": "constant",
                    "int_ext_cap": 0.0}
-"""The settings only some presets name, at the value the others keep (TrainConfig's defaults of them)."""
-PRESET_FIELDS = ("lambda_a", "beta_hc", "ext_coef", "int_coef", "reward_streams", "action_target", "bonus_schedule",
-                 "int_ext_cap")
-"""The settings a preset names, by their option names (a preset leaves out those it keeps at
-TrainConfig's default)."""
+"""The settings only some presets name, at the value the others give them."""
+
+
+def preset_settings(preset: str) -> dict:
+    """Every setting a preset gives: the ones it names, and `PRESET_DEFAULTS` for the others; an unknown
+    preset is refused in one line."""
+    if preset not in BONUS_PRESETS:
+        raise UsageError(f"--bonus-preset must be one of {', '.join(BONUS_PRESETS)}, got {preset!r}")
+    return {**PRESET_DEFAULTS, **BONUS_PRESETS[preset]}
+
+
+DEFAULT_SETTINGS = preset_settings(DEFAULT_PRESET)
+"""The default preset's settings: the defaults of the fields that declare `preset` (`ILLMConfig`'s weights,
+`BonusConfig`'s), written here once."""
 
 
 def bonus_weights(preset: str, **given) -> dict:
-    """Every PRESET_FIELDS setting of a BONUS_PRESETS entry (`PRESET_DEFAULTS` where the preset
-    names none); `given` values not None win."""
-    if preset not in BONUS_PRESETS:
-        raise UsageError(f"--bonus-preset must be one of {', '.join(BONUS_PRESETS)}, got {preset!r}")
-    chosen = {**PRESET_DEFAULTS, **BONUS_PRESETS[preset]}
+    """Every setting of a preset (`preset_settings`); `given` values not None win."""
     return {k: v if given.get(k) is None else (float(given[k]) if isinstance(v, float) else given[k])
-            for k, v in chosen.items()}
+            for k, v in preset_settings(preset).items()}
 
 
 def preset_text(preset: str) -> str:
