@@ -114,3 +114,16 @@ def test_a_seed_gives_the_same_episodes(env_id):
     first = texts(EnvPool(env_id, 2, seed=3, vector="sync"))
     assert first == texts(EnvPool(env_id, 2, seed=3, vector="sync"))
     assert first[0] != texts(EnvPool(env_id, 2, seed=4, vector="sync"))[0]
+
+
+def test_a_minihack_task_takes_minihacks_reward_options():
+    """Every MiniHack task hands its `**kwargs` on to MiniHack's base class, whose reward options are the
+    suite's too: a death that costs (`reward_lose`) reaches the env, and an unknown option is still refused."""
+    env = make_env("MiniHack-LavaCross-Levitate-Ring-Pickup-Restricted-v0", reward_lose=-1.0, penalty_step=0.0)
+    try:
+        base = env.env.unwrapped
+        assert (base.reward_lose, base.penalty_step) == (-1.0, 0.0)
+    finally:
+        env.close()
+    with pytest.raises(UsageError, match="takes no env option reward_loose; it takes .*reward_lose"):
+        make_env("MiniHack-MultiRoom-N4-Monster-v0", reward_loose=-1.0)

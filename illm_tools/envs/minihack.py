@@ -8,7 +8,8 @@ glyph crop centred on the agent (glyph ids 0..5975) followed by the 256 bytes of
 "minihack-text@<version>", `minihack_text.render_text`) describes the message, what is near the
 agent with direction and distance, and the inventory; the actions get readable names. Success: the
 episode ends with NetHack's status TASK_SUCCESSFUL (MiniHack's reward for the goal); the score is
-the success rate. `--env-option`s go to `gymnasium.make` (e.g. max_episode_steps); the moon phase
+the success rate. `--env-option`s go to `gymnasium.make` (e.g. max_episode_steps, or MiniHack's reward
+options: `--env-option reward_lose=-1` makes a death cost what a success pays); the moon phase
 is fixed (`fix_moon_phase`, else the first message depends on the date). Every episode is seeded:
 NetHack's RNGs (without its reseeding) and, for MultiRoom, the MiniGrid level generator.
 """
@@ -26,6 +27,9 @@ from illm_tools.envs.suite import ObsSpec, Suite, gym_options, native_quiet
 CROP = (9, 9)
 MESSAGE = 256
 POLICY_KEYS = ("glyphs_crop", "message")
+REWARD_OPTIONS = ("reward_win", "reward_lose", "penalty_step", "penalty_time", "penalty_mode")
+"""MiniHack's reward options (`minihack.MiniHack.__init__`): what a success pays (1), a death (0), a frozen
+step (-0.01) and time, which every task takes as `--env-option`s though its own class names them not."""
 TASK_SUCCESSFUL = 2
 """NLE's StepStatus.TASK_SUCCESSFUL (`info["end_status"]`)."""
 
@@ -99,7 +103,9 @@ class MiniHackSuite(Suite):
         return env_ids()
 
     def options(self, env_id: str) -> tuple[str, ...]:
-        return tuple(o for o in gym_options(env_id) if o != "observation_keys")
+        """`gymnasium.make`'s options of the task's class, and the reward options every task hands on to
+        MiniHack's base class through its `**kwargs` (`REWARD_OPTIONS`)."""
+        return tuple(sorted({*(o for o in gym_options(env_id) if o != "observation_keys"), *REWARD_OPTIONS}))
 
     def make(self, env_id: str, *, action_space: str, render_text: bool = True, **options: Any) -> MiniHackTextEnv:
         from illm_tools.envs.minihack_text import OBS_KEYS
