@@ -221,7 +221,11 @@ def test_annotate_references_the_one_field_that_holds_an_estimate_or_a_seeds_lis
 @pytest.mark.parametrize("said, edited", [
     ("three<!--?# above: ", "two<!--?# above: "),    # the report half: illm above ppo on three of four
     ("it overlaps<!--? ", "it clear of<!--? "),       # the report half's aggregate overlaps ppo's
-    ("clear of<!--? suite-report/results.json ", "overlaps<!--? suite-report/results.json "),
+    ("interval is clear of<!--? suite-report/results.json ", "interval is overlaps<!--? suite-report/results.json "),
+    ("illm is clear of<!--? ", "illm is overlaps<!--? "),  # LavaCrossingS9N1: illm's low end 0.406, rnd's high end 0.405
+    ("every interval but rnd's overlaps<!--? suite-report/results.json ", "every interval overlaps<!--? "
+     "suite-report/results.json rows[env_id=MiniGrid-LavaCrossingS9N1-v0,label=illm].final.iqm vs "
+     "rows[env_id=MiniGrid-LavaCrossingS9N1-v0,label=rnd].final.iqm & "),  # the sentence as it stood
 ])
 def test_a_verdict_word_that_contradicts_its_numbers_fails(said, edited):
     path = ROOT / "docs" / "experiments" / "suite.md"
