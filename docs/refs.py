@@ -48,12 +48,19 @@ from illm_tools.report.markdown import beats, num
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
-NUMBER = r"-?\d[\d,]*(?:\.\d+)?%?"
+NUMBER = r"(?:(?<![\d>])-)?\d[\d,]*(?:\.\d+)?%?"
 ESTIMATE = r"\d+\.\d+ \[\d+\.\d+, \d+\.\d+\]"
 REF = re.compile(rf"({ESTIMATE}|{NUMBER})<!--= (\S+) (.+?) -->")
-"""A referenced number: the number as printed, its file (under docs/results) and its path."""
-RESULT = re.compile(r"(?<![\w.\-/#=])\d[\d,]*\.\d+%?(?![\w.\-/])|(?<![\w.\-/#=])\d+%(?![\w\-/])")
-"""A result number as a page prints it: a decimal number or a percentage (`0.25`, `1,234.5`, `88%`)."""
+"""A referenced number: the number as printed, its file (under docs/results) and its path. A `-` is its
+sign only where no digit or reference comes before it: in a range (`1.35-1.65`, `0.99<!--= ... -->-1.00`)
+it is the dash between the ends."""
+_START = r"(?:(?<![\w.\-/#=])|(?<=\d-)|(?<=-->-))"
+"""Where a result number may start: not inside a word, a path, a version or a link; or as a range's upper end
+(`1.35-1.65`: the `-` follows a digit, or the lower end's reference)."""
+RESULT = re.compile(rf"{_START}\d[\d,]*\.\d+%?(?![\w/]|-(?!\d)|\.(?!\s|\Z|<))|{_START}\d+%(?![\w/]|-(?!\d))")
+"""A result number as a page prints it: a decimal number or a percentage (`0.25`, `1,234.5`, `88%`). A full stop
+after it followed by a space, a line's end or a comment (`... near 1.2.`) ends the sentence, not the number
+(`1.2.3` is a version); each end of a range (`1.35-1.65`, `97-100%`) is a number of its own."""
 HIDDEN = re.compile(r"```.*?```|`[^`\n]*`|<!--.*?-->|\]\([^)]*\)|!\[[^\]]*\]", re.S)
 """Code, HTML comments (a reference's own path), link targets and image alt texts: not results as read."""
 PIN = re.compile(r"<!-- (computed|quoted): ([^>]*?); numbers: ([^>]*?) -->")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -295,3 +296,36 @@ def test_a_pinned_number_no_file_holds_fails_when_edited_alone():
     assert "names how and the date" in line
     quoted = text.replace("computed: illm report's output, not kept", "quoted: the paper's Table 1")  # a source's figures
     assert refs.check(page, quoted) == [] and len(refs.check(page, quoted.replace("| 88% |", "| 87% |"))) == 1
+
+
+def test_a_number_before_a_full_stop_is_read_and_an_edit_of_it_fails():
+    """`... near 1.2.`: the full stop ends the sentence, not the number; `1.2.3` (a version) is no result."""
+    assert [m.group(0) for m in refs.numbers("RND keeps it near 1.2. Then 0.57.<!-- x --> and 0.3.\n")] == \
+        ["1.2", "0.57", "0.3"]
+    assert refs.numbers("vLLM 0.32.0, numba 0.68.1 and 127.0.0.1") == []
+    audit = _docs_module("audit")
+    page = ROOT / "docs" / "experiments" / "earlier.md"
+    text = page.read_text()
+    assert "illm 0.49 / 0.52 / 0.57.<!-- computed: " in text and not refs.check(page, text)
+    (match,) = [m for m in audit.numbers(text) if text.startswith("0.57.<!-- computed: ", m.start())]
+    (line,) = refs.check(page, audit.edited(text, match))
+    assert "earlier.md" in line and "0.56" in line
+
+
+def test_each_end_of_a_range_is_read_and_an_edit_of_either_fails():
+    """`1.35-1.65`: two numbers, each pinned or referenced; a referenced range's upper end is not a negative number."""
+    assert [m.group(0) for m in refs.numbers("entropy 1.35-1.65 of 1.79, cover 97-100%")] == ["1.35", "1.65", "1.79", "100%"]
+    page = ROOT / "docs" / "experiments" / "suite.md"
+    text = page.read_text()
+    assert "stayed at 1.35-1.65 of 1.79<!-- computed: " in text and not refs.check(page, text)
+    for edited in ("stayed at 1.34-1.65 of", "stayed at 1.35-1.66 of"):
+        (line,) = refs.check(page, text.replace("stayed at 1.35-1.65 of", edited))
+        assert "suite.md" in line
+    distil = ROOT / "docs" / "experiments" / "distil.md"
+    text = distil.read_text()
+    found = re.search(r"the other four (0\.99)<!--= [^>]*-->-(1\.00)<!--= [^>]*-->", text)
+    low, high = found.start(1), found.start(2)
+    assert [m.group(1) for m in refs.REF.finditer(text) if low <= m.start() <= high] == ["0.99", "1.00"]
+    for at, number in ((low, "0.98"), (high, "1.01")):
+        (line,) = refs.check(distil, text[:at] + number + text[at + 4:])
+        assert "distil.md" in line and number in line
