@@ -8,12 +8,15 @@ The form, which reads as text in plain markdown and vanishes in the built site:
 FILE is a path under docs/results; PATH walks the JSON: `.key`, `[N]` (a list's Nth element, `[-1]` its last),
 `[key=value,...]` (the one element of a list of objects whose fields print as the values; a value with
 `,` `=` or `]` in quotes), `[KEY]`
-(a key with characters a dotted step cannot hold). The number before the comment is written from the
-field at the precision the page prints it: an object with an estimate and its interval (`iqm`,
-`ci_low`, `ci_high`; `poi`...; `mean`...; `success_rate` with `success_interval`) prints each of its
-three numbers at the decimals the page gives it, as `illm report` prints it (`0.941 [0.374, 0.999]`) or
-otherwise (an episode length's `77.6 [58.4, 95.0]`); a number prints with the decimals, the thousands
-separators and the percent sign the page gave it (`97%` is the field 0.9725 as a percentage).
+(a key with characters a dotted step cannot hold); `[*]` (every element) and `[key!=value,...]` (every
+element whose field does not print as the value) name several fields, and a number that names them is
+what every one of them prints (`the other nine 1.00<!--= FILE rows[...].final.per_seed[seed!=4].score -->`).
+The number before the comment is written from the field at the precision the page prints it: an object
+with an estimate and its interval (`iqm`, `ci_low`, `ci_high`; `poi`...; `mean`...; `success_rate` with
+`success_interval`) prints each of its three numbers at the decimals the page gives it, as `illm report`
+prints it (`0.941 [0.374, 0.999]`) or otherwise (an episode length's `77.6 [58.4, 95.0]`); a number prints
+with the decimals, the thousands separators and the percent sign the page gave it (`97%` is the field
+0.9725 as a percentage).
 
 A verdict word is checked the same way: `above<!--? FILE A vs B -->` (or *clear of*, *overlaps*, *below*,
 *tie*: `holds`), A and B paths to estimates in FILE, is true by the tie rule or the check fails; a count,
@@ -67,8 +70,9 @@ PIN = re.compile(r"<!-- (computed|quoted): ([^>]*?); numbers: ([^>]*?) -->")
 """A marker that pins the numbers before it (see the module docstring): how and when, then the numbers;
 `quoted:` where they are a source's (the paper's figures), not made here."""
 STEP = re.compile(r'\.?([A-Za-z_][\w-]*)|\[((?:"[^"]*"|[^\]"])*)\]')
-SELECT = re.compile(r'([\w-]+)=("[^"]*"|[^,"]*)(?:,|$)')
-"""One `key=value` of a selector; a value holding `,` `]` or `=` is quoted: `[label="illm (a 1, b 2)"]`."""
+SELECT = re.compile(r'([\w-]+)(!?=)("[^"]*"|[^,"]*)(?:,|$)')
+"""One `key=value` (or `key!=value`) of a selector; a value holding `,` `]` or `=` is quoted:
+`[label="illm (a 1, b 2)"]`."""
 TRIPLES = (("iqm", "ci_low", "ci_high"), ("poi", "poi_low", "poi_high"), ("mean", "ci_low", "ci_high"))
 
 
@@ -89,35 +93,51 @@ def _printed(value) -> str:
 
 
 def resolve(file: str, path: str):
-    """The field `path` names in docs/results/`file`."""
-    node, pos = load(file), 0
+    """The one field `path` names in docs/results/`file`."""
+    nodes = resolve_all(file, path)
+    if len(nodes) != 1:
+        raise BadRef(f"{file} {path}: names {len(nodes)} fields, not one")
+    return nodes[0]
+
+
+def resolve_all(file: str, path: str) -> list:
+    """The fields `path` names in docs/results/`file`: one, or several where it steps through `[*]` or a
+    selector with `!=`."""
+    nodes, pos = [load(file)], 0
     for step in STEP.finditer(path):
         if step.start() != pos:
             break
         pos = step.end()
-        key, selector = step.groups()
-        if key is not None:
-            if not isinstance(node, dict) or key not in node:
-                raise BadRef(f"{file} {path}: no key {key!r} at {path[:step.start()] or 'the top'}")
-            node = node[key]
-        elif re.fullmatch(r"-?\d+", selector) and isinstance(node, list):
-            if not -len(node) <= int(selector) < len(node):
-                raise BadRef(f"{file} {path}: index {selector} out of range")
-            node = node[int(selector)]
-        elif "=" in selector and isinstance(node, list):
-            wanted = {k: v.strip('"') for k, v in SELECT.findall(selector)}
-            found = [e for e in node if isinstance(e, dict)
-                     and all(k in e and _printed(e[k]) == v for k, v in wanted.items())]
-            if len(found) != 1:
-                raise BadRef(f"{file} {path}: [{selector}] matches {len(found)} elements, not one")
-            node = found[0]
-        elif isinstance(node, dict) and selector in node:
-            node = node[selector]
-        else:
-            raise BadRef(f"{file} {path}: no element [{selector}]")
+        nodes = [found for node in nodes for found in _step(file, path, step, node)]
     if pos != len(path):
         raise BadRef(f"{file} {path}: cannot read the path from {path[pos:]!r}")
-    return node
+    return nodes
+
+
+def _step(file: str, path: str, step: re.Match, node) -> list:
+    """The nodes one step of `path` names in `node`."""
+    key, selector = step.groups()
+    if key is not None:
+        if not isinstance(node, dict) or key not in node:
+            raise BadRef(f"{file} {path}: no key {key!r} at {path[:step.start()] or 'the top'}")
+        return [node[key]]
+    if re.fullmatch(r"-?\d+", selector) and isinstance(node, list):
+        if not -len(node) <= int(selector) < len(node):
+            raise BadRef(f"{file} {path}: index {selector} out of range")
+        return [node[int(selector)]]
+    if selector == "*" and isinstance(node, list) and node:
+        return list(node)
+    if "=" in selector and isinstance(node, list):
+        wanted = [(k, op == "=", v.strip('"')) for k, op, v in SELECT.findall(selector)]
+        found = [e for e in node if isinstance(e, dict)
+                 and all(k in e and (_printed(e[k]) == v) == same for k, same, v in wanted)]
+        several = not all(same for _, same, _ in wanted)
+        if not found or (len(found) != 1 and not several):
+            raise BadRef(f"{file} {path}: [{selector}] matches {len(found)} elements, not one")
+        return found
+    if isinstance(node, dict) and selector in node:
+        return [node[selector]]
+    raise BadRef(f"{file} {path}: no element [{selector}]")
 
 
 def estimate(file: str, path: str) -> tuple[float, float, float]:
@@ -156,7 +176,10 @@ def shown_as(file: str, path: str, like: str) -> str:
     if re.fullmatch(ESTIMATE, like):
         (value, low, high), parts = estimate(file, path), re.findall(r"\d+\.\d+", like)
         return f"{printed(value, parts[0])} [{printed(low, parts[1])}, {printed(high, parts[2])}]"
-    return printed(resolve(file, path), like)
+    shown = {printed(node, like) for node in resolve_all(file, path)}
+    if len(shown) != 1:
+        raise BadRef(f"{file} {path}: its fields print as {', '.join(sorted(shown))}, not as one number")
+    return shown.pop()
 
 
 def printed(node, like: str) -> str:

@@ -329,3 +329,18 @@ def test_each_end_of_a_range_is_read_and_an_edit_of_either_fails():
     for at, number in ((low, "0.98"), (high, "1.01")):
         (line,) = refs.check(distil, text[:at] + number + text[at + 4:])
         assert "distil.md" in line and number in line
+
+
+def test_a_reference_to_several_fields_holds_the_number_each_prints():
+    """`per_seed[seed!=4]` (every seed but 4) and `per_seed[*]`: the number is what every one of them prints."""
+    page = ROOT / "docs" / "experiments" / "suite.md"
+    text = page.read_text()
+    said = "the other nine 1.00<!--= seeds-spread/results.json "
+    assert said in text and not refs.check(page, text)
+    (line,) = refs.check(page, text.replace(said, said.replace("1.00", "1.01")))
+    assert "holds 1.00" in line
+    row = "seeds-spread/results.json rows[env_id=MiniGrid-DoorKey-5x5-v0,label=illm].final.per_seed"
+    (line,) = refs.check(page, f"all ten 1.00<!--= {row}[*].score -->\n")        # seed 4 ended at 0.08
+    assert "print as 0.08, 1.00" in line
+    (line,) = refs.check(page, f"its seed 1.00<!--= {row}[seed=9,seed!=9].score -->\n")
+    assert "matches 0 elements" in line
