@@ -4,9 +4,10 @@
 (README, docs/index.md, docs/experiments/*, docs/measured.md, docs/scale.md, docs/commands/serve.md): every
 decimal number and percentage outside code, links and HTML comments. It edits each alone by one digit
 (its last) and runs the checks a commit meets (`refs.check`: a number that names its field, and the verdict
-words; `claims.problems`: the looser check; `render`: the rendered tables), then prints how many edits a
-check caught, and each one none caught with its page and line, so that the next reference to write is
-named. A number no file holds counts as caught only where a marker pins it (`<!-- computed: HOW, DATE;
+words; `claims.problems`: the looser check, on the pages `claims.pages` names; `render`: the rendered
+tables), then prints how many edits a check caught, and each one none caught with its page and line, so
+that the next reference to write is named. An edit is caught when a check reports of the edited page
+something it does not report of the page as it is (a page that fails already catches nothing by failing). A number no file holds counts as caught only where a marker pins it (`<!-- computed: HOW, DATE;
 numbers: ... -->`, docs/refs.py), which refs.check holds to the numbers it lists. Exit 0 when at least
 95% were caught (issue 72's bar), 1 otherwise.
 
@@ -50,13 +51,21 @@ def edited(text: str, match: re.Match) -> str:
 
 
 def caught(page: Path, text: str, checks) -> bool:
+    """Whether the checks report of `text` (`page` edited) something they do not report of the page as it is."""
+    return bool(set(problems(page, text, checks)) - set(problems(page, page.read_text(), checks)))
+
+
+def problems(page: Path, text: str, checks) -> list[str]:
+    """What the checks a commit meets report of `text` as `page`'s: the references, verdicts and pins
+    (`refs.check`), the looser check on the pages it covers (`claims.pages`), the rendered blocks."""
     refs, claims, render = checks
-    if refs.check(page, text) or claims.problems(page, text):
-        return True
+    found = refs.check(page, text)
+    if page.resolve() in {p.resolve() for p in claims.pages()}:
+        found += claims.problems(page, text)
     for name, (where, make) in render.blocks().items():
         if where.resolve() == page.resolve() and render.splice(text, make(), name) != text:
-            return True
-    return False
+            found.append(f"the {name} block differs from its rendering")
+    return found
 
 
 def main(argv: list[str]) -> int:
