@@ -9,7 +9,8 @@ glyph crop centred on the agent (glyph ids 0..5975) followed by the 256 bytes of
 agent with direction and distance, and the inventory; the actions get readable names. Success: the
 episode ends with NetHack's status TASK_SUCCESSFUL (MiniHack's reward for the goal); the score is
 the success rate. `--env-option`s go to `gymnasium.make` (e.g. max_episode_steps, or MiniHack's reward
-options: `--env-option reward_lose=-1` makes a death cost what a success pays); the moon phase
+options: `--env-option reward_lose=-1` makes an episode that ends without success, by a death or the step
+limit, cost what a success pays); the moon phase
 is fixed (`fix_moon_phase`, else the first message depends on the date). Every episode is seeded:
 NetHack's RNGs (without its reseeding) and, for MultiRoom, the MiniGrid level generator.
 """
@@ -28,8 +29,9 @@ CROP = (9, 9)
 MESSAGE = 256
 POLICY_KEYS = ("glyphs_crop", "message")
 REWARD_OPTIONS = ("reward_win", "reward_lose", "penalty_step", "penalty_time", "penalty_mode")
-"""MiniHack's reward options (`minihack.MiniHack.__init__`): what a success pays (1), a death (0), a frozen
-step (-0.01) and time, which every task takes as `--env-option`s though its own class names them not."""
+"""MiniHack's reward options (`minihack.MiniHack.__init__`): what a success pays (1), an episode ending
+otherwise, by a death or the step limit (0), a frozen step (-0.01) and time, which every task takes as
+`--env-option`s though its own class names them not."""
 TASK_SUCCESSFUL = 2
 """NLE's StepStatus.TASK_SUCCESSFUL (`info["end_status"]`)."""
 
