@@ -38,7 +38,7 @@ from illm_tools.errors import UsageError
 from illm_tools.llm.generation import Generation, greedy_from
 from illm_tools.llm.loading import LoadedModel
 from illm_tools.llm.scoring import (CandidateScores, PrefixState, StatePlan, common_prefix, continuation_logprobs,
-                                    extend, merge_states, plan_state)
+                                    extend, merge_states, plan_state, split_logprobs)
 
 
 @dataclass(frozen=True)
@@ -175,14 +175,9 @@ def branch_sums(values: Any, plans: Sequence[StatePlan]) -> list:
 
 def wrap_scores(values: Any, plans: Sequence[StatePlan]) -> list[CandidateScores]:
     """Per plan, its candidates' `CandidateScores` (the skipped tokens left out), from
-    `BatchRun.scored`'s values of these plans."""
-    rows, r = values.tolist(), 0
-    out = []
-    for p in plans:
-        out.append(CandidateScores.from_logprobs([rows[r + k][s:len(c)] for k, (c, s)
-                                                  in enumerate(zip(p.continuations, p.skip))]))
-        r += len(p.continuations)
-    return out
+    `BatchRun.scored`'s values of these plans (`scoring.split_logprobs`)."""
+    split = split_logprobs(values, [p.continuations for p in plans], [p.skip for p in plans])
+    return [CandidateScores.from_logprobs(logprobs) for logprobs in split]
 
 
 def drive(lm: LoadedModel, works: Sequence[Work], *, batch_size: int = 8, max_new_tokens: int = 0,

@@ -207,14 +207,20 @@ def score_continuations(lm: LoadedModel, state: PrefixState, continuations: Sequ
     fed with the candidates where they are packed (no copy of the state's cache for them). `state`
     is left untouched, so the same state can score further candidates.
     """
-    flat = [list(c) for cands in continuations for c in cands]
-    skips = [s for row in (skip or [[0] * len(c) for c in continuations]) for s in row]
-    if not flat:
+    if not any(continuations):
         if len(continuations) != state.batch_size:
             raise ValueError(f"{len(continuations)} candidate lists for {state.batch_size} rows")
         return [[] for _ in continuations]
-    values = continuation_logprobs(lm, state, continuations, leads=leads).tolist()
-    per_row = [vals[s:len(c)] for vals, c, s in zip(values, flat, skips)]
+    return split_logprobs(continuation_logprobs(lm, state, continuations, leads=leads), continuations, skip)
+
+
+def split_logprobs(values: Any, continuations: Sequence[Sequence[Sequence[int]]],
+                   skip: Sequence[Sequence[int]] | None = None) -> list[list[list[float]]]:
+    """`continuation_logprobs`' [N, W] tensor as lists: per row, per candidate, the log-probs of its
+    tokens after the first `skip[i][k]` (fed, not scored)."""
+    flat = [c for cands in continuations for c in cands]
+    skips = [s for row in (skip or [[0] * len(c) for c in continuations]) for s in row]
+    per_row = [vals[s:len(c)] for vals, c, s in zip(values.tolist(), flat, skips)]
     result, start = [], 0
     for cands in continuations:
         result.append(per_row[start:start + len(cands)])
