@@ -3,6 +3,7 @@ them (`experiment.launch.shared_cores`)."""
 from illm_tools.experiment.launch import shared_cores
 from illm_tools.experiment.plan import plan
 from illm_tools.experiment.spec import load_spec
+from illm_tools.rl.run import live_threads
 
 
 def _sync_illm_run(tmp_path):
@@ -16,9 +17,9 @@ def _sync_illm_run(tmp_path):
 def test_a_sync_annotator_in_a_grid_gets_its_share_of_the_cores(tmp_path, monkeypatch):
     monkeypatch.setattr("os.cpu_count", lambda: 16)
     config = _sync_illm_run(tmp_path)
-    assert config.targets.llm_threads == 0 and config.targets.live_threads(config.threads) == 16
+    assert config.targets.llm_threads == 0 and live_threads(config) == 16
     shared = shared_cores(config, jobs=15)
-    assert shared.targets.llm_threads == 1 and shared.targets.live_threads(shared.threads) == 1
+    assert shared.targets.llm_threads == 1 and live_threads(shared) == 1
     assert shared_cores(config, jobs=4).targets.llm_threads == 4
     assert shared.threads == config.threads == 1 and shared.targets.cache == config.targets.cache
 

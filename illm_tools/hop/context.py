@@ -180,3 +180,31 @@ class HopContext:
             stacked.append(torch.stack([x if x is not None else self.translate([r], [p])[0] for r, p, x in win[:-1]]
                                        + [new[i]]))
         return self.z_h(stacked)
+
+
+class HopStates:
+    """iLLM(hop)'s state source (`illm_tools.rl.states.StateSource`, picked by `make_states`): the
+    window of each env's recent (observation, action) steps, its hop records and Z_h, the LLM's last
+    hidden state over the translated window, which the network reads beside its torso. Z_h of the
+    current observations is computed once per step. `cfg` is the run's `TrainConfig`."""
+
+    def __init__(self, cfg, suite, image_shape: tuple[int, ...], action_names: Sequence[str],
+                 device: torch.device | str = "cpu", num_envs: int | None = None):
+        lm = cfg.llm.load()
+        self.suite, self.device = suite, device
+        raw = np.asarray(suite.hop_input(np.zeros(image_shape, dtype=np.uint8)))
+        self.tracker = HopTracker(num_envs or cfg.num_envs, cfg.setup.history_len, list(action_names))
+        self.hop = HopContext(lm, raw.size, len(action_names), seed=cfg.setup.hop_seed, beta=cfg.setup.hop_beta)
+        self.context_dim = self.hop.hidden_size
+        self._now: tuple[list, torch.Tensor] | None = None
+
+    def current(self, obs) -> tuple[list[StateRecord], torch.Tensor]:
+        if self._now is None:
+            records = self.tracker.records(obs.missions, [self.suite.hop_input(img) for img in obs.images])
+            self._now = records, self.hop.step(self.tracker).to(self.device)
+        return self._now
+
+    def advance(self, obs, actions, ends, next_obs) -> None:
+        self.tracker.push(list(actions), list(ends))
+        self._now = None
+        self.current(next_obs)  # the windows changed: their Z_h now, while the step's arrays are at hand

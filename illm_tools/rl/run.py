@@ -3,6 +3,7 @@ live model when a budget is given), and the trainer; plus evaluation of a finish
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -141,39 +142,47 @@ def live_kind(t) -> str | None:
     return "async" if t.live_mode == "async" else "sync"
 
 
+def live_threads(cfg: TrainConfig) -> int:
+    """Torch threads of the run's live LLM (`TargetsConfig.llm_threads`; 0: a sync annotator all the
+    cores, an async worker the cores the policy's `threads` leave)."""
+    if cfg.targets.llm_threads:
+        return cfg.targets.llm_threads
+    cores = os.cpu_count() or 1
+    return cores if cfg.targets.live_mode == "sync" else max(1, cores - cfg.threads)
+
+
 def worker_spec(cfg: TrainConfig, llm, setup):
     """What the run's async worker needs: its cache, LLM (placed), annotation setup and threads."""
     from illm_tools.rl.live import WorkerSpec
 
-    return WorkerSpec(cache=str(cfg.targets.cache), llm=llm, setup=setup, threads=cfg.targets.live_threads(cfg.threads))
-
-
-def _async_live(cfg: TrainConfig, llm, setup):
-    from illm_tools.rl.live import AsyncLive
-
-    return AsyncLive(worker_spec(cfg, llm, setup), budget=cfg.targets.live_limit)
+    return WorkerSpec(cache=str(cfg.targets.cache), llm=llm, setup=setup, threads=live_threads(cfg))
 
 
 def make_live(cfg: TrainConfig, llm, setup, cache, started=None):
     """The live annotator of a run (`illm_tools.rl.live`) for its LLM (placed) and annotation setup,
-    or None with no live budget; sync writes through `cache`, the object the targets are read from;
-    async is `started` (`early_live`'s worker) where the run started it."""
+    or None with no live budget (`live_kind`): sync writes through `cache`, the object the targets are
+    read from; async is `started` (`early_live`'s worker) where the run started it; remote asks an
+    `illm serve` server."""
     kind = live_kind(cfg.targets)
     if kind is None:
         return None
-    from illm_tools.rl.live import SyncLive
+    threads = live_threads(cfg)
+    if kind == "sync":
+        from illm_tools.annotate.engine import Annotator
+        from illm_tools.rl.live import SyncLive
+
+        # one shard per rollout: a budget of "all" hands over a rollout's every missed state at once
+        annotator = Annotator.of_setup(llm.load(), cache, llm, setup, chunk=4096)
+        return SyncLive(annotator, setup, cfg.targets.live_limit, threads=threads)
+    if kind == "async":
+        from illm_tools.rl.live import AsyncLive, WorkerSpec
+
+        return started if started is not None else AsyncLive(
+            WorkerSpec(cache=str(cfg.targets.cache), llm=llm, setup=setup, threads=threads), budget=cfg.targets.live_limit)
     from illm_tools.rl.live_remote import SYNC_WAIT, RemoteLive
 
-    if kind == "remote":
-        return RemoteLive(cfg.targets.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
-                          budget=cfg.targets.live_limit, wait=SYNC_WAIT if cfg.targets.live_mode == "sync" else 0.0)
-    if kind == "async":
-        return started if started is not None else _async_live(cfg, llm, setup)
-    from illm_tools.annotate.engine import Annotator
-
-    # one shard per rollout: a budget of "all" hands over a rollout's every missed state at once
-    annotator = Annotator.of_setup(llm.load(), cache, llm, setup, chunk=4096)
-    return SyncLive(annotator, setup, cfg.targets.live_limit, threads=cfg.targets.live_threads(cfg.threads))
+    return RemoteLive(cfg.targets.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
+                      budget=cfg.targets.live_limit, wait=SYNC_WAIT if cfg.targets.live_mode == "sync" else 0.0)
 
 
 RUN_LOCK = ".lock"

@@ -7,7 +7,6 @@ is checked by `TrainConfig`. A setting's flat name (its option, its name in spec
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -172,9 +171,3 @@ class TargetsConfig:
         """The live budget as a number of states per rollout; None: all of them."""
         return None if self.live_budget == "all" else int(self.live_budget)
 
-    def live_threads(self, policy_threads: int) -> int:
-        """Torch threads of the live LLM (see `llm_threads`) beside a policy on `policy_threads`."""
-        if self.llm_threads:
-            return self.llm_threads
-        cores = os.cpu_count() or 1
-        return cores if self.live_mode == "sync" else max(1, cores - policy_threads)

@@ -3,9 +3,9 @@ the key of its targets) and what the network reads beside the observation, and t
 steps (visit counts). The trainer talks to them through two small interfaces, so that it carries
 no branch for iLLM(hop), iLLM(obs) or a suite's extras:
 
-- a state source (`TextStates`, `HopStates`, `NoStates`): `current(obs)` -> (the records of the
-  pool's current observations, the network's context [N, C] or None), `advance(obs, actions, ends,
-  next_obs)` after each step; `context_dim` is C (0: none);
+- a state source (`TextStates`, `NoStates`, hop's `illm_tools.hop.context.HopStates`): `current(obs)`
+  -> (the records of the pool's current observations, the network's context [N, C] or None),
+  `advance(obs, actions, ends, next_obs)` after each step; `context_dim` is C (0: none);
 - a step observer (`VisitObserver`): `observe(obs)` with every new observation, `paid(reward)` with
   each rollout's intrinsic reward as paid ([T, N]; None where the run pays none), `state_dict` /
   `load_state_dict` (kept in the checkpoint under its `name`), `save(run_dir)` beside it.
@@ -60,43 +60,15 @@ class TextStates:
         self.history.push(obs.texts, list(actions), list(ends))
 
 
-class HopStates:
-    """iLLM(hop): the window of each env's recent (observation, action) steps, its hop records and
-    Z_h, the LLM's last hidden state over the translated window (`illm_tools.hop`), which the
-    network reads beside its torso. Z_h of the current observations is computed once per step."""
-
-    def __init__(self, cfg: TrainConfig, suite, image_shape: tuple[int, ...], action_names: Sequence[str],
-                 device: torch.device | str = "cpu", num_envs: int | None = None):
-        from illm_tools.hop.context import HopContext, HopTracker
-        lm = cfg.llm.load()
-        self.suite, self.device = suite, device
-        raw = np.asarray(suite.hop_input(np.zeros(image_shape, dtype=np.uint8)))
-        self.tracker = HopTracker(num_envs or cfg.num_envs, cfg.setup.history_len, list(action_names))
-        self.hop = HopContext(lm, raw.size, len(action_names), seed=cfg.setup.hop_seed, beta=cfg.setup.hop_beta)
-        self.context_dim = self.hop.hidden_size
-        self._now: tuple[list, torch.Tensor] | None = None
-
-    def current(self, obs) -> tuple[list[StateRecord], torch.Tensor]:
-        if self._now is None:
-            records = self.tracker.records(obs.missions, [self.suite.hop_input(img) for img in obs.images])
-            self._now = records, self.hop.step(self.tracker).to(self.device)
-        return self._now
-
-    def advance(self, obs, actions, ends, next_obs) -> None:
-        self.tracker.push(list(actions), list(ends))
-        self._now = None
-        self.current(next_obs)  # the windows changed: their Z_h now, while the step's arrays are at hand
-
-
 def make_states(cfg: TrainConfig, suite, image_shape: tuple[int, ...], action_names: Sequence[str], *,
                 needs_records: bool, device: torch.device | str = "cpu", num_envs: int | None = None) -> StateSource:
     """The run's state source: hop windows for `--mode hop` (their Z_h feeds the network whatever the
     method), the text history when the method reads LLM targets, else none."""
-    if cfg.setup.obs_mode == "hop":
-        return HopStates(cfg, suite, image_shape, action_names, device, num_envs)
-    if needs_records:
-        return TextStates(num_envs or cfg.num_envs, cfg.setup.history_len, action_names)
-    return NoStates()
+    if cfg.setup.obs_mode != "hop":
+        return TextStates(num_envs or cfg.num_envs, cfg.setup.history_len, action_names) if needs_records else NoStates()
+    from illm_tools.hop.context import HopStates
+
+    return HopStates(cfg, suite, image_shape, action_names, device, num_envs)
 
 
 class VisitObserver:
