@@ -167,18 +167,35 @@ def _wait_for_shards(cache, proc, n: int = 1, timeout: float = 120.0) -> None:
         time.sleep(0.05)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("signals", [1, 2])
-def test_sigterm_during_annotate_keeps_whole_chunks_and_a_rerun_finishes_the_same_cache(
-        signals, tmp_path, tmp_path_factory, tiny_lm, model_cache_in_tmp):
-    import signal
+@pytest.fixture(scope="module")
+def annotated_whole(tmp_path_factory, tiny_lm):
+    """The trajectories the signal tests annotate, and their cache annotated in one go by a process no signal
+    reached: the reference an interrupted and rerun cache must equal (made once for both tests)."""
     import subprocess
     from pathlib import Path
 
     from conftest import collect_babyai
-    from illm_tools.cache.verify import verify
 
     trajectories = collect_babyai(tmp_path_factory, steps=160, seed=3, action_space="original")
+    whole = tmp_path_factory.mktemp("whole") / "ann"
+    env = {**os.environ, "ILLM_CACHE_DIR": str(tmp_path_factory.mktemp("illm-cache"))}
+    subprocess.run(_annotate_cmd(trajectories, whole, tiny_lm.spec.path), cwd=Path(__file__).resolve().parents[1],
+                   check=True, capture_output=True, env=env)
+    return trajectories, whole
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("sigterm-annotate")  # one worker makes `annotated_whole` once for both
+@pytest.mark.parametrize("signals", [1, 2])
+def test_sigterm_during_annotate_keeps_whole_chunks_and_a_rerun_finishes_the_same_cache(
+        signals, tmp_path, annotated_whole, tiny_lm, model_cache_in_tmp):
+    import signal
+    import subprocess
+    from pathlib import Path
+
+    from illm_tools.cache.verify import verify
+
+    trajectories, whole = annotated_whole
     repo = Path(__file__).resolve().parents[1]
     cache = tmp_path / "ann"
     proc = subprocess.Popen(_annotate_cmd(trajectories, cache, tiny_lm.spec.path), cwd=repo,
@@ -196,8 +213,6 @@ def test_sigterm_during_annotate_keeps_whole_chunks_and_a_rerun_finishes_the_sam
     rerun = subprocess.run(_annotate_cmd(trajectories, cache, tiny_lm.spec.path), cwd=repo, capture_output=True,
                            text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
-    whole = tmp_path / "whole"
-    subprocess.run(_annotate_cmd(trajectories, whole, tiny_lm.spec.path), cwd=repo, check=True, capture_output=True)
     done, reference = AnnotationCache(cache), AnnotationCache(whole)
     assert len(done) == len(reference)
     keys = reference._distinct(["key"]).column("key").to_pylist()
