@@ -80,12 +80,17 @@ engine: $(ENGINE_STAMP)
 # every test module's asserts again and every `illm` subprocess a test starts compiles the package anew
 # (about 10 s of the fast tier's 2.5 minutes on a 2-core EPYC). __pycache__ folders are ignored by git.
 # The two environments install side by side (about 2 minutes each on 2 cores, mostly downloads and unpacking).
+# One torch thread a worker (OMP_NUM_THREADS=1; code that sets its own count, as a run, annotate and serve do,
+# still does): with a worker per core, each worker's torch otherwise starts a thread per core as well, and the
+# workers' threads contend for the cores (four modules of the slow tier's heaviest, test_coverage,
+# test_annotate, test_annotate_processes and test_distil, took 145 s against 113 s with one thread each on a
+# 2-core AMD EPYC, docs/measured.md).
 test:
 	$(MAKE) -j2 install engine
-	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n auto --dist loadgroup --durations=15
+	env -u PYTHONDONTWRITEBYTECODE OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider -n auto --dist loadgroup --durations=15
 
 test-fast: install
-	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n auto -m "not slow"
+	env -u PYTHONDONTWRITEBYTECODE OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider -n auto -m "not slow"
 
 # The main job end to end on the embedded model (SmolLM2-135M), each stage doing its job: collect 2,000 steps
 # of BabyAI-GoToRedBallNoDists-v0, whose history-0 views repeat, so that states annotated ahead are states
