@@ -55,10 +55,11 @@ def register(app: typer.Typer) -> None:
             from illm_tools.report.build import build_report
 
             build_report(list(runs), out, every, final_points=config.final_points, reps=config.bootstrap,
-                         probes=config.probe)
+                         probes=config.probe, groups=groups)  # the runs read once: a grid still training agrees
         written = f"report written to {out / 'report.md'} (figures and results.json beside it)" if out else ""
         if as_json:
-            emit_json([{"env_id": env, "label": label, **g} for (env, label), g in groups.items()])
+            emit_json([{"env_id": env, "label": label, **{k: v for k, v in g.items() if k != "curves"}}
+                       for (env, label), g in groups.items()])
             if written:
                 typer.echo(written, err=True)
             return

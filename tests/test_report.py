@@ -43,6 +43,40 @@ def test_runs_with_other_bonus_weights_are_reported_apart(tmp_path):
     assert sorted(method for _, method in groups) == ["illm (ext_coef 1)", "illm (ext_coef 2)"]
 
 
+def test_a_report_reads_each_run_once_so_a_run_still_training_gives_one_set_of_points(tmp_path, monkeypatch):
+    """`illm report --out` of a grid still training: a run's metrics.csv grows between two reads, and a
+    report that read it twice met points the first read did not have (a KeyError, seen on a Crafter grid)."""
+    from typer.testing import CliRunner
+
+    import illm_tools.report.curves as curves
+    from cli.main import app
+
+    fake_run(tmp_path / "a", 0, [(100, 1.0, 1), (200, 0.5, 2)])
+    fake_run(tmp_path / "b", 1, [(100, 0.0, 1), (150, 1.0, 1)])
+    read, load = [], curves.load_curve
+
+    def growing(run_dir, every):  # each read of b finds 30 more frames trained
+        read.append(run_dir.name)
+        if run_dir.name == "b":
+            with open(run_dir / "metrics.csv") as f:
+                header, *rows = f.read().splitlines()
+            step = header.split(",").index("global_step")
+            last = rows[-1].split(",")
+            last[step] = str(int(last[step]) + 30)
+            with open(run_dir / "metrics.csv", "a") as f:
+                f.write(",".join(last) + "\n")
+        return load(run_dir, every)
+
+    monkeypatch.setattr(curves, "load_curve", growing)
+    out = CliRunner().invoke(app, ["report", str(tmp_path / "a"), str(tmp_path / "b"), "--every", "100",
+                                   "--out", str(tmp_path / "report")])
+    assert out.exit_code == 0, out.output
+    assert sorted(read) == ["a", "b"]
+    results = json.loads((tmp_path / "report" / "results.json").read_text())
+    (row,) = results["rows"]
+    assert row["frames"] == [100] and row["trained_frames"][str(tmp_path / "b")] == 180  # b as read once
+
+
 def test_duplicate_seeds_are_refused_and_short_runs_are_named(tmp_path):
     import pytest
     from typer.testing import CliRunner

@@ -31,7 +31,7 @@ from illm_tools.errors import UsageError
 from illm_tools.report import plots, stats
 from illm_tools.report.achievements import final_achievements
 from illm_tools.report.aggregate import aggregate
-from illm_tools.report.curves import load_curve, summarise
+from illm_tools.report.curves import summarise
 from illm_tools.report.diagnostics import diagnostics_png, row_diagnostics, seeds_diagnostics_png
 from illm_tools.report.lengths import episode_length
 from illm_tools.report.results import read_results
@@ -70,7 +70,7 @@ def _clean(obj):
 
 
 def _row(env_id: str, label: str, group: dict, every: int, final_points: int, reps: int, seed: int) -> dict:
-    curves = [load_curve(Path(run), every) for run in group["runs"]]
+    curves = group["curves"]  # as `summarise` read them: a run still training is read once
     table = np.array([[dict(zip(c.frames, c.success))[f] for f in group["frames"]] for c in curves],
                      dtype=float).reshape(len(curves), len(group["frames"]))
     mean, low, high = stats.curve_band(table, reps, seed)
@@ -125,9 +125,11 @@ def _visitation(row: dict, out: Path, taken: set[str]) -> None:
 
 
 def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int = 1,
-                 reps: int = DEFAULT_BOOTSTRAP, seed: int = BOOTSTRAP_SEED, probes: list[Path] = ()) -> dict:
+                 reps: int = DEFAULT_BOOTSTRAP, seed: int = BOOTSTRAP_SEED, probes: list[Path] = (),
+                 groups: dict | None = None) -> dict:
     """Write the report folder `out` (see the module docstring) and return results.json's content.
-    `probes` (`illm probe --out` files) add the annotator-quality curve (`illm_tools.report.quality`)."""
+    `probes` (`illm probe --out` files) add the annotator-quality curve (`illm_tools.report.quality`);
+    `groups`: `summarise`'s of the same runs where the caller has read them already."""
     from illm_tools.report.quality import load_probes
 
     if final_points <= 0:
@@ -135,7 +137,7 @@ def build_report(run_dirs: list[Path], out: Path, every: int, final_points: int 
     if reps <= 0:
         raise UsageError(f"--bootstrap must be at least 1 resample, got {reps}")
     probe_figures = load_probes(list(probes))
-    groups = summarise(list(run_dirs), every)
+    groups = summarise(list(run_dirs), every) if groups is None else groups
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is a file: pass a folder for the report")

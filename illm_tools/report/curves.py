@@ -201,7 +201,9 @@ def _reads_targets(cfg: dict) -> bool:
 def summarise(run_dirs: list[Path], every: int) -> dict:
     """{(env, label): {"frames", "mean", "std", "seeds", "runs", "coverage", "hit_rate"}}, one
     entry per configuration (see the module docstring), plus the runs shorter than `every` under
-    each group's "short_runs" (they give no curve point)."""
+    each group's "short_runs" (they give no curve point), and its runs' `Curve`s as read (under
+    "curves"; not JSON): each run is read once, so a run still training when a report reads the
+    grid gives every table the same points."""
     if every <= 0:
         raise UsageError(f"--every must be positive, got {every}")
     curves = [load_curve(Path(run), every) for run in run_dirs]
@@ -231,6 +233,7 @@ def summarise(run_dirs: list[Path], every: int) -> dict:
                     "reads_targets": _reads_targets(members[0].config),
                     "frames": frames, "mean": mean.tolist(), "std": std.tolist(), "seeds": sorted(c.seed for c in long),
                     "runs": [c.run for c in long], "short_runs": {c.run: c.last_step for c in members if not c.frames},
+                    "curves": long,
                     "coverage": float(np.mean([c.coverage for c in members])),
                     "hit_rate": float(np.mean([c.hit_rate for c in members]))}
     return out
