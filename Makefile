@@ -80,7 +80,7 @@ engine: $(ENGINE_STAMP)
 # every test module's asserts again and every `illm` subprocess a test starts compiles the package anew
 # (about 10 s of the fast tier's 2.5 minutes on a 2-core EPYC). __pycache__ folders are ignored by git.
 # The two environments install side by side (about 2 minutes each on 2 cores, mostly downloads and unpacking).
-# One torch thread a worker (OMP_NUM_THREADS=1; code that sets its own count, as a run, annotate and serve do,
+# One torch thread a worker (OMP_NUM_THREADS=1; code that sets its own count, as a run and `illm serve` do,
 # still does): with a worker per core, each worker's torch otherwise starts a thread per core as well, and the
 # workers' threads contend for the cores (four modules of the slow tier's heaviest, test_coverage,
 # test_annotate, test_annotate_processes and test_distil, took 145 s against 113 s with one thread each on a
