@@ -75,3 +75,21 @@ def test_seeds_that_do_not_split_get_no_per_seed_diagnostics(tmp_path):
     assert results["files"]["seeds_diagnostics"] == {} and not list(out.glob("seeds-*.png"))
     report = (out / "report.md").read_text()
     assert "**Seeds that split**" not in report and "seeds-diagnostics" not in report
+
+
+def test_a_suite_without_a_success_rate_has_no_success_panel_and_no_solved_split(tmp_path, monkeypatch):
+    """Crafter logs no success rate: its diagnostics split no bonus into solved and unsolved windows (every
+    window read as unsolved before), and its figure has no empty success panel."""
+    from illm_tools.report import diagnostics, plots
+
+    run = tmp_path / "crafter-illm"
+    run.mkdir()
+    rows = [{"global_step": step, "charts/adv_int_ext_ratio": 0.2, "charts/head_agreement": 0.5,
+             "charts/intrinsic_reward": 0.01, "charts/bonus_weight": 1.0} for step in (100, 200)]
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    d = diagnostics.row_diagnostics({"runs": [str(run)], "frames": [100, 200], "final": {"split": False}}, 100)
+    assert d["bonus_paid"] == [0.01, 0.01] and d["paid_solved"] is None and d["paid_unsolved"] is None
+    drawn = []
+    monkeypatch.setattr(plots, "save_figure", lambda fig, path: drawn.append([ax.get_title() for ax in fig.axes]))
+    diagnostics.diagnostics_png("CrafterReward-Semantic-v1", [{"label": "illm", "diagnostics": d}], tmp_path / "d.png", {})
+    assert drawn == [["|A_int| / |A_ext|", "f^a agrees with the annotator", "bonus paid per step"]]

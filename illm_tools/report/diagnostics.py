@@ -71,12 +71,13 @@ def row_diagnostics(row: dict, every: int) -> dict | None:
         return None
     if row["final"].get("split"):  # drawn seed by seed (`seeds_diagnostics_png`), as its curves are
         out["per_seed"] = [{"seed": s["seed"], **series} for s, series in zip(row["final"]["per_seed"], per_run)]
-    solved = np.array(out["success"]) >= SOLVED
+    success = np.array(out["success"], dtype=float)  # NaN: a window without episodes, or a suite without
+    solved, unsolved = success >= SOLVED, success < SOLVED  # a success rate (Crafter): neither
     paid = np.array(out["bonus_paid"], dtype=float)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         out["paid_solved"] = float(np.nanmean(paid[solved])) if solved.any() else None
-        out["paid_unsolved"] = float(np.nanmean(paid[~solved])) if (~solved).any() else None
+        out["paid_unsolved"] = float(np.nanmean(paid[unsolved])) if unsolved.any() else None
     return out
 
 
@@ -96,14 +97,17 @@ def seeds_diagnostics_png(row: dict, path: Path) -> Path:
 
 
 def _panels(lines: list[tuple[str, dict, dict]], title: str, path: Path) -> Path:
-    """One panel per series, a line per (label, diagnostics with their frames, matplotlib's line style)."""
+    """One panel per series a line has values of (a suite without a success rate, Crafter, has no success
+    panel), a line per (label, diagnostics with their frames, matplotlib's line style)."""
     from matplotlib.ticker import MaxNLocator
 
     from illm_tools.report.plots import _pyplot, save_figure
 
     plt = _pyplot()
-    names = list(SERIES)
-    fig, axes = plt.subplots(1, len(names), figsize=(4.0 * len(names), 3.4), dpi=100)
+    names = [n for n in SERIES if any(v is not None and np.isfinite(v) for _, d, _ in lines for v in d[n])]
+    names = names or ["success"]  # nothing logged: one empty panel, not a figure without axes
+    fig, axes = plt.subplots(1, len(names), figsize=(4.0 * len(names), 3.4), dpi=100, squeeze=False)
+    axes = axes[0]
     for ax, name in zip(axes, names):
         for label, d, style in lines:
             values = [np.nan if v is None or (name == "adv_ratio" and v <= 0) else v for v in d[name]]

@@ -176,16 +176,21 @@ def diagnostics_section(rows: list[dict], png: str | None) -> list[str]:
     def cell(x) -> str:
         return "-" if x is None else f"{x:.3g}"
 
-    out = ["", f"Diagnostics over training (means over seeds, first window → last): |A_int| / |A_ext| (the bonus's "
-           f"share of the summed advantage), f^a's agreement with the annotator (its best action = the annotator's), "
-           f"the bonus paid per step as it entered the advantages, and that bonus in windows with success below / at "
-           f"least {SOLVED:g} (does it go on paying once the level is solved?):", ""]
-    out += _table(["method", "|A_int| / |A_ext|", "f^a agreement", "bonus paid per step", "success",
-                   f"bonus < {SOLVED:g} / ≥ {SOLVED:g} success"],
-                  [[r["label"], _span(r["diagnostics"]["adv_ratio"]), _span(r["diagnostics"]["head_agreement"]),
-                    _span(r["diagnostics"]["bonus_paid"]), _span(r["diagnostics"]["success"]),
-                    f"{cell(r['diagnostics']['paid_unsolved'])} / {cell(r['diagnostics']['paid_solved'])}"]
-                   for r in shown])
+    successes = any(_span(r["diagnostics"]["success"]) != "-" for r in shown)  # none on Crafter
+    out = ["", "Diagnostics over training (means over seeds, first window → last): |A_int| / |A_ext| (the bonus's "
+           "share of the summed advantage), f^a's agreement with the annotator (its best action = the annotator's), "
+           "the bonus paid per step as it entered the advantages"
+           + (f", and that bonus in windows with success below / at least {SOLVED:g} (does it go on paying once the "
+              "level is solved?):" if successes else " (the suite logs no success rate):"), ""]
+    header = ["method", "|A_int| / |A_ext|", "f^a agreement", "bonus paid per step"]
+    body = [[r["label"], _span(r["diagnostics"]["adv_ratio"]), _span(r["diagnostics"]["head_agreement"]),
+             _span(r["diagnostics"]["bonus_paid"])] for r in shown]
+    if successes:
+        header += ["success", f"bonus < {SOLVED:g} / ≥ {SOLVED:g} success"]
+        body = [[*line, _span(r["diagnostics"]["success"]),
+                 f"{cell(r['diagnostics']['paid_unsolved'])} / {cell(r['diagnostics']['paid_solved'])}"]
+                for line, r in zip(body, shown)]
+    out += _table(header, body)
     if png:
         out += ["", f"![diagnostics]({png})"]
     return out
