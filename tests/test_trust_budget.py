@@ -124,7 +124,9 @@ def test_the_mask_s_bytes_are_what_packed_mask_holds(tiny_lm):
     mask = packed_mask(torch.ones(1, prefix, dtype=torch.long), owner, torch.float32)
     peak = status("VmHWM") - before
     assert mask.shape == (1, 1, fed, prefix + fed)
-    assert mask.numel() * 4 < peak <= mask_bytes(model, 1, fed, prefix) * 1.02, (peak, mask_bytes(model, 1, fed, prefix))
+    # at least the mask itself (within 1%: a worker's resident pages freed while it is built count against it;
+    # 2.5 kB short of the mask's 145 MB was seen in a full `make test`), at most the budget's arithmetic
+    assert mask.numel() * 4 * 0.99 < peak <= mask_bytes(model, 1, fed, prefix) * 1.02, (peak, mask_bytes(model, 1, fed, prefix))
 
 
 def _many_long_candidates(lm, k: int = 12, words: int = 40) -> list[str]:
