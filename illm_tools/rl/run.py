@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import closing, contextmanager, nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -199,20 +199,13 @@ def train(cfg: TrainConfig, on_metrics: Callable[[dict], None] | None = None,
     re-submitted cluster job or a second terminal, stops at once instead of interleaving checkpoints).
     An async live worker is started first of all (`early_live`), unless the caller started it
     (`started`: `early_live_of_settings`); it is closed with the run either way."""
-    live = started if started is not None else early_live(cfg)  # its imports run beside this process's
-    try:
-        return _train(cfg, on_metrics, should_stop, live)
-    finally:
-        if live is not None:  # a run refused before its provider took the worker (closing twice does nothing)
-            live.close()
-
-
-def _train(cfg: TrainConfig, on_metrics, should_stop, live) -> dict:
     from illm_tools import durable
     from illm_tools.folders import refuse_foreign
     from illm_tools.rl.saved import read_run, with_recorded_choices
 
-    with torch_threads(cfg.threads):
+    live = started if started is not None else early_live(cfg)  # its imports run beside this process's
+    # closed with the run either way: a run refused before its provider took the worker (closing twice does nothing)
+    with closing(live) if live is not None else nullcontext(), torch_threads(cfg.threads):
         saved = read_run(cfg.run_dir) if cfg.resume else None
         # devices resolved (a GPU this machine lacks: one line before anything lands on disk) and auto
         # dtypes measured with the run's own thread count, as config.json records them
