@@ -31,6 +31,12 @@ SOLVED = 0.8
 """A window counts as solved from this success rate on."""
 
 
+def logged(values) -> bool:
+    """Whether a series holds a value in any window (None, as results.json writes it, and NaN are
+    windows without one; a suite without a success rate, Crafter, has none in its success series)."""
+    return any(v is not None and np.isfinite(v) for v in values)
+
+
 def _value(row: dict, column) -> float:
     if isinstance(column, tuple):  # a product (the normalised reward x its weight)
         values = [row.get(c) for c in column]
@@ -104,7 +110,7 @@ def _panels(lines: list[tuple[str, dict, dict]], title: str, path: Path) -> Path
     from illm_tools.report.plots import _pyplot, save_figure
 
     plt = _pyplot()
-    names = [n for n in SERIES if any(v is not None and np.isfinite(v) for _, d, _ in lines for v in d[n])]
+    names = [n for n in SERIES if any(logged(d[n]) for _, d, _ in lines)]
     names = names or ["success"]  # nothing logged: one empty panel, not a figure without axes
     fig, axes = plt.subplots(1, len(names), figsize=(4.0 * len(names), 3.4), dpi=100, squeeze=False)
     axes = axes[0]

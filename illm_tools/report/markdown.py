@@ -171,12 +171,12 @@ def diagnostics_section(rows: list[dict], png: str | None) -> list[str]:
     shown = [r for r in rows if r.get("diagnostics")]
     if not shown:
         return []
-    from illm_tools.report.diagnostics import SOLVED
+    from illm_tools.report.diagnostics import SOLVED, logged
 
     def cell(x) -> str:
         return "-" if x is None else f"{x:.3g}"
 
-    successes = any(_span(r["diagnostics"]["success"]) != "-" for r in shown)  # none on Crafter
+    successes = any(logged(r["diagnostics"]["success"]) for r in shown)  # none on Crafter
     out = ["", "Diagnostics over training (means over seeds, first window → last): |A_int| / |A_ext| (the bonus's "
            "share of the summed advantage), f^a's agreement with the annotator (its best action = the annotator's), "
            "the bonus paid per step as it entered the advantages"

@@ -166,19 +166,20 @@ def make_live(cfg: TrainConfig, llm, setup, cache, started=None):
     kind = live_kind(cfg.targets)
     if kind is None:
         return None
-    threads = live_threads(cfg)
+    if kind == "async":
+        if started is not None:
+            return started
+        from illm_tools.rl.live import AsyncLive
+
+        spec = worker_spec(cfg, llm, setup)
+        return AsyncLive(spec, budget=cfg.targets.live_limit)
     if kind == "sync":
         from illm_tools.annotate.engine import Annotator
         from illm_tools.rl.live import SyncLive
 
         # one shard per rollout: a budget of "all" hands over a rollout's every missed state at once
         annotator = Annotator.of_setup(llm.load(), cache, llm, setup, chunk=4096)
-        return SyncLive(annotator, setup, cfg.targets.live_limit, threads=threads)
-    if kind == "async":
-        from illm_tools.rl.live import AsyncLive, WorkerSpec
-
-        return started if started is not None else AsyncLive(
-            WorkerSpec(cache=str(cfg.targets.cache), llm=llm, setup=setup, threads=threads), budget=cfg.targets.live_limit)
+        return SyncLive(annotator, setup, cfg.targets.live_limit, threads=live_threads(cfg))
     from illm_tools.rl.live_remote import SYNC_WAIT, RemoteLive
 
     return RemoteLive(cfg.targets.annotator, client=str(cfg.run_dir.resolve()), llm=llm, setup=setup,
